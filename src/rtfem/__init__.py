@@ -1,0 +1,23 @@
+"""rtfem: real-time simulation of dynamically deformable shell finite-element models."""
+
+from . import meshes
+from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
+from .material import Material
+from .mesh import MeshReport, TriMesh
+from .meshfile import load_mesh, save_mesh
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "MeshError",
+    "MeshReport",
+    "Material",
+    "ModelError",
+    "RtfemError",
+    "RtfemWarning",
+    "SolverError",
+    "TriMesh",
+    "load_mesh",
+    "meshes",
+    "save_mesh",
+]

@@ -1,0 +1,302 @@
+"""The flat shell triangle: membrane with drilling rotations + DKT bending (paper section 2).
+
+Each triangle carries 6 dof per node, ordered ``(ux, uy, uz, rx, ry, rz)`` in the global
+frame. In the element's local frame (x along edge 1-2, z along the normal) the 18x18
+stiffness splits into
+
+* membrane action (Eq. 1) on ``(u, v, theta_z)``: Felippa's optimal triangle OPT with
+  drilling freedoms (C. A. Felippa, "A study of optimal membrane triangles with drilling
+  freedoms", CMAME 192 (2003) 2125-2168), K = K_basic + K_higher-order, with the optimal
+  parameters alpha_b = 3/2, beta_1..9 = (1, 2, 1, 0, 1, -1, -1, -1, -2) and
+  beta_0 = max((1 - 4 nu^2) / 2, 0.01). A plain constant-strain triangle with a small
+  fictitious drilling spring is available as ``membrane="cst"`` for comparison only.
+* bending action (Eq. 2) on ``(w, theta_x, theta_y)``: the Discrete Kirchhoff Triangle
+  (J.-L. Batoz, K.-J. Bathe, L.-W. Ho, "A study of three-node triangular plate bending
+  elements", IJNME 15 (1980) 1771-1812), integrated exactly with the 3-point mid-side rule.
+
+The combined 18x18 local stiffness is turned into the global frame with the block-diagonal
+rotation of the paper's "Transformations" paragraph, K_e = T^T k_e T. Everything is
+batched over all elements with numpy: no Python loop per element.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .material import Material
+
+__all__ = [
+    "local_frames",
+    "membrane_opt",
+    "membrane_cst",
+    "bending_dkt",
+    "local_stiffness",
+    "element_stiffness",
+    "element_mass",
+    "MEMBRANES",
+]
+
+MEMBRANES = ("opt", "cst")
+
+#: Felippa's optimal parameters of the OPT template (2003, Eq. 42).
+_OPT_ALPHA_B = 1.5
+_OPT_BETA = np.array([1.0, 2.0, 1.0, 0.0, 1.0, -1.0, -1.0, -1.0, -2.0])
+
+# local dof positions inside the 18-vector (per node: u v w rx ry rz)
+_MEMBRANE_DOFS = np.array([0, 1, 5, 6, 7, 11, 12, 13, 17])
+_BENDING_DOFS = np.array([2, 3, 4, 8, 9, 10, 14, 15, 16])
+
+
+def local_frames(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local frames of triangles.
+
+    Parameters
+    ----------
+    coords : (E, 3, 3) corner coordinates.
+
+    Returns
+    -------
+    R : (E, 3, 3) rotation, rows are the local axes e1 (along edge 1-2), e2, e3 (normal)
+        expressed in global coordinates, so that x_local = R @ x_global.
+    xy : (E, 3, 2) corner coordinates in the local frame (corner 1 at the origin).
+    area : (E,) triangle areas.
+    """
+    p1, p2, p3 = coords[:, 0], coords[:, 1], coords[:, 2]
+    a = p2 - p1
+    b = p3 - p1
+    n = np.cross(a, b)
+    twice_area = np.linalg.norm(n, axis=1)
+    e1 = a / np.linalg.norm(a, axis=1)[:, None]
+    e3 = n / twice_area[:, None]
+    e2 = np.cross(e3, e1)
+    R = np.stack([e1, e2, e3], axis=1)
+    rel = coords - p1[:, None, :]
+    xy = np.einsum("eij,ekj->eki", R[:, :2, :], rel)
+    return R, xy, 0.5 * twice_area
+
+
+def _diffs(xy: np.ndarray):
+    x, y = xy[..., 0], xy[..., 1]
+    x1, x2, x3 = x[:, 0], x[:, 1], x[:, 2]
+    y1, y2, y3 = y[:, 0], y[:, 1], y[:, 2]
+    return x1, x2, x3, y1, y2, y3
+
+
+def membrane_opt(xy: np.ndarray, area: np.ndarray, material: Material) -> np.ndarray:
+    """OPT membrane stiffness (E, 9, 9), dofs per node ``(u, v, theta_z)``.
+
+    K = V B^T E B + 3/4 beta_0 V T^T (Q4^T E_nat Q4 + Q5^T E_nat Q5 + Q6^T E_nat Q6) T
+    (Felippa 2003, Eq. 22, 29-32), with V = A t, E_nat = Te^T E Te.
+    """
+    x1, x2, x3, y1, y2, y3 = _diffs(xy)
+    x12, x23, x31 = x1 - x2, x2 - x3, x3 - x1
+    y12, y23, y31 = y1 - y2, y2 - y3, y3 - y1
+    x21, x32, x13 = -x12, -x23, -x31
+    y21, y32, y13 = -y12, -y23, -y31
+    A = area
+    ab = _OPT_ALPHA_B
+    ne = xy.shape[0]
+    z = np.zeros(ne)
+
+    # B = L^T / V: the mean-strain (basic) strain-displacement matrix, Felippa Eq. 22
+    B = np.empty((ne, 3, 9))
+    B[:, :, 0] = np.stack([y23, z, x32], axis=1)
+    B[:, :, 1] = np.stack([z, x32, y23], axis=1)
+    B[:, :, 2] = np.stack([y23 * (y13 - y21), x32 * (x31 - x12), 2 * (x31 * y13 - x12 * y21)], axis=1) * (ab / 6)
+    B[:, :, 3] = np.stack([y31, z, x13], axis=1)
+    B[:, :, 4] = np.stack([z, x13, y31], axis=1)
+    B[:, :, 5] = np.stack([y31 * (y21 - y32), x13 * (x12 - x23), 2 * (x12 * y21 - x23 * y32)], axis=1) * (ab / 6)
+    B[:, :, 6] = np.stack([y12, z, x21], axis=1)
+    B[:, :, 7] = np.stack([z, x21, y12], axis=1)
+    B[:, :, 8] = np.stack([y12 * (y32 - y13), x21 * (x23 - x31), 2 * (x23 * y32 - x31 * y13)], axis=1) * (ab / 6)
+    B /= (2 * A)[:, None, None]
+
+    # hierarchical (deviatoric) corner rotations: theta_i minus the CST mean rotation, Eq. 16
+    row = np.stack([x32, y32, z, x13, y13, z, x21, y21, z], axis=1) / (4 * A)[:, None]
+    Tth = np.repeat(row[:, None, :], 3, axis=1)
+    Tth[:, [0, 1, 2], [2, 5, 8]] = 1.0
+
+    # strain-gauge rosette transformation: Cartesian strains from natural side strains, Eq. 12
+    L21 = x21**2 + y21**2
+    L32 = x32**2 + y32**2
+    L13 = x13**2 + y13**2
+    Te = np.empty((ne, 3, 3))
+    Te[:, :, 0] = np.stack([y23 * y13, x23 * x13, y23 * x31 + x32 * y13], axis=1) * L21[:, None]
+    Te[:, :, 1] = np.stack([y31 * y21, x31 * x21, y31 * x12 + x13 * y21], axis=1) * L32[:, None]
+    Te[:, :, 2] = np.stack([y12 * y32, x12 * x32, y12 * x23 + x21 * y32], axis=1) * L13[:, None]
+    Te /= (4 * A**2)[:, None, None]
+
+    # natural corner strains from deviatoric rotations, Eq. 29 (beta index patterns of Q1..Q3)
+    b = _OPT_BETA
+    pat = (
+        np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]]),
+        np.array([[8, 6, 7], [2, 0, 1], [5, 3, 4]]),
+        np.array([[4, 5, 3], [7, 8, 6], [1, 2, 0]]),
+    )
+    inv_len = np.stack([1 / L21, 1 / L32, 1 / L13], axis=1) * (2 * A / 3)[:, None]  # (E, 3)
+    Q = [b[p][None, :, :] * inv_len[:, :, None] for p in pat]
+    Qm = [(Q[0] + Q[1]) / 2, (Q[1] + Q[2]) / 2, (Q[2] + Q[0]) / 2]
+
+    Em = material.plane_stress()
+    V = A * material.thickness
+    Kb = V[:, None, None] * np.einsum("eki,kl,elj->eij", B, Em, B)
+    Enat = np.einsum("eki,kl,elj->eij", Te, Em, Te)
+    S = sum(np.einsum("eki,ekl,elj->eij", q, Enat, q) for q in Qm)
+    beta0 = max(0.5 * (1.0 - 4.0 * material.nu**2), 0.01)
+    Kh = (0.75 * beta0) * V[:, None, None] * np.einsum("eki,ekl,elj->eij", Tth, S, Tth)
+    return Kb + Kh
+
+
+def membrane_cst(
+    xy: np.ndarray, area: np.ndarray, material: Material, drilling: float = 1e-3
+) -> np.ndarray:
+    """Constant-strain triangle + fictitious drilling spring (E, 9, 9), dofs ``(u, v, theta_z)``.
+
+    Not a default: it locks in in-plane bending. The drilling spring is ``drilling`` times
+    the mean membrane diagonal times the area, on each corner rotation.
+    """
+    x1, x2, x3, y1, y2, y3 = _diffs(xy)
+    ne = xy.shape[0]
+    B = np.zeros((ne, 3, 6))
+    b = np.stack([y2 - y3, y3 - y1, y1 - y2], axis=1)
+    c = np.stack([x3 - x2, x1 - x3, x2 - x1], axis=1)
+    B[:, 0, 0::2] = b
+    B[:, 1, 1::2] = c
+    B[:, 2, 0::2] = c
+    B[:, 2, 1::2] = b
+    B /= (2 * area)[:, None, None]
+    V = area * material.thickness
+    k6 = V[:, None, None] * np.einsum("eki,kl,elj->eij", B, material.plane_stress(), B)
+    K = np.zeros((ne, 9, 9))
+    tr = np.array([0, 1, 3, 4, 6, 7])
+    K[:, tr[:, None], tr[None, :]] = k6
+    kd = drilling * np.einsum("eii->e", k6) / 6.0 * area
+    for i in (2, 5, 8):
+        K[:, i, i] = kd
+    return K
+
+
+# quadratic 6-node shape functions on the triangle and their derivatives,
+# corners 1-3 at (0,0), (1,0), (0,1); mid-sides 4 (2-3), 5 (3-1), 6 (1-2)
+def _n6_derivatives(xi: float, eta: float) -> tuple[np.ndarray, np.ndarray]:
+    l1 = 1.0 - xi - eta
+    dxi = np.array([1 - 4 * l1, 4 * xi - 1, 0.0, 4 * eta, -4 * eta, 4 * (l1 - xi)])
+    deta = np.array([1 - 4 * l1, 0.0, 4 * eta - 1, 4 * xi, 4 * (l1 - eta), -4 * xi])
+    return dxi, deta
+
+
+def _dkt_coefficients(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hx, Hy as linear combinations of N1..N6: (E, 9, 6) each (Batoz et al. 1980)."""
+    x1, x2, x3, y1, y2, y3 = _diffs(xy)
+    # sides k = 4, 5, 6 <-> (i, j) = (2, 3), (3, 1), (1, 2); x_ij = x_i - x_j
+    xs = np.stack([x2 - x3, x3 - x1, x1 - x2], axis=1)
+    ys = np.stack([y2 - y3, y3 - y1, y1 - y2], axis=1)
+    l2 = xs**2 + ys**2
+    a = -xs / l2
+    b = 0.75 * xs * ys / l2
+    c = (0.25 * xs**2 - 0.5 * ys**2) / l2
+    d = -ys / l2
+    e = (0.25 * ys**2 - 0.5 * xs**2) / l2
+    ne = xy.shape[0]
+    Hx = np.zeros((ne, 9, 6))
+    Hy = np.zeros((ne, 9, 6))
+    # corner i (0-based) with the side that starts at it (m) and the side that ends at it (k)
+    # corner 1: m = 6 (1-2), k = 5 (3-1); corner 2: m = 4, k = 6; corner 3: m = 5, k = 4
+    for i, (m, k) in enumerate(((2, 1), (0, 2), (1, 0))):
+        r = 3 * i
+        nm, nk = 3 + m, 3 + k  # columns of N4..N6
+        Hx[:, r, nm] = 1.5 * a[:, m]
+        Hx[:, r, nk] = -1.5 * a[:, k]
+        Hx[:, r + 1, nm] = b[:, m]
+        Hx[:, r + 1, nk] = b[:, k]
+        Hx[:, r + 2, i] = 1.0
+        Hx[:, r + 2, nm] = -c[:, m]
+        Hx[:, r + 2, nk] = -c[:, k]
+        Hy[:, r, nm] = 1.5 * d[:, m]
+        Hy[:, r, nk] = -1.5 * d[:, k]
+        Hy[:, r + 1, i] = -1.0
+        Hy[:, r + 1, nm] = e[:, m]
+        Hy[:, r + 1, nk] = e[:, k]
+        Hy[:, r + 2, nm] = -b[:, m]
+        Hy[:, r + 2, nk] = -b[:, k]
+    return Hx, Hy
+
+
+def dkt_curvature_matrix(xy: np.ndarray, xi: float, eta: float) -> np.ndarray:
+    """DKT curvature-displacement matrix (E, 3, 9) at natural point (xi, eta).
+
+    kappa = [beta_x,x ; beta_y,y ; beta_x,y + beta_y,x] with beta_x = theta_y, beta_y = -theta_x
+    at the corners (right-handed rotations theta about the local axes).
+    """
+    Hx, Hy = _dkt_coefficients(xy)
+    dxi, deta = _n6_derivatives(xi, eta)
+    x1, x2, x3, y1, y2, y3 = _diffs(xy)
+    x21, x31, y21, y31 = x2 - x1, x3 - x1, y2 - y1, y3 - y1
+    det = x21 * y31 - x31 * y21  # 2A
+    hx_xi, hx_eta = Hx @ dxi, Hx @ deta
+    hy_xi, hy_eta = Hy @ dxi, Hy @ deta
+    # d/dx = (y31 d/dxi - y21 d/deta) / det ; d/dy = (-x31 d/dxi + x21 d/deta) / det
+    hx_x = (y31[:, None] * hx_xi - y21[:, None] * hx_eta) / det[:, None]
+    hx_y = (-x31[:, None] * hx_xi + x21[:, None] * hx_eta) / det[:, None]
+    hy_x = (y31[:, None] * hy_xi - y21[:, None] * hy_eta) / det[:, None]
+    hy_y = (-x31[:, None] * hy_xi + x21[:, None] * hy_eta) / det[:, None]
+    return np.stack([hx_x, hy_y, hx_y + hy_x], axis=1)
+
+
+_MIDSIDE = ((0.5, 0.0), (0.5, 0.5), (0.0, 0.5))
+
+
+def bending_dkt(xy: np.ndarray, area: np.ndarray, material: Material) -> np.ndarray:
+    """DKT bending stiffness (E, 9, 9), dofs per node ``(w, theta_x, theta_y)``.
+
+    B is linear in (xi, eta), so B^T D B is quadratic and the mid-side rule is exact.
+    """
+    Db = material.plane_stress() * (material.thickness**3 / 12.0)
+    K = np.zeros((xy.shape[0], 9, 9))
+    for xi, eta in _MIDSIDE:
+        Bk = dkt_curvature_matrix(xy, xi, eta)
+        K += np.einsum("eki,kl,elj->eij", Bk, Db, Bk)
+    return K * (area / 3.0)[:, None, None]
+
+
+def local_stiffness(xy: np.ndarray, area: np.ndarray, material: Material, membrane: str = "opt") -> np.ndarray:
+    """The 18x18 local element stiffness (E, 18, 18), dofs per node ``(u, v, w, rx, ry, rz)``."""
+    if membrane == "opt":
+        km = membrane_opt(xy, area, material)
+    elif membrane == "cst":
+        km = membrane_cst(xy, area, material)
+    else:
+        raise ValueError(f"membrane must be one of {MEMBRANES}, got {membrane!r}")
+    kb = bending_dkt(xy, area, material)
+    K = np.zeros((xy.shape[0], 18, 18))
+    K[:, _MEMBRANE_DOFS[:, None], _MEMBRANE_DOFS[None, :]] = km
+    K[:, _BENDING_DOFS[:, None], _BENDING_DOFS[None, :]] = kb
+    return K
+
+
+def to_global(K_local: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """K_e = T^T k_e T with T = blockdiag(R, R, R, R, R, R) (paper, "Transformations")."""
+    ne = K_local.shape[0]
+    k = K_local.reshape(ne, 6, 3, 6, 3)
+    k = np.einsum("eki,eakbl,elj->eaibj", R, k, R, optimize=True)
+    return k.reshape(ne, 18, 18)
+
+
+def element_stiffness(coords: np.ndarray, material: Material, membrane: str = "opt") -> np.ndarray:
+    """Global-frame element stiffness matrices (E, 18, 18) for corner coordinates (E, 3, 3)."""
+    R, xy, area = local_frames(coords)
+    return to_global(local_stiffness(xy, area, material, membrane), R)
+
+
+def element_mass(area: np.ndarray, material: Material, rotary_inertia: bool = False) -> np.ndarray:
+    """Lumped nodal masses (E, 6): rho t A / 3 on each translation of each corner.
+
+    Rotations are massless unless ``rotary_inertia``: then each rotation carries
+    rho t^3/12 * A/3 (isotropic, so it is the same in every frame).
+    """
+    m = material.density * material.thickness * area / 3.0
+    out = np.zeros((area.shape[0], 6))
+    out[:, :3] = m[:, None]
+    if rotary_inertia:
+        out[:, 3:] = (m * material.thickness**2 / 12.0)[:, None]
+    return out
