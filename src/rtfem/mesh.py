@@ -436,11 +436,11 @@ def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> n
     # sign relation between adjacent triangles: flip[t2] = flip[t1] xor same
     rel = sp.coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[t1, t2], np.r_[t2, t1])), shape=(m, m)).tocsr()
     flip = np.zeros(m, bool)
-    seen = np.zeros(m, bool)
-    for comp in range(n_comp):
-        root = int(np.flatnonzero(label == comp)[0])
+    _, roots = np.unique(label, return_index=True)
+    for root in roots.tolist():
         bfs, pred = breadth_first_order(G, root, directed=False, return_predecessors=True)
-        seen[bfs] = True
+        if bfs.size < 2:
+            continue
         p = pred[bfs[1:]]
         s = np.asarray(rel[p, bfs[1:]]).ravel() == 2
         for child, parent, si in zip(bfs[1:].tolist(), p.tolist(), s.tolist()):

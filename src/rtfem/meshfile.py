@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -66,9 +67,10 @@ def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     if p.suffix.lower() == ".vtk" and _is_legacy_ascii_vtk(p):
         return _read_legacy_vtk(p)
     try:
-        with contextlib.redirect_stdout(io.StringIO()):  # meshio prints some errors as well
+        with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # meshio's STL size probe overflows harmlessly
             m = meshio.read(str(p))
-    except Exception as exc:  # meshio raises many kinds; report them as one clear error
+    except (Exception, SystemExit) as exc:  # meshio raises many kinds (and may sys.exit); report one clear error
         err = exc
     if err is not None:
         if p.suffix.lower() == ".vtk":
@@ -146,8 +148,9 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
         return out
 
     def numbers(k: int, what: str, dtype) -> np.ndarray:
+        values = take(k, what)
         try:
-            return np.array(take(k, what), dtype=dtype)
+            return np.array(values, dtype=dtype)
         except ValueError:
             raise MeshError(f"{str(p)!r}: non-numeric value in {what}") from None
 

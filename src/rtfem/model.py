@@ -1,0 +1,434 @@
+"""ShellModel: sparse assembly of K and M, fixed nodes, condensation and static solves.
+
+Paper section 2: element matrices are assembled into the global stiffness (Eq. 3); fixed
+nodes are imposed either by elimination (default) or by the paper's penalty method; the
+rotations are condensed out of the static problem (Eq. 4-5), either through the paper's
+explicit dense Schur complement (small models only) or, by default, through a sparse
+factorization that never forms a dense (3n)^2 matrix.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+import warnings
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import shell
+from .errors import ModelError, RtfemWarning, SolverError
+from .linalg import Factorization, factorize
+from .material import Material
+from .mesh import TriMesh
+
+__all__ = ["ShellModel", "DOF_NAMES", "parse_dofs"]
+
+DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
+_DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
+_CHUNK = 16384  # elements per batch during assembly (bounds the temporary memory)
+
+
+def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
+    """Turn a dof specification into a boolean mask over ``(x, y, z, rx, ry, rz)``.
+
+    Accepts "all", "xyz" (translations), "rxyz" or "rotations", single components ("z",
+    "rx"), concatenations ("xy", "z,rx") or a sequence of names or indices 0..5.
+    """
+    mask = np.zeros(6, bool)
+    if isinstance(dofs, str):
+        s = dofs.strip().lower()
+        if s == "all":
+            return np.ones(6, bool)
+        if s in ("rotations", "rot", "r"):
+            mask[3:] = True
+            return mask
+        if s in ("translations", "trans", "t"):
+            mask[:3] = True
+            return mask
+        s = s.replace("rxyz", "rx,ry,rz")
+        compact = re.sub(r"[\s,;+]", "", s)
+        tokens = re.findall(r"r?[xyz]", compact)
+        if not tokens or "".join(tokens) != compact:
+            raise ModelError(
+                f"dofs={dofs!r} not understood; use 'all', 'xyz', 'rotations', or components from {DOF_NAMES}"
+            )
+        for t in tokens:
+            mask[DOF_NAMES.index(t)] = True
+        return mask
+    for d in dofs:
+        if isinstance(d, str):
+            mask |= parse_dofs(d)
+        elif isinstance(d, (int, np.integer)) and 0 <= d < 6:
+            mask[int(d)] = True
+        else:
+            raise ModelError(f"dof {d!r} not understood; use names from {DOF_NAMES} or indices 0..5")
+    return mask
+
+
+class ShellModel:
+    """Linear shell finite-element model of a triangulated surface (6 dof per node).
+
+    Parameters
+    ----------
+    mesh : the surface.
+    material : :class:`~rtfem.Material`.
+    membrane : "opt" (Felippa's optimal drilling triangle, default) or "cst" (constant strain +
+        fictitious drilling spring; for comparison only, it locks in in-plane bending).
+    rotary_inertia : give the rotations mass rho t^3/12 * A/3 (default: massless rotations,
+        as the paper's condensation assumes).
+    constraints : "elimination" (fixed dofs removed, default) or "penalty" (the paper's method:
+        diagonal of K and rows of F at fixed dofs multiplied by ``penalty``).
+    penalty : the penalty factor.
+    """
+
+    def __init__(
+        self,
+        mesh: TriMesh,
+        material: Material,
+        *,
+        membrane: str = "opt",
+        rotary_inertia: bool = False,
+        constraints: str = "elimination",
+        penalty: float = 1e8,
+    ) -> None:
+        if not isinstance(mesh, TriMesh):
+            raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
+        if not isinstance(material, Material):
+            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
+        if membrane not in shell.MEMBRANES:
+            raise ModelError(f"membrane={membrane!r}; choose one of {shell.MEMBRANES}")
+        if constraints not in ("elimination", "penalty"):
+            raise ModelError(f"constraints={constraints!r}; choose 'elimination' or 'penalty'")
+        if not (np.isfinite(penalty) and penalty > 1.0):
+            raise ModelError(f"penalty={penalty!r} must be a large finite number (e.g. 1e8)")
+        self.mesh = mesh
+        self.material = material
+        self.membrane = membrane
+        self.rotary_inertia = bool(rotary_inertia)
+        self.constraints = constraints
+        self.penalty = float(penalty)
+        self.fixed = np.zeros((mesh.n_vertices, 6), bool)
+        self._K: sp.csr_matrix | None = None
+        self._M: np.ndarray | None = None
+        self._factor: Factorization | None = None
+        self.timings: dict[str, float] = {}
+
+    # ------------------------------------------------------------ sizes
+    @property
+    def n_nodes(self) -> int:
+        return self.mesh.n_vertices
+
+    @property
+    def n_dofs(self) -> int:
+        return 6 * self.mesh.n_vertices
+
+    def __repr__(self) -> str:
+        nf = int(self.fixed.any(axis=1).sum())
+        return (
+            f"ShellModel({self.n_nodes} nodes, {self.mesh.n_triangles} triangles, {self.n_dofs} dof, "
+            f"{nf} nodes fixed, membrane={self.membrane!r}, constraints={self.constraints!r})"
+        )
+
+    # ------------------------------------------------------------ assembly (Eq. 3)
+    @property
+    def K(self) -> sp.csr_matrix:
+        """Global stiffness (6n x 6n, sparse, unconstrained), Eq. 3."""
+        if self._K is None:
+            self._assemble()
+        return self._K  # type: ignore[return-value]
+
+    @property
+    def mass_diagonal(self) -> np.ndarray:
+        """Lumped mass per dof (6n,): rho t A/3 per translation; rotations massless by default."""
+        if self._M is None:
+            self._assemble()
+        return self._M  # type: ignore[return-value]
+
+    @property
+    def M(self) -> sp.dia_matrix:
+        """Lumped (diagonal) global mass matrix (6n x 6n)."""
+        return sp.diags(self.mass_diagonal, format="csr")
+
+    def _assemble(self) -> None:
+        t0 = time.perf_counter()
+        T = np.asarray(self.mesh.triangles)
+        X = np.asarray(self.mesh.vertices)
+        ne = T.shape[0]
+        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18).astype(np.int32)
+        data, mass = [], np.zeros(self.n_dofs)
+        for s in range(0, ne, _CHUNK):
+            c = slice(s, min(s + _CHUNK, ne))
+            R, xy, area = shell.local_frames(X[T[c]])
+            ke = shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R)
+            data.append(ke.reshape(-1))
+            me = shell.element_mass(area, self.material, self.rotary_inertia)
+            np.add.at(mass, dofs[c].ravel(), np.tile(me, (1, 3)).ravel())
+        rows = np.repeat(dofs, 18, axis=1).ravel()
+        cols = np.tile(dofs, (1, 18)).ravel()
+        K = sp.coo_matrix((np.concatenate(data), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
+        K.sum_duplicates()
+        # exact symmetry (assembly round-off otherwise leaves ~1e-16 asymmetry)
+        self._K = ((K + K.T) * 0.5).tocsr()
+        self._M = mass
+        self.timings["assemble"] = time.perf_counter() - t0
+
+    # ------------------------------------------------------------ fixes
+    def _nodes(self, nodes) -> np.ndarray:
+        n = self.n_nodes
+        if isinstance(nodes, str):
+            if nodes not in self.mesh.groups:
+                raise ModelError(f"no vertex group {nodes!r} in the mesh; groups: {sorted(self.mesh.groups) or 'none'}")
+            return np.asarray(self.mesh.groups[nodes], dtype=np.int64)
+        arr = np.asarray(nodes)
+        if arr.dtype == bool:
+            if arr.shape != (n,):
+                raise ModelError(f"a boolean node mask must have shape ({n},), got {arr.shape}")
+            return np.flatnonzero(arr)
+        arr = np.atleast_1d(arr)
+        if arr.size == 0:
+            return arr.astype(np.int64)
+        if not np.issubdtype(arr.dtype, np.integer):
+            raise ModelError(f"nodes must be integer indices, a boolean mask or a group name, got dtype {arr.dtype}")
+        bad = arr[(arr < 0) | (arr >= n)]
+        if bad.size:
+            raise ModelError(f"node index {bad[0]} out of range 0..{n - 1}")
+        return arr.astype(np.int64).ravel()
+
+    def fix(self, nodes, dofs: str | Sequence = "all") -> "ShellModel":
+        """Fix (zero displacement) the given dofs of the given nodes. Calls accumulate.
+
+        ``nodes``: indices, a boolean mask, or the name of a mesh vertex group (e.g. "attachment").
+        ``dofs``: "all", "xyz", "z", "rx", "xy,rz", ... (see :func:`parse_dofs`).
+        """
+        idx = self._nodes(nodes)
+        if idx.size == 0:
+            raise ModelError("fix() was given no nodes")
+        self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = True
+        self._factor = None
+        return self
+
+    def release(self, nodes=None, dofs: str | Sequence = "all") -> "ShellModel":
+        """Undo fixes (all nodes when ``nodes`` is None)."""
+        idx = np.arange(self.n_nodes) if nodes is None else self._nodes(nodes)
+        self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = False
+        self._factor = None
+        return self
+
+    @property
+    def fixed_dofs(self) -> np.ndarray:
+        return np.flatnonzero(self.fixed.ravel())
+
+    @property
+    def free_dofs(self) -> np.ndarray:
+        return np.flatnonzero(~self.fixed.ravel())
+
+    def check_restrained(self) -> None:
+        """Raise ModelError when the fixes leave a rigid-body motion free.
+
+        For each connected piece of the mesh, the six rigid-body motions (3 translations,
+        3 rotations about its centroid) restricted to the fixed dofs must have rank 6.
+        """
+        n_comp, label = self.mesh.components()
+        X = np.asarray(self.mesh.vertices)
+        for c in range(n_comp):
+            nodes = np.flatnonzero(label == c)
+            where = f" (piece {c + 1} of {n_comp}, {nodes.size} nodes, e.g. node {nodes[0]})" if n_comp > 1 else ""
+            fx = self.fixed[nodes]
+            if not fx.any():
+                raise ModelError(
+                    f"nothing is fixed{where}: the model can move as a rigid body, so a static or "
+                    "dynamic solve has no unique answer. Fix some nodes first, e.g. "
+                    "model.fix(nodes, dofs='all') or model.fix('attachment')"
+                )
+            centre = X[nodes].mean(axis=0)
+            P = X[nodes] - centre
+            scale = max(np.abs(P).max(), 1e-300)
+            P = P / scale
+            Rb = np.zeros((nodes.size, 6, 6))
+            Rb[:, [0, 1, 2], [0, 1, 2]] = 1.0
+            for k in range(3):
+                e = np.zeros(3)
+                e[k] = 1.0
+                Rb[:, :3, 3 + k] = np.cross(e, P)
+                Rb[:, 3 + k, 3 + k] = 1.0
+            rows = Rb[fx]  # (n_fixed_dofs, 6)
+            s, vt = np.linalg.svd(rows, full_matrices=True)[1:]
+            rank = int(np.sum(s > 1e-9 * s[0])) if s.size else 0
+            if rank < 6:
+                motions = [_describe_rigid_motion(v, centre, scale) for v in vt[rank:]]
+                raise ModelError(
+                    f"the fixes leave {6 - rank} rigid-body motion(s) free{where}: "
+                    f"{'; '.join(motions)}. Fix more dofs, e.g. all dofs of one node, "
+                    "or 'xyz' of three nodes that are not on one line"
+                )
+
+    # ------------------------------------------------------------ forces
+    def force_vector(self, forces) -> np.ndarray:
+        """Validate forces and return the global load vector (6n,).
+
+        ``forces``: (n, 3) nodal forces, (n, 6) forces and moments, or a mapping
+        ``{node: (fx, fy, fz)}`` (or 6 components).
+        """
+        n = self.n_nodes
+        F = np.zeros((n, 6))
+        if isinstance(forces, Mapping):
+            for node, f in forces.items():
+                i = int(self._nodes(node)[0]) if not isinstance(node, (int, np.integer)) else int(node)
+                if not 0 <= i < n:
+                    raise ModelError(f"force on node {node!r}: index out of range 0..{n - 1}")
+                v = np.asarray(f, dtype=float).ravel()
+                if v.size not in (3, 6):
+                    raise ModelError(f"force on node {node}: need 3 (or 6) components, got {v.size}")
+                F[i, : v.size] += v
+        else:
+            try:
+                A = np.asarray(forces, dtype=float)
+            except (TypeError, ValueError):
+                raise ModelError("forces must be an (n, 3) or (n, 6) array or a {node: (fx, fy, fz)} mapping") from None
+            if A.shape not in ((n, 3), (n, 6)):
+                raise ModelError(f"forces must have shape ({n}, 3) or ({n}, 6), got {A.shape}")
+            F[:, : A.shape[1]] = A
+        bad = np.flatnonzero(~np.isfinite(F).all(axis=1))
+        if bad.size:
+            raise ModelError(f"non-finite (NaN or infinite) force at node {bad[0]} ({bad.size} nodes in all)")
+        on_fixed = np.flatnonzero((self.fixed & (F != 0)).any(axis=1))
+        if on_fixed.size:
+            warnings.warn(
+                f"loads on fixed dofs at {on_fixed.size} node(s) (first: node {on_fixed[0]}, "
+                f"{F[on_fixed[0]][self.fixed[on_fixed[0]]].tolist()}) go straight into the supports "
+                "and move nothing; load free nodes instead",
+                RtfemWarning,
+                stacklevel=3,
+            )
+        return F.ravel()
+
+    def pressure_forces(self, pressure: float) -> np.ndarray:
+        """Nodal forces (n, 3) of a uniform pressure on the surface, along the face normals.
+
+        Each triangle's resultant p A n is lumped equally to its corners (positive pressure
+        pushes against the normal, i.e. inward on an outward-oriented closed surface).
+        """
+        fn = self.mesh.face_normals(unit=False) * (-0.5 * float(pressure) / 3.0)
+        out = np.zeros((self.n_nodes, 3))
+        for k in range(3):
+            np.add.at(out, self.mesh.triangles[:, k], fn)
+        return out
+
+    # ------------------------------------------------------------ constrained systems
+    def constrained_stiffness(self) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The stiffness with the fixes applied and the dofs it acts on.
+
+        Elimination: K restricted to the free dofs. Penalty: the full K with the diagonal of
+        the fixed dofs multiplied by ``penalty`` (paper, section 2).
+        """
+        if self.constraints == "elimination":
+            free = self.free_dofs
+            return self.K[free][:, free].tocsr(), free
+        K = self.K.copy()
+        fd = self.fixed_dofs
+        d = K.diagonal()
+        d[fd] *= self.penalty
+        K.setdiag(d)
+        return K.tocsr(), np.arange(self.n_dofs)
+
+    def factorization(self) -> Factorization:
+        """The cached sparse factorization of the constrained stiffness."""
+        if self._factor is None:
+            self.check_restrained()
+            t0 = time.perf_counter()
+            Kc, _ = self.constrained_stiffness()
+            try:
+                self._factor = factorize(Kc, spd=True, what="the constrained stiffness")
+            except SolverError as exc:
+                raise ModelError(
+                    f"{exc}. The fixes cannot hold the model: a part can move freely (a mechanism, "
+                    "e.g. pieces joined at a single vertex). Fix more nodes"
+                ) from None
+            self.timings["factorize"] = time.perf_counter() - t0
+        return self._factor
+
+    def solve_static(self, forces, *, return_rotations: bool = False) -> np.ndarray:
+        """Static displacements under nodal loads: K U = F with the fixes applied.
+
+        Returns (n, 3) translations, or (n, 6) with rotations when ``return_rotations``.
+        Solving the full system with zero moments is exactly the condensed problem of Eq. 5
+        (K_condensed U_t = F_t), without forming the condensed matrix.
+        """
+        F = self.force_vector(forces)
+        fac = self.factorization()
+        t0 = time.perf_counter()
+        U = np.zeros(self.n_dofs)
+        if self.constraints == "elimination":
+            free = self.free_dofs
+            U[free] = fac.solve(F[free])
+        else:
+            Fp = F.copy()
+            Fp[self.fixed_dofs] *= self.penalty
+            U = fac.solve(Fp)
+        self.timings["solve"] = time.perf_counter() - t0
+        U = U.reshape(-1, 6)
+        return U if return_rotations else U[:, :3].copy()
+
+    # ------------------------------------------------------------ condensation (Eq. 4-5)
+    def _partition(self) -> tuple[np.ndarray, np.ndarray]:
+        """Free translational and free rotational dofs (global indices)."""
+        free = ~self.fixed.ravel()
+        kind = np.tile(np.r_[np.zeros(3, bool), np.ones(3, bool)], self.n_nodes)
+        return np.flatnonzero(free & ~kind), np.flatnonzero(free & kind)
+
+    def condensed_stiffness(self, *, allow_large: bool = False) -> np.ndarray:
+        """The paper's explicit dense condensed stiffness (Eq. 5) on the free translations.
+
+        K_c = K_tt - K_tr K_rr^-1 K_rt: a dense (n_t x n_t) matrix. Refused above 6,000
+        translational dof unless ``allow_large``; use :meth:`condensed_operator` instead.
+        """
+        t, r = self._partition()
+        if t.size > _DENSE_LIMIT and not allow_large:
+            raise ModelError(
+                f"the dense condensed stiffness would be {t.size} x {t.size} "
+                f"({t.size**2 * 8 / 2**30:.1f} GiB); use condensed_operator() or pass allow_large=True"
+            )
+        K = self.K
+        Ktt = K[t][:, t].toarray()
+        if r.size == 0:
+            return Ktt
+        Krt = K[r][:, t].tocsc()
+        fac = factorize(K[r][:, r], spd=True, what="K_rr")
+        X = fac.solve(Krt.toarray())
+        return Ktt - Krt.T @ X
+
+    def condensed_operator(self) -> spla.LinearOperator:
+        """The condensed stiffness of Eq. 5 as a sparse operator (never formed densely).
+
+        x -> K_tt x - K_tr (K_rr^-1 (K_rt x)), with K_rr factorized once.
+        """
+        t, r = self._partition()
+        K = self.K
+        Ktt = K[t][:, t].tocsr()
+        Ktr = K[t][:, r].tocsr()
+        Krt = Ktr.T.tocsr()
+        fac = factorize(K[r][:, r], spd=True, what="K_rr")
+
+        def mv(x: np.ndarray) -> np.ndarray:
+            x = np.asarray(x, dtype=float)
+            return Ktt @ x - Ktr @ fac.solve(Krt @ x)
+
+        return spla.LinearOperator((t.size, t.size), matvec=mv, matmat=mv, dtype=float)
+
+    def translational_free_dofs(self) -> np.ndarray:
+        """Global indices of the free translational dofs (the rows of the condensed matrices)."""
+        return self._partition()[0]
+
+
+def _describe_rigid_motion(v: np.ndarray, centre: np.ndarray, scale: float) -> str:
+    """Words for a rigid motion (t, theta) given about ``centre`` in coordinates scaled by ``scale``."""
+    t, th = v[:3] * scale, v[3:]
+    fmt = lambda a: "(" + ", ".join(f"{x:.3g}" for x in np.where(np.abs(a) < 1e-9, 0.0, a)) + ")"  # noqa: E731
+    if np.linalg.norm(th) * scale < 1e-6 * np.linalg.norm(t):
+        return f"translation along {fmt(t / np.linalg.norm(t))}"
+    axis = th / np.linalg.norm(th)
+    point = centre + np.cross(th, t) / np.dot(th, th)
+    return f"rotation about the axis {fmt(axis)} through the point {fmt(point)}"

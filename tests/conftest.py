@@ -1,0 +1,37 @@
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+
+#: reference data shipped beside the project (../shared/data), never inside it
+SHARED_DATA = Path(os.environ.get("RTFEM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+ORGANS = SHARED_DATA / "organs"
+
+
+def organ(name: str) -> Path:
+    path = ORGANS / name
+    if not path.exists():
+        pytest.skip(f"reference organ mesh {name} not found under {ORGANS} (the shared data folder is absent)")
+    return path
+
+
+@pytest.fixture
+def plate_material():
+    return rt.Material(E=1.0e7, nu=0.3, thickness=0.01, density=1000.0)
+
+
+def rigid_body_modes(X: np.ndarray) -> np.ndarray:
+    """The six analytic rigid-body motions (6n, 6) of nodes at X: translations, rotations."""
+    n = X.shape[0]
+    R = np.zeros((n, 6, 6))
+    c = X - X.mean(axis=0)
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        R[:, k, k] = 1.0
+        R[:, :3, 3 + k] = np.cross(e, c)
+        R[:, 3 + k, 3 + k] = 1.0
+    return R.reshape(6 * n, 6)

@@ -1,0 +1,218 @@
+import numpy as np
+import pytest
+
+import rtfem as rt
+from conftest import organ
+
+ORGAN_FILES = {
+    # name: (vertices, triangles) as listed in shared/data/organs/README.md
+    "sofa_liver2.obj": (1170, 2336),
+    "sofa_liver-smooth.obj": (2194, 4384),
+    "sofa_env_Liver.stl": (15365, 30726),
+    "sofa_env_gallbladder_collision.stl": (252, 500),
+    "sofa_env_gallbladder_visual.stl": (7352, 14700),
+    "GCA-Models_small_intestine_20k.vtk": (10002, 20000),
+}
+
+
+@pytest.mark.parametrize("name", sorted(ORGAN_FILES))
+def test_every_reference_organ_loads_closed(name):
+    mesh = rt.load_mesh(organ(name), scale=1e-3)
+    nv, nt = ORGAN_FILES[name]
+    assert (mesh.n_vertices, mesh.n_triangles) == (nv, nt)
+    assert mesh.is_closed() and mesh.report.closed
+    assert mesh.report.n_components == 1
+    assert mesh.volume() > 0  # outward orientation
+    assert np.isfinite(mesh.report.min_angle_deg)
+    assert "scaled by 0.001" in str(mesh.report)
+
+
+def test_legacy_vtk_that_meshio_refuses():
+    import meshio
+
+    path = organ("GCA-Models_small_intestine_20k.vtk")
+    with pytest.raises((Exception, SystemExit)):  # meshio 5.3 even calls sys.exit here
+        meshio.read(str(path))
+    mesh = rt.load_mesh(path)
+    assert mesh.n_triangles == 20000
+    # its coordinates are in millimetres: about 26 x 15 x 30 cm
+    assert 200 < mesh.bounds()[1][0] - mesh.bounds()[0][0] < 300
+
+
+def test_stl_triangle_soup_is_welded(tmp_path):
+    src = rt.meshes.icosphere(0.05, 2)
+    soup = np.asarray(src.vertices)[np.asarray(src.triangles)].reshape(-1, 3)
+    mesh = rt.TriMesh(soup, np.arange(soup.shape[0]).reshape(-1, 3))
+    assert mesh.n_vertices == src.n_vertices
+    assert mesh.report.merged_vertices == soup.shape[0] - src.n_vertices
+    assert mesh.is_closed()
+    assert np.all(mesh.vertex_map >= 0)
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".stl", ".ply", ".off", ".vtk", ".vtu", ".msh"])
+def test_formats_round_trip(tmp_path, suffix):
+    import meshio
+
+    src = rt.meshes.liver(2)
+    path = tmp_path / f"liver{suffix}"
+    kw = {"file_format": "gmsh22", "binary": False} if suffix == ".msh" else {}
+    meshio.write_points_cells(str(path), np.asarray(src.vertices), [("triangle", np.asarray(src.triangles))], **kw)
+    mesh = rt.load_mesh(path)
+    assert (mesh.n_vertices, mesh.n_triangles) == (src.n_vertices, src.n_triangles)
+    assert mesh.areas().sum() == pytest.approx(src.areas().sum(), rel=1e-6)
+    assert mesh.volume() == pytest.approx(src.volume(), rel=1e-6)
+
+
+def test_save_mesh_and_quads_split(tmp_path):
+    path = tmp_path / "quads.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\nf 1 2 3 4\nf 2 5 6 3\n")
+    mesh = rt.load_mesh(path)
+    assert mesh.n_triangles == 4 and mesh.areas().sum() == pytest.approx(2.0)
+    out = tmp_path / "out.vtu"
+    rt.save_mesh(mesh, out, point_data={"u": np.ones((mesh.n_vertices, 3))})
+    assert rt.load_mesh(out).n_triangles == 4
+
+
+def test_tet_volume_mesh_gives_its_surface(tmp_path):
+    import meshio
+
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    path = tmp_path / "tets.vtu"
+    meshio.write_points_cells(str(path), pts, [("tetra", tets)])
+    mesh = rt.load_mesh(path)
+    assert mesh.n_triangles == 6 and mesh.is_closed() and mesh.volume() > 0
+
+
+def test_repairs_are_reported():
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0], [5, 5, 5], [2, 0, 0]], float)
+    T = np.array([
+        [0, 1, 2],
+        [2, 3, 4],  # uses the duplicate of vertex 1 (index 4) with flipped orientation
+        [0, 0, 2],  # repeated vertex: degenerate
+        [0, 1, 6],  # collinear: zero area
+        [2, 1, 0],  # duplicate of the first triangle
+    ])
+    mesh = rt.TriMesh(V, T)
+    r = mesh.report
+    assert r.merged_vertices == 1
+    assert r.removed_degenerate == 2
+    assert r.removed_duplicate_triangles == 1
+    assert r.dropped_unreferenced == 2  # vertex 5 and vertex 6
+    assert r.flipped_triangles == 1
+    assert r.repaired
+    assert mesh.n_vertices == 4 and mesh.n_triangles == 2
+    assert mesh.vertex_map.tolist() == [0, 1, 2, 3, 1, -1, -1]
+    n = mesh.face_normals()
+    assert np.allclose(n[0], n[1])
+    text = str(r)
+    for words in ("1 duplicate vertices merged", "2 degenerate", "1 duplicate triangles", "flipped"):
+        assert words in text
+
+
+def test_closed_surface_oriented_outward():
+    s = rt.meshes.icosphere(1.0, 2)
+    inside_out = rt.TriMesh(s.vertices, np.asarray(s.triangles)[:, ::-1])
+    assert inside_out.report.flipped_triangles == s.n_triangles
+    assert inside_out.volume() == pytest.approx(s.volume())
+    assert s.volume() == pytest.approx(4 / 3 * np.pi, rel=0.05)
+
+
+def test_non_manifold_edge_raises_with_location():
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    T = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    with pytest.raises(rt.MeshError, match=r"non-manifold.*vertices 0 .* and 1 .*triangles 0, 1, 2"):
+        rt.TriMesh(V, T)
+
+
+def test_bad_arrays_raise():
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    with pytest.raises(rt.MeshError, match="empty"):
+        rt.TriMesh(np.zeros((0, 3)), np.zeros((0, 3), int))
+    bad = V.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(rt.MeshError, match="non-finite .* vertex 1"):
+        rt.TriMesh(bad, [[0, 1, 2]])
+    with pytest.raises(rt.MeshError, match="triangle 1 refers to a vertex index outside 0..2"):
+        rt.TriMesh(V, [[0, 1, 2], [0, 1, 7]])
+    with pytest.raises(rt.MeshError, match="triangle 0 refers"):
+        rt.TriMesh(V, [[-1, 1, 2]])
+    with pytest.raises(rt.MeshError, match=r"\(m, 3\)"):
+        rt.TriMesh(V, [[0, 1, 2, 0]])
+    with pytest.raises(rt.MeshError, match="integers"):
+        rt.TriMesh(V, [[0, 1, 2.5]])
+    with pytest.raises(rt.MeshError, match="every triangle is degenerate"):
+        rt.TriMesh(V, [[0, 1, 1]])
+    with pytest.raises(rt.MeshError, match="repair=True"):
+        rt.TriMesh(V, [[0, 1, 1], [0, 1, 2]], repair=False)
+
+
+def test_broken_files_raise_mesh_error(tmp_path):
+    with pytest.raises(rt.MeshError, match="does not exist"):
+        rt.load_mesh(tmp_path / "missing.obj")
+    junk = tmp_path / "junk.stl"
+    junk.write_bytes(b"\x00\x01garbage" * 3)
+    with pytest.raises(rt.MeshError, match="could not read"):
+        rt.load_mesh(junk)
+    trunc = tmp_path / "trunc.vtk"
+    trunc.write_text("# vtk DataFile Version 2.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0 0 1 0 0\n")
+    with pytest.raises(rt.MeshError, match="truncated"):
+        rt.load_mesh(trunc)
+    lines = tmp_path / "lines.vtu"
+    import meshio
+
+    meshio.write_points_cells(str(lines), np.eye(3), [("line", np.array([[0, 1], [1, 2]]))])
+    with pytest.raises(rt.MeshError, match="no surface cells"):
+        rt.load_mesh(lines)
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(rt.MeshError, match="vertex 1"):
+        rt.load_mesh(nan)
+    with pytest.raises(rt.MeshError, match="scale"):
+        rt.load_mesh(nan, scale=-1)
+
+
+def test_moebius_strip_reported_not_orientable():
+    n = 12
+    th = 2 * np.pi * np.arange(n) / n
+    V = []
+    for t in th:
+        c = np.array([np.cos(t), np.sin(t), 0.0])
+        d = np.array([np.cos(t / 2) * np.cos(t), np.cos(t / 2) * np.sin(t), np.sin(t / 2)]) * 0.3
+        V += [c - d, c + d]
+    V = np.array(V)
+    T = []
+    for i in range(n):
+        a, b = 2 * i, 2 * i + 1
+        c, d = (2 * (i + 1), 2 * (i + 1) + 1) if i < n - 1 else (1, 0)  # the half twist
+        T += [[a, c, b], [b, c, d]]
+    mesh = rt.TriMesh(V, np.array(T))
+    assert not mesh.report.orientable
+    assert "not orientable" in str(mesh.report)
+
+
+def test_bow_tie_vertex_reported():
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], float)
+    mesh = rt.TriMesh(V, [[0, 1, 2], [0, 3, 4]])
+    assert mesh.report.nonmanifold_vertices.tolist() == [0]
+    assert "non-manifold vertices" in str(mesh.report)
+
+
+def test_groups_follow_repairs_and_subdivision():
+    p = rt.meshes.plate(1.0, 1.0, 2)
+    assert set(p.groups) >= {"x0", "x1", "boundary", "center"}
+    q = p.subdivided(1)
+    assert q.n_vertices == 25
+    assert len(q.groups["x0"]) == 5  # mid-points of the edge are in the group
+    assert np.allclose(np.asarray(q.vertices)[q.groups["x0"], 0], 0.0)
+
+
+def test_topology_queries():
+    s = rt.meshes.icosphere(1.0, 2)
+    assert s.n_vertices - s.edges().shape[0] + s.n_triangles == 2  # genus 0
+    assert s.is_closed() and s.boundary_vertices().size == 0
+    h = rt.meshes.hemisphere(1.0, 6)
+    assert np.array_equal(np.sort(h.boundary_vertices()), np.sort(h.groups["rim"]))
+    assert s.nearest_vertex([0, 0, 2.0]) == int(np.argmax(np.asarray(s.vertices)[:, 2]))
+    assert np.allclose(np.linalg.norm(s.vertex_normals(), axis=1), 1.0)
+    assert s.vertex_areas().sum() == pytest.approx(s.areas().sum())
