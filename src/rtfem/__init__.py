@@ -5,6 +5,7 @@ from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .material import Material
 from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
+from . import linalg
 from .model import ShellModel
 
 __version__ = "0.1.0"

@@ -20,7 +20,7 @@ import scipy.sparse.linalg as spla
 
 from . import shell
 from .errors import ModelError, RtfemWarning, SolverError
-from .linalg import Factorization, factorize
+from .linalg import Factorization, expand_node_order, factorize, nested_dissection
 from .material import Material
 from .mesh import TriMesh
 
@@ -114,6 +114,7 @@ class ShellModel:
         self._K: sp.csr_matrix | None = None
         self._M: np.ndarray | None = None
         self._factor: Factorization | None = None
+        self._cache: dict[str, np.ndarray] = {}
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ sizes
@@ -339,9 +340,9 @@ class ShellModel:
         if self._factor is None:
             self.check_restrained()
             t0 = time.perf_counter()
-            Kc, _ = self.constrained_stiffness()
+            Kc, dofs = self.constrained_stiffness()
             try:
-                self._factor = factorize(Kc, spd=True, what="the constrained stiffness")
+                self._factor = factorize(Kc, spd=True, what="the constrained stiffness", order=self.dof_order(dofs))
             except SolverError as exc:
                 raise ModelError(
                     f"{exc}. The fixes cannot hold the model: a part can move freely (a mechanism, "
@@ -349,6 +350,12 @@ class ShellModel:
                 ) from None
             self.timings["factorize"] = time.perf_counter() - t0
         return self._factor
+
+    def dof_order(self, dofs: np.ndarray) -> np.ndarray:
+        """Fill-reducing order of the given dofs (nested dissection of the mesh nodes)."""
+        if "nd" not in self._cache:
+            self._cache["nd"] = nested_dissection(self.mesh.adjacency(), np.asarray(self.mesh.vertices))
+        return expand_node_order(self._cache["nd"], 6, dofs)
 
     def solve_static(self, forces, *, return_rotations: bool = False) -> np.ndarray:
         """Static displacements under nodal loads: K U = F with the fixes applied.
