@@ -2,15 +2,22 @@
 
 from . import meshes
 from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
-from .material import Material
+from .material import Damping, Material
 from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
+from .modal import ModalBasis, modal_analysis
 from .model import ShellModel
+from .simulate import DirectSimulator, ModalSimulator
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Damping",
+    "DirectSimulator",
+    "ModalBasis",
+    "ModalSimulator",
+    "modal_analysis",
     "MeshError",
     "MeshReport",
     "Material",

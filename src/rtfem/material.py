@@ -9,7 +9,7 @@ import numpy as np
 
 from .errors import ModelError
 
-__all__ = ["Material"]
+__all__ = ["Material", "Damping"]
 
 
 def _finite_positive(name: str, value: float, what: str) -> float:
@@ -74,3 +74,61 @@ class Material:
         return c * np.array(
             [[1.0, self.nu, 0.0], [self.nu, 1.0, 0.0], [0.0, 0.0, 0.5 * (1.0 - self.nu)]]
         )
+
+
+@dataclass(frozen=True)
+class Damping:
+    """Viscous damping, mapped to one damping coefficient per mode (Eq. 9).
+
+    * ``alpha``: mass-proportional, B = alpha M (the paper's choice), in 1/s;
+    * ``beta``: stiffness-proportional, B = alpha M + beta K (Rayleigh), in s;
+    * ``zeta``: modal damping ratios (a scalar for all modes, or one per mode).
+
+    They add up: mode i gets alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i, so that
+    x_i'' + alpha_i x_i' + w_i^2 x_i = f_i.
+    """
+
+    alpha: float = 0.0
+    beta: float = 0.0
+    zeta: float | tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("alpha", "beta"):
+            v = getattr(self, name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ModelError(f"Damping {name}={v!r} is not a number") from None
+            if not math.isfinite(v) or v < 0:
+                raise ModelError(f"Damping {name}={v!r} must be a finite number >= 0")
+            object.__setattr__(self, name, v)
+        if self.zeta is not None:
+            z = np.atleast_1d(np.asarray(self.zeta, dtype=float))
+            if z.ndim != 1 or not np.all(np.isfinite(z)) or np.any(z < 0):
+                raise ModelError(f"Damping zeta={self.zeta!r} must be finite damping ratios >= 0")
+            object.__setattr__(self, "zeta", float(z[0]) if z.size == 1 and np.ndim(self.zeta) == 0 else tuple(z.tolist()))
+
+    @property
+    def is_modal_only(self) -> bool:
+        """True when the damping has no full-system matrix (modal damping ratios)."""
+        return self.zeta is not None and (np.ndim(self.zeta) > 0 or self.zeta != 0.0)
+
+    def modal_alpha(self, omega: np.ndarray) -> np.ndarray:
+        """Per-mode damping coefficients alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i."""
+        w = np.asarray(omega, dtype=float)
+        a = self.alpha + self.beta * w**2
+        if self.zeta is not None:
+            z = np.asarray(self.zeta, dtype=float)
+            if z.ndim == 1 and z.size not in (1, w.size):
+                raise ModelError(f"Damping has {z.size} modal damping ratios but the basis has {w.size} modes")
+            a = a + 2.0 * z * w
+        return a
+
+    def matrix(self, M, K):
+        """The full-system damping matrix B = alpha M + beta K (refused for modal ratios)."""
+        if self.is_modal_only:
+            raise ModelError(
+                "modal damping ratios (zeta) define no full-system damping matrix; "
+                "use alpha (B = alpha M) and/or beta (B = alpha M + beta K) for a full-order solver"
+            )
+        return self.alpha * M + self.beta * K

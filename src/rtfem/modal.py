@@ -1,0 +1,278 @@
+"""Modal analysis: the lowest eigenpairs of K phi = w^2 M phi (paper section 3, Eq. 8).
+
+The generalized eigenproblem is solved on the sparse constrained matrices by shift-invert
+Lanczos (ARPACK through ``scipy.sparse.linalg.eigsh``) with the model's sparse factorization
+as the operator. The rotations are massless, so M is only semi-definite: the eigenvalues
+found are exactly those of the condensed stiffness of Eq. 5 (K_c phi_t = w^2 M_t phi_t),
+without forming K_c. Unconstrained models are shifted below zero so that their six
+rigid-body modes come first.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .errors import ModelError, SolverError
+from .linalg import factorize
+from .mesh import TriMesh
+
+__all__ = ["ModalBasis", "modal_analysis", "mesh_fingerprint"]
+
+FORMAT_VERSION = 1
+_DENSE_ALL = 3000  # "all" modes through a dense eigensolver up to this many massed dofs
+
+
+def mesh_fingerprint(mesh: TriMesh) -> str:
+    """A hash of the mesh arrays: a saved basis refuses to load onto another mesh."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.triangles, dtype=np.int64).tobytes())
+    return h.hexdigest()[:32]
+
+
+class ModalBasis:
+    """The r lowest modes of a model: w_i and mass-normalized translational shapes.
+
+    Attributes
+    ----------
+    omega : (r,) circular frequencies in rad/s, ascending (Eq. 8).
+    shapes : (n, 3, r) translational parts of the mass-normalized mode shapes
+        (Phi^T M Phi = I; the rotations carry no mass).
+    fingerprint : hash of the mesh the basis belongs to.
+    model : the ShellModel it was computed from, when known (needed for the static
+        correction); ``None`` after :meth:`load` without a model.
+    """
+
+    def __init__(self, omega: np.ndarray, shapes: np.ndarray, fingerprint: str, model=None, info: dict | None = None):
+        omega = np.asarray(omega, dtype=float)
+        shapes = np.asarray(shapes, dtype=float)
+        if shapes.ndim != 3 or shapes.shape[1] != 3 or shapes.shape[2] != omega.size:
+            raise ModelError(f"mode shapes must be (n, 3, {omega.size}), got {shapes.shape}")
+        self.omega = omega
+        self.shapes = shapes
+        self.fingerprint = fingerprint
+        self.model = model
+        self.info = dict(info or {})
+
+    @property
+    def n_modes(self) -> int:
+        return self.omega.size
+
+    @property
+    def n_nodes(self) -> int:
+        return self.shapes.shape[0]
+
+    @property
+    def frequencies(self) -> np.ndarray:
+        """Natural frequencies in Hz."""
+        return self.omega / (2 * np.pi)
+
+    @property
+    def eigenvalues(self) -> np.ndarray:
+        """w^2 (rad^2/s^2)."""
+        return self.omega**2
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The shapes as a (3n, r) matrix (rows x0, y0, z0, x1, ...)."""
+        return self.shapes.reshape(-1, self.n_modes)
+
+    def truncated(self, n_modes: int) -> "ModalBasis":
+        """The first ``n_modes`` modes."""
+        if not 1 <= n_modes <= self.n_modes:
+            raise ModelError(f"n_modes={n_modes} must be between 1 and {self.n_modes}")
+        return ModalBasis(self.omega[:n_modes], self.shapes[:, :, :n_modes], self.fingerprint, self.model, self.info)
+
+    def __repr__(self) -> str:
+        f = self.frequencies
+        return f"ModalBasis({self.n_modes} modes, {f[0]:.3g} .. {f[-1]:.3g} Hz, {self.n_nodes} nodes)"
+
+    # ------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike) -> Path:
+        """Save as a versioned ``.npz`` (no pickle)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        info = {k: v for k, v in self.info.items() if isinstance(v, (int, float, str, bool))}
+        np.savez_compressed(
+            path,
+            format=np.array("rtfem.ModalBasis"),
+            version=np.array(FORMAT_VERSION),
+            omega=self.omega,
+            shapes=self.shapes,
+            fingerprint=np.array(self.fingerprint),
+            info_keys=np.array(list(info.keys()), dtype=str),
+            info_values=np.array([str(v) for v in info.values()], dtype=str),
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, model=None, mesh: TriMesh | None = None) -> "ModalBasis":
+        """Load a saved basis; with ``model`` (or ``mesh``) it must belong to that mesh."""
+        path = Path(path)
+        if not path.exists():
+            raise ModelError(f"modal basis file {str(path)!r} does not exist")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "format" not in z or str(z["format"]) != "rtfem.ModalBasis":
+                    raise ModelError(f"{str(path)!r} is not an rtfem modal basis file")
+                version = int(z["version"])
+                if version > FORMAT_VERSION:
+                    raise ModelError(
+                        f"{str(path)!r} has format version {version}; this rtfem reads up to {FORMAT_VERSION}: upgrade rtfem"
+                    )
+                omega, shapes, fp = z["omega"], z["shapes"], str(z["fingerprint"])
+                info = dict(zip(z["info_keys"].tolist(), z["info_values"].tolist()))
+        except ModelError:
+            raise
+        except Exception as exc:
+            raise ModelError(f"could not read modal basis {str(path)!r}: {exc}") from None
+        target = model.mesh if model is not None else mesh
+        if target is not None:
+            if shapes.shape[0] != target.n_vertices or fp != mesh_fingerprint(target):
+                raise ModelError(
+                    f"{str(path)!r} was computed for a different mesh ({shapes.shape[0]} nodes, "
+                    f"fingerprint {fp[:8]}) than the one given ({target.n_vertices} nodes, "
+                    f"fingerprint {mesh_fingerprint(target)[:8]}); recompute it with rt.modal_analysis"
+                )
+        return cls(omega, shapes, fp, model, info)
+
+
+def _constrained_mass(model, dofs: np.ndarray) -> sp.csr_matrix:
+    m = model.mass_diagonal[dofs].copy()
+    return sp.diags(m, format="csr")
+
+
+def modal_analysis(
+    model,
+    n_modes: int | str = 20,
+    *,
+    sigma: float | None = None,
+    tol: float = 0.0,
+    progress: Callable[[str], None] | None = None,
+) -> ModalBasis:
+    """The lowest ``n_modes`` eigenpairs of K phi = w^2 M phi (Eq. 8).
+
+    Parameters
+    ----------
+    model : a :class:`~rtfem.ShellModel` (fixes applied by elimination or penalty).
+    n_modes : number of modes, or "all" (dense solver; small models only).
+    sigma : shift of the shift-invert iteration. Default: 0 for a restrained model (reusing
+        the static factorization) and a small negative value for an unconstrained one, so
+        that its six rigid-body modes come first.
+    tol : relative accuracy of ARPACK (0: machine precision).
+    progress : optional callable receiving one-line progress messages.
+
+    Returns
+    -------
+    ModalBasis with ascending w, mass-normalized shapes (Phi^T M Phi = I).
+    """
+    say = progress or (lambda msg: None)
+    t_start = time.perf_counter()
+    K, dofs = model.constrained_stiffness()
+    M = _constrained_mass(model, dofs)
+    massed = int(np.count_nonzero(M.diagonal()))
+    restrained = bool(model.fixed.any())
+    if isinstance(n_modes, str):
+        if n_modes != "all":
+            raise ModelError(f"n_modes={n_modes!r}: give a number or 'all'")
+        n_modes = massed - (int(model.fixed[:, :3].sum()) if model.constraints == "penalty" else 0)
+        if massed > _DENSE_ALL:
+            raise ModelError(f"n_modes='all' needs a dense eigensolver of size {massed}; ask for fewer modes")
+    n_modes = int(n_modes)
+    if n_modes < 1:
+        raise ModelError(f"n_modes={n_modes} must be >= 1")
+    if n_modes > massed or (n_modes == massed and massed > _DENSE_ALL):
+        raise ModelError(f"n_modes={n_modes} must be below the number of massed dofs ({massed})")
+    if n_modes > 0.1 * massed and massed <= _DENSE_ALL:
+        omega, phi = _dense_modes(model, K, M, dofs, n_modes)
+        method = "dense"
+    else:
+        if sigma is None:
+            if restrained:
+                sigma = 0.0
+            else:  # below the rigid-body modes; K - sigma M is then positive definite
+                d = K.diagonal()
+                m = M.diagonal()
+                sigma = -1e-6 * float(np.median(d[m > 0] / m[m > 0]))
+        say(f"factorizing the shifted stiffness ({K.shape[0]} dof, shift {sigma:.3g})")
+        if sigma == 0.0 and restrained:
+            fac = model.factorization()
+            solve = fac.solve
+        else:
+            A = (K - sigma * M).tocsc()
+            try:
+                fac = factorize(A, spd=sigma < 0 or restrained, what="K - sigma M", order=model.dof_order(dofs))
+            except SolverError as exc:
+                raise ModelError(f"{exc}; try another sigma") from None
+            solve = fac.solve
+        count = [0]
+        t0 = time.perf_counter()
+
+        def op(b: np.ndarray) -> np.ndarray:
+            count[0] += 1
+            if count[0] % 50 == 0:
+                say(f"  Lanczos: {count[0]} solves, {time.perf_counter() - t0:.1f} s")
+            return solve(b)
+
+        OPinv = spla.LinearOperator(K.shape, matvec=op, dtype=float)
+        ncv = min(massed, max(2 * n_modes + 1, 20))
+        say(f"shift-invert Lanczos for {n_modes} modes (ncv = {ncv})")
+        try:
+            lam, vec = spla.eigsh(K, k=n_modes, M=M, sigma=sigma, which="LM", OPinv=OPinv, ncv=ncv, tol=tol)
+        except spla.ArpackNoConvergence as exc:
+            raise SolverError(
+                f"ARPACK did not converge for {n_modes} modes ({len(exc.eigenvalues)} converged); "
+                "ask for fewer modes or a looser tol"
+            ) from None
+        order = np.argsort(lam)
+        lam, vec = lam[order], vec[:, order]
+        # mass-normalize explicitly (Phi^T M Phi = I)
+        norms = np.sqrt(np.einsum("ij,i,ij->j", vec, M.diagonal(), vec))
+        vec = vec / norms
+        omega = np.sqrt(np.clip(lam, 0.0, None))
+        phi = vec
+        method = f"shift-invert Lanczos ({count[0]} solves)"
+    full = np.zeros((model.n_dofs, phi.shape[1]))
+    full[dofs] = phi
+    shapes = full.reshape(model.n_nodes, 6, -1)[:, :3, :]
+    # deterministic sign: the largest translation of each mode is positive
+    flat = shapes.reshape(-1, shapes.shape[2])
+    sign = np.sign(flat[np.argmax(np.abs(flat), axis=0), np.arange(flat.shape[1])])
+    shapes = shapes * sign
+    if model.constraints == "penalty":
+        # the penalty leaves ~1/penalty motion at fixed dofs: remove it so shapes vanish there
+        shapes[model.fixed[:, :3]] = 0.0
+    elapsed = time.perf_counter() - t_start
+    say(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
+    info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
+            "membrane": model.membrane, "constraints": model.constraints}
+    return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
+
+
+def _dense_modes(model, K, M, dofs, n_modes):
+    """All or many modes of a small model through the dense condensed problem (Eq. 5)."""
+    m = M.diagonal()
+    massed = m > 0
+    Kd = K.toarray()
+    # condense the massless dofs (the rotations) exactly: K_c = K_mm - K_mz K_zz^-1 K_zm
+    a, z = np.flatnonzero(massed), np.flatnonzero(~massed)
+    Kc = Kd[np.ix_(a, a)]
+    if z.size:
+        Kc = Kc - Kd[np.ix_(a, z)] @ np.linalg.solve(Kd[np.ix_(z, z)], Kd[np.ix_(z, a)])
+    Kc = 0.5 * (Kc + Kc.T)
+    lam, v = sla.eigh(Kc, np.diag(m[a]), subset_by_index=[0, n_modes - 1])
+    vec = np.zeros((K.shape[0], n_modes))
+    vec[a] = v
+    if z.size:
+        vec[z] = -np.linalg.solve(Kd[np.ix_(z, z)], Kd[np.ix_(z, a)] @ v)
+    return np.sqrt(np.clip(lam, 0.0, None)), vec
