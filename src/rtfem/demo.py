@@ -1,4 +1,4 @@
-"""`make demo`: the default liver, fixed at its attachment, poked at one surface node.
+"""`make demo`: the default liver, fixed at its attachment, poked statically and then dynamically.
 
 Run with ``python -m rtfem.demo [--out DIR]``.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 import rtfem as rt
-from rtfem.io import write_vtu
+from rtfem.io import write_pvd, write_vtu
 
 
 def static_poke(out: Path, force: float = 0.2) -> dict:
@@ -54,6 +54,71 @@ def static_poke(out: Path, force: float = 0.2) -> dict:
     return {"node": node, "u": u}
 
 
+def probe_dynamics(out: Path, n_modes: int = 40, dt: float = 1e-3, force: float = 0.2) -> dict:
+    """A probe pushes a node (100 ms ramp), holds it (300 ms) and lets go (600 ms)."""
+    mesh = rt.meshes.liver()
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix("attachment")
+    t0 = time.perf_counter()
+    modes = rt.modal_analysis(model, n_modes)
+    t_modal = time.perf_counter() - t0
+    damping = rt.Damping(alpha=8.0)
+    node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+    push = -force * mesh.vertex_normals()[node]
+    # mode acceleration: the truncated modes' static share of the probe load is added back,
+    # so 40 modes still give the right indentation under the probe
+    sim = rt.ModalSimulator(modes, dt, damping, static_correction=True)
+    sim.prepare([node])
+    plain = rt.ModalSimulator(modes, dt, damping)
+    ramp, hold, free = 100, 300, 600
+    n_steps = ramp + hold + free
+    frame_every = max(1, int(round(1 / 60 / dt)))  # 60 Hz frames
+    frames, contact, step_times = [], [], []
+    folder = out / "dynamics"
+    folder.mkdir(parents=True, exist_ok=True)
+    for k in range(n_steps):
+        s = min(1.0, (k + 1) / ramp) if k < ramp + hold else 0.0
+        load = {node: (s * push[0], s * push[1], s * push[2])} if s else None
+        t0 = time.perf_counter()
+        sim.step(load)
+        u_node = sim.displacement(node)
+        step_times.append(time.perf_counter() - t0)
+        contact.append(np.linalg.norm(u_node))
+        plain.step(load)
+        if k == ramp + hold - 1:
+            plain_hold = np.linalg.norm(plain.displacement(node))
+        if (k + 1) % frame_every == 0:
+            path = write_vtu(folder / f"frame_{len(frames):04d}.vtu", mesh, sim.displacements())
+            frames.append((sim.time, path))
+    pvd = write_pvd(out / "liver_dynamics.pvd", frames)
+    # the paper's baseline, for comparison: direct integration of the full system
+    t0 = time.perf_counter()
+    direct = rt.DirectSimulator(model, dt, damping)
+    t_dsetup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(20):
+        direct.step({node: tuple(push)})
+    t_direct = (time.perf_counter() - t0) / 20
+    med = float(np.median(step_times))
+    contact = np.array(contact)
+    f = modes.frequencies
+    print("\nrtfem demo: probe push-hold-release, modal dynamics")
+    print(f"  modes       {n_modes} modes in {t_modal:.2f} s ({modes.info['method']})")
+    print("  frequencies " + ", ".join(f"{x:.2f}" for x in f[:10]) + f" ... {f[-1]:.1f} Hz")
+    print(f"  damping     B = alpha M, alpha = {damping.alpha} 1/s; dt = {dt * 1e3:g} ms, exact integrator "
+          "with static correction (mode acceleration)")
+    print(f"  step rate   {1 / med:,.0f} steps/s (median {med * 1e6:.1f} us per step with the contact "
+          f"node read back; 99th percentile {np.percentile(step_times, 99) * 1e6:.1f} us)")
+    print(f"  baseline    direct Newmark on all {model.n_dofs} dof: {t_direct * 1e3:.1f} ms per step "
+          f"({t_direct / med:,.0f} x slower), setup {t_dsetup:.2f} s")
+    u_static = np.linalg.norm(model.solve_static({node: tuple(push)})[node])
+    print(f"  contact     {contact[ramp + hold - 1] * 1e3:.2f} mm at the end of the hold (static solve: "
+          f"{u_static * 1e3:.2f} mm; {n_modes} modes without the correction: {plain_hold * 1e3:.2f} mm), peak "
+          f"{contact.max() * 1e3:.2f} mm, {contact[-1] * 1e3:.3f} mm {free} ms after release")
+    print(f"  wrote       {pvd} ({len(frames)} frames at 60 Hz; open in ParaView and press play)")
+    return {"contact": contact, "modes": modes}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rtfem.demo", description=__doc__)
     ap.add_argument("--out", default="out/demo", help="folder for the output files (default: out/demo)")
@@ -61,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     static_poke(out)
+    probe_dynamics(out)
     return 0
 
 

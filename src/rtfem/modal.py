@@ -90,7 +90,7 @@ class ModalBasis:
         """The first ``n_modes`` modes."""
         if not 1 <= n_modes <= self.n_modes:
             raise ModelError(f"n_modes={n_modes} must be between 1 and {self.n_modes}")
-        return ModalBasis(self.omega[:n_modes], self.shapes[:, :, :n_modes], self.fingerprint, self.model, self.info)
+        return ModalBasis(self.omega[:n_modes].copy(), np.ascontiguousarray(self.shapes[:, :, :n_modes]), self.fingerprint, self.model, self.info)
 
     def __repr__(self) -> str:
         f = self.frequencies

@@ -165,7 +165,9 @@ class ModalSimulator(_ForceInput):
         self._C2 = np.ascontiguousarray(np.stack([Phi[:, 0, 1], Phi[:, 1, 0]]))
         self._G1 = np.ascontiguousarray(G1.T)
         self._G0 = None if G0 is None else np.ascontiguousarray(G0.T)
-        self._phi = modes.shapes  # (n, 3, r)
+        self._phi = np.ascontiguousarray(modes.shapes)  # (n, 3, r)
+        self._P = self._phi.reshape(-1, r)  # (3n, r) view
+        self._fv = np.zeros(3)
         self._S = np.zeros((2, r))
         self._T1 = np.zeros((2, r))
         self._T2 = np.zeros((2, r))
@@ -192,18 +194,26 @@ class ModalSimulator(_ForceInput):
         self._load_array = None
         if forces is None:
             return
-        if isinstance(forces, Mapping):
-            fn = self._fn
+        if type(forces) is dict or isinstance(forces, Mapping):
+            fn, fv, n = self._fn, self._fv, self.n_nodes
             for node, f in forces.items():
-                i = self._node(node)
-                v = self._vec(node, f)
-                np.dot(v, self._phi[i], out=fn)
+                # fast path for the haptic loop: plain ints and 3-sequences of floats
+                i = node if type(node) is int and 0 <= node < n else self._node(node)
+                try:
+                    fx, fy, fz = f
+                    fx, fy, fz = float(fx), float(fy), float(fz)
+                except (TypeError, ValueError):
+                    fx, fy, fz = self._vec(node, f)
+                if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+                    self._vec(node, f)  # raises with the message
+                fv[0], fv[1], fv[2] = fx, fy, fz
+                np.dot(fv, self._phi[i], out=fn)
                 out += fn
                 if self.static_correction:
-                    self._loads[i] = self._loads.get(i, 0.0) + v
+                    self._loads[i] = self._loads.get(i, 0.0) + fv.copy()
             return
         A = self._as_array(forces)
-        np.dot(A.reshape(-1), self._phi.reshape(-1, self._phi.shape[2]), out=out)
+        np.dot(A.reshape(-1), self._P, out=out)
         if self.static_correction:
             self._load_array = A
 
@@ -269,7 +279,7 @@ class ModalSimulator(_ForceInput):
     def displacements(self, out: np.ndarray | None = None) -> np.ndarray:
         """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction."""
         r = self._phi.shape[2]
-        u = np.dot(self._phi.reshape(-1, r), self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
+        u = np.dot(self._P, self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
         if self.static_correction:
             if self._load_array is not None:
                 model = self.modes.model
@@ -282,7 +292,7 @@ class ModalSimulator(_ForceInput):
 
     def displacement(self, node: int) -> np.ndarray:
         """Displacement (3,) of one node, O(r)."""
-        i = self._node(node)
+        i = node if type(node) is int and 0 <= node < self.n_nodes else self._node(node)
         u = self._phi[i] @ self._S[0]
         if self.static_correction and self._loads:
             for j, f in self._loads.items():

@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+import rtfem as rt
+
+
+@pytest.fixture(scope="module")
+def setup():
+    mesh = rt.meshes.liver(3)
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix("attachment")
+    basis = rt.modal_analysis(model, 30)
+    node = mesh.nearest_vertex([0.06, 0.05, 0.0])
+    return model, basis, node
+
+
+def test_dict_and_array_forces_agree(setup):
+    model, basis, node = setup
+    a = rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=4.0))
+    b = rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=4.0))
+    F = np.zeros((model.n_nodes, 3))
+    F[node] = (0.0, -0.1, 0.02)
+    F[3] = (0.01, 0.0, 0.0)
+    for _ in range(20):
+        a.step({node: (0.0, -0.1, 0.02), 3: (0.01, 0.0, 0.0)})
+        b.step(F)
+    assert np.allclose(a.displacements(), b.displacements(), rtol=1e-13, atol=0)
+    assert np.allclose(a.displacement(node), a.displacements()[node], rtol=1e-13)
+
+
+def test_bad_forces_leave_state_untouched(setup):
+    model, basis, node = setup
+    sim = rt.ModalSimulator(basis, 1e-3)
+    sim.run({node: (0.0, -0.1, 0.0)}, 10)
+    before = sim.get_state()
+    for bad in ({node: (np.nan, 0.0, 0.0)}, {node: (0.0, np.inf, 0.0)}, {10**7: (1, 0, 0)}, {node: (1, 2)},
+                np.full((model.n_nodes, 3), np.nan), np.zeros((4, 3)), {"a": (1, 0, 0)}):
+        with pytest.raises(rt.ModelError):
+            sim.step(bad)
+    after = sim.get_state()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+    assert sim.steps == 10
+
+
+def test_reset_and_state_round_trip(setup):
+    _, basis, node = setup
+    sim = rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=2.0), integrator="newmark")
+    sim.run({node: (0.0, 0.0, 0.1)}, 15)
+    state = sim.get_state()
+    sim.run({node: (0.0, 0.0, 0.1)}, 10)
+    u25 = sim.displacements()
+    sim.set_state(state)
+    assert sim.steps == 15 and sim.time == pytest.approx(0.015)
+    sim.run({node: (0.0, 0.0, 0.1)}, 10)
+    assert np.array_equal(sim.displacements(), u25)
+    sim.reset()
+    assert sim.energy() == 0.0 and sim.time == 0.0
+    with pytest.raises(rt.ModelError, match="shape"):
+        sim.set_state({"q": np.zeros(3)})
+
+
+def test_argument_errors(setup):
+    model, basis, _ = setup
+    for dt in (0.0, -1e-3, np.nan, "x"):
+        with pytest.raises(rt.ModelError, match="dt"):
+            rt.ModalSimulator(basis, dt)
+    with pytest.raises(rt.ModelError, match="integrator"):
+        rt.ModalSimulator(basis, 1e-3, integrator="rk4")
+    with pytest.raises(rt.ModelError, match="ModalBasis"):
+        rt.ModalSimulator(model, 1e-3)
+    with pytest.raises(rt.ModelError, match="needs the model"):
+        rt.ModalSimulator(rt.ModalBasis(basis.omega, basis.shapes, "x"), 1e-3, static_correction=True)
+    with pytest.raises(rt.ModelError, match="zeta"):
+        rt.DirectSimulator(model, 1e-3, rt.Damping(zeta=0.02))
+    free = rt.ShellModel(model.mesh, rt.Material())
+    with pytest.raises(rt.ModelError, match="nothing is fixed"):
+        rt.DirectSimulator(free, 1e-3)
+
+
+def test_static_correction_for_array_loads(setup):
+    model, basis, node = setup
+    F = np.zeros((model.n_nodes, 3))
+    F[node] = (0.0, -0.1, 0.05)
+    sim = rt.ModalSimulator(basis.truncated(5), 0.5, rt.Damping(alpha=2 * basis.omega[0]), static_correction=True)
+    sim.run(F, 200)
+    u = model.solve_static(F)
+    assert np.linalg.norm(sim.displacements() - u) < 1e-9 * np.linalg.norm(u)
+
+
+def test_central_difference_refuses_unstable_dt_and_agrees_below(setup):
+    mesh = rt.meshes.plate(0.1, 0.05, 6, 3)
+    model = rt.ShellModel(mesh, rt.Material(E=1e5, thickness=2e-3))
+    model.fix("x0")
+    probe = rt.DirectSimulator(model, 1e-9, rt.Damping(alpha=3.0), method="central")
+    limit = probe.critical_dt
+    # the limit is T_n / pi of the highest mode of the condensed system
+    w_max = rt.modal_analysis(model, "all").omega.max()
+    assert limit == pytest.approx(2 / w_max, rel=1e-4)
+    with pytest.raises(rt.ModelError, match=r"T_n/pi = .*Use dt <="):
+        rt.DirectSimulator(model, 1.01 * limit, rt.Damping(alpha=3.0), method="central")
+    dt = 0.5 * limit
+    cd = rt.DirectSimulator(model, dt, rt.Damping(alpha=3.0), method="central")
+    nm = rt.DirectSimulator(model, dt, rt.Damping(alpha=3.0))
+    node = int(mesh.groups["x1"][1])
+    exact = rt.ModalSimulator(rt.modal_analysis(model, "all"), dt, rt.Damping(alpha=3.0))
+    n = int(0.5 / dt)
+    for _ in range(n):
+        for sim in (cd, nm, exact):
+            sim.step({node: (0.0, 0.0, -0.01)})
+    # the three take the step force at the start, the middle (trapezoid) and over the whole
+    # first step; after many steps they differ by their O(dt^2) errors only
+    ref = exact.displacements()
+    assert np.abs(cd.displacements() - ref).max() < 2e-3 * np.abs(ref).max()
+    assert np.abs(nm.displacements() - ref).max() < 2e-3 * np.abs(ref).max()
+    with pytest.raises(rt.ModelError, match="diagonal damping"):
+        rt.DirectSimulator(model, dt, rt.Damping(alpha=1.0, beta=1e-3), method="central")
