@@ -9,6 +9,7 @@ from . import linalg
 from .modal import ModalBasis, modal_analysis
 from .model import ShellModel
 from .simulate import DirectSimulator, ModalSimulator
+from .sldm import SLDM
 
 __version__ = "0.1.0"
 
@@ -25,6 +26,7 @@ __all__ = [
     "RtfemError",
     "RtfemWarning",
     "ShellModel",
+    "SLDM",
     "SolverError",
     "TriMesh",
     "load_mesh",

@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.lanczos import Lanczos
+
+
+def spd(n, seed=0):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, n))
+    return X @ X.T / n + np.diag(np.linspace(0.0, 50.0, n))
+
+
+@pytest.mark.parametrize("reorth", ["cgs2", "householder"])
+def test_orthogonality_and_projection(reorth):
+    A = spd(300)
+    b = np.random.default_rng(1).normal(size=300)
+    L = Lanczos(lambda x: A @ x, b, reorth)
+    L.extend(120)
+    a, be = L.tridiagonal()
+    T = np.diag(a) + np.diag(be, 1) + np.diag(be, -1)
+    Q = L.Q
+    assert L.m == 120 and Q.shape == (300, 120)
+    assert L.orthogonality_loss() < 1e-14
+    assert np.abs(Q.T @ A @ Q - T).max() < 1e-12 * np.abs(A).max()
+    assert np.allclose(Q[:, 0], b / np.linalg.norm(b), rtol=0, atol=1e-15)
+    assert np.all(be > 0)
+    # Lanczos relation A Q_m = Q_m T_m + beta_m q_{m+1} e_m^T
+    R = A @ Q - Q @ T
+    R[:, -1] -= L.last_beta * L.next_vector()
+    assert np.abs(R).max() < 1e-11 * np.abs(A).max()
+
+
+def test_both_reorthogonalizations_give_the_same_tridiagonal():
+    A = spd(200, seed=3)
+    b = np.ones(200)
+    T = []
+    for reorth in ("cgs2", "householder"):
+        L = Lanczos(lambda x: A @ x, b, reorth)
+        L.extend(60)
+        T.append(np.concatenate(L.tridiagonal()))
+    assert np.allclose(T[0], T[1], rtol=1e-9)
+
+
+@pytest.mark.parametrize("reorth", ["cgs2", "householder"])
+def test_breakdown_on_an_invariant_subspace(reorth):
+    A = np.diag(np.repeat([1.0, 2.0, 3.0, 4.0, 5.0], 40))
+    L = Lanczos(lambda x: A @ x, np.random.default_rng(0).normal(size=200), reorth)
+    L.extend(50)
+    assert L.breakdown and L.m == 5
+    assert np.allclose(np.sort(np.linalg.eigvalsh(np.diag(L.tridiagonal()[0]) + np.diag(L.tridiagonal()[1], 1)
+                                                   + np.diag(L.tridiagonal()[1], -1))), [1, 2, 3, 4, 5])
+    assert L.extend(5) == 0  # nothing more to do, no crash
+
+
+def test_bad_start_vectors():
+    with pytest.raises(rt.SolverError, match="zero"):
+        Lanczos(lambda x: x, np.zeros(5))
+    with pytest.raises(rt.SolverError, match="NaN"):
+        Lanczos(lambda x: x, np.array([1.0, np.nan]))
+    with pytest.raises(rt.SolverError, match="reorth"):
+        Lanczos(lambda x: x, np.ones(3), "mgs")
