@@ -96,7 +96,7 @@ def test_step_response_exact_against_modal_solution(small, damping, reorth):
     err = rel_err(U, modal_reference(model, basis, forces, damping, times))
     assert err < 1e-8
     assert sldm.last_info.orthogonality < 1e-13
-    assert sldm.last_info.m >= sldm.last_info.m0
+    assert sldm.last_info.m >= sldm.last_info.m0 // 2
 
 
 @pytest.mark.parametrize("damping", [rt.Damping(alpha=4.0), rt.Damping(alpha=300.0), rt.Damping(alpha=5000.0),
