@@ -1,0 +1,341 @@
+"""The impedance map: precomputed responses to unit loads, superposed at run time (paper 4.1).
+
+For each selected node j and direction k, the displacement response to a unit step load
+switched on at t = 0 is computed at the requested time samples plus its static limit, and
+kept only where it matters: within a radius of influence of j (Euclidean or geodesic), or
+where it is larger than a fraction of its peak (``threshold``; a radius fails for a load
+near the free end of an organ held at the other end, where the largest motion lies far
+from the load). At run time, the field of any set of loads switched on at given times is
+the superposition of those columns, delayed to their onsets (Duhamel), and the 3x3 point
+compliance at a contact node renders the force.
+
+Responses come from the modal route (``method="modal"``: r modes, exact closed form in time,
+plus the static correction so that the static limit is exact) or from SLDM (one Krylov basis
+per load vector; exact to ``tol`` at every sample, costlier to build).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from .errors import ModelError
+from .material import Damping
+from .modal import mesh_fingerprint, modal_analysis
+from .oscillator import step_response
+
+__all__ = ["ImpedanceMap", "Load"]
+
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Load:
+    """A force (fx, fy, fz) on ``node`` switched on at ``onset`` (s) and held."""
+
+    node: int
+    force: tuple[float, float, float]
+    onset: float = 0.0
+
+
+class ImpedanceMap:
+    """Precomputed unit-load responses (see the module docstring); build with :meth:`build`."""
+
+    def __init__(self, n_nodes: int, times: np.ndarray, loaded: np.ndarray, offsets: np.ndarray,
+                 neighbours: np.ndarray, responses: np.ndarray, point: np.ndarray, fingerprint: str,
+                 info: dict | None = None) -> None:
+        self.n_nodes = int(n_nodes)
+        self.times = np.asarray(times, dtype=float)  # (n_t,) samples; the static limit is appended
+        self.loaded = np.asarray(loaded, dtype=np.int64)  # (L,) loaded nodes
+        self.offsets = np.asarray(offsets, dtype=np.int64)  # (L + 1,) into neighbours/responses
+        self.neighbours = np.asarray(neighbours, dtype=np.int64)  # (N,) kept nodes per loaded node
+        self.responses = np.asarray(responses)  # (N, n_t + 1, 3, 3): [kept node, time, u comp, load dir]
+        self.point = np.asarray(point)  # (L, n_t + 1, 3, 3): exact responses at the loaded node itself
+        self.fingerprint = fingerprint
+        self.info = dict(info or {})
+        self._slot = np.full(self.n_nodes, -1, dtype=np.int64)
+        self._slot[self.loaded] = np.arange(self.loaded.size)
+
+    # ---------------------------------------------------------------- building
+    @classmethod
+    def build(
+        cls,
+        model,
+        damping: Damping | None = None,
+        *,
+        nodes=None,
+        radius: float | None = None,
+        metric: str = "euclidean",
+        threshold: float | None = None,
+        times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
+        method: str = "modal",
+        n_modes: int = 100,
+        tol: float = 1e-6,
+        memory_limit: float = 4 * 2**30,
+        progress: Callable[[int, int, float], None] | None = None,
+    ) -> "ImpedanceMap":
+        """Precompute the map.
+
+        Parameters
+        ----------
+        model : a restrained ShellModel.
+        damping : the damping of the responses.
+        nodes : loaded nodes (indices, mask or group name); default every free node.
+        radius : radius of influence in metres (None: no radius).
+        metric : "euclidean" or "geodesic" (shortest path along mesh edges).
+        threshold : keep only nodes whose response exceeds ``threshold`` times the largest
+            response of that column (at any time); combines with ``radius``.
+        times : response samples (s), increasing, > 0; the static limit is kept as well.
+        method : "modal" (``n_modes`` modes + static correction) or "sldm" (tolerance ``tol``).
+        memory_limit : refuse to start if the estimate exceeds it (bytes).
+        progress : ``progress(done, total, seconds)`` after each loaded node.
+
+        A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
+        (``info["complete"]`` is False) and can be saved.
+        """
+        damping = damping if damping is not None else Damping()
+        model.check_restrained()
+        t = np.asarray(times, dtype=float)
+        if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)) or np.any(t <= 0) or np.any(np.diff(t) <= 0):
+            raise ModelError("times must be increasing, finite and > 0 (seconds)")
+        if metric not in ("euclidean", "geodesic"):
+            raise ModelError(f"metric={metric!r}; choose 'euclidean' or 'geodesic'")
+        if radius is not None and not (np.isfinite(radius) and radius > 0):
+            raise ModelError(f"radius={radius!r} must be a length > 0 in metres (or None)")
+        if threshold is not None and not (0 <= threshold < 1):
+            raise ModelError(f"threshold={threshold!r} must be in [0, 1)")
+        if method not in ("modal", "sldm"):
+            raise ModelError(f"method={method!r}; choose 'modal' or 'sldm'")
+        n = model.n_nodes
+        free_nodes = np.flatnonzero(~model.fixed[:, :3].all(axis=1))
+        loaded = free_nodes if nodes is None else np.unique(model._nodes(nodes))
+        if loaded.size == 0:
+            raise ModelError("no nodes to load")
+        X = np.asarray(model.mesh.vertices)
+        within = _NeighbourFinder(model.mesh, radius, metric)
+        # memory estimate before starting (sampled neighbourhood sizes)
+        sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
+        mean_kept = np.mean([within(j).size for j in sample])
+        estimate = loaded.size * mean_kept * (t.size + 1) * 9 * 8
+        if estimate > memory_limit:
+            raise ModelError(
+                f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
+                f"node, {t.size + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
+                f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
+            )
+        engine = _ModalColumns(model, damping, t, n_modes) if method == "modal" else _SLDMColumns(model, damping, t, tol)
+        offsets = [0]
+        kept_nodes, kept_resp, point = [], [], []
+        done_nodes = []
+        t0 = time.perf_counter()
+        complete = True
+        try:
+            for count, j in enumerate(loaded):
+                cols = engine.columns(int(j))  # (n, n_t + 1, 3, 3)
+                keep = within(int(j))
+                if threshold is not None and threshold > 0:
+                    mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
+                    keep = keep[mag >= threshold * mag.max()]
+                kept_nodes.append(keep)
+                kept_resp.append(cols[keep])
+                point.append(cols[j])
+                offsets.append(offsets[-1] + keep.size)
+                done_nodes.append(int(j))
+                if progress is not None:
+                    progress(count + 1, loaded.size, time.perf_counter() - t0)
+        except KeyboardInterrupt:
+            complete = False
+        if not done_nodes:
+            raise ModelError("the build was interrupted before the first node was finished")
+        info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
+                "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
+                "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
+                "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
+                "precompute_seconds": engine.setup_seconds}
+        return cls(n, t, np.array(done_nodes), np.array(offsets), np.concatenate(kept_nodes),
+                   np.concatenate(kept_resp), np.array(point), mesh_fingerprint(model.mesh), info)
+
+    # ---------------------------------------------------------------- sizes
+    @property
+    def nbytes(self) -> int:
+        return int(self.responses.nbytes + self.point.nbytes + self.neighbours.nbytes + self.offsets.nbytes)
+
+    @property
+    def bytes_per_node(self) -> float:
+        """Memory per loaded node (bytes)."""
+        return self.nbytes / max(1, self.loaded.size)
+
+    def __repr__(self) -> str:
+        kept = np.diff(self.offsets).mean() if self.loaded.size else 0
+        return (f"ImpedanceMap({self.loaded.size} loaded nodes, {kept:.0f} kept per node, {self.times.size} samples "
+                f"+ static, {self.nbytes / 2**20:.1f} MiB, method={self.info.get('method')!r})")
+
+    # ---------------------------------------------------------------- run time
+    def _slot_of(self, node: int) -> int:
+        if not 0 <= node < self.n_nodes or self._slot[node] < 0:
+            raise ModelError(f"node {node} is not a loaded node of this impedance map")
+        return int(self._slot[node])
+
+    def _sample(self, R: np.ndarray, tau: float) -> np.ndarray | None:
+        """R (k, n_t + 1, 3, 3) at a delay tau, linear in time between samples.
+
+        Before the first sample the response grows linearly from 0 at tau = 0; past the last
+        sample the static limit is used (choose the samples to cover the settling time).
+        """
+        t = self.times
+        if tau <= 0:
+            return None
+        if tau >= t[-1]:
+            return R[:, -1]
+        i1 = int(np.searchsorted(t, tau))
+        if i1 == 0:
+            return R[:, 0] * (tau / t[0])
+        w = (tau - t[i1 - 1]) / (t[i1] - t[i1 - 1])
+        return (1 - w) * R[:, i1 - 1] + w * R[:, i1]
+
+    def displacements(self, loads: Iterable[Load | tuple], t: float) -> np.ndarray:
+        """Superposed (n, 3) displacement field at time ``t`` of loads switched on at their onsets.
+
+        ``loads``: :class:`Load` objects or ``(node, (fx, fy, fz), onset)`` tuples; a load that
+        ends is a second load of opposite sign at the release time.
+        """
+        u = np.zeros((self.n_nodes, 3))
+        for ld in loads:
+            node, f, onset = (ld.node, ld.force, ld.onset) if isinstance(ld, Load) else (ld[0], ld[1], ld[2] if len(ld) > 2 else 0.0)
+            f = np.asarray(f, dtype=float)
+            if f.shape != (3,) or not np.all(np.isfinite(f)):
+                raise ModelError(f"load on node {node}: need 3 finite force components, got {f!r}")
+            s = self._slot_of(int(node))
+            R = self.responses[self.offsets[s] : self.offsets[s + 1]]
+            Rt = self._sample(R, t - float(onset))
+            if Rt is None:
+                continue
+            u[self.neighbours[self.offsets[s] : self.offsets[s + 1]]] += Rt @ f
+        return u
+
+    def point_compliance(self, node: int, t: float | None = None) -> np.ndarray:
+        """3x3 compliance at a loaded node: displacement there per unit force there.
+
+        ``t=None`` gives the static compliance (G_pp = [K^-1]_pp), otherwise the step-response
+        compliance after a delay ``t``. Exact (it does not depend on the truncation).
+        """
+        s = self._slot_of(int(node))
+        P = self.point[s][None]
+        if t is None:
+            return self.point[s, -1].copy()
+        out = self._sample(P, float(t))
+        return np.zeros((3, 3)) if out is None else out[0]
+
+    # ---------------------------------------------------------------- files
+    def save(self, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        info = {k: v for k, v in self.info.items() if isinstance(v, (int, float, str, bool))}
+        np.savez_compressed(path, format=np.array("rtfem.ImpedanceMap"), version=np.array(FORMAT_VERSION),
+                            n_nodes=np.array(self.n_nodes), times=self.times, loaded=self.loaded,
+                            offsets=self.offsets, neighbours=self.neighbours, responses=self.responses,
+                            point=self.point, fingerprint=np.array(self.fingerprint),
+                            info_keys=np.array(list(info), dtype=str), info_values=np.array([str(v) for v in info.values()], dtype=str))
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, model=None) -> "ImpedanceMap":
+        path = Path(path)
+        if not path.exists():
+            raise ModelError(f"impedance map file {str(path)!r} does not exist")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "format" not in z or str(z["format"]) != "rtfem.ImpedanceMap":
+                    raise ModelError(f"{str(path)!r} is not an rtfem impedance map file")
+                if int(z["version"]) > FORMAT_VERSION:
+                    raise ModelError(f"{str(path)!r} has format version {int(z['version'])}; upgrade rtfem")
+                args = {k: z[k] for k in ("times", "loaded", "offsets", "neighbours", "responses", "point")}
+                n, fp = int(z["n_nodes"]), str(z["fingerprint"])
+                info = dict(zip(z["info_keys"].tolist(), z["info_values"].tolist()))
+        except ModelError:
+            raise
+        except Exception as exc:
+            raise ModelError(f"could not read impedance map {str(path)!r}: {exc}") from None
+        if model is not None and fp != mesh_fingerprint(model.mesh):
+            raise ModelError(f"{str(path)!r} was built for a different mesh; rebuild it with ImpedanceMap.build")
+        return cls(n, fingerprint=fp, info=info, **args)
+
+
+class _NeighbourFinder:
+    def __init__(self, mesh, radius, metric):
+        self.mesh, self.radius, self.metric = mesh, radius, metric
+        self.X = np.asarray(mesh.vertices)
+        self.all = np.arange(mesh.n_vertices)
+        if radius is not None and metric == "euclidean":
+            self.tree = cKDTree(self.X)
+
+    def __call__(self, j: int) -> np.ndarray:
+        if self.radius is None:
+            return self.all
+        if self.metric == "euclidean":
+            return np.array(sorted(self.tree.query_ball_point(self.X[j], self.radius)), dtype=np.int64)
+        d = dijkstra(self.mesh.adjacency(), directed=False, indices=j, limit=self.radius)
+        return np.flatnonzero(np.isfinite(d))
+
+
+class _ModalColumns:
+    """Unit-step columns from r modes with the static correction (mode acceleration)."""
+
+    def __init__(self, model, damping, times, n_modes):
+        t0 = time.perf_counter()
+        self.model = model
+        self.basis = modal_analysis(model, n_modes)
+        lam = self.basis.omega**2
+        self.lam = lam
+        g = step_response(lam[:, None], damping.modal_alpha(self.basis.omega)[:, None], times[None, :])
+        self.g = np.concatenate([g, (1.0 / lam)[:, None]], axis=1)  # (r, n_t + 1): samples + static
+        self.setup_seconds = time.perf_counter() - t0
+
+    def columns(self, j: int) -> np.ndarray:
+        phi = self.basis.shapes  # (n, 3, r)
+        pj = phi[j]  # (3, r): load direction k -> modal force pj[k]
+        # modal part: u(t) = sum_i phi_i g_i(t) phi_i(j)^T e_k
+        cols = np.einsum("nir,rt,kr->ntik", phi, self.g, pj, optimize=True)
+        # static correction: D = K^-1 e_jk - Phi Lambda^-1 Phi^T e_jk, added at every time
+        F = np.zeros((self.model.n_nodes, 6))
+        static = np.empty((self.model.n_nodes, 3, 3))
+        for k in range(3):
+            F[:] = 0.0
+            F[j, k] = 1.0
+            static[:, :, k] = self.model.solve_static(F)
+        modal_static = cols[:, -1]
+        cols += (static - modal_static)[:, None]
+        return cols
+
+
+class _SLDMColumns:
+    """Unit-step columns from SLDM, three Krylov bases per loaded node."""
+
+    def __init__(self, model, damping, times, tol):
+        from .sldm import SLDM
+
+        t0 = time.perf_counter()
+        self.model = model
+        self.sldm = SLDM(model, damping, tol=tol)
+        self.times = times
+        self.setup_seconds = time.perf_counter() - t0
+
+    def columns(self, j: int) -> np.ndarray:
+        n = self.model.n_nodes
+        cols = np.empty((n, self.times.size + 1, 3, 3))
+        F = np.zeros((n, 6))
+        for k in range(3):
+            F[:] = 0.0
+            F[j, k] = 1.0
+            U = self.sldm.step_response(F[:, :3], self.times)  # (n_t, n, 3)
+            cols[:, :-1, :, k] = U.transpose(1, 0, 2)
+            cols[:, -1, :, k] = self.model.solve_static(F)
+        return cols
