@@ -7,6 +7,7 @@ from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .modal import ModalBasis, modal_analysis
+from .impedance import ImpedanceMap, Load
 from .model import ShellModel
 from .simulate import DirectSimulator, ModalSimulator
 from .sldm import SLDM
@@ -16,6 +17,8 @@ __version__ = "0.1.0"
 __all__ = [
     "Damping",
     "DirectSimulator",
+    "ImpedanceMap",
+    "Load",
     "ModalBasis",
     "ModalSimulator",
     "modal_analysis",

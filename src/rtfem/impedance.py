@@ -192,7 +192,7 @@ class ImpedanceMap:
         t = self.times
         if tau <= 0:
             return None
-        if tau >= t[-1]:
+        if tau > t[-1]:
             return R[:, -1]
         i1 = int(np.searchsorted(t, tau))
         if i1 == 0:

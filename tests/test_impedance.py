@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+import rtfem as rt
+
+TIMES = np.round(np.arange(1, 31) * 0.01, 10)  # 10 ms .. 300 ms
+
+
+@pytest.fixture(scope="module")
+def setup():
+    mesh = rt.meshes.liver(3)
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix("attachment")
+    damping = rt.Damping(alpha=8.0)
+    a = mesh.nearest_vertex([0.055, 0.05, 0.0])
+    b = mesh.nearest_vertex([-0.06, 0.04, -0.01])
+    imap = rt.ImpedanceMap.build(model, damping, nodes=[a, b], times=TIMES, n_modes=40)
+    return model, damping, imap, a, b
+
+
+def test_infinite_radius_equals_modal_simulation(setup):
+    model, damping, imap, a, b = setup
+    basis = rt.modal_analysis(model, 40)
+    sim = rt.ModalSimulator(basis, 1e-3, damping, static_correction=True)
+    fa, fb = np.array([0.0, -0.1, 0.05]), np.array([0.02, 0.0, -0.08])
+    loads = [rt.Load(a, tuple(fa), 0.0), rt.Load(b, tuple(fb), 0.05), rt.Load(a, tuple(-fa), 0.12)]
+    for k in range(200):
+        t = k * 1e-3
+        f = {}
+        if t < 0.12 - 1e-9:
+            f[a] = fa
+        if t >= 0.05 - 1e-9:
+            f[b] = fb
+        sim.step(f)
+        if (k + 1) % 50 == 0:  # sample times where every delay is on the map's grid
+            u = imap.displacements(loads, sim.time)
+            ref = sim.displacements()
+            assert np.abs(u - ref).max() < 1e-9 * np.abs(ref).max(), sim.time
+
+
+def test_static_limit_and_point_compliance(setup):
+    model, _, imap, a, b = setup
+    G = imap.point_compliance(a)
+    assert np.allclose(G, G.T, rtol=1e-9, atol=0)  # reciprocity at a point
+    assert np.all(np.linalg.eigvalsh(G) > 0)
+    f = np.array([0.0, -0.1, 0.05])
+    assert np.allclose(G @ f, model.solve_static({a: f})[a], rtol=1e-10, atol=0)
+    u = imap.displacements([(a, f, 0.0)], 10.0)  # long after the last sample: static
+    assert np.allclose(u, model.solve_static({a: f}), rtol=0, atol=1e-10 * np.abs(u).max())
+    # Maxwell-Betti: the response at b to a load at a equals the transpose of the reverse
+    Gab = np.stack([imap.displacements([(a, e, 0.0)], 10.0)[b] for e in np.eye(3)], axis=1)
+    Gba = np.stack([imap.displacements([(b, e, 0.0)], 10.0)[a] for e in np.eye(3)], axis=1)
+    assert np.allclose(Gab, Gba.T, rtol=1e-9, atol=1e-14)
+    assert np.allclose(imap.point_compliance(a, 0.0), 0.0)
+    assert np.allclose(imap.point_compliance(a, TIMES[4]), imap.point[0, 4])
+
+
+def test_sldm_map_matches_sldm_and_static(setup):
+    model, damping, _, a, _ = setup
+    imap = rt.ImpedanceMap.build(model, damping, nodes=[a], times=TIMES[:10], method="sldm", tol=1e-8)
+    f = np.array([0.0, -0.1, 0.05])
+    U = rt.SLDM(model, damping).step_response({a: f}, TIMES[:10], tol=1e-8)
+    for k in (0, 4, 9):
+        assert np.abs(imap.displacements([(a, f, 0.0)], TIMES[k]) - U[k]).max() < 1e-6 * np.abs(U[k]).max()
+    assert np.allclose(imap.point_compliance(a) @ f, model.solve_static({a: f})[a], rtol=1e-10, atol=0)
+
+
+def test_truncation_error_falls_with_radius_and_threshold(setup):
+    model, damping, full, a, _ = setup
+    f = (0.0, -0.1, 0.05)
+    ref = full.displacements([(a, f, 0.0)], 0.1)
+    errs = []
+    for R in (0.03, 0.06, 0.12, 0.3):
+        m = rt.ImpedanceMap.build(model, damping, nodes=[a], times=TIMES, n_modes=40, radius=R)
+        errs.append(np.linalg.norm(m.displacements([(a, f, 0.0)], 0.1) - ref) / np.linalg.norm(ref))
+    assert all(e2 < e1 for e1, e2 in zip(errs, errs[1:])) and errs[-1] < 1e-12
+    g = rt.ImpedanceMap.build(model, damping, nodes=[a], times=TIMES, n_modes=40, radius=0.06, metric="geodesic")
+    assert g.offsets[1] <= rt.ImpedanceMap.build(model, damping, nodes=[a], times=TIMES, n_modes=40, radius=0.06).offsets[1]
+    t1 = rt.ImpedanceMap.build(model, damping, nodes=[a], times=TIMES, n_modes=40, threshold=0.01)
+    err = np.linalg.norm(t1.displacements([(a, f, 0.0)], 0.1) - ref) / np.linalg.norm(ref)
+    assert err < 0.01 < errs[1]  # magnitude truncation beats a radius keeping similar numbers of nodes
+
+
+def test_save_load_and_interrupt(tmp_path, setup):
+    model, damping, imap, a, _ = setup
+    path = imap.save(tmp_path / "map")
+    again = rt.ImpedanceMap.load(path, model=model)
+    assert np.array_equal(again.responses, imap.responses) and again.info["method"] == "modal"
+    other = rt.ShellModel(rt.meshes.liver(2), rt.Material())
+    with pytest.raises(rt.ModelError, match="different mesh"):
+        rt.ImpedanceMap.load(path, model=other)
+    calls = []
+
+    def stop_after_two(done, total, seconds):
+        calls.append(done)
+        if done == 2:
+            raise KeyboardInterrupt
+
+    part = rt.ImpedanceMap.build(model, damping, nodes=np.arange(10, 20), times=TIMES[:3], n_modes=10,
+                                 progress=stop_after_two)
+    assert part.loaded.size == 2 and part.info["complete"] is False
+    assert part.bytes_per_node > 0
+
+
+def test_bad_input(setup):
+    model, damping, imap, a, _ = setup
+    with pytest.raises(rt.ModelError, match="not a loaded node"):
+        imap.displacements([(5, (1, 0, 0), 0.0)], 0.1)
+    with pytest.raises(rt.ModelError, match="finite"):
+        imap.displacements([(a, (np.nan, 0, 0), 0.0)], 0.1)
+    with pytest.raises(rt.ModelError, match="GiB"):
+        rt.ImpedanceMap.build(model, damping, times=TIMES, memory_limit=1e6)
+    with pytest.raises(rt.ModelError, match="times"):
+        rt.ImpedanceMap.build(model, damping, nodes=[a], times=[0.1, 0.05])
+    with pytest.raises(rt.ModelError, match="method"):
+        rt.ImpedanceMap.build(model, damping, nodes=[a], method="fem")
