@@ -7,6 +7,7 @@ from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .modal import ModalBasis, modal_analysis
+from .haptics import CallbackDevice, HapticLoop, Probe, ScriptedDevice
 from .impedance import ImpedanceMap, Load
 from .model import ShellModel
 from .simulate import DirectSimulator, ModalSimulator
@@ -16,7 +17,11 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Damping",
+    "CallbackDevice",
     "DirectSimulator",
+    "HapticLoop",
+    "Probe",
+    "ScriptedDevice",
     "ImpedanceMap",
     "Load",
     "ModalBasis",

@@ -276,6 +276,30 @@ class ModalSimulator(_ForceInput):
             for n in np.atleast_1d(nodes):
                 self._correction_column(int(n))
 
+    def predict(self, node: int) -> np.ndarray:
+        """Displacement (3,) of ``node`` after one more step with no new load, O(r).
+
+        With :meth:`step_compliance` W, the next step under a force f on that node gives
+        u(k+1) = predict(node) + W f: the relation a haptic contact solves (James & Pai's
+        capacitance approach) before stepping.
+        """
+        S = self._S
+        x = self._C1[0] * S[0] + self._C2[0] * S[1]
+        if self._G0 is not None:
+            x = x + self._G0[0] * self._f_old
+        return self._phi[node] @ x
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """W (3x3): displacement of ``node`` after one step per unit force held on it.
+
+        W = sum_i phi_i(p) phi_i(p)^T Gamma_i (+ D_pp with the static correction).
+        """
+        P = self._phi[node]
+        W = (P * self._G1[0]) @ P.T
+        if self.static_correction:
+            W = W + self._correction_column(node)[node]
+        return W
+
     def displacements(self, out: np.ndarray | None = None) -> np.ndarray:
         """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction."""
         r = self._phi.shape[2]

@@ -1,0 +1,268 @@
+"""Haptic rendering: a probe touching the organ, a contact force, and a fixed-rate force loop.
+
+Contact. The probe is a sphere (radius 0 for a point) at position c. Near it, the organ
+surface is sampled at the vertices closest to c, at their *deformed* positions; the contact
+vertex p is the one nearest to the probe, with outward normal n, and it is kept while the
+contact lasts (under a frictionless load the surface slides sideways, and re-selecting the
+nearest vertex every tick would hop to a neighbour and drop the force). Frictionless, unilateral
+contact requires n . u_p <= g = n . (c - X_p) - radius (the probe stays outside).
+
+Force. With the exact modal update the contact node obeys u_p(k+1) = u_free + W f_k
+(:meth:`ModalSimulator.predict`, :meth:`ModalSimulator.step_compliance`), so the force
+f = -lam n for the next step is found before stepping, implicitly:
+
+* ``coupling="constraint"``: the displacement constraint n . u_p(k+1) = g (James & Pai's
+  capacitance approach): lam = (n . u_free - g) / (n^T W n) when positive;
+* ``coupling="spring"`` (default): a virtual coupling spring of stiffness k between probe
+  and surface, lam = (n . u_free - g) / (n^T W n + 1/k): softer, bounded forces, stable for a
+  real device whatever k.
+
+Both are implicit in the organ's own dynamics, so the coupled loop is passive: no force
+blow-up under a held contact. With an :class:`~rtfem.ImpedanceMap` the same formulas run
+quasi-statically with the static point compliance G_pp as W.
+
+HapticLoop runs the update on its own thread at a fixed rate (1 kHz by default), reading
+probe positions from a device and handing forces back, and records the achieved rate,
+per-step compute time and jitter.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import ModelError
+from .impedance import ImpedanceMap
+from .mesh import TriMesh
+from .simulate import ModalSimulator
+
+__all__ = ["Probe", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
+
+
+class Probe:
+    """Contact between a spherical probe and an organ driven by a ModalSimulator or an ImpedanceMap.
+
+    Parameters
+    ----------
+    mesh : the organ surface.
+    driver : a :class:`ModalSimulator` (dynamic) or an :class:`ImpedanceMap` (quasi-static).
+    radius : probe tip radius (m); 0 for a point probe.
+    coupling : "spring" (virtual coupling, default) or "constraint" (hard displacement).
+    stiffness : virtual coupling stiffness k (N/m).
+    candidates : how many vertices near the probe are tested for contact.
+    """
+
+    def __init__(self, mesh: TriMesh, driver, *, radius: float = 0.0, coupling: str = "spring",
+                 stiffness: float = 200.0, candidates: int = 8) -> None:
+        if not isinstance(driver, (ModalSimulator, ImpedanceMap)):
+            raise ModelError(f"the probe drives a ModalSimulator or an ImpedanceMap, not {type(driver).__name__}")
+        if coupling not in ("spring", "constraint"):
+            raise ModelError(f"coupling={coupling!r}; choose 'spring' or 'constraint'")
+        if not (np.isfinite(radius) and radius >= 0):
+            raise ModelError(f"radius={radius!r} must be >= 0 (m)")
+        if not (np.isfinite(stiffness) and stiffness > 0):
+            raise ModelError(f"stiffness={stiffness!r} must be > 0 (N/m)")
+        self.mesh = mesh
+        self.driver = driver
+        self.radius = float(radius)
+        self.coupling = coupling
+        self.stiffness = float(stiffness)
+        self.X = np.asarray(mesh.vertices)
+        self.normals = mesh.vertex_normals()
+        self._tree = cKDTree(self.X)
+        self._k = int(min(candidates, mesh.n_vertices))
+        self._W: dict[int, np.ndarray] = {}
+        self._cand: np.ndarray | None = None
+        self._cand_at = np.zeros(3)
+        edges = mesh.edges()
+        self._requery = 0.25 * float(np.median(np.linalg.norm(self.X[edges[:, 0]] - self.X[edges[:, 1]], axis=1)))
+        self.force = np.zeros(3)  # force on the probe (what the user feels), N
+        self.contact_node: int | None = None
+        self.penetration = 0.0
+        if isinstance(driver, ImpedanceMap):
+            self._static_u = np.zeros((mesh.n_vertices, 3))
+
+    def _compliance(self, node: int) -> np.ndarray:
+        W = self._W.get(node)
+        if W is None:
+            if isinstance(self.driver, ModalSimulator):
+                W = self.driver.step_compliance(node)
+            else:
+                W = self.driver.point_compliance(node)
+            self._W[node] = W
+        return W
+
+    def _deformed(self, nodes: np.ndarray) -> np.ndarray:
+        d = self.driver
+        if isinstance(d, ModalSimulator):
+            return self.X[nodes] + d._phi[nodes] @ d.q
+        return self.X[nodes] + self._static_u[nodes]
+
+    def update(self, position) -> np.ndarray:
+        """Advance one step with the probe at ``position``; returns the force on the probe (N)."""
+        c = np.asarray(position, dtype=float)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ModelError(f"probe position must be 3 finite coordinates, got {position!r}")
+        if self.contact_node is not None:
+            # stay on the vertex in contact: under a frictionless load the surface slides
+            # sideways and a nearest-vertex search would hop to a neighbour, dropping the force
+            p = self.contact_node
+        else:
+            if self._cand is None or np.linalg.norm(c - self._cand_at) > self._requery:
+                _, cand = self._tree.query(c, k=self._k)
+                self._cand, self._cand_at = np.atleast_1d(cand), c.copy()
+            xd = self._deformed(self._cand)
+            p = int(self._cand[np.argmin(np.einsum("ij,ij->i", xd - c, xd - c))])
+        n = self.normals[p]
+        g = float(n @ (c - self.X[p])) - self.radius
+        d = self.driver
+        lam = 0.0
+        if isinstance(d, ModalSimulator):
+            u_free = d.predict(p)
+        else:
+            u_free = np.zeros(3)
+        if n @ u_free > g:  # the surface would pass the probe: contact
+            W = self._compliance(p)
+            denom = float(n @ W @ n) + (1.0 / self.stiffness if self.coupling == "spring" else 0.0)
+            lam = (float(n @ u_free) - g) / denom
+        f_organ = -lam * n
+        if isinstance(d, ModalSimulator):
+            d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
+        else:  # quasi-static superposition of the static responses
+            self._static_u = d.displacements([(p, f_organ, 0.0)], np.inf) if lam > 0 else np.zeros_like(self._static_u)
+        self.contact_node = p if lam > 0 else None
+        self.penetration = max(0.0, float(n @ u_free) - g) if lam > 0 else 0.0
+        self.force = -f_organ
+        return self.force
+
+
+@dataclass
+class LoopStats:
+    """What a HapticLoop achieved."""
+
+    steps: int = 0
+    seconds: float = 0.0
+    compute: list[float] = field(default_factory=list)  # per-step compute time (s)
+    lateness: list[float] = field(default_factory=list)  # start time minus scheduled time (s)
+    peak_force: float = 0.0
+
+    @property
+    def rate(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else 0.0
+
+    def percentile(self, q: float) -> float:
+        return float(np.percentile(self.compute, q)) if self.compute else float("nan")
+
+    @property
+    def jitter(self) -> float:
+        """Standard deviation of the step start times around the schedule (s)."""
+        return float(np.std(self.lateness)) if self.lateness else float("nan")
+
+    def __str__(self) -> str:
+        return (f"{self.steps} steps in {self.seconds:.2f} s: {self.rate:.0f} Hz achieved; compute median "
+                f"{self.percentile(50) * 1e6:.1f} us, 99th percentile {self.percentile(99) * 1e6:.1f} us; "
+                f"jitter {self.jitter * 1e6:.1f} us; peak force {self.peak_force:.3f} N")
+
+
+class ScriptedDevice:
+    """A probe that follows a trajectory: ``trajectory(t) -> (3,)`` position in metres."""
+
+    def __init__(self, trajectory: Callable[[float], np.ndarray]) -> None:
+        self.trajectory = trajectory
+        self.forces: list[np.ndarray] = []
+        self.times: list[float] = []
+
+    def position(self, t: float) -> np.ndarray:
+        return np.asarray(self.trajectory(t), dtype=float)
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self.times.append(t)
+        self.forces.append(np.array(force))
+
+
+class CallbackDevice:
+    """Plug a real device driver (or the viewer) in: ``get_position() -> (3,)``, ``set_force(f)``."""
+
+    def __init__(self, get_position: Callable[[], np.ndarray], set_force: Callable[[np.ndarray], None]) -> None:
+        self._get, self._set = get_position, set_force
+
+    def position(self, t: float) -> np.ndarray:
+        return np.asarray(self._get(), dtype=float)
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self._set(force)
+
+
+class HapticLoop:
+    """Runs ``probe.update`` on its own thread at a fixed rate (default 1 kHz).
+
+    Each tick reads the device position, computes the contact force and hands it back. The
+    schedule is absolute (tick k at start + k/rate): a late tick does not shift later ones.
+    Waiting sleeps until shortly before the tick and spins for the rest (sleep alone is
+    too coarse for 1 ms periods).
+    """
+
+    def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4) -> None:
+        if not (np.isfinite(rate) and rate > 0):
+            raise ModelError(f"rate={rate!r} must be > 0 (Hz)")
+        self.probe, self.device = probe, device
+        self.period = 1.0 / float(rate)
+        self.spin = spin
+        self.stats = LoopStats()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+
+    def _run(self, max_steps: int | None) -> None:
+        st = self.stats
+        t0 = time.perf_counter()
+        k = 0
+        try:
+            while not self._stop.is_set() and (max_steps is None or k < max_steps):
+                target = t0 + k * self.period
+                while True:
+                    now = time.perf_counter()
+                    wait = target - now
+                    if wait <= 0:
+                        break
+                    if wait > self.spin:
+                        time.sleep(wait - self.spin)
+                start = time.perf_counter()
+                st.lateness.append(start - target)
+                t = k * self.period
+                f = self.probe.update(self.device.position(t))
+                self.device.set_force(t, f)
+                st.compute.append(time.perf_counter() - start)
+                st.peak_force = max(st.peak_force, float(np.linalg.norm(f)))
+                k += 1
+                st.steps = k
+                st.seconds = time.perf_counter() - t0
+        except BaseException as exc:  # surfaced by stop()/join()
+            self.error = exc
+
+    def start(self, max_steps: int | None = None) -> "HapticLoop":
+        if self._thread is not None and self._thread.is_alive():
+            raise ModelError("the haptic loop is already running")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, args=(max_steps,), name="rtfem-haptic-loop", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> LoopStats:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self.error is not None:
+            raise self.error
+        return self.stats
+
+    def run(self, seconds: float) -> LoopStats:
+        """Run in real time for ``seconds`` (blocking) and return the statistics."""
+        self.start(max_steps=int(round(seconds / self.period)))
+        self._thread.join()  # type: ignore[union-attr]
+        return self.stop()
