@@ -63,7 +63,10 @@ def test_loop_runs_on_its_own_thread_and_reports(organ):
     sim = rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=8.0), static_correction=True)
     X = np.asarray(mesh.vertices)[node]
     device = rt.ScriptedDevice(lambda t: X - min(t / 0.1, 1.0) * 0.003 * n)
-    loop = rt.HapticLoop(rt.Probe(mesh, sim), device, rate=1000.0)
+    probe = rt.Probe(mesh, sim)
+    assert probe.prepare(around=X, radius=0.01) >= 1
+    assert node in probe._W
+    loop = rt.HapticLoop(probe, device, rate=1000.0)
     stats = loop.run(0.3)
     # an absolute schedule never runs ahead of the clock
     assert 1 <= stats.steps <= 301 and len(stats.compute) == stats.steps == len(device.forces)
