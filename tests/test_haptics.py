@@ -56,6 +56,10 @@ def test_impedance_map_driver_renders_the_static_force(organ):
     f = probe.update(np.asarray(mesh.vertices)[node] - 0.003 * n)
     assert np.linalg.norm(f) == pytest.approx(0.003 / (n @ G @ n), rel=1e-9)
     assert np.allclose(f / np.linalg.norm(f), n)  # the probe is pushed back out
+    u = probe.displacements()
+    assert np.allclose(u, model.solve_static({node: -f}), rtol=0, atol=1e-10 * np.abs(u).max())
+    near = np.array([node, 0, 5])
+    assert np.allclose(imap.compliance_at(node, near) @ -f, u[near], rtol=0, atol=1e-12)
 
 
 def test_loop_runs_on_its_own_thread_and_reports(organ):

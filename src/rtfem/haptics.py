@@ -86,8 +86,7 @@ class Probe:
         self.force = np.zeros(3)  # force on the probe (what the user feels), N
         self.contact_node: int | None = None
         self.penetration = 0.0
-        if isinstance(driver, ImpedanceMap):
-            self._static_u = np.zeros((mesh.n_vertices, 3))
+        self._map_load: tuple[int, np.ndarray] | None = None  # (node, force on the organ), map route
 
     def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
         """Precompute the contact compliances W of the vertices the probe may touch.
@@ -106,6 +105,16 @@ class Probe:
             self._compliance(int(v))
         return int(nodes.size)
 
+    def displacements(self) -> np.ndarray:
+        """The organ's (n, 3) displacement field now (for drawing; O(n), not for the force loop)."""
+        d = self.driver
+        if isinstance(d, ModalSimulator):
+            return d.displacements()
+        if self._map_load is None:
+            return np.zeros((self.mesh.n_vertices, 3))
+        p, f = self._map_load
+        return d.displacements([(p, f, 0.0)], np.inf)
+
     def _compliance(self, node: int) -> np.ndarray:
         W = self._W.get(node)
         if W is None:
@@ -120,7 +129,10 @@ class Probe:
         d = self.driver
         if isinstance(d, ModalSimulator):
             return self.X[nodes] + d._phi[nodes] @ d.q
-        return self.X[nodes] + self._static_u[nodes]
+        if self._map_load is None:
+            return self.X[nodes]
+        p, f = self._map_load
+        return self.X[nodes] + d.compliance_at(p, nodes) @ f
 
     def update(self, position) -> np.ndarray:
         """Advance one step with the probe at ``position``; returns the force on the probe (N)."""
@@ -152,8 +164,8 @@ class Probe:
         f_organ = -lam * n
         if isinstance(d, ModalSimulator):
             d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
-        else:  # quasi-static superposition of the static responses
-            self._static_u = d.displacements([(p, f_organ, 0.0)], np.inf) if lam > 0 else np.zeros_like(self._static_u)
+        else:  # quasi-static: the static response to the contact force (evaluated where needed)
+            self._map_load = (p, f_organ) if lam > 0 else None
         self.contact_node = p if lam > 0 else None
         self.penetration = max(0.0, float(n @ u_free) - g) if lam > 0 else 0.0
         self.force = -f_organ

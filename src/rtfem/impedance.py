@@ -220,6 +220,28 @@ class ImpedanceMap:
             u[self.neighbours[self.offsets[s] : self.offsets[s + 1]]] += Rt @ f
         return u
 
+    def compliance_at(self, loaded: int, nodes: np.ndarray, t: float | None = None) -> np.ndarray:
+        """(k, 3, 3) responses at ``nodes`` per unit force at ``loaded`` (static when t is None).
+
+        O(k log kept): what a haptic update needs (the field near the contact), without
+        superposing the whole map. Nodes outside the kept set get zeros.
+        """
+        s = self._slot_of(int(loaded))
+        lo, hi = self.offsets[s], self.offsets[s + 1]
+        kept = self.neighbours[lo:hi]  # sorted
+        nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
+        pos = np.clip(np.searchsorted(kept, nodes), 0, max(kept.size - 1, 0))
+        hit = kept[pos] == nodes
+        out = np.zeros((nodes.size, 3, 3))
+        R = self.responses[lo + pos[hit]]
+        if t is None:
+            out[hit] = R[:, -1]
+        else:
+            Rt = self._sample(R, float(t))
+            if Rt is not None:
+                out[hit] = Rt
+        return out
+
     def point_compliance(self, node: int, t: float | None = None) -> np.ndarray:
         """3x3 compliance at a loaded node: displacement there per unit force there.
 
