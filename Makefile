@@ -22,8 +22,13 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
+# all benchmark tables (about an hour with the 40,962-vertex liver; BENCH_LEVELS="4 5" is quicker)
+BENCH_LEVELS ?= 4 5 6
 bench: $(STAMP)
-	$(BIN)/python benchmarks/assembly.py
+	$(BIN)/python benchmarks/assembly.py --levels $(BENCH_LEVELS)
+	$(BIN)/python benchmarks/dynamics.py --levels $(BENCH_LEVELS)
+	$(BIN)/python benchmarks/sldm.py --levels $(BENCH_LEVELS)
+	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -102,6 +102,17 @@ def test_save_load_and_interrupt(tmp_path, setup):
     assert part.bytes_per_node > 0
 
 
+def test_parallel_build_and_fixed_nodes(setup):
+    model, damping, _, a, b = setup
+    fixed = int(model.mesh.groups["attachment"][0])
+    nodes = [a, b, fixed, 7, 11]
+    one = rt.ImpedanceMap.build(model, damping, nodes=nodes, times=TIMES[:4], n_modes=20, radius=0.05)
+    two = rt.ImpedanceMap.build(model, damping, nodes=nodes, times=TIMES[:4], n_modes=20, radius=0.05, workers=2)
+    assert fixed not in one.loaded and one.info["skipped_fixed_nodes"] == 1
+    assert np.array_equal(one.loaded, two.loaded) and np.array_equal(one.neighbours, two.neighbours)
+    assert np.abs(one.responses - two.responses).max() < 1e-12 * np.abs(one.responses).max()
+
+
 def test_bad_input(setup):
     model, damping, imap, a, _ = setup
     with pytest.raises(rt.ModelError, match="not a loaded node"):

@@ -80,6 +80,7 @@ class ImpedanceMap:
         tol: float = 1e-6,
         memory_limit: float = 4 * 2**30,
         progress: Callable[[int, int, float], None] | None = None,
+        workers: int = 1,
     ) -> "ImpedanceMap":
         """Precompute the map.
 
@@ -96,6 +97,8 @@ class ImpedanceMap:
         method : "modal" (``n_modes`` modes + static correction) or "sldm" (tolerance ``tol``).
         memory_limit : refuse to start if the estimate exceeds it (bytes).
         progress : ``progress(done, total, seconds)`` after each loaded node.
+        workers : loaded nodes computed in parallel by this many threads (the sparse solves
+            and the BLAS products release the interpreter lock).
 
         A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
         (``info["complete"]`` is False) and can be saved.
@@ -116,8 +119,10 @@ class ImpedanceMap:
         n = model.n_nodes
         free_nodes = np.flatnonzero(~model.fixed[:, :3].all(axis=1))
         loaded = free_nodes if nodes is None else np.unique(model._nodes(nodes))
+        held = loaded[model.fixed[loaded, :3].all(axis=1)]
+        loaded = np.setdiff1d(loaded, held)  # a load on a fixed node moves nothing
         if loaded.size == 0:
-            raise ModelError("no nodes to load")
+            raise ModelError("no free nodes to load (every node given is fixed)")
         X = np.asarray(model.mesh.vertices)
         within = _NeighbourFinder(model.mesh, radius, metric)
         # memory estimate before starting (sampled neighbourhood sizes)
@@ -131,25 +136,47 @@ class ImpedanceMap:
                 f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
             )
         engine = _ModalColumns(model, damping, t, n_modes) if method == "modal" else _SLDMColumns(model, damping, t, tol)
+        def one(j: int):
+            cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
+            keep = within(j)
+            if threshold is not None and threshold > 0:
+                mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
+                keep = keep[mag >= threshold * mag.max()]
+            return j, keep, cols[keep], cols[j]
+
         offsets = [0]
         kept_nodes, kept_resp, point = [], [], []
         done_nodes = []
         t0 = time.perf_counter()
         complete = True
+
+        def collect(result) -> None:
+            j, keep, resp, pt = result
+            kept_nodes.append(keep)
+            kept_resp.append(resp)
+            point.append(pt)
+            offsets.append(offsets[-1] + keep.size)
+            done_nodes.append(j)
+            if progress is not None:
+                progress(len(done_nodes), loaded.size, time.perf_counter() - t0)
+
+        workers = max(1, int(workers))
         try:
-            for count, j in enumerate(loaded):
-                cols = engine.columns(int(j))  # (n, n_t + 1, 3, 3)
-                keep = within(int(j))
-                if threshold is not None and threshold > 0:
-                    mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
-                    keep = keep[mag >= threshold * mag.max()]
-                kept_nodes.append(keep)
-                kept_resp.append(cols[keep])
-                point.append(cols[j])
-                offsets.append(offsets[-1] + keep.size)
-                done_nodes.append(int(j))
-                if progress is not None:
-                    progress(count + 1, loaded.size, time.perf_counter() - t0)
+            if workers == 1:
+                for j in loaded:
+                    collect(one(int(j)))
+            else:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(max_workers=workers) as pool:
+                    # in order, a window of 2 x workers in flight
+                    pending = []
+                    for j in loaded:
+                        pending.append(pool.submit(one, int(j)))
+                        if len(pending) >= 2 * workers:
+                            collect(pending.pop(0).result())
+                    while pending:
+                        collect(pending.pop(0).result())
         except KeyboardInterrupt:
             complete = False
         if not done_nodes:
@@ -158,7 +185,7 @@ class ImpedanceMap:
                 "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
                 "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
                 "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
-                "precompute_seconds": engine.setup_seconds}
+                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size)}
         return cls(n, t, np.array(done_nodes), np.array(offsets), np.concatenate(kept_nodes),
                    np.concatenate(kept_resp), np.array(point), mesh_fingerprint(model.mesh), info)
 

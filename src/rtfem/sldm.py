@@ -183,9 +183,16 @@ class SLDM:
         return out.reshape(k, -1, 3)
 
     # ---------------------------------------------------------------- the Krylov machinery
-    def _krylov(self, b: np.ndarray, coefficients: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                t_max: float, tol: float, m_fixed: int | None) -> tuple[Lanczos, np.ndarray, SLDMInfo]:
-        """Grow a Lanczos basis until the reduced response z_m (m x k) has converged."""
+    def _krylov(self, b: np.ndarray, coefficients: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+                n_samples: int, t_max: float, tol: float, m_fixed: int | None) -> tuple[Lanczos, np.ndarray, SLDMInfo]:
+        """Grow a Lanczos basis until the reduced response z_m (m x k) has converged.
+
+        ``coefficients(lam, v0, sel)`` gives f(lam, sample) * v0 for the samples ``sel``. The
+        convergence checks use at most 128 samples spread evenly (the last one included);
+        the returned z_m covers all of them.
+        """
+        every = np.arange(n_samples)
+        check = np.unique(np.linspace(0, n_samples - 1, min(n_samples, 128)).round().astype(int))
         t0 = time.perf_counter()
         L = Lanczos(self.apply, b, self.reorth, capacity=64)
         target = m_fixed if m_fixed is not None else None
@@ -200,7 +207,7 @@ class SLDM:
             theta_max = float(lam.max())
             m0 = int(math.ceil(t_max * math.sqrt(max(theta_max, 0.0)) / 2)) if t_max > 0 else 0
             m = L.m
-            z = V @ (coefficients(lam, V[0]))  # (m, k)
+            z = V @ coefficients(lam, V[0], check)  # (m, k_check)
             if L.breakdown:
                 estimate = 0.0
                 break
@@ -208,7 +215,7 @@ class SLDM:
             if m > p:
                 a2, b2 = a[: m - p], bt[: m - p - 1]
                 lam2, V2 = _eig_tridiagonal(a2, b2)
-                z2 = V2 @ coefficients(lam2, V2[0])
+                z2 = V2 @ coefficients(lam2, V2[0], check)
                 diff = np.abs(z.copy())
                 diff[: m - p] = np.abs(z[: m - p] - z2)
                 scale = np.linalg.norm(z, axis=0).max()
@@ -235,6 +242,9 @@ class SLDM:
             if m < m0 // 2:
                 grow = max(grow, min(m0 // 2 - m, 200))
             L.extend(min(grow, self.m_max - m))
+        a, bt = L.tridiagonal()
+        lam, V = _eig_tridiagonal(a, bt)
+        z = V @ coefficients(lam, V[0], every)
         # below ~1e-11 the difference estimate measures round-off, not truncation
         estimate = max(estimate, _ROUNDOFF) if np.isfinite(estimate) else estimate
         # rigorous-style residual beta0 beta_m |e_m^T z_m(t)|, relative to |z_m|
@@ -259,11 +269,11 @@ class SLDM:
         if not np.any(b):
             return np.zeros((times.size, self.model.n_nodes, 3))
 
-        def coefficients(lam, v0):
+        def coefficients(lam, v0, sel):
             a = self._alpha_of(lam)
-            return _step_fn(lam[:, None], a[:, None], times[None, :]) * v0[:, None]
+            return _step_fn(lam[:, None], a[:, None], times[sel][None, :]) * v0[:, None]
 
-        L, z, info = self._krylov(b, coefficients, float(times.max()), tol, m if m is not None else self.m)
+        L, z, info = self._krylov(b, coefficients, times.size, float(times.max()), tol, m if m is not None else self.m)
         t0 = time.perf_counter()
         U = self._displacements(L, z)
         info.evaluate_seconds = time.perf_counter() - t0
@@ -288,11 +298,12 @@ class SLDM:
         tol = self.tol if tol is None else self._check_tol(tol)
         b = self._load(forces)
 
-        def coefficients(lam, v0):
+        def coefficients(lam, v0, sel):
             a = self._alpha_of(lam)
-            return v0[:, None] / (lam[:, None] - w[None, :] ** 2 + 1j * w[None, :] * a[:, None])
+            ws = w[sel]
+            return v0[:, None] / (lam[:, None] - ws[None, :] ** 2 + 1j * ws[None, :] * a[:, None])
 
-        L, z, info = self._krylov(b, coefficients, 0.0, tol, m if m is not None else self.m)
+        L, z, info = self._krylov(b, coefficients, w.size, 0.0, tol, m if m is not None else self.m)
         t0 = time.perf_counter()
         U = self._displacements(L, z)
         info.evaluate_seconds = time.perf_counter() - t0
@@ -341,12 +352,12 @@ class SLDM:
             tau = np.clip(times[None, :] - delays[:, None], 0.0, None)  # (jumps, k)
             active = (times[None, :] > delays[:, None]).astype(float)
 
-            def coefficients(lam, v0, tau=tau, active=active, scales=scales):
+            def coefficients(lam, v0, sel, tau=tau, active=active, scales=scales):
                 a = self._alpha_of(lam)
-                g = _step_fn(lam[:, None, None], a[:, None, None], tau[None, :, :])  # (m, jumps, k)
-                return np.einsum("mjk,j,jk->mk", g, scales, active) * v0[:, None]
+                g = _step_fn(lam[:, None, None], a[:, None, None], tau[None, :, sel])  # (m, jumps, k)
+                return np.einsum("mjk,j,jk->mk", g, scales, active[:, sel]) * v0[:, None]
 
-            L, z, info = self._krylov(pat, coefficients, horizon, tol, self.m)
+            L, z, info = self._krylov(pat, coefficients, times.size, horizon, tol, self.m)
             U += self._displacements(L, z)
             infos.append(info)
         if infos:
