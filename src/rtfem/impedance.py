@@ -27,6 +27,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from .errors import ModelError
+from .io import load_versioned, save_versioned
 from .material import Damping
 from .modal import mesh_fingerprint, modal_analysis
 from .oscillator import step_response
@@ -283,39 +284,24 @@ class ImpedanceMap:
         return np.zeros((3, 3)) if out is None else out[0]
 
     # ---------------------------------------------------------------- files
+    _ARRAYS = ["times", "loaded", "offsets", "neighbours", "responses", "point"]
+
     def save(self, path: str | os.PathLike) -> Path:
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
-        info = {k: v for k, v in self.info.items() if isinstance(v, (int, float, str, bool))}
-        np.savez_compressed(path, format=np.array("rtfem.ImpedanceMap"), version=np.array(FORMAT_VERSION),
-                            n_nodes=np.array(self.n_nodes), times=self.times, loaded=self.loaded,
-                            offsets=self.offsets, neighbours=self.neighbours, responses=self.responses,
-                            point=self.point, fingerprint=np.array(self.fingerprint),
-                            info_keys=np.array(list(info), dtype=str), info_values=np.array([str(v) for v in info.values()], dtype=str))
-        return path
+        """Save as a versioned ``.npz`` (no pickle)."""
+        arrays = {k: getattr(self, k) for k in self._ARRAYS}
+        arrays.update(n_nodes=np.array(self.n_nodes), fingerprint=np.array(self.fingerprint))
+        return save_versioned(path, "rtfem.ImpedanceMap", FORMAT_VERSION, arrays, self.info)
 
     @classmethod
     def load(cls, path: str | os.PathLike, model=None) -> "ImpedanceMap":
-        path = Path(path)
-        if not path.exists():
-            raise ModelError(f"impedance map file {str(path)!r} does not exist")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "format" not in z or str(z["format"]) != "rtfem.ImpedanceMap":
-                    raise ModelError(f"{str(path)!r} is not an rtfem impedance map file")
-                if int(z["version"]) > FORMAT_VERSION:
-                    raise ModelError(f"{str(path)!r} has format version {int(z['version'])}; upgrade rtfem")
-                args = {k: z[k] for k in ("times", "loaded", "offsets", "neighbours", "responses", "point")}
-                n, fp = int(z["n_nodes"]), str(z["fingerprint"])
-                info = dict(zip(z["info_keys"].tolist(), z["info_values"].tolist()))
-        except ModelError:
-            raise
-        except Exception as exc:
-            raise ModelError(f"could not read impedance map {str(path)!r}: {exc}") from None
+        """Load a saved map; with ``model`` it must belong to that model's mesh."""
+        z, info = load_versioned(path, "rtfem.ImpedanceMap", FORMAT_VERSION, cls._ARRAYS + ["n_nodes", "fingerprint"],
+                                  "impedance map")
+        fp = str(z.pop("fingerprint"))
+        n = int(z.pop("n_nodes"))
         if model is not None and fp != mesh_fingerprint(model.mesh):
             raise ModelError(f"{str(path)!r} was built for a different mesh; rebuild it with ImpedanceMap.build")
-        return cls(n, fingerprint=fp, info=info, **args)
+        return cls(n, fingerprint=fp, info=info, **z)
 
 
 class _NeighbourFinder:

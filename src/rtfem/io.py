@@ -9,9 +9,10 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .errors import ModelError
 from .mesh import TriMesh
 
-__all__ = ["write_vtu", "write_pvd"]
+__all__ = ["write_vtu", "write_pvd", "save_versioned", "load_versioned"]
 
 
 def write_vtu(
@@ -54,3 +55,46 @@ def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.Pa
     lines += ["  </Collection>", "</VTKFile>", ""]
     path.write_text("\n".join(lines))
     return path
+
+
+def save_versioned(path: str | os.PathLike, kind: str, version: int, arrays: dict[str, np.ndarray], info: dict) -> Path:
+    """Save arrays as a compressed ``.npz`` tagged with a format name and version (no pickle).
+
+    ``info`` keeps its plain scalar entries (numbers, strings, booleans) as text.
+    """
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}
+    np.savez_compressed(path, format=np.array(kind), version=np.array(version), **arrays,
+                        info_keys=np.array(list(info), dtype=str),
+                        info_values=np.array([str(v) for v in info.values()], dtype=str))
+    return path
+
+
+def load_versioned(path: str | os.PathLike, kind: str, version: int, names: list[str],
+                   what: str) -> tuple[dict[str, np.ndarray], dict]:
+    """Load what :func:`save_versioned` wrote, checking the format name, the version and the arrays.
+
+    ``what`` names the content in error messages ("modal basis").
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ModelError(f"{what} file {str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "format" not in z or str(z["format"]) != kind:
+                raise ModelError(f"{str(path)!r} is not an rtfem {what} file")
+            v = int(z["version"])
+            if v > version:
+                raise ModelError(f"{str(path)!r} has format version {v}; this rtfem reads up to {version}: upgrade rtfem")
+            missing = [n for n in names if n not in z]
+            if missing:
+                raise ModelError(f"{str(path)!r} lacks {', '.join(missing)}: the file is damaged")
+            arrays = {n: z[n] for n in names}
+            info = dict(zip(z["info_keys"].tolist(), z["info_values"].tolist()))
+    except ModelError:
+        raise
+    except Exception as exc:
+        raise ModelError(f"could not read {what} {str(path)!r}: {exc}") from None
+    return arrays, info

@@ -12,13 +12,14 @@ from .errors import ModelError
 __all__ = ["Material", "Damping"]
 
 
-def _finite_positive(name: str, value: float, what: str) -> float:
+def finite_positive(name: str, value: float, what: str, owner: str = "Material ") -> float:
+    """``value`` as a float, or a ModelError naming it when it is not a finite number > 0."""
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ModelError(f"Material {name}={value!r} is not a number; give {what}.") from None
+        raise ModelError(f"{owner}{name}={value!r} is not a number; give {what}.") from None
     if not math.isfinite(v) or v <= 0.0:
-        raise ModelError(f"Material {name}={value!r} must be a finite number > 0 ({what}).")
+        raise ModelError(f"{owner}{name}={value!r} must be a finite number > 0 ({what}).")
     return v
 
 
@@ -40,12 +41,12 @@ class Material:
     density: float = 1060.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "E", _finite_positive("E", self.E, "Young's modulus in Pa"))
+        object.__setattr__(self, "E", finite_positive("E", self.E, "Young's modulus in Pa"))
         object.__setattr__(
-            self, "thickness", _finite_positive("thickness", self.thickness, "the shell thickness in m")
+            self, "thickness", finite_positive("thickness", self.thickness, "the shell thickness in m")
         )
         object.__setattr__(
-            self, "density", _finite_positive("density", self.density, "the mass density in kg/m^3")
+            self, "density", finite_positive("density", self.density, "the mass density in kg/m^3")
         )
         try:
             nu = float(self.nu)

@@ -22,6 +22,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import ModelError, SolverError
+from .io import load_versioned, save_versioned
 from .linalg import factorize
 from .mesh import TriMesh
 
@@ -99,43 +100,14 @@ class ModalBasis:
     # ------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
         """Save as a versioned ``.npz`` (no pickle)."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
-        info = {k: v for k, v in self.info.items() if isinstance(v, (int, float, str, bool))}
-        np.savez_compressed(
-            path,
-            format=np.array("rtfem.ModalBasis"),
-            version=np.array(FORMAT_VERSION),
-            omega=self.omega,
-            shapes=self.shapes,
-            fingerprint=np.array(self.fingerprint),
-            info_keys=np.array(list(info.keys()), dtype=str),
-            info_values=np.array([str(v) for v in info.values()], dtype=str),
-        )
-        return path
+        return save_versioned(path, "rtfem.ModalBasis", FORMAT_VERSION,
+                              {"omega": self.omega, "shapes": self.shapes, "fingerprint": np.array(self.fingerprint)}, self.info)
 
     @classmethod
     def load(cls, path: str | os.PathLike, model=None, mesh: TriMesh | None = None) -> "ModalBasis":
         """Load a saved basis; with ``model`` (or ``mesh``) it must belong to that mesh."""
-        path = Path(path)
-        if not path.exists():
-            raise ModelError(f"modal basis file {str(path)!r} does not exist")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "format" not in z or str(z["format"]) != "rtfem.ModalBasis":
-                    raise ModelError(f"{str(path)!r} is not an rtfem modal basis file")
-                version = int(z["version"])
-                if version > FORMAT_VERSION:
-                    raise ModelError(
-                        f"{str(path)!r} has format version {version}; this rtfem reads up to {FORMAT_VERSION}: upgrade rtfem"
-                    )
-                omega, shapes, fp = z["omega"], z["shapes"], str(z["fingerprint"])
-                info = dict(zip(z["info_keys"].tolist(), z["info_values"].tolist()))
-        except ModelError:
-            raise
-        except Exception as exc:
-            raise ModelError(f"could not read modal basis {str(path)!r}: {exc}") from None
+        z, info = load_versioned(path, "rtfem.ModalBasis", FORMAT_VERSION, ["omega", "shapes", "fingerprint"], "modal basis")
+        omega, shapes, fp = z["omega"], z["shapes"], str(z["fingerprint"])
         target = model.mesh if model is not None else mesh
         if target is not None:
             if shapes.shape[0] != target.n_vertices or fp != mesh_fingerprint(target):

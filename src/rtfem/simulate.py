@@ -26,7 +26,7 @@ import scipy.sparse.linalg as spla
 
 from .errors import ModelError
 from .linalg import factorize
-from .material import Damping
+from .material import Damping, finite_positive
 from .modal import ModalBasis
 from .oscillator import transition
 
@@ -37,13 +37,7 @@ _NEWMARK_GAMMA = 0.5  # delta in the paper
 
 
 def _check_dt(dt) -> float:
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ModelError(f"dt={dt!r} is not a number") from None
-    if not math.isfinite(dt) or dt <= 0:
-        raise ModelError(f"dt={dt!r} must be a finite time step > 0 in seconds")
-    return dt
+    return finite_positive("dt", dt, "the time step in seconds", owner="")
 
 
 def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float = _NEWMARK_GAMMA):
