@@ -41,10 +41,11 @@ def test_infinite_radius_equals_modal_simulation(setup):
 def test_static_limit_and_point_compliance(setup):
     model, _, imap, a, b = setup
     G = imap.point_compliance(a)
-    assert np.allclose(G, G.T, rtol=1e-9, atol=0)  # reciprocity at a point
+    assert np.abs(G - G.T).max() < 1e-9 * np.abs(G).max()  # reciprocity at a point
     assert np.all(np.linalg.eigvalsh(G) > 0)
     f = np.array([0.0, -0.1, 0.05])
-    assert np.allclose(G @ f, model.solve_static({a: f})[a], rtol=1e-10, atol=0)
+    ref = model.solve_static({a: f})[a]
+    assert np.abs(G @ f - ref).max() < 1e-10 * np.abs(ref).max()
     u = imap.displacements([(a, f, 0.0)], 10.0)  # long after the last sample: static
     assert np.allclose(u, model.solve_static({a: f}), rtol=0, atol=1e-10 * np.abs(u).max())
     # Maxwell-Betti: the response at b to a load at a equals the transpose of the reverse
@@ -62,7 +63,8 @@ def test_sldm_map_matches_sldm_and_static(setup):
     U = rt.SLDM(model, damping).step_response({a: f}, TIMES[:10], tol=1e-8)
     for k in (0, 4, 9):
         assert np.abs(imap.displacements([(a, f, 0.0)], TIMES[k]) - U[k]).max() < 1e-6 * np.abs(U[k]).max()
-    assert np.allclose(imap.point_compliance(a) @ f, model.solve_static({a: f})[a], rtol=1e-10, atol=0)
+    ref = model.solve_static({a: f})[a]
+    assert np.abs(imap.point_compliance(a) @ f - ref).max() < 1e-10 * np.abs(ref).max()
 
 
 def test_truncation_error_falls_with_radius_and_threshold(setup):
