@@ -12,6 +12,7 @@ from __future__ import annotations
 import re
 import time
 import warnings
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -114,6 +115,7 @@ class ShellModel:
         self._K: sp.csr_matrix | None = None
         self._M: np.ndarray | None = None
         self._factor: Factorization | None = None
+        self._condensation: Condensation | None = None
         self._cache: dict[str, np.ndarray] = {}
         self.timings: dict[str, float] = {}
 
@@ -209,6 +211,7 @@ class ShellModel:
             raise ModelError("fix() was given no nodes")
         self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = True
         self._factor = None
+        self._condensation = None
         return self
 
     def release(self, nodes=None, dofs: str | Sequence = "all") -> "ShellModel":
@@ -216,6 +219,7 @@ class ShellModel:
         idx = np.arange(self.n_nodes) if nodes is None else self._nodes(nodes)
         self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = False
         self._factor = None
+        self._condensation = None
         return self
 
     @property
@@ -386,48 +390,78 @@ class ShellModel:
         kind = np.tile(np.r_[np.zeros(3, bool), np.ones(3, bool)], self.n_nodes)
         return np.flatnonzero(free & ~kind), np.flatnonzero(free & kind)
 
+    def condensation(self) -> "Condensation":
+        """The blocks of Eq. 4 on the free dofs and a factorization of K_rr (Eq. 5, sparse route).
+
+        Cached until the fixes change; shared by :meth:`condensed_stiffness`,
+        :meth:`condensed_operator` and SLDM.
+        """
+        if self._condensation is None:
+            t, r = self._partition()
+            K = self.K
+            Ktt = K[t][:, t].tocsr()
+            Ktr = K[t][:, r].tocsr()
+            Krr = factorize(K[r][:, r], spd=True, what="K_rr", order=self.dof_order(r)) if r.size else None
+            self._condensation = Condensation(t, r, Ktt, Ktr, Ktr.T.tocsr(), Krr)
+        return self._condensation
+
     def condensed_stiffness(self, *, allow_large: bool = False) -> np.ndarray:
         """The paper's explicit dense condensed stiffness (Eq. 5) on the free translations.
 
         K_c = K_tt - K_tr K_rr^-1 K_rt: a dense (n_t x n_t) matrix. Refused above 6,000
         translational dof unless ``allow_large``; use :meth:`condensed_operator` instead.
         """
-        t, r = self._partition()
+        t, _ = self._partition()
         if t.size > _DENSE_LIMIT and not allow_large:
             raise ModelError(
                 f"the dense condensed stiffness would be {t.size} x {t.size} "
                 f"({t.size**2 * 8 / 2**30:.1f} GiB); use condensed_operator() or pass allow_large=True"
             )
-        K = self.K
-        Ktt = K[t][:, t].toarray()
-        if r.size == 0:
+        c = self.condensation()
+        Ktt = c.Ktt.toarray()
+        if c.Krr is None:
             return Ktt
-        Krt = K[r][:, t].tocsc()
-        fac = factorize(K[r][:, r], spd=True, what="K_rr")
-        X = fac.solve(Krt.toarray())
-        return Ktt - Krt.T @ X
+        return Ktt - c.Ktr @ c.Krr.solve(c.Krt.toarray())
 
     def condensed_operator(self) -> spla.LinearOperator:
         """The condensed stiffness of Eq. 5 as a sparse operator (never formed densely).
 
         x -> K_tt x - K_tr (K_rr^-1 (K_rt x)), with K_rr factorized once.
         """
-        t, r = self._partition()
-        K = self.K
-        Ktt = K[t][:, t].tocsr()
-        Ktr = K[t][:, r].tocsr()
-        Krt = Ktr.T.tocsr()
-        fac = factorize(K[r][:, r], spd=True, what="K_rr")
-
-        def mv(x: np.ndarray) -> np.ndarray:
-            x = np.asarray(x, dtype=float)
-            return Ktt @ x - Ktr @ fac.solve(Krt @ x)
-
-        return spla.LinearOperator((t.size, t.size), matvec=mv, matmat=mv, dtype=float)
+        c = self.condensation()
+        return spla.LinearOperator((c.t.size, c.t.size), matvec=c.apply, matmat=c.apply, dtype=float)
 
     def translational_free_dofs(self) -> np.ndarray:
         """Global indices of the free translational dofs (the rows of the condensed matrices)."""
         return self._partition()[0]
+
+
+@dataclass(frozen=True)
+class Condensation:
+    """Eq. 4 partitioned on the free translations t and free rotations r, with K_rr factorized."""
+
+    t: np.ndarray
+    r: np.ndarray
+    Ktt: sp.csr_matrix
+    Ktr: sp.csr_matrix
+    Krt: sp.csr_matrix
+    Krr: Factorization | None  # None when no rotation is free
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """K_c x = K_tt x - K_tr K_rr^-1 K_rt x (x of length n_t, or n_t x k)."""
+        x = np.asarray(x, dtype=float)
+        w = self.Ktt @ x
+        if self.Krr is not None:
+            w = w - self.Ktr @ self.Krr.solve(self.Krt @ x)
+        return w
+
+    def load(self, F: np.ndarray) -> np.ndarray:
+        """The condensed load F_t - K_tr K_rr^-1 F_r of a full load vector (6n,)."""
+        Ft = F[self.t].copy()
+        Fr = F[self.r]
+        if self.Krr is not None and np.any(Fr != 0):
+            Ft -= self.Ktr @ self.Krr.solve(Fr)
+        return Ft
 
 
 def _describe_rigid_motion(v: np.ndarray, centre: np.ndarray, scale: float) -> str:

@@ -39,7 +39,6 @@ import scipy.linalg as sla
 
 from .errors import ModelError, RtfemWarning, SolverError
 from .lanczos import REORTHOGONALIZATIONS, Lanczos
-from .linalg import expand_node_order, factorize, nested_dissection
 from .material import Damping
 from .oscillator import step_response as _step_fn
 
@@ -115,21 +114,12 @@ class SLDM:
         self.reorth = reorth
         self.restrained = bool(model.fixed.any())
         t0 = time.perf_counter()
-        t, r = model._partition()
-        self._t, self._r = t, r
-        K = model.K
-        self._Ktt = K[t][:, t].tocsr()
-        self._Ktr = K[t][:, r].tocsr()
-        self._Krt = self._Ktr.T.tocsr()
-        mt = model.mass_diagonal[t]
+        self._c = model.condensation()
+        self._t = self._c.t
+        mt = model.mass_diagonal[self._t]
         if np.any(mt <= 0):
             raise ModelError("every free translation needs mass for SLDM (a vertex without triangles?)")
         self._s = 1.0 / np.sqrt(mt)  # M^-1/2
-        if r.size:
-            node_order = nested_dissection(model.mesh.adjacency(), np.asarray(model.mesh.vertices))
-            self._Krr = factorize(K[r][:, r], spd=True, what="K_rr", order=expand_node_order(node_order, 6, r))
-        else:
-            self._Krr = None
         self.setup_seconds = time.perf_counter() - t0
         self.last_info: SLDMInfo | None = None
         self.matvecs = 0
@@ -145,20 +135,11 @@ class SLDM:
     def apply(self, y: np.ndarray) -> np.ndarray:
         """K' y = M^-1/2 K_c M^-1/2 y with K_c = K_tt - K_tr K_rr^-1 K_rt (Eq. 5, never formed)."""
         self.matvecs += 1
-        x = self._s * y
-        w = self._Ktt @ x
-        if self._Krr is not None:
-            w -= self._Ktr @ self._Krr.solve(self._Krt @ x)
-        return self._s * w
+        return self._s * self._c.apply(self._s * y)
 
     def _load(self, forces) -> np.ndarray:
         """F' = M^-1/2 (F_t - K_tr K_rr^-1 F_r): the condensed, mass-scaled load."""
-        F = self.model.force_vector(forces)
-        Ft = F[self._t].copy()
-        Fr = F[self._r]
-        if self._Krr is not None and np.any(Fr != 0):
-            Ft -= self._Ktr @ self._Krr.solve(Fr)
-        return self._s * Ft
+        return self._s * self._c.load(self.model.force_vector(forces))
 
     def _alpha_of(self, lam: np.ndarray) -> np.ndarray:
         d = self.damping
@@ -242,9 +223,7 @@ class SLDM:
             if m < m0 // 2:
                 grow = max(grow, min(m0 // 2 - m, 200))
             L.extend(min(grow, self.m_max - m))
-        a, bt = L.tridiagonal()
-        lam, V = _eig_tridiagonal(a, bt)
-        z = V @ coefficients(lam, V[0], every)
+        z = V @ coefficients(lam, V[0], every)  # lam, V: T_m of the last pass of the loop
         # below ~1e-11 the difference estimate measures round-off, not truncation
         estimate = max(estimate, _ROUNDOFF) if np.isfinite(estimate) else estimate
         # rigorous-style residual beta0 beta_m |e_m^T z_m(t)|, relative to |z_m|
