@@ -23,6 +23,13 @@ def plate_material():
     return rt.Material(E=1.0e7, nu=0.3, thickness=0.01, density=1000.0)
 
 
+def liver_model(level: int = 4) -> rt.ShellModel:
+    """The embedded liver at ``level``, default material, fixed at its attachment."""
+    model = rt.ShellModel(rt.meshes.liver(level), rt.Material())
+    model.fix("attachment")
+    return model
+
+
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:
     """The six analytic rigid-body motions (6n, 6) of nodes at X: translations, rotations."""
     n = X.shape[0]

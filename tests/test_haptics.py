@@ -2,13 +2,13 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+from conftest import liver_model
 
 
 @pytest.fixture(scope="module")
 def organ():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(3)
+    mesh = model.mesh
     basis = rt.modal_analysis(model, 30)
     node = mesh.nearest_vertex([0.055, 0.05, 0.0])
     n = mesh.vertex_normals()[node]

@@ -2,15 +2,15 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+from conftest import liver_model
 
 TIMES = np.round(np.arange(1, 31) * 0.01, 10)  # 10 ms .. 300 ms
 
 
 @pytest.fixture(scope="module")
 def setup():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(3)
+    mesh = model.mesh
     damping = rt.Damping(alpha=8.0)
     a = mesh.nearest_vertex([0.055, 0.05, 0.0])
     b = mesh.nearest_vertex([-0.06, 0.04, -0.01])

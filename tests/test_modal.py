@@ -2,13 +2,12 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+from conftest import liver_model
 
 
 @pytest.fixture(scope="module")
 def liver3():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(3)
     return model, rt.modal_analysis(model, 12)
 
 

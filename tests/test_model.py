@@ -4,14 +4,12 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+from conftest import liver_model as make_liver_model
 
 
 @pytest.fixture
 def liver_model():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
-    return model
+    return make_liver_model(3)
 
 
 def test_assembly_symmetric_and_mass_totals(liver_model):

@@ -12,6 +12,7 @@ import pytest
 import scipy.linalg as sla
 
 import rtfem as rt
+from conftest import liver_model
 from rtfem.modal import ModalBasis
 
 
@@ -42,9 +43,7 @@ def test_simply_supported_plate_first_six_frequencies(plate_material):
 
 
 def test_modes_equal_condensed_eigenproblem_of_eq5():
-    mesh = rt.meshes.liver(2)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(2)
     basis = rt.modal_analysis(model, 12, sigma=0.0)
     assert "Lanczos" in basis.info["method"]
     Kc = model.condensed_stiffness()  # dense Schur complement, paper Eq. 5
@@ -54,9 +53,8 @@ def test_modes_equal_condensed_eigenproblem_of_eq5():
 
 
 def test_mass_normalized_and_sorted():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(3)
+    mesh = model.mesh
     basis = rt.modal_analysis(model, 15)
     m = model.mass_diagonal.reshape(-1, 6)[:, :3].ravel()
     P = basis.matrix
@@ -116,9 +114,8 @@ def test_modal_with_all_modes_equals_direct_integration(damping):
 
 
 def test_truncation_error_falls_with_r_and_static_correction_converges():
-    mesh = rt.meshes.liver(3)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(3)
+    mesh = model.mesh
     full = rt.modal_analysis(model, 80)
     node = mesh.nearest_vertex([0.06, 0.05, 0.0])
     f = {node: (0.0, -0.1, 0.05)}
@@ -217,9 +214,7 @@ def test_newmark_period_elongation(freq, expected):
 
 @pytest.mark.slow
 def test_undamped_newmark_conserves_modal_energy_over_a_million_steps():
-    mesh = rt.meshes.liver(2)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
+    model = liver_model(2)
     basis = rt.modal_analysis(model, 20)
     for integrator in ("newmark", "exact"):
         sim = rt.ModalSimulator(basis, 1e-3, integrator=integrator)

@@ -15,15 +15,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import rtfem as rt
+from conftest import liver_model
 from rtfem.oscillator import step_response
 
 
-def liver_model(level):
-    mesh = rt.meshes.liver(level)
-    model = rt.ShellModel(mesh, rt.Material())
-    model.fix("attachment")
-    node = mesh.nearest_vertex([0.055, 0.05, 0.0])
-    return model, node
+def liver_model_and_node(level):
+    model = liver_model(level)
+    return model, model.mesh.nearest_vertex([0.055, 0.05, 0.0])
 
 
 def rel_err(U, R):
@@ -41,7 +39,7 @@ def modal_reference(model, basis, forces, damping, times):
 
 
 def test_step_response_matches_direct_integration_on_default_liver():
-    model, node = liver_model(4)
+    model, node = liver_model_and_node(4)
     damping = rt.Damping(alpha=4.0)
     forces = {node: (0.0, -0.1, 0.05)}
     dt, n = 2e-5, 2000
@@ -60,7 +58,7 @@ def test_step_response_matches_direct_integration_on_default_liver():
 
 @pytest.mark.slow
 def test_step_response_matches_full_modal_basis_on_default_liver():
-    model, node = liver_model(4)
+    model, node = liver_model_and_node(4)
     t = model.translational_free_dofs()
     Kc = model.condensed_stiffness(allow_large=True)  # dense Eq. 5, ~7,300 x 7,300
     m = model.mass_diagonal[t]
@@ -79,7 +77,7 @@ def test_step_response_matches_full_modal_basis_on_default_liver():
 
 @pytest.fixture(scope="module")
 def small():
-    model, node = liver_model(2)
+    model, node = liver_model_and_node(2)
     return model, node, rt.modal_analysis(model, "all")
 
 
@@ -192,7 +190,7 @@ def test_bad_input():
     pen.fix("attachment")
     with pytest.raises(rt.ModelError, match="elimination"):
         rt.SLDM(pen)
-    model, node = liver_model(2)
+    model, node = liver_model_and_node(2)
     s = rt.SLDM(model)
     with pytest.raises(rt.ModelError, match="times"):
         s.step_response({node: (1, 0, 0)}, [-1.0])
