@@ -7,7 +7,7 @@ from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .modal import ModalBasis, modal_analysis
-from .haptics import CallbackDevice, HapticLoop, Probe, ScriptedDevice
+from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice
 from .impedance import ImpedanceMap, Load
 from .model import ShellModel
 from .simulate import DirectSimulator, ModalSimulator
@@ -19,6 +19,7 @@ __all__ = [
     "Damping",
     "CallbackDevice",
     "DirectSimulator",
+    "Grasp",
     "HapticLoop",
     "Probe",
     "ScriptedDevice",

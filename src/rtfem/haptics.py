@@ -41,9 +41,9 @@ from scipy.spatial import cKDTree
 from .errors import ModelError
 from .impedance import ImpedanceMap
 from .mesh import TriMesh
-from .simulate import ModalSimulator
+from .simulate import DirectSimulator, ModalSimulator
 
-__all__ = ["Probe", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
+__all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
 
 
 class Probe:
@@ -170,6 +170,82 @@ class Probe:
         self.penetration = max(0.0, float(n @ u_free) - g) if lam > 0 else 0.0
         self.force = -f_organ
         return self.force
+
+
+class Grasp:
+    """A bilateral grab of one vertex by a virtual spring: the viewer's mouse push and pull.
+
+    The hand holds the point ``target``; the spring of stiffness k pulls the grabbed vertex
+    towards it with f = k (target - x(k+1)), x the vertex's deformed position at the end of
+    the step. With u(k+1) = u_free + W f (the driver's one-step compliance), the force is
+    found implicitly before stepping:
+
+        (I + k W) f = k (target - X - u_free),
+
+    so a stiff spring cannot make the coupled loop unstable. Drivers: a
+    :class:`ModalSimulator` (W from :meth:`~ModalSimulator.step_compliance`), a Newmark
+    :class:`DirectSimulator` (W = block of K_eff^-1; three solves when a vertex is first
+    grabbed), or an :class:`ImpedanceMap` (quasi-static: W = static point compliance,
+    u_free = 0). ``max_force`` caps |f| (N), for a mouse that can be dragged anywhere.
+    """
+
+    def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None) -> None:
+        if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
+            raise ModelError(f"a grasp drives a ModalSimulator, a DirectSimulator or an ImpedanceMap, not {type(driver).__name__}")
+        if not (np.isfinite(stiffness) and stiffness > 0):
+            raise ModelError(f"stiffness={stiffness!r} must be > 0 (N/m)")
+        if max_force is not None and not (np.isfinite(max_force) and max_force > 0):
+            raise ModelError(f"max_force={max_force!r} must be > 0 (N) or None")
+        self.mesh, self.driver = mesh, driver
+        self.stiffness = float(stiffness)
+        self.max_force = max_force
+        self.X = np.asarray(mesh.vertices)
+        self.node: int | None = None
+        self.force = np.zeros(3)  # force on the organ at the grabbed vertex (N); the hand feels -force
+        self._W: dict[int, np.ndarray] = {}
+
+    def compliance(self, node: int) -> np.ndarray:
+        W = self._W.get(node)
+        if W is None:
+            d = self.driver
+            W = d.point_compliance(node) if isinstance(d, ImpedanceMap) else d.step_compliance(node)
+            self._W[node] = W
+        return W
+
+    def grab(self, node: int) -> None:
+        node = int(node)
+        if not 0 <= node < self.X.shape[0]:
+            raise ModelError(f"vertex {node} is not on the mesh (0..{self.X.shape[0] - 1})")
+        self.compliance(node)
+        self.node = node
+
+    def release(self) -> None:
+        self.node = None
+
+    def update(self, target=None) -> np.ndarray:
+        """One step with the hand at ``target`` (None or no grab: the organ moves freely).
+
+        Returns the force on the organ (N). With an ImpedanceMap nothing is stepped: the
+        force is the quasi-static one and the caller superposes the map's responses.
+        """
+        d = self.driver
+        f = np.zeros(3)
+        if self.node is not None and target is not None:
+            c = np.asarray(target, dtype=float)
+            if c.shape != (3,) or not np.all(np.isfinite(c)):
+                raise ModelError(f"grasp target must be 3 finite coordinates, got {target!r}")
+            p = self.node
+            u_free = np.zeros(3) if isinstance(d, ImpedanceMap) else d.predict(p)
+            k = self.stiffness
+            f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - u_free))
+            if self.max_force is not None:
+                mag = float(np.linalg.norm(f))
+                if mag > self.max_force:
+                    f *= self.max_force / mag
+        if not isinstance(d, ImpedanceMap):
+            d.step({self.node: (f[0], f[1], f[2])} if self.node is not None and np.any(f) else None)
+        self.force = f
+        return f
 
 
 @dataclass

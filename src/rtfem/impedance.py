@@ -82,6 +82,7 @@ class ImpedanceMap:
         memory_limit: float = 4 * 2**30,
         progress: Callable[[int, int, float], None] | None = None,
         workers: int = 1,
+        modes=None,
     ) -> "ImpedanceMap":
         """Precompute the map.
 
@@ -100,6 +101,8 @@ class ImpedanceMap:
         progress : ``progress(done, total, seconds)`` after each loaded node.
         workers : loaded nodes computed in parallel by this many threads (the sparse solves
             and the BLAS products release the interpreter lock).
+        modes : a :class:`~rtfem.ModalBasis` of this model to use instead of computing
+            ``n_modes`` modes (method "modal").
 
         A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
         (``info["complete"]`` is False) and can be saved.
@@ -136,7 +139,13 @@ class ImpedanceMap:
                 f"node, {t.size + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
                 f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
             )
-        engine = _ModalColumns(model, damping, t, n_modes) if method == "modal" else _SLDMColumns(model, damping, t, tol)
+        if modes is not None:
+            from .modal import ModalBasis
+
+            if not isinstance(modes, ModalBasis) or modes.n_nodes != n or (modes.model is not None and modes.model is not model):
+                raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
+        engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
+                  else _SLDMColumns(model, damping, t, tol))
         def one(j: int):
             cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
             keep = within(j)
@@ -324,10 +333,10 @@ class _NeighbourFinder:
 class _ModalColumns:
     """Unit-step columns from r modes with the static correction (mode acceleration)."""
 
-    def __init__(self, model, damping, times, n_modes):
+    def __init__(self, model, damping, times, n_modes, modes=None):
         t0 = time.perf_counter()
         self.model = model
-        self.basis = modal_analysis(model, n_modes)
+        self.basis = modal_analysis(model, n_modes) if modes is None else modes
         lam = self.basis.omega**2
         self.lam = lam
         g = step_response(lam[:, None], damping.modal_alpha(self.basis.omega)[:, None], times[None, :])

@@ -391,6 +391,8 @@ class DirectSimulator(_ForceInput):
             self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=model.dof_order(dofs))
             nd = dofs.size
             self._u, self._v, self._a = np.zeros(nd), np.zeros(nd), np.zeros(nd)
+            self._cols: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # node -> (rows, directions, Khat^-1 columns)
+            self._free: tuple[int, np.ndarray] | None = None  # (step, no-new-load solution) of predict()
         elif method == "central":
             if self.damping.beta != 0 or self.damping.is_modal_only:
                 raise ModelError("the central-difference method needs diagonal damping: use Damping(alpha=...) only")
@@ -431,20 +433,88 @@ class DirectSimulator(_ForceInput):
         full[:, :3] = F
         return full.ravel()
 
+    def _rhs_free(self) -> np.ndarray:
+        c0, c1, c2, c3, c4, c5 = self._c
+        u, v, a = self._u, self._v, self._a
+        rhs = self._M * (c0 * u + c2 * v + c3 * a)
+        if self._B is not None:
+            rhs += self._B @ (c1 * u + c4 * v + c5 * a)
+        return rhs
+
+    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of the node's free translations in the solved vector, and their directions."""
+        want = 6 * node + np.arange(3)
+        pos = np.minimum(np.searchsorted(self._dofs, want), self._dofs.size - 1)
+        ok = self._dofs[pos] == want
+        return pos[ok], np.flatnonzero(ok)
+
+    def _newmark_only(self, what: str) -> None:
+        if self.method != "newmark":
+            raise ModelError(f"{what} needs method='newmark' (the implicit step has a compliance; central differences do not)")
+
+    def predict(self, node: int) -> np.ndarray:
+        """Displacement (3,) of ``node`` after one more step with no new load (one sparse solve).
+
+        With :meth:`step_compliance` W, a step under a force f on that node gives
+        u(k+1) = predict(node) + W f, as for :meth:`ModalSimulator.predict`; the following
+        :meth:`step` reuses this solve when its loads are on nodes whose compliance is known.
+        """
+        self._newmark_only("predict")
+        node = self._node(node)
+        if self._free is None or self._free[0] != self.steps:
+            self._free = (self.steps, self._fac.solve(self._rhs_free()))
+        rows, dirs = self._node_rows(node)
+        out = np.zeros(3)
+        out[dirs] = self._free[1][rows]
+        return out
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """W (3x3): displacement of ``node`` after one step per unit force on it (K_eff^-1 block)."""
+        self._newmark_only("step_compliance")
+        node = self._node(node)
+        if node not in self._cols:
+            rows, dirs = self._node_rows(node)
+            E = np.zeros((self._dofs.size, rows.size))
+            E[rows, np.arange(rows.size)] = 1.0
+            cols = self._fac.solve(E) if rows.size else E
+            self._cols[node] = (rows, dirs, cols.reshape(self._dofs.size, rows.size))
+        rows, dirs, cols = self._cols[node]
+        W = np.zeros((3, 3))
+        W[np.ix_(dirs, dirs)] = cols[rows]
+        return W
+
+    def _superposed(self, forces) -> np.ndarray | None:
+        """The next step by superposition on predict()'s solve, when every load has its columns."""
+        if self._free is None or self._free[0] != self.steps:
+            return None
+        if forces is None:
+            return self._free[1].copy()
+        if not isinstance(forces, Mapping):
+            return None
+        un = self._free[1].copy()
+        for node, f in forces.items():
+            i = self._node(node)
+            if i not in self._cols:
+                return None
+            rows, dirs, cols = self._cols[i]
+            un += cols @ self._vec(node, f)[dirs]
+        return un
+
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` act at the end of the step (Newmark) or at its start (central)."""
-        F = self._load(forces)
         if self.method == "newmark":
             c0, c1, c2, c3, c4, c5 = self._c
             u, v, a = self._u, self._v, self._a
-            rhs = F[self._dofs] + self._M * (c0 * u + c2 * v + c3 * a)
-            if self._B is not None:
-                rhs += self._B @ (c1 * u + c4 * v + c5 * a)
-            un = self._fac.solve(rhs)
+            un = self._superposed(forces)
+            if un is None:
+                F = self._load(forces)
+                un = self._fac.solve(F[self._dofs] + self._rhs_free())
+            self._free = None
             an = c0 * (un - u) - c2 * v - c3 * a
             self._v = v + self.dt * (0.5 * a + 0.5 * an)
             self._u, self._a = un, an
         else:
+            F = self._load(forces)
             dt, al, m = self.dt, self.damping.alpha, self._mt
             rhs = dt * dt * (F[self._t] - self._Kc.matvec(self._u)) + 2 * m * self._u - m * (1 - 0.5 * dt * al) * self._u_old
             self._u_old, self._u = self._u, rhs / (m * (1 + 0.5 * dt * al))
@@ -470,5 +540,6 @@ class DirectSimulator(_ForceInput):
         for name in ("_u", "_v", "_a", "_u_old"):
             if hasattr(self, name):
                 getattr(self, name)[:] = 0.0
+        self._free = None
         self.time = 0.0
         self.steps = 0

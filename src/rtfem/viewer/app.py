@@ -1,0 +1,374 @@
+"""The web viewer: viser serves the organ, the mouse pushes and pulls it.
+
+Left-drag on the organ grabs the vertex under the cursor and pulls it through a virtual
+spring within the plane facing the camera; shift+left-drag presses it along its inward
+normal by the drag distance. Dragging empty space orbits the camera. The physics runs on
+its own thread (:class:`~rtfem.viewer.session.Session`); a frame thread sends the deformed,
+colour-coded surface at up to 30 frames per second, the contact-force plot and the rates.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ModelError, RtfemError
+from ..material import Material
+from ..mesh import TriMesh
+from .session import METHODS, Session, Settings
+
+# viridis at five stops: perceptually uniform, readable by the colour-blind
+_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=float)
+
+HELP = (
+    "**Drag the organ** with the left mouse button to pull it; **shift+drag** presses along the surface "
+    "normal. Drag empty space to orbit, scroll to zoom. Grey dots: fixed nodes."
+)
+
+
+def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
+    """(n,) magnitudes -> (n, 4) uint8 RGBA on viridis, 0..vmax."""
+    s = np.clip(values / vmax, 0.0, 1.0) * (len(_VIRIDIS) - 1) if vmax > 0 else np.zeros_like(values)
+    i = np.minimum(s.astype(int), len(_VIRIDIS) - 2)
+    w = (s - i)[:, None]
+    rgb = (1 - w) * _VIRIDIS[i] + w * _VIRIDIS[i + 1]
+    out = np.full((values.size, 4), 255, dtype=np.uint8)
+    out[:, :3] = np.round(rgb).astype(np.uint8)
+    return out
+
+
+def srgb_to_linear(rgba: np.ndarray) -> np.ndarray:
+    """glTF vertex colours are linear; the colormap is in sRGB."""
+    c = rgba[:, :3] / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    out = rgba.copy()
+    out[:, :3] = np.round(lin * 255).astype(np.uint8)
+    return out
+
+
+def glb_bytes(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> bytes:
+    """A binary glTF of the surface with per-vertex colours and smooth normals."""
+    import trimesh
+
+    tm = trimesh.Trimesh(vertices, triangles, vertex_colors=srgb_to_linear(colors), process=False)
+    return tm.export(file_type="glb", include_normals=True)
+
+
+def _need_viser():
+    try:
+        import trimesh  # noqa: F401
+        import viser
+    except ImportError as exc:
+        raise RtfemError(
+            f"the viewer needs viser ({exc.name} is missing): pip install 'rtfem[viewer]' "
+            "(make demo installs it into .venv)"
+        ) from None
+    return viser
+
+
+class Viewer:
+    """A viser server showing one :class:`Session`."""
+
+    def __init__(self, session: Session, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0) -> None:
+        viser = _need_viser()
+        self.session = session
+        self.fps = float(fps)
+        try:
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        except OSError as exc:
+            raise RtfemError(f"cannot serve on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
+        self.host, self.port = host, self.server.get_port()
+        self.url = f"http://{host}:{self.port}"
+        self.frames = 0
+        self.frame_rate = 0.0
+        self.vmax = 1e-3  # colour scale (m), follows the largest displacement
+        self.drags = 0
+        self.mode_index: int | None = None  # mode browser: the mode shown, or None
+        self._drag_lock = threading.Lock()
+        self._dragging = False
+        self._press: tuple[np.ndarray, float] | None = None  # shift-drag: (vertex position, inward normal)
+        self._last_u = np.zeros((session.mesh.n_vertices, 3))
+        self._stop = threading.Event()
+        self._build_scene()
+        self._build_panel()
+        self._thread = threading.Thread(target=self._frames, name="rtfem-viewer-frames", daemon=True)
+
+    # ---------------------------------------------------------------- scene
+    def _build_scene(self) -> None:
+        s, mesh = self.session, self.session.mesh
+        sc = self.server.scene
+        sc.set_up_direction("+z")
+        lo, hi = mesh.bounds()
+        centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+        self.centre, self.size = centre, size
+        self.server.initial_camera.look_at = tuple(centre)
+        self.server.initial_camera.position = tuple(centre + size * np.array([0.1, -0.62, 0.5]))
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self.organ = sc.add_glb("/organ", glb_bytes(s.X, mesh.triangles, colormap(np.zeros(mesh.n_vertices), 1.0)))
+        fixed = np.flatnonzero(s.model.fixed[:, :3].all(axis=1))
+        if fixed.size:
+            sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,
+                               point_shape="circle")
+        self.marker = sc.add_icosphere("/grab", radius=0.012 * size, color=(230, 60, 40), visible=False)
+        self.hand = sc.add_icosphere("/hand", radius=0.008 * size, color=(255, 255, 255), visible=False)
+        self.spring = None
+        organ = self.organ
+
+        @organ.on_drag("left")
+        async def _pull(event) -> None:
+            self._on_drag(event, press=False)
+
+        @organ.on_drag("left", modifier="shift")
+        async def _press(event) -> None:
+            self._on_drag(event, press=True)
+
+    def _on_drag(self, event, *, press: bool) -> None:
+        s = self.session
+        if event.phase == "start":
+            self.mode_index = None
+            if self._mode_dropdown is not None:
+                self._mode_dropdown.value = "off"
+            with self._drag_lock:
+                self._dragging = True
+                self.drags += 1
+                drag_id = self.drags
+            self._target = np.asarray(event.end_position, dtype=float)
+            self._grab_at = np.asarray(event.start_position, dtype=float)
+            self._press_mode = press
+            threading.Thread(target=self._grab, args=(drag_id, self._grab_at), daemon=True).start()
+            return
+        if event.phase == "update":
+            self._target = np.asarray(event.end_position, dtype=float)
+            self._apply_target()
+            return
+        with self._drag_lock:  # end
+            self._dragging = False
+        s.release()
+        self._press = None
+
+    def _grab(self, drag_id: int, point: np.ndarray) -> None:
+        s = self.session
+        # the surface moved: grab the vertex nearest the picked point on the *deformed* surface
+        u = self._last_u
+        d = np.linalg.norm(s.X + u - point, axis=1)
+        d[s.model.fixed[:, :3].all(axis=1)] = np.inf
+        node = int(np.argmin(d))
+        try:
+            s.grab(s.X[node])
+        except RtfemError as exc:
+            s.error = str(exc)
+            return
+        with self._drag_lock:
+            if not self._dragging or drag_id != self.drags:
+                s.release()
+                return
+            n = s.mesh.vertex_normals()[node]
+            self._press = (s.X[node] + u[node], n) if self._press_mode else None
+            self._grab_point = point
+        self._apply_target()
+
+    def _apply_target(self) -> None:
+        s = self.session
+        if s.node is None or not self._dragging:
+            return
+        if self._press is not None:
+            x0, n = self._press
+            depth = float(np.linalg.norm(self._target - self._grab_point))
+            s.drag(x0 - depth * n)
+        else:
+            s.drag(self._target)
+
+    # ---------------------------------------------------------------- panel
+    def _build_panel(self) -> None:
+        import viser.uplot as uplot
+
+        gui, s = self.server.gui, self.session
+        gui.configure_theme(control_width="large")
+        gui.add_markdown(f"### rtfem\n{HELP}")
+        self.stats_md = gui.add_markdown("starting ...")
+        t = np.zeros(2)
+        self.plot = gui.add_uplot(
+            data=(t, t.copy()),
+            series=(uplot.Series(label="t (s)"), uplot.Series(label="|F| (N)", stroke="#d62728", width=2)),
+            title="contact force",
+            scales={"x": uplot.Scale(time=False, auto=True), "y": uplot.Scale(auto=True)},
+            legend=uplot.Legend(show=True),
+            aspect=1.8,
+        )
+        with gui.add_folder("Dynamics"):
+            self.method = gui.add_dropdown("method", METHODS, initial_value=s.settings.method,
+                                           hint="modal: r modes, 1 kHz; impedance: precomputed responses superposed; "
+                                                "direct: Newmark on the full model (the baseline)")
+            self.modes_slider = gui.add_slider("modes r", min=5, max=200, step=5, initial_value=s.settings.n_modes)
+            self.dt_ms = gui.add_number("time step (ms)", initial_value=s.settings.dt * 1e3, min=0.05, max=20.0, step=0.05)
+            self.alpha = gui.add_slider("damping alpha (1/s)", min=0.0, max=60.0, step=0.5, initial_value=s.settings.alpha)
+            self.E_kpa = gui.add_number("Young's modulus (kPa)", initial_value=s.settings.E / 1e3, min=1.0, max=1e6, step=1.0)
+            self.k_grasp = gui.add_slider("grasp spring (N/m)", min=10.0, max=2000.0, step=10.0,
+                                          initial_value=s.settings.grasp_stiffness)
+            apply = gui.add_button("apply")
+            reset = gui.add_button("reset (let go, zero state)")
+        with gui.add_folder("Mode browser"):
+            labels = ("off",) + tuple(f"{i + 1}: {f:.2f} Hz" for i, f in enumerate(s.modes.frequencies))
+            self._mode_dropdown = gui.add_dropdown("mode", labels, initial_value="off")
+            self.mode_amp = gui.add_slider("amplitude (% of size)", min=1.0, max=20.0, step=1.0, initial_value=6.0)
+            self.mode_md = gui.add_markdown("")
+
+        @apply.on_click
+        def _(_) -> None:
+            self._reconfigure()
+
+        @self.method.on_update
+        def _(_) -> None:
+            self._reconfigure()
+
+        @reset.on_click
+        def _(_) -> None:
+            self._reconfigure(force=True)
+
+        @self._mode_dropdown.on_update
+        def _(_) -> None:
+            v = self._mode_dropdown.value
+            self.mode_index = None if v == "off" else int(v.split(":")[0]) - 1
+
+    def _reconfigure(self, force: bool = False) -> None:
+        s = self.session
+        changes = dict(method=self.method.value, n_modes=int(self.modes_slider.value), dt=float(self.dt_ms.value) * 1e-3,
+                       alpha=float(self.alpha.value), E=float(self.E_kpa.value) * 1e3,
+                       grasp_stiffness=float(self.k_grasp.value))
+        if not force and all(getattr(s.settings, k) == v for k, v in changes.items()):
+            return
+        self.stats_md.content = "rebuilding ..."
+        try:
+            s.configure(**changes)
+        except RtfemError as exc:
+            s.error = str(exc)
+        labels = ("off",) + tuple(f"{i + 1}: {f:.2f} Hz" for i, f in enumerate(s.modes.frequencies[: s.settings.n_modes]))
+        self._mode_dropdown.options = labels
+
+    # ---------------------------------------------------------------- frames
+    def _field(self) -> np.ndarray:
+        s = self.session
+        if self.mode_index is not None and self.mode_index < s.modes.n_modes:
+            i = self.mode_index
+            phi = s.modes.shapes[:, :, i]
+            scale = self.mode_amp.value / 100 * self.size / max(float(np.abs(phi).max()), 1e-30)
+            f_vis = min(1.0, 0.5 + 0.1 * i)  # slowed down to be seen; the true frequency is in the panel
+            self.mode_md.content = (f"mode {i + 1}: **{s.modes.frequencies[i]:.3f} Hz** "
+                                    f"(omega = {s.modes.omega[i]:.2f} rad/s), shown at {f_vis:.1f} Hz")
+            return scale * np.sin(2 * np.pi * f_vis * time.perf_counter()) * phi
+        return s.displacements()
+
+    def _frames(self) -> None:
+        s, tri = self.session, self.session.mesh.triangles
+        period = 1.0 / self.fps
+        count, t_window, next_stats = 0, time.perf_counter(), 0.0
+        while not self._stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                u = self._field()
+                self._last_u = u
+                mag = np.linalg.norm(u, axis=1)
+                peak = float(mag.max())
+                self.vmax = max(peak, 0.97 * self.vmax, 1e-4)
+                self.organ.glb_data = glb_bytes(s.X + u, tri, colormap(mag, self.vmax))
+                s.record_force()
+                self._draw_hand(u)
+                self.frames += 1
+                count += 1
+                now = time.perf_counter()
+                if now - t_window >= 1.0:
+                    self.frame_rate = count / (now - t_window)
+                    count, t_window = 0, now
+                if now >= next_stats:
+                    self._update_panel(peak)
+                    next_stats = now + 0.25
+            except Exception as exc:  # keep serving; say what went wrong
+                s.error = f"{type(exc).__name__}: {exc}"
+            time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+
+    def _draw_hand(self, u: np.ndarray) -> None:
+        s = self.session
+        node, target = s.node, s.target
+        if node is None or target is None:
+            self.marker.visible = self.hand.visible = False
+            return
+        self.marker.position = tuple(s.X[node] + u[node])
+        self.hand.position = tuple(target)
+        self.marker.visible = self.hand.visible = True
+
+    def _update_panel(self, peak: float) -> None:
+        s = self.session
+        st = s.stats
+        hist = np.array(st.forces) if st.forces else np.zeros((2, 2))
+        if hist.shape[0] < 2:
+            hist = np.vstack([hist, hist])
+        self.plot.data = (hist[:, 0].copy(), hist[:, 1].copy())
+        f = float(np.linalg.norm(s.force))
+        lines = [
+            f"**{s.settings.method}**: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
+            f"dt = {s.settings.dt * 1e3:g} ms",
+            f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
+            f"{st.step_us:,.1f} us per step",
+            f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
+            f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm)",
+        ]
+        if s.error:
+            lines.append(f"**error:** {s.error}")
+        self.stats_md.content = "  \n".join(lines)
+
+    # ---------------------------------------------------------------- control
+    def start(self) -> "Viewer":
+        self.session.start()
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.session.stop()
+        self.server.stop()
+
+    def state(self) -> dict:
+        """What the browser is being served, for tests and scripts."""
+        s = self.session
+        forces = np.array(s.stats.forces) if s.stats.forces else np.zeros((0, 2))
+        return {
+            "url": self.url,
+            "method": s.settings.method,
+            "frames": self.frames,
+            "frame_rate": self.frame_rate,
+            "sim_rate": s.stats.sim_rate,
+            "steps": s.stats.steps,
+            "drags": self.drags,
+            "grabbed": s.node,
+            "max_displacement": float(np.linalg.norm(self._last_u, axis=1).max()),
+            "force": float(np.linalg.norm(s.force)),
+            "peak_force_plotted": float(forces[:, 1].max()) if forces.size else 0.0,
+            "clients": len(self.server.get_clients()),
+            "error": s.error,
+        }
+
+
+def serve(mesh: TriMesh | None = None, *, material: Material | None = None, fixed="attachment",
+          settings: Settings | None = None, host: str = "127.0.0.1", port: int = 8080,
+          block: bool = True) -> Viewer:
+    """Precompute, serve the viewer and (``block``) run until Ctrl-C."""
+    from .. import meshes
+
+    _need_viser()
+    mesh = meshes.liver() if mesh is None else mesh
+    session = Session(mesh, material, fixed, settings)
+    viewer = Viewer(session, host=host, port=port).start()
+    if block:
+        print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)
+        try:
+            while True:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            print("\nrtfem viewer: stopped", flush=True)
+        finally:
+            viewer.stop()
+    return viewer

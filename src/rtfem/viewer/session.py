@@ -1,0 +1,294 @@
+"""The simulation behind the viewer: a grabbed organ stepped in real time on its own thread.
+
+Nothing here needs a browser: the viser front end (:mod:`rtfem.viewer.app`) only reads
+snapshots and forwards the mouse. Tests drive a :class:`Session` directly as well.
+
+Methods
+-------
+``modal``      the modal simulator (r modes, exact integrator, static correction): 1 kHz.
+``impedance``  the impedance map: the precomputed responses of the grabbed vertex to unit
+               loads, superposed over the history of the grasp force (the paper's run-time
+               route); the force is the quasi-static one. A vertex's map is built when it is
+               first grabbed and kept.
+``direct``     direct Newmark integration of the full model, the paper's baseline: it cannot
+               keep up with the clock on a real mesh, and the panel shows by how much.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..errors import ModelError
+from ..haptics import Grasp
+from ..impedance import ImpedanceMap
+from ..material import Damping, Material
+from ..mesh import TriMesh
+from ..modal import ModalBasis, modal_analysis
+from ..model import ShellModel
+from ..simulate import DirectSimulator, ModalSimulator
+
+METHODS = ("modal", "impedance", "direct")
+
+
+@dataclass
+class Settings:
+    """What the panel controls."""
+
+    method: str = "modal"
+    n_modes: int = 40
+    dt: float = 1e-3  # s
+    alpha: float = 8.0  # mass-proportional damping (1/s)
+    E: float | None = None  # Young's modulus (Pa); None: the material's
+    grasp_stiffness: float = 200.0  # N/m
+    max_force: float = 2.0  # N
+
+    def check(self) -> "Settings":
+        if self.method not in METHODS:
+            raise ModelError(f"method={self.method!r}; choose one of {', '.join(METHODS)}")
+        if not (1 <= int(self.n_modes) <= 2000):
+            raise ModelError(f"n_modes={self.n_modes!r}: choose 1..2000 modes")
+        if not (np.isfinite(self.dt) and 1e-5 <= self.dt <= 0.05):
+            raise ModelError(f"dt={self.dt!r}: choose a time step between 1e-5 and 0.05 s")
+        if not (np.isfinite(self.alpha) and self.alpha >= 0):
+            raise ModelError(f"alpha={self.alpha!r}: damping must be >= 0 (1/s)")
+        if self.E is not None and not (np.isfinite(self.E) and self.E > 0):
+            raise ModelError(f"E={self.E!r}: Young's modulus must be > 0 (Pa)")
+        if not (np.isfinite(self.grasp_stiffness) and self.grasp_stiffness > 0):
+            raise ModelError(f"grasp_stiffness={self.grasp_stiffness!r} must be > 0 (N/m)")
+        return self
+
+
+@dataclass
+class Stats:
+    steps: int = 0
+    sim_time: float = 0.0
+    sim_rate: float = 0.0  # steps per wall-clock second, last second
+    realtime: float = 0.0  # simulated seconds per wall-clock second, last second
+    step_us: float = 0.0  # median compute per step, last second
+    forces: deque = field(default_factory=lambda: deque(maxlen=600))  # (t, |f|) at ~60 Hz
+
+
+class Session:
+    """The organ, its precomputed dynamics and a thread stepping it in real time."""
+
+    def __init__(self, mesh: TriMesh, material: Material | None = None, fixed="attachment",
+                 settings: Settings | None = None) -> None:
+        self.mesh = mesh
+        self.material = material if material is not None else Material()
+        self.settings = (settings or Settings()).check()
+        if self.settings.E is None:
+            self.settings.E = self.material.E
+        self._fixed = fixed
+        self.X = np.asarray(mesh.vertices)
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.stats = Stats()
+        self.target: np.ndarray | None = None
+        self.error: str | None = None
+        self._maps: dict[int, ImpedanceMap] = {}
+        self._history: list[tuple[int, np.ndarray, float]] = []  # impedance route: (node, df, onset)
+        self._build(self.settings)
+
+    # ---------------------------------------------------------------- building
+    def _model(self, E: float) -> ShellModel:
+        model = ShellModel(self.mesh, replace(self.material, E=E))
+        model.fix(self._fixed)
+        model.check_restrained()
+        return model
+
+    def _build(self, s: Settings) -> None:
+        """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock)."""
+        old = getattr(self, "model", None)
+        model = old if old is not None and old.material.E == s.E else self._model(s.E)
+        basis: ModalBasis | None = getattr(self, "modes", None)
+        if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
+            basis = modal_analysis(model, max(s.n_modes, 40))
+        modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis
+        damping = Damping(alpha=s.alpha)
+        if s.method == "direct":
+            driver = DirectSimulator(model, s.dt, damping)
+        elif s.method == "modal":
+            driver = ModalSimulator(modes, s.dt, damping, static_correction=True)
+        else:
+            driver = None  # maps are built per grabbed vertex
+        with self._lock:
+            keep_maps = old is model and getattr(self, "settings", None) is not None and \
+                self.settings.alpha == s.alpha and self.settings.n_modes == s.n_modes
+            if not keep_maps:
+                self._maps = {}
+            self.model, self.modes, self.damping, self.settings = model, basis, damping, s
+            self.driver = driver
+            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force) \
+                if driver is not None else None
+            self._history, self._recorded, self._rec_node = [], np.zeros(3), None
+            self._map_force = np.zeros(3)
+            self.node: int | None = None
+            self.target = None
+            self._t0_sim = 0.0
+            self.stats.steps, self.stats.sim_time = 0, 0.0
+            self.stats.forces.clear()
+
+    def configure(self, **changes) -> None:
+        """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, max_force) and rebuild."""
+        s = replace(self.settings, **changes).check()
+        s.n_modes = int(s.n_modes)
+        self._build(s)
+
+    def _impedance_map(self, node: int) -> ImpedanceMap:
+        m = self._maps.get(node)
+        if m is None:
+            modes = self.modes.truncated(self.settings.n_modes) if self.modes.n_modes > self.settings.n_modes else self.modes
+            m = ImpedanceMap.build(self.model, self.damping, nodes=[node], modes=modes,
+                                   times=(0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0))
+            self._maps[node] = m
+        return m
+
+    # ---------------------------------------------------------------- the hand
+    def nearest_free_vertex(self, point) -> int:
+        p = np.asarray(point, dtype=float)
+        free = ~self.model.fixed[:, :3].all(axis=1)
+        d = np.linalg.norm(self.X - p, axis=1)
+        d[~free] = np.inf
+        return int(np.argmin(d))
+
+    def grab(self, point) -> int:
+        """Grab the free vertex nearest ``point`` (undeformed coordinates); returns it."""
+        node = self.nearest_free_vertex(point)
+        if self.settings.method == "impedance":
+            m = self._impedance_map(node)  # before the lock: a few tens of ms
+            with self._lock:
+                self._map_grasp = Grasp(self.mesh, m, stiffness=self.settings.grasp_stiffness,
+                                        max_force=self.settings.max_force)
+                self._map_grasp.grab(node)
+        else:
+            self.grasp.compliance(node)  # the solves, outside the lock
+        with self._lock:
+            if self.settings.method != "impedance":
+                self.grasp.grab(node)
+            self.node = node
+            self.target = self.X[node] + self._displacement(node)
+        return node
+
+    def drag(self, target) -> None:
+        t = np.asarray(target, dtype=float)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise ModelError(f"drag target must be 3 finite coordinates, got {target!r}")
+        with self._lock:
+            if self.node is not None:
+                self.target = t
+
+    def release(self) -> None:
+        with self._lock:
+            self.node, self.target = None, None
+            if self.grasp is not None:
+                self.grasp.release()
+
+    # ---------------------------------------------------------------- stepping
+    def step(self) -> None:
+        """One time step of the current method under the current grasp."""
+        with self._lock:
+            s = self.settings
+            if s.method == "impedance":
+                if self.node is not None and self.target is not None:
+                    self._map_force = self._map_grasp.update(self.target)
+                else:
+                    self._map_force = np.zeros(3)
+            else:
+                self.grasp.update(self.target)
+            self.stats.steps += 1
+            self.stats.sim_time = self._t0_sim + self.stats.steps * s.dt
+
+    @property
+    def force(self) -> np.ndarray:
+        """Force on the organ at the grabbed vertex (N); the hand feels the opposite."""
+        return self._map_force.copy() if self.settings.method == "impedance" else self.grasp.force.copy()
+
+    def _displacement(self, node: int) -> np.ndarray:
+        if self.settings.method == "impedance":
+            return np.zeros(3) if not self._history else self._map_field()[node]
+        return self.driver.displacement(node)
+
+    def _map_field(self) -> np.ndarray:
+        """Superposed responses to the grasp-force history; settled steps merge into one static load."""
+        t = self.stats.sim_time
+        settled: dict[int, np.ndarray] = {}
+        live = []
+        for node, df, onset in self._history:
+            if t - onset > self._maps[node].times[-1]:
+                settled[node] = settled.get(node, 0.0) + df
+            else:
+                live.append((node, df, onset))
+        self._history = [(n, f, -np.inf) for n, f in settled.items()] + live
+        u = np.zeros((self.mesh.n_vertices, 3))
+        for node in {n for n, _, _ in self._history}:
+            u += self._maps[node].displacements([h for h in self._history if h[0] == node], t)
+        return u
+
+    def displacements(self) -> np.ndarray:
+        """The (n, 3) displacement field now (called at the frame rate)."""
+        with self._lock:
+            if self.settings.method == "impedance":
+                # superposition: the change of the grasp force since the last frame is a new
+                # step load on the grabbed vertex, starting now (a release unloads the old one)
+                t, f, node = self.stats.sim_time, self._map_force, self.node
+                if self._rec_node is not None and (node != self._rec_node) and np.any(self._recorded):
+                    self._history.append((self._rec_node, -self._recorded, t))
+                    self._recorded = np.zeros(3)
+                if node is not None and np.any(np.abs(f - self._recorded) > 1e-9):
+                    self._history.append((node, f - self._recorded, t))
+                    self._recorded = f.copy()
+                    self._rec_node = node
+                return self._map_field()
+            return self.driver.displacements()
+
+    def record_force(self) -> None:
+        with self._lock:
+            self.stats.forces.append((self.stats.sim_time, float(np.linalg.norm(self.force))))
+
+    # ---------------------------------------------------------------- the clock
+    def _run(self) -> None:
+        st = self.stats
+        wall0, steps0 = time.perf_counter(), st.steps
+        window_steps, window_start, computes = 0, time.perf_counter(), []
+        try:
+            while not self._stop.is_set():
+                dt = self.settings.dt
+                if st.steps < steps0:  # rebuilt: restart the schedule
+                    wall0, steps0 = time.perf_counter(), st.steps
+                target = wall0 + (st.steps - steps0) * dt
+                now = time.perf_counter()
+                if target - now > 3e-4:
+                    time.sleep(target - now - 3e-4)
+                    continue
+                if now - target > 0.1:  # cannot keep up (direct route): stop owing steps
+                    wall0, steps0 = now, st.steps
+                c0 = time.perf_counter()
+                self.step()
+                c1 = time.perf_counter()
+                computes.append(c1 - c0)
+                window_steps += 1
+                if c1 - window_start >= 1.0:
+                    st.sim_rate = window_steps / (c1 - window_start)
+                    st.realtime = st.sim_rate * dt
+                    st.step_us = float(np.median(computes)) * 1e6
+                    window_steps, window_start, computes = 0, c1, []
+        except Exception as exc:  # shown in the panel; the viewer keeps serving
+            self.error = f"{type(exc).__name__}: {exc}"
+
+    def start(self) -> "Session":
+        if self._thread is None or not self._thread.is_alive():
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="rtfem-viewer-physics", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
