@@ -1,28 +1,204 @@
-"""The ``rtfem`` command.
+"""The ``rtfem`` command: every step of the job on the embedded liver or on your own mesh.
 
-Commands so far: ``rtfem info [MESH]`` (mesh check and repair report) and ``rtfem demo``.
-Exit codes: 0 ok, 2 bad input (one-line message, no traceback).
+    rtfem info [MESH]                      mesh check and repair report
+    rtfem modes [MESH] -n 40 -o FILE       precompute the modal basis (.npz)
+    rtfem simulate [MESH] ...              headless run: scripted probe or load file -> .pvd + .csv
+    rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
+    rtfem bench [MESH]                     time per step: modal vs direct, measured now
+    rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
+    rtfem view [MESH]                      the interactive web viewer
+    rtfem demo                             the scripted demo of `make demo HEADLESS=1`
+
+Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
 from .errors import RtfemError
 
 
-def _load(path: str | None, scale: float):
+# ---------------------------------------------------------------- shared pieces
+class Progress:
+    """One self-overwriting progress line on stderr (plain lines when not a terminal)."""
+
+    def __init__(self, label: str, total: float | None = None, stream=None) -> None:
+        self.label, self.total = label, total
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.t0 = time.perf_counter()
+        self._last = 0.0
+
+    def update(self, done: float, note: str = "", force: bool = False) -> None:
+        now = time.perf_counter()
+        if not force and now - self._last < (0.1 if self.tty else 5.0):
+            return
+        self._last = now
+        if self.total:
+            frac = min(max(done / self.total, 0.0), 1.0)
+            bar = "#" * int(round(30 * frac)) + "-" * (30 - int(round(30 * frac)))
+            text = f"{self.label} [{bar}] {frac * 100:5.1f} % {note} {now - self.t0:6.1f} s"
+        else:
+            text = f"{self.label} {note} {now - self.t0:6.1f} s"
+        self.stream.write(("\r" + text + "\033[K") if self.tty else text + "\n")
+        self.stream.flush()
+
+    def done(self, note: str = "") -> None:
+        if self.total:
+            self.update(self.total, note, force=True)
+        else:
+            self.update(0, note, force=True)
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _vector(text: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise RtfemError(f"{what}={text!r}: give three numbers separated by commas, e.g. 0.05,0.05,0") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise RtfemError(f"{what}={text!r}: give three finite numbers separated by commas")
+    return v
+
+
+def load_mesh_arg(path: str | None, scale: float = 1.0):
     from . import meshes
     from .meshfile import load_mesh
 
     return meshes.liver() if path is None else load_mesh(path, scale=scale)
 
 
+def fixed_nodes(mesh, spec: str | None) -> tuple[np.ndarray, str]:
+    """Parse --fix: a group name, AXIS<VALUE / AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k."""
+    X = np.asarray(mesh.vertices)
+    if spec is None:
+        if "attachment" in mesh.groups:
+            spec = "attachment"
+        else:
+            spec = "bottom:0.1"
+    axes = {"x": 0, "y": 1, "z": 2}
+    s = spec.strip()
+    if s in mesh.groups:
+        nodes = np.asarray(mesh.groups[s])
+        how = f"group '{s}'"
+    elif len(s) > 2 and s[0] in axes and s[1] in "<>":
+        try:
+            value = float(s[2:])
+        except ValueError:
+            raise RtfemError(f"--fix {spec!r}: write AXIS<VALUE or AXIS>VALUE in metres, e.g. z<0.01") from None
+        c = X[:, axes[s[0]]]
+        nodes = np.flatnonzero(c < value if s[1] == "<" else c > value)
+        how = f"{s} m"
+    elif s.startswith("bottom:"):
+        try:
+            frac = float(s.split(":", 1)[1])
+        except ValueError:
+            frac = -1.0
+        if not 0 < frac < 1:
+            raise RtfemError(f"--fix {spec!r}: bottom:FRACTION needs 0 < FRACTION < 1, e.g. bottom:0.1")
+        z = X[:, 2]
+        nodes = np.flatnonzero(z <= z.min() + frac * (z.max() - z.min()))
+        how = f"the lowest {frac * 100:g} % of the height (z)"
+    elif s.startswith("nodes:"):
+        try:
+            nodes = np.array([int(v) for v in s[6:].split(",") if v.strip()])
+        except ValueError:
+            raise RtfemError(f"--fix {spec!r}: nodes:i,j,k takes vertex indices") from None
+        if nodes.size == 0 or nodes.min() < 0 or nodes.max() >= mesh.n_vertices:
+            raise RtfemError(f"--fix {spec!r}: vertex indices must be in 0..{mesh.n_vertices - 1}")
+        how = f"{nodes.size} listed vertices"
+    else:
+        groups = ", ".join(sorted(mesh.groups)) or "none in this mesh"
+        raise RtfemError(f"--fix {spec!r}: give a group name ({groups}), AXIS<VALUE or AXIS>VALUE (m), "
+                         "bottom:FRACTION or nodes:i,j,k")
+    if nodes.size == 0:
+        raise RtfemError(f"--fix {spec!r} selects no vertex: nothing would hold the organ; choose another region")
+    return nodes, how
+
+
+def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> None:
+    from .material import Material
+
+    m = Material()
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
+    p.add_argument("--scale", type=float, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    g = p.add_argument_group("material and supports")
+    g.add_argument("--E", type=float, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
+    g.add_argument("--nu", type=float, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
+    g.add_argument("--thickness", type=float, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
+    g.add_argument("--density", type=float, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
+    g.add_argument("--fix", default=None, metavar="REGION",
+                   help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
+                        "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
+    if dynamics:
+        g = p.add_argument_group("dynamics")
+        g.add_argument("-n", "--modes", type=int, default=40, help="number of modes r (default 40)")
+        g.add_argument("--alpha", type=float, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
+        g.add_argument("--dt", type=float, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
+
+
+def build_model(args, *, quiet: bool = False):
+    from .material import Material
+    from .model import ShellModel
+
+    mesh = load_mesh_arg(args.mesh, args.scale)
+    material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
+    nodes, how = fixed_nodes(mesh, args.fix)
+    model = ShellModel(mesh, material)
+    model.fix(nodes)
+    model.check_restrained()
+    if not quiet:
+        print(f"model       {args.mesh or 'embedded default liver'}: {mesh.n_vertices:,} vertices, "
+              f"{mesh.n_triangles:,} triangles, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
+    return model
+
+
+def damping_of(args):
+    from .material import Damping
+
+    return Damping(alpha=args.alpha)
+
+
+def check_positive(name: str, value: float) -> float:
+    if not (np.isfinite(value) and value > 0):
+        raise RtfemError(f"{name}={value!r} must be a positive number")
+    return value
+
+
+def _modes(model, args, *, quiet=False):
+    from .modal import modal_analysis
+
+    r = args.modes
+    if r < 1:
+        raise RtfemError(f"--modes {r}: ask for at least one mode")
+    # ARPACK's shift-invert Lanczos takes about 1.5-2 ncv solves (ncv = 2r + 1): the bar's estimate
+    bar = Progress(f"modes       r = {r}", total=4 * r + 2)
+
+    def progress(msg: str) -> None:
+        words = msg.split()
+        if "solves," in words:
+            done = int(words[words.index("solves,") - 1])
+            bar.total = max(bar.total, done * 1.05)
+            bar.update(done, f"{done} solves")
+
+    basis = modal_analysis(model, r, progress=None if quiet else progress)
+    if not quiet:
+        bar.done(f"{basis.n_modes} modes ({basis.info['method']})")
+    return basis
+
+
+# ---------------------------------------------------------------- commands
 def cmd_info(args: argparse.Namespace) -> int:
-    mesh = _load(args.mesh, args.scale)
+    mesh = load_mesh_arg(args.mesh, args.scale)
     lo, hi = mesh.bounds()
     print(f"mesh        {args.mesh or 'embedded default liver'}")
     print(f"size        {mesh.n_vertices} vertices, {mesh.n_triangles} triangles, {mesh.edges().shape[0]} edges")
@@ -35,19 +211,314 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_modes(args: argparse.Namespace) -> int:
+    model = build_model(args)
+    basis = _modes(model, args)
+    f = basis.frequencies
+    print("frequencies " + ", ".join(f"{x:.3f}" for x in f[:8]) + (f" ... {f[-1]:.2f}" if f.size > 8 else "") + " Hz")
+    out = basis.save(args.output)
+    print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ModalBasis.load(path, model=...)")
+    return 0
+
+
+def _probe_point(model, at: str | None) -> int:
+    mesh = model.mesh
+    free = ~model.fixed[:, :3].all(axis=1)
+    if at is not None:
+        p = _vector(at, "--at")
+        d = np.linalg.norm(np.asarray(mesh.vertices) - p, axis=1)
+        d[~free] = np.inf
+        return int(np.argmin(d))
+    from .bench import probe_vertex
+
+    return probe_vertex(model)
+
+
+def _read_loads(path: str, n_nodes: int) -> list[tuple[float, int, np.ndarray]]:
+    """CSV rows t,node,fx,fy,fz: from time t on, node carries (fx, fy, fz) (N) until its next row."""
+    rows = []
+    try:
+        with open(path, newline="") as fh:
+            for i, row in enumerate(csv.reader(fh), start=1):
+                if not row or row[0].strip().startswith("#") or row[0].strip().lower() == "t":
+                    continue
+                if len(row) != 5:
+                    raise RtfemError(f"{path}, line {i}: expected 5 columns t,node,fx,fy,fz, found {len(row)}")
+                try:
+                    t, node = float(row[0]), int(row[1])
+                    f = np.array([float(v) for v in row[2:]])
+                except ValueError:
+                    raise RtfemError(f"{path}, line {i}: not numbers: {','.join(row)}") from None
+                if not (np.isfinite(t) and t >= 0 and np.all(np.isfinite(f))):
+                    raise RtfemError(f"{path}, line {i}: time must be >= 0 and forces finite")
+                if not 0 <= node < n_nodes:
+                    raise RtfemError(f"{path}, line {i}: node {node} is not on the mesh (0..{n_nodes - 1})")
+                rows.append((t, node, f))
+    except UnicodeDecodeError:
+        raise RtfemError(f"{path}: not a text CSV file") from None
+    if not rows:
+        raise RtfemError(f"{path}: no load rows (t,node,fx,fy,fz)")
+    return sorted(rows, key=lambda r: r[0])
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .haptics import Probe, ScriptedDevice
+    from .io import write_pvd, write_vtu
+    from .simulate import DirectSimulator, ModalSimulator
+
+    check_positive("--duration", args.duration)
+    check_positive("--dt", args.dt)
+    if args.method == "sldm" and not args.load:
+        raise RtfemError("--method sldm answers given loads (it has no state to step a contact with): add --load FILE")
+    model = build_model(args)
+    mesh = model.mesh
+    loads = _read_loads(args.load, mesh.n_vertices) if args.load else None
+    damping = damping_of(args)
+    n_steps = int(round(args.duration / args.dt))
+    if n_steps < 1:
+        raise RtfemError(f"--duration {args.duration} is shorter than one step (--dt {args.dt})")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    frame_every = max(1, int(round(1 / args.fps / args.dt)))
+    if args.method == "modal":
+        sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True)
+    elif args.method == "direct":
+        sim = DirectSimulator(model, args.dt, damping)
+    else:
+        sim = None
+    rows, frames = [], []
+    t0 = time.perf_counter()
+    bar = Progress(f"simulate    {args.method}", total=n_steps)
+    if loads is None:
+        node = _probe_point(model, args.at)
+        X, nrm = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
+        T, depth = args.duration, args.depth
+
+        def trajectory(t: float) -> np.ndarray:  # 1 mm above; press to depth; hold; back out
+            s = t / T
+            d = -0.001 + (depth + 0.001) * (min(s / 0.2, 1.0) if s < 0.6 else max(0.0, 1 - (s - 0.6) / 0.2))
+            return X - d * nrm
+
+        device = ScriptedDevice(trajectory)
+        probe = Probe(mesh, sim, stiffness=args.stiffness)
+        for k in range(n_steps):
+            t = k * args.dt
+            pos = device.position(t)
+            f = probe.update(pos)
+            u = sim.displacement(node)
+            rows.append([t + args.dt, *pos, *f, float(np.linalg.norm(f)), probe.contact_node if probe.contact_node is not None else -1, *u])
+            if (k + 1) % frame_every == 0:
+                frames.append((t + args.dt, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, sim.displacements())))
+            bar.update(k + 1)
+        header = ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force", "contact_node",
+                  "u_x", "u_y", "u_z"]
+        what = f"point probe at vertex {node}, {depth * 1e3:g} mm deep along its inward normal, stiffness {args.stiffness:g} N/m"
+    else:
+        nodes = sorted({n for _, n, _ in loads})
+
+        def forces_at(t: float) -> dict[int, np.ndarray]:
+            cur: dict[int, np.ndarray] = {}
+            for tl, n, f in loads:
+                if tl <= t + 1e-12:
+                    cur[n] = f
+            return {n: f for n, f in cur.items() if np.any(f)}
+
+        header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
+        if sim is None:  # SLDM: Duhamel superposition of the piecewise-constant loads
+            from .sldm import SLDM
+
+            times = (np.arange(n_steps) + 1) * args.dt
+            solver = SLDM(model, damping)
+
+            def F_of(t: float) -> np.ndarray:
+                F = np.zeros((mesh.n_vertices, 3))
+                for n, f in forces_at(t).items():
+                    F[n] = f
+                return F
+
+            switch = sorted({tl for tl, _, _ in loads})
+            U = solver.response([(tl, F_of(tl)) for tl in switch], times, tol=args.tol)
+            for k, t in enumerate(times):
+                fa = F_of(t - args.dt)
+                rows.append([t] + [v for n in nodes for v in (*fa[n], *U[k, n])])
+                if (k + 1) % frame_every == 0:
+                    frames.append((t, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, U[k])))
+                bar.update(k + 1)
+        else:
+            for k in range(n_steps):
+                t = k * args.dt
+                f = forces_at(t)
+                sim.step({n: tuple(v) for n, v in f.items()} or None)
+                U = sim.displacements()
+                rows.append([t + args.dt] + [v for n in nodes for v in (*f.get(n, np.zeros(3)), *U[n])])
+                if (k + 1) % frame_every == 0:
+                    frames.append((t + args.dt, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, U)))
+                bar.update(k + 1)
+        what = f"{len(loads)} load rows from {args.load} on {len(nodes)} node(s)"
+    bar.done()
+    elapsed = time.perf_counter() - t0
+    csv_path = out / "response.csv"
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in rows])
+    pvd = write_pvd(out / "response.pvd", frames)
+    forces = np.array([r[7] for r in rows]) if loads is None else None
+    print(f"load        {what}")
+    print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({args.method}) in {elapsed:.2f} s "
+          f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")
+    if forces is not None:
+        print(f"force       peak {forces.max():.4f} N, final {forces[-1]:.4f} N")
+    print(f"wrote       {csv_path} ({len(rows)} rows), {pvd} ({len(frames)} frames; open in ParaView)")
+    return 0
+
+
+def cmd_impedance(args: argparse.Namespace) -> int:
+    from .impedance import ImpedanceMap
+
+    model = build_model(args)
+    times = [float(t) for t in args.times.split(",")] if args.times else None
+    nodes = None
+    if args.nodes:
+        nodes, how = fixed_nodes(model.mesh, args.nodes)
+        print(f"loaded      {nodes.size} nodes ({how})")
+    bar = Progress("impedance  ", total=1)
+
+    def progress(done: int, total: int, seconds: float) -> None:
+        bar.total = total
+        bar.update(done, f"{done}/{total} nodes")
+
+    kw = dict(nodes=nodes, radius=args.radius, metric=args.metric, threshold=args.threshold, method=args.method,
+              n_modes=args.modes, tol=args.tol, progress=progress, workers=args.workers,
+              memory_limit=args.memory_limit * 2**30)
+    if times is not None:
+        kw["times"] = times
+    imap = ImpedanceMap.build(model, damping_of(args), **kw)
+    bar.done()
+    out = imap.save(args.output)
+    print(f"map         {imap}")
+    print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ImpedanceMap.load(path, model=...)")
+    if not imap.info.get("complete", True):
+        print("note        interrupted: the map holds the nodes finished so far")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import dynamics_table
+
+    model = build_model(args)
+    rows = dynamics_table(model, args.modes_list, dt=args.dt, damping=damping_of(args), direct_steps=args.direct_steps)
+    from .bench import print_table
+
+    print_table(rows)
+    if args.plot:
+        from .plots import plot_bench
+
+        print(f"wrote       {plot_bench(rows, args.plot)}")
+    return 0
+
+
+def cmd_pictures(args: argparse.Namespace) -> int:
+    from .plots import pictures
+
+    model = build_model(args)
+    for path in pictures(model, Path(args.out), n_modes=args.modes, damping=damping_of(args), dt=args.dt,
+                         gif=not args.no_gif, mp4=args.mp4, say=print):
+        print(f"wrote       {path}")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .viewer.app import serve
+    from .viewer.session import Settings
+
+    model = build_model(args)
+    settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
+                        grasp_stiffness=args.stiffness).check()
+    nodes, _ = fixed_nodes(model.mesh, args.fix)
+    print("precomputing ...", flush=True)
+    serve(model.mesh, material=model.material, fixed=nodes, settings=settings, host=args.host, port=args.port)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import main as demo_main
 
     return demo_main(["--out", args.out])
 
 
+# ---------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="rtfem", description="Real-time simulation of deformable shell finite-element models.")
-    sub = ap.add_subparsers(dest="command", required=True)
+    ap = argparse.ArgumentParser(prog="rtfem", description="Real-time simulation of deformable shell finite-element "
+                                 "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
+                                 epilog="Every command runs on the embedded default liver when no MESH is given.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
     p = sub.add_parser("info", help="check a mesh file (or the embedded liver) and report repairs")
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
     p.add_argument("--scale", type=float, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("modes", help="precompute the r lowest modes and save them (.npz)")
+    add_model_options(p)
+    p.add_argument("-o", "--output", default="liver.modes.npz", help="output file (default liver.modes.npz)")
+    p.set_defaults(func=cmd_modes)
+
+    p = sub.add_parser("simulate", help="headless run: a scripted probe (default) or a load file; writes .pvd + .csv",
+                       description="A point probe presses the organ along the inward normal (1 mm approach, press to "
+                       "--depth over 20 %% of the run, hold to 60 %%, release by 80 %%), or the loads of --load act. "
+                       "Writes response.pvd (+ frames) and response.csv to --out.")
+    add_model_options(p)
+    p.add_argument("--method", choices=("modal", "direct", "sldm"), default="modal",
+                   help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
+                        "baseline) or sldm (Krylov, --load only)")
+    p.add_argument("--duration", type=float, default=1.0, help="simulated time in s (default 1)")
+    p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
+    p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the demo point on "
+                   "the liver, else the free vertex farthest from the supports")
+    p.add_argument("--depth", type=float, default=0.005, help="probe indentation in m (default 0.005)")
+    p.add_argument("--stiffness", type=float, default=200.0, help="probe coupling spring in N/m (default 200)")
+    p.add_argument("--tol", type=float, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--fps", type=float, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
+    p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("impedance", help="precompute an impedance map (responses to unit loads) and save it (.npz)")
+    add_model_options(p)
+    p.add_argument("-o", "--output", default="liver.map.npz", help="output file (default liver.map.npz)")
+    p.add_argument("--nodes", metavar="REGION", help="loaded nodes, same forms as --fix (default: every free node)")
+    p.add_argument("--radius", type=float, help="radius of influence in m (default: none)")
+    p.add_argument("--metric", choices=("euclidean", "geodesic"), default="euclidean", help="distance for --radius")
+    p.add_argument("--threshold", type=float, help="drop responses below this fraction of each column's largest")
+    p.add_argument("--times", help="response samples in s, comma-separated (default 0.005,...,0.5)")
+    p.add_argument("--method", choices=("modal", "sldm"), default="modal", help="modal (r modes + static correction) or sldm")
+    p.add_argument("--tol", type=float, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--workers", type=int, default=1, help="threads (default 1)")
+    p.add_argument("--memory-limit", type=float, default=4.0, help="refuse maps above this many GiB (default 4)")
+    p.set_defaults(func=cmd_impedance)
+
+    p = sub.add_parser("bench", help="time per step of the modal simulator against direct integration, measured now")
+    add_model_options(p)
+    p.add_argument("--modes-list", type=int, nargs="+", default=[10, 40, 100], help="r values (default 10 40 100)")
+    p.add_argument("--direct-steps", type=int, default=30, help="direct Newmark steps timed (default 30)")
+    p.add_argument("--plot", metavar="PNG", help="also plot the table")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("pictures", help="PNG mode shapes and deformed states, a GIF of a response, and plots")
+    add_model_options(p)
+    p.add_argument("--out", default="out/pictures", help="output folder (default out/pictures)")
+    p.add_argument("--no-gif", action="store_true", help="skip the animated GIF")
+    p.add_argument("--mp4", action="store_true", help="also write an MP4 (needs imageio-ffmpeg)")
+    p.set_defaults(func=cmd_pictures)
+
+    p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
+    add_model_options(p)
+    p.add_argument("--method", choices=("modal", "impedance", "direct"), default="modal", help="dynamics (default modal)")
+    p.add_argument("--stiffness", type=float, default=200.0, help="grasp spring in N/m (default 200)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.set_defaults(func=cmd_view)
+
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.set_defaults(func=cmd_demo)
@@ -64,6 +535,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"rtfem: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("\nrtfem: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -52,7 +52,8 @@ class Probe:
     Parameters
     ----------
     mesh : the organ surface.
-    driver : a :class:`ModalSimulator` (dynamic) or an :class:`ImpedanceMap` (quasi-static).
+    driver : a :class:`ModalSimulator` (dynamic), a Newmark :class:`DirectSimulator` (the full model,
+        for comparison) or an :class:`ImpedanceMap` (quasi-static).
     radius : probe tip radius (m); 0 for a point probe.
     coupling : "spring" (virtual coupling, default) or "constraint" (hard displacement).
     stiffness : virtual coupling stiffness k (N/m).
@@ -61,8 +62,9 @@ class Probe:
 
     def __init__(self, mesh: TriMesh, driver, *, radius: float = 0.0, coupling: str = "spring",
                  stiffness: float = 200.0, candidates: int = 8) -> None:
-        if not isinstance(driver, (ModalSimulator, ImpedanceMap)):
-            raise ModelError(f"the probe drives a ModalSimulator or an ImpedanceMap, not {type(driver).__name__}")
+        if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
+            raise ModelError("the probe drives a ModalSimulator, a (Newmark) DirectSimulator or an ImpedanceMap, "
+                             f"not {type(driver).__name__}")
         if coupling not in ("spring", "constraint"):
             raise ModelError(f"coupling={coupling!r}; choose 'spring' or 'constraint'")
         if not (np.isfinite(radius) and radius >= 0):
@@ -108,7 +110,7 @@ class Probe:
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacement field now (for drawing; O(n), not for the force loop)."""
         d = self.driver
-        if isinstance(d, ModalSimulator):
+        if not isinstance(d, ImpedanceMap):
             return d.displacements()
         if self._map_load is None:
             return np.zeros((self.mesh.n_vertices, 3))
@@ -118,10 +120,10 @@ class Probe:
     def _compliance(self, node: int) -> np.ndarray:
         W = self._W.get(node)
         if W is None:
-            if isinstance(self.driver, ModalSimulator):
-                W = self.driver.step_compliance(node)
-            else:
+            if isinstance(self.driver, ImpedanceMap):
                 W = self.driver.point_compliance(node)
+            else:
+                W = self.driver.step_compliance(node)
             self._W[node] = W
         return W
 
@@ -129,6 +131,8 @@ class Probe:
         d = self.driver
         if isinstance(d, ModalSimulator):
             return self.X[nodes] + d._phi[nodes] @ d.q
+        if isinstance(d, DirectSimulator):
+            return self.X[nodes] + d.displacements()[nodes]
         if self._map_load is None:
             return self.X[nodes]
         p, f = self._map_load
@@ -153,16 +157,16 @@ class Probe:
         g = float(n @ (c - self.X[p])) - self.radius
         d = self.driver
         lam = 0.0
-        if isinstance(d, ModalSimulator):
-            u_free = d.predict(p)
-        else:
+        if isinstance(d, ImpedanceMap):
             u_free = np.zeros(3)
+        else:
+            u_free = d.predict(p)
         if n @ u_free > g:  # the surface would pass the probe: contact
             W = self._compliance(p)
             denom = float(n @ W @ n) + (1.0 / self.stiffness if self.coupling == "spring" else 0.0)
             lam = (float(n @ u_free) - g) / denom
         f_organ = -lam * n
-        if isinstance(d, ModalSimulator):
+        if not isinstance(d, ImpedanceMap):
             d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
         else:  # quasi-static: the static response to the contact force (evaluated where needed)
             self._map_load = (p, f_organ) if lam > 0 else None

@@ -192,7 +192,7 @@ def modal_analysis(
 
         def op(b: np.ndarray) -> np.ndarray:
             count[0] += 1
-            if count[0] % 50 == 0:
+            if count[0] % 10 == 0:
                 say(f"  Lanczos: {count[0]} solves, {time.perf_counter() - t0:.1f} s")
             return solve(b)
 

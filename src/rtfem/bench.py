@@ -1,0 +1,95 @@
+"""``rtfem bench``: time per step of the modal simulator against direct integration, measured now.
+
+A compact version of ``benchmarks/dynamics.py`` for any mesh: for each r, the modal
+precompute, the haptic step (one loaded node, its displacement read back), the full-field
+step, and the direct Newmark step of the same model measured in the same run. Times are
+medians over batches; the ratios are direct / modal.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from .material import Damping
+from .modal import modal_analysis
+from .simulate import DirectSimulator, ModalSimulator
+
+
+def _per_step(fn, batch: int, batches: int = 5) -> float:
+    times = []
+    for _ in range(batches):
+        t0 = time.perf_counter()
+        for _ in range(batch):
+            fn()
+        times.append((time.perf_counter() - t0) / batch)
+    return statistics.median(times)
+
+
+def probe_vertex(model) -> int:
+    """The free vertex farthest from the supports: where a load moves the organ most."""
+    from scipy.spatial import cKDTree
+
+    held = model.fixed[:, :3].all(axis=1)
+    X = np.asarray(model.mesh.vertices)
+    d = cKDTree(X[held]).query(X)[0] if held.any() else np.ones(X.shape[0])
+    d[held] = -1.0
+    return int(np.argmax(d))
+
+
+def dynamics_table(model, modes_list, *, dt: float = 1e-3, damping: Damping | None = None,
+                   direct_steps: int = 30) -> list[dict]:
+    damping = damping if damping is not None else Damping(alpha=8.0)
+    node = probe_vertex(model)
+    f = (0.0, 0.0, -0.1)
+    t0 = time.perf_counter()
+    direct = DirectSimulator(model, dt, damping)
+    direct_setup = time.perf_counter() - t0
+    t_direct = _per_step(lambda: direct.step({node: f}), max(1, direct_steps // 5))
+    rows = []
+    for r in modes_list:
+        t0 = time.perf_counter()
+        basis = modal_analysis(model, int(r))
+        t_modes = time.perf_counter() - t0
+        sim = ModalSimulator(basis, dt, damping)
+
+        def haptic():
+            sim.step({node: f})
+            sim.displacement(node)
+
+        def full():
+            sim.step({node: f})
+            sim.displacements()
+
+        t_h = _per_step(haptic, 2000)
+        t_f = _per_step(full, 50)
+        rows.append({
+            "vertices": model.n_nodes, "dof": model.n_dofs, "r": basis.n_modes, "modes_s": t_modes,
+            "haptic_step_s": t_h, "field_step_s": t_f, "direct_step_s": t_direct, "direct_setup_s": direct_setup,
+            "ratio_haptic": t_direct / t_h, "ratio_field": t_direct / t_f,
+        })
+    return rows
+
+
+def _fmt(t: float) -> str:
+    if t < 1e-3:
+        return f"{t * 1e6:.1f} us"
+    if t < 1.0:
+        return f"{t * 1e3:.2f} ms"
+    return f"{t:.2f} s"
+
+
+def print_table(rows: list[dict]) -> None:
+    headers = ["vertices", "dof", "r", "modes (precompute)", "modal haptic step", "modal field step",
+               "direct Newmark step", "direct / haptic", "direct / field"]
+    cells = [headers] + [[f"{r['vertices']:,}", f"{r['dof']:,}", str(r["r"]), _fmt(r["modes_s"]),
+                          _fmt(r["haptic_step_s"]), _fmt(r["field_step_s"]), _fmt(r["direct_step_s"]),
+                          f"{r['ratio_haptic']:,.0f}x", f"{r['ratio_field']:,.0f}x"] for r in rows]
+    widths = [max(len(c[i]) for c in cells) for i in range(len(headers))]
+    line = lambda c: "| " + " | ".join(x.rjust(w) for x, w in zip(c, widths)) + " |"  # noqa: E731
+    print(line(cells[0]))
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for c in cells[1:]:
+        print(line(c))

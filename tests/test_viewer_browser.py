@@ -1,0 +1,127 @@
+"""The viewer in a real browser: headless Chromium (Debian's package) driven by Playwright.
+
+A drag on the organ must grab a vertex, deform the organ (served state and pixels) and move
+the contact-force plot; after the release the organ must settle back. Screenshots are kept in
+test-artifacts/browser/. Without a chromium binary the test is skipped, unless
+RTFEM_REQUIRE_BROWSER=1 (set by .ci/run, which installs Debian's chromium when missing).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+
+ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "browser"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
+        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+
+def _chromium() -> str:
+    for name in (os.environ.get("RTFEM_CHROMIUM"), "chromium", "chromium-browser"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    if os.environ.get("RTFEM_REQUIRE_BROWSER") == "1":
+        pytest.fail("no chromium binary on PATH: install Debian's chromium (apt-get install chromium); .ci/run does")
+    pytest.skip("no chromium binary on PATH (apt-get install chromium)")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(cond, timeout: float, what: str) -> None:
+    t0 = time.time()
+    while not cond():
+        if time.time() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.1)
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    from io import BytesIO
+
+    from PIL import Image
+
+    return np.asarray(Image.open(BytesIO(png)).convert("RGB"), dtype=float)
+
+
+@pytest.fixture(scope="module")
+def viewer():
+    import rtfem as rt
+    from rtfem.viewer.app import Viewer
+    from rtfem.viewer.session import Session
+
+    v = Viewer(Session(rt.meshes.liver()), port=_free_port()).start()
+    yield v
+    v.stop()
+
+
+def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    exe = _chromium()
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(viewer.url)
+            _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
+            page.wait_for_selector("canvas", timeout=60_000)
+            start = viewer.frames
+            _wait(lambda: viewer.frames > start + 30, 60, "frames to be served")
+            time.sleep(3.0)  # the client renders what it was sent
+            plot = page.locator(".uplot").first
+            plot_before = _pixels(plot.screenshot())
+            before_png = page.screenshot(path=str(ARTIFACTS / "1_before.png"))
+            before = viewer.state()
+            assert before["max_displacement"] == 0.0 and before["force"] == 0.0
+
+            # the camera looks at the organ's centre, which is the canvas centre
+            canvas = page.locator("canvas").first.bounding_box()
+            x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+            page.mouse.move(x0, y0)
+            page.mouse.down()
+            for i in range(1, 21):
+                page.mouse.move(x0 + 3 * i, y0 - 5 * i)
+                time.sleep(0.05)
+            _wait(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
+            time.sleep(2.0)
+            during = viewer.state()
+            during_png = page.screenshot(path=str(ARTIFACTS / "2_dragging.png"))
+            plot_during = _pixels(plot.screenshot(path=str(ARTIFACTS / "2_force_plot.png")))
+            page.mouse.up()
+            _wait(lambda: viewer.state()["grabbed"] is None, 20, "the release")
+            time.sleep(2.5)
+            after = viewer.state()
+            page.screenshot(path=str(ARTIFACTS / "3_released.png"))
+        finally:
+            browser.close()
+
+    # served state: one drag, a vertex held by a real force, the organ deformed, the plot fed
+    assert during["drags"] == 1 and during["error"] is None
+    assert during["force"] > 0.05, during  # N; ~100 px of drag stretches the 200 N/m grasp spring
+    assert during["max_displacement"] > 2e-3, during  # m
+    assert during["peak_force_plotted"] > 0.05
+    assert during["sim_rate"] > 0 and during["frame_rate"] > 0
+    # the released organ settles (B = 8 M: amplitudes fall as exp(-4 t))
+    assert after["force"] == 0.0
+    assert after["max_displacement"] < 0.2 * during["max_displacement"], (during, after)
+    # pixels: the organ's picture changed where it was pulled, and so did the force plot
+    a, b = _pixels(before_png), _pixels(during_png)
+    h, w = a.shape[:2]
+    region = (slice(int(0.2 * h), int(0.8 * h)), slice(int(0.25 * w), int(0.6 * w)))
+    changed = np.mean(np.abs(a[region] - b[region]).sum(axis=2) > 30)
+    assert changed > 0.01, f"only {changed:.2%} of the organ's pixels changed"
+    plot_changed = np.mean(np.abs(plot_before - plot_during).sum(axis=2) > 30)
+    assert plot_changed > 0.005, f"only {plot_changed:.2%} of the force plot's pixels changed"
