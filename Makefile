@@ -1,11 +1,17 @@
 # `make demo` and `make test` work on a machine that has only python3 (>= 3.11) and make:
 # each creates .venv and installs what it needs on first use.
+#   make demo              the interactive viewer on the default liver (Ctrl-C stops it)
+#   make demo HEADLESS=1   the scripted session instead (static poke, modal dynamics, 1 kHz loop)
+#   make test              the whole suite (the browser test needs Debian's chromium: see README)
+#   make pictures          the README's pictures, into docs/img
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+PORT   ?= 8080
+HEADLESS ?=
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench pictures clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || \
@@ -13,14 +19,24 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || \
 	  { rm -rf $(VENV); echo "could not create a virtual environment: on Debian/Ubuntu run 'apt-get install python3-venv'"; exit 1; }
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[test]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[viewer,plots,video,test]"
 	@touch $(STAMP)
 
+ifeq ($(HEADLESS),)
+demo: $(STAMP)
+	@echo "rtfem: starting the viewer on the default liver; open the address below in a browser."
+	@echo "rtfem: press Ctrl-C here to stop it (make demo HEADLESS=1 runs the scripted session instead)."
+	$(BIN)/rtfem view --port $(PORT)
+else
 demo: $(STAMP)
 	$(BIN)/python -m rtfem.demo
+endif
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+pictures: $(STAMP)
+	$(BIN)/rtfem pictures --out docs/img
 
 # all benchmark tables (about an hour with the 40,962-vertex liver; BENCH_LEVELS="4 5" is quicker)
 BENCH_LEVELS ?= 4 5 6
@@ -31,4 +47,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache test-artifacts

@@ -77,8 +77,8 @@ def load_mesh_arg(path: str | None, scale: float = 1.0):
     return meshes.liver() if path is None else load_mesh(path, scale=scale)
 
 
-def fixed_nodes(mesh, spec: str | None) -> tuple[np.ndarray, str]:
-    """Parse --fix: a group name, AXIS<VALUE / AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k."""
+def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
+    """Parse a region (--fix, --nodes): a group name, AXIS<VALUE / AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k."""
     X = np.asarray(mesh.vertices)
     if spec is None:
         if "attachment" in mesh.groups:
@@ -94,7 +94,7 @@ def fixed_nodes(mesh, spec: str | None) -> tuple[np.ndarray, str]:
         try:
             value = float(s[2:])
         except ValueError:
-            raise RtfemError(f"--fix {spec!r}: write AXIS<VALUE or AXIS>VALUE in metres, e.g. z<0.01") from None
+            raise RtfemError(f"{option} {spec!r}: write AXIS<VALUE or AXIS>VALUE in metres, e.g. z<0.01") from None
         c = X[:, axes[s[0]]]
         nodes = np.flatnonzero(c < value if s[1] == "<" else c > value)
         how = f"{s} m"
@@ -104,7 +104,7 @@ def fixed_nodes(mesh, spec: str | None) -> tuple[np.ndarray, str]:
         except ValueError:
             frac = -1.0
         if not 0 < frac < 1:
-            raise RtfemError(f"--fix {spec!r}: bottom:FRACTION needs 0 < FRACTION < 1, e.g. bottom:0.1")
+            raise RtfemError(f"{option} {spec!r}: bottom:FRACTION needs 0 < FRACTION < 1, e.g. bottom:0.1")
         z = X[:, 2]
         nodes = np.flatnonzero(z <= z.min() + frac * (z.max() - z.min()))
         how = f"the lowest {frac * 100:g} % of the height (z)"
@@ -112,16 +112,17 @@ def fixed_nodes(mesh, spec: str | None) -> tuple[np.ndarray, str]:
         try:
             nodes = np.array([int(v) for v in s[6:].split(",") if v.strip()])
         except ValueError:
-            raise RtfemError(f"--fix {spec!r}: nodes:i,j,k takes vertex indices") from None
+            raise RtfemError(f"{option} {spec!r}: nodes:i,j,k takes vertex indices") from None
         if nodes.size == 0 or nodes.min() < 0 or nodes.max() >= mesh.n_vertices:
-            raise RtfemError(f"--fix {spec!r}: vertex indices must be in 0..{mesh.n_vertices - 1}")
+            raise RtfemError(f"{option} {spec!r}: vertex indices must be in 0..{mesh.n_vertices - 1}")
         how = f"{nodes.size} listed vertices"
     else:
         groups = ", ".join(sorted(mesh.groups)) or "none in this mesh"
-        raise RtfemError(f"--fix {spec!r}: give a group name ({groups}), AXIS<VALUE or AXIS>VALUE (m), "
+        raise RtfemError(f"{option} {spec!r}: give a group name ({groups}), AXIS<VALUE or AXIS>VALUE (m), "
                          "bottom:FRACTION or nodes:i,j,k")
     if nodes.size == 0:
-        raise RtfemError(f"--fix {spec!r} selects no vertex: nothing would hold the organ; choose another region")
+        what = "nothing would hold the organ" if option == "--fix" else "nothing to load"
+        raise RtfemError(f"{option} {spec!r} selects no vertex: {what}; choose another region")
     return nodes, how
 
 
@@ -268,6 +269,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     check_positive("--duration", args.duration)
     check_positive("--dt", args.dt)
+    if args.at is not None:
+        _vector(args.at, "--at")
     if args.method == "sldm" and not args.load:
         raise RtfemError("--method sldm answers given loads (it has no state to step a contact with): add --load FILE")
     model = build_model(args)
@@ -380,7 +383,7 @@ def cmd_impedance(args: argparse.Namespace) -> int:
     times = [float(t) for t in args.times.split(",")] if args.times else None
     nodes = None
     if args.nodes:
-        nodes, how = fixed_nodes(model.mesh, args.nodes)
+        nodes, how = fixed_nodes(model.mesh, args.nodes, "--nodes")
         print(f"loaded      {nodes.size} nodes ({how})")
     bar = Progress("impedance  ", total=1)
 
@@ -423,7 +426,8 @@ def cmd_pictures(args: argparse.Namespace) -> int:
 
     model = build_model(args)
     for path in pictures(model, Path(args.out), n_modes=args.modes, damping=damping_of(args), dt=args.dt,
-                         gif=not args.no_gif, mp4=args.mp4, say=print):
+                         gif=not args.no_gif, mp4=args.mp4, scaling_levels=() if args.no_scaling else (2, 3, 4),
+                         say=print):
         print(f"wrote       {path}")
     return 0
 
@@ -509,6 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/pictures", help="output folder (default out/pictures)")
     p.add_argument("--no-gif", action="store_true", help="skip the animated GIF")
     p.add_argument("--mp4", action="store_true", help="also write an MP4 (needs imageio-ffmpeg)")
+    p.add_argument("--no-scaling", action="store_true", help="skip the scaling curves (they time the liver at 3 sizes)")
     p.set_defaults(func=cmd_pictures)
 
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")

@@ -1,0 +1,170 @@
+"""Every rtfem command on the default liver and on a mesh file given by path; broken input -> exit 2."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.cli import main
+from conftest import organ
+
+GB = ["--scale", "1e-3", "--fix", "bottom:0.2"]  # the gallbladder file is in mm, free-floating
+
+
+def gallbladder() -> str:
+    return str(organ("sofa_env_gallbladder_collision.stl"))
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    rc = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_modes_on_liver_and_file_round_trip(tmp_path, capsys):
+    rc, out, _ = run(capsys, "modes", "-n", 12, "-o", tmp_path / "liver.modes.npz")
+    assert rc == 0 and "136 nodes fixed (group 'attachment')" in out
+    model = rt.ShellModel(rt.meshes.liver(), rt.Material())
+    model.fix("attachment")
+    basis = rt.ModalBasis.load(tmp_path / "liver.modes.npz", model=model)
+    direct = rt.modal_analysis(model, 12)
+    np.testing.assert_allclose(basis.omega, direct.omega, rtol=1e-9)
+    rc, out, _ = run(capsys, "modes", gallbladder(), *GB, "-n", 8, "-o", tmp_path / "gb.npz")
+    assert rc == 0 and (tmp_path / "gb.npz").exists() and "bottom" not in out.split("fixed")[0]
+
+
+def test_simulate_probe_csv_matches_static_force(tmp_path, capsys):
+    """A held probe settles: the CSV's final force during the hold equals the series-spring static force."""
+    rc, out, _ = run(capsys, "simulate", "--duration", 3.0, "--alpha", 20, "--out", tmp_path, "--fps", 2)
+    assert rc == 0
+    rows = list(csv.DictReader(open(tmp_path / "response.csv")))
+    assert len(rows) == 3000 and (tmp_path / "response.pvd").exists()
+    hold = rows[int(0.6 * 3000) - 2]  # end of the hold (60 % of the run)
+    node = int(hold["contact_node"])
+    model = rt.ShellModel(rt.meshes.liver(), rt.Material())
+    model.fix("attachment")
+    n = model.mesh.vertex_normals()[node]
+    g = 0.005 + 0.0  # probe 5 mm inside the undeformed surface
+    G = model.solve_static({node: tuple(-n)})[node] @ -n  # normal compliance (m/N)
+    f_static = g / (G + 1 / 200.0)  # organ and coupling spring in series
+    assert float(hold["force"]) == pytest.approx(f_static, rel=0.02)
+    assert float(rows[-1]["force"]) == 0.0
+
+
+def test_simulate_load_file_modal_direct_sldm_agree(tmp_path, capsys):
+    node = 885
+    # a 20 ms ramp to 0.1 N in 1 ms stairs, held: the truncated modes then respond nearly
+    # statically, which is what the static correction assumes
+    ramp = "".join(f"{k * 1e-3:g},{node},0,0,{-0.1 * (k + 1) / 20:.6g}\n" for k in range(20))
+    (tmp_path / "loads.csv").write_text("t,node,fx,fy,fz\n" + ramp)
+    u = {}
+    for method in ("direct", "sldm", "modal"):
+        extra = ["--modes", 200] if method == "modal" else []
+        rc, out, err = run(capsys, "simulate", "--load", tmp_path / "loads.csv", "--duration", 0.1, "--dt", 2.5e-4,
+                           "--method", method, "--out", tmp_path / method, *extra)
+        assert rc == 0, err
+        rows = list(csv.DictReader(open(tmp_path / method / "response.csv")))
+        u[method] = np.array([float(r[f"u_z@{node}"]) for r in rows])
+    scale = np.abs(u["sldm"]).max()
+    # direct Newmark vs the Krylov solution exact in time: O(dt) at the load's jumps
+    assert np.abs(u["direct"] - u["sldm"]).max() < 0.02 * scale
+    # 200 modes + static correction vs SLDM: the truncation error only
+    err = u["modal"] - u["sldm"]
+    print("modal vs SLDM: max", np.abs(err).max() / scale, "direct vs SLDM", np.abs(u["direct"] - u["sldm"]).max() / scale)
+    assert np.abs(err).max() < 0.02 * scale
+
+
+def test_simulate_probe_on_file_direct(tmp_path, capsys):
+    rc, out, _ = run(capsys, "simulate", gallbladder(), *GB, "--method", "direct", "--duration", 0.05,
+                     "--out", tmp_path)
+    assert rc == 0 and "peak" in out
+    rows = list(csv.DictReader(open(tmp_path / "response.csv")))
+    assert max(float(r["force"]) for r in rows) > 0
+
+
+def test_impedance_on_liver_and_file(tmp_path, capsys):
+    rc, out, _ = run(capsys, "impedance", "--nodes", "nodes:885", "--radius", 0.05, "-o", tmp_path / "m.npz")
+    assert rc == 0
+    model = rt.ShellModel(rt.meshes.liver(), rt.Material())
+    model.fix("attachment")
+    imap = rt.ImpedanceMap.load(tmp_path / "m.npz", model=model)
+    # the map's exact point compliance is the static solve's
+    G = np.stack([model.solve_static({885: e})[885] for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(imap.point_compliance(885), G, rtol=1e-8, atol=1e-12 * np.abs(G).max())
+    rc, out, _ = run(capsys, "impedance", gallbladder(), *GB, "--nodes", "nodes:100,200", "-o", tmp_path / "gb.npz",
+                     "--modes", 10)
+    assert rc == 0 and (tmp_path / "gb.npz").exists()
+
+
+def test_bench_on_liver_and_file(tmp_path, capsys):
+    rc, out, _ = run(capsys, "bench", "--modes-list", 10, "--direct-steps", 5)
+    assert rc == 0 and "direct / haptic" in out and "2,562 |" in out
+    rc, out, _ = run(capsys, "bench", gallbladder(), *GB, "--modes-list", 5, 10, "--direct-steps", 5,
+                     "--plot", tmp_path / "b.png")
+    assert rc == 0 and (tmp_path / "b.png").stat().st_size > 1000
+
+
+def test_pictures_on_file(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    rc, out, _ = run(capsys, "pictures", gallbladder(), *GB, "--modes", 10, "--no-scaling", "--out", tmp_path)
+    assert rc == 0
+    for name in ("modes.png", "spectrum.png", "deformed.png", "step_response.png", "error_vs_modes.png", "response.gif"):
+        assert (tmp_path / name).stat().st_size > 1000, name
+
+
+@pytest.mark.parametrize("command", ["info", "modes", "simulate", "impedance", "bench", "pictures", "view"])
+def test_every_command_rejects_a_broken_file(tmp_path, command):
+    bad = tmp_path / "broken.stl"
+    bad.write_bytes(b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0\nendloop\nendfacet\nendsolid\n")
+    r = subprocess.run([sys.executable, "-m", "rtfem.cli", command, str(bad)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert r.stderr.startswith("rtfem: error:") and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["simulate", "--fix", "nowhere"], "--fix 'nowhere'"),
+    (["simulate", "--fix", "z<-5"], "selects no vertex"),
+    (["simulate", "--method", "sldm"], "add --load"),
+    (["simulate", "--E", "-3"], "E"),
+    (["simulate", "--at", "1,2"], "three finite numbers"),
+    (["modes", "-n", "0"], "at least one mode"),
+    (["view", "--dt", "5"], "time step"),
+])
+def test_bad_options_exit_2_with_a_message(capsys, argv, words):
+    rc, out, err = run(capsys, *argv)
+    assert rc == 2 and err.startswith("rtfem: error:") and words in err
+
+
+def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
+    pytest.importorskip("viser")
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli", "view", gallbladder(), *GB, "--port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.time()
+        line = ""
+        while "open http" not in line and time.time() - t0 < 120:
+            line = p.stdout.readline()
+            if not line and p.poll() is not None:
+                break
+        assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read()
+        assert b"<html" in page.lower()
+    finally:
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    assert p.returncode == 0 and "stopped" in out and "Traceback" not in err
