@@ -1,0 +1,125 @@
+"""Grasp (the viewer's pull), the direct simulator's one-step compliance, and the viewer Session."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.viewer.session import Session, Settings
+
+
+@pytest.fixture(scope="module")
+def cap():
+    """A hemispherical cap clamped at its rim: small enough for direct integration in tests."""
+    mesh = rt.meshes.hemisphere(radius=0.05, n_rings=8)
+    model = rt.ShellModel(mesh, rt.Material(E=1e5, nu=0.45, thickness=0.003, density=1000.0))
+    model.fix("rim")
+    return model
+
+
+def test_direct_predict_plus_compliance_is_the_step(cap):
+    node = int(cap.mesh.groups["pole"][0])
+    a = rt.DirectSimulator(cap, 1e-3, rt.Damping(alpha=5.0))
+    b = rt.DirectSimulator(cap, 1e-3, rt.Damping(alpha=5.0))
+    f = np.array([0.01, -0.02, -0.05])
+    for k in range(30):
+        fk = f * (k % 7) / 7
+        u_free = a.predict(node)
+        W = a.step_compliance(node)
+        a.step({node: fk})  # superposed on predict()'s solve
+        b.step({node: fk})  # a full solve
+        np.testing.assert_allclose(a.displacement(node), u_free + W @ fk, rtol=1e-10, atol=1e-16)
+        np.testing.assert_allclose(a.displacements(), b.displacements(), rtol=1e-10, atol=1e-15)
+    # W is symmetric positive definite (a block of K_eff^-1)
+    assert np.allclose(W, W.T, rtol=1e-10) and np.all(np.linalg.eigvalsh(W) > 0)
+
+
+@pytest.mark.parametrize("driver", ["modal", "direct", "map"])
+def test_held_grasp_settles_at_springs_in_series(cap, driver):
+    """Hand held 3 mm off the undeformed vertex: f = k (I + k G)^-1 d, G the static compliance."""
+    mesh = cap.mesh
+    node = int(mesh.groups["pole"][0])
+    d = np.array([0.002, -0.001, 0.003])
+    k = 50.0
+    G = np.stack([cap.solve_static({node: e})[node] for e in np.eye(3)], axis=1)
+    f_ref = np.linalg.solve(np.eye(3) + k * G, k * d)
+    damping = rt.Damping(alpha=60.0)
+    if driver == "modal":
+        sim = rt.ModalSimulator(rt.modal_analysis(cap, 20), 1e-3, damping, static_correction=True)
+    elif driver == "direct":
+        sim = rt.DirectSimulator(cap, 1e-3, damping)
+    else:
+        sim = rt.ImpedanceMap.build(cap, damping, nodes=[node], n_modes=20)
+    grasp = rt.Grasp(mesh, sim, stiffness=k)
+    grasp.grab(node)
+    X = np.asarray(mesh.vertices)[node]
+    forces = [grasp.update(X + d) for _ in range(1500)]
+    np.testing.assert_allclose(forces[-1], f_ref, rtol=1e-6 if driver != "map" else 1e-10)
+    if driver != "map":
+        # the grabbed vertex sits where the spring law says: x = target - f / k
+        np.testing.assert_allclose(sim.displacement(node), d - f_ref / k, rtol=1e-6, atol=1e-12)
+        # implicit coupling: a stiff spring stays bounded (no blow-up) and lands at the same law
+        g2 = rt.Grasp(mesh, sim, stiffness=1e6)
+        g2.grab(node)
+        f2 = [np.linalg.norm(g2.update(X + d)) for _ in range(300)]
+        assert np.all(np.isfinite(f2)) and max(f2) < 1e6 * np.linalg.norm(d)
+    grasp.release()
+    assert not np.any(grasp.update(X + d))
+
+
+def test_grasp_rejects_bad_input(cap):
+    sim = rt.ModalSimulator(rt.modal_analysis(cap, 5), 1e-3)
+    with pytest.raises(rt.ModelError, match="stiffness"):
+        rt.Grasp(cap.mesh, sim, stiffness=-1)
+    g = rt.Grasp(cap.mesh, sim)
+    with pytest.raises(rt.ModelError, match="not on the mesh"):
+        g.grab(10**6)
+    g.grab(0)
+    with pytest.raises(rt.ModelError, match="finite"):
+        g.update([0.0, np.nan, 0.0])
+    with pytest.raises(rt.ModelError, match="grasp drives"):
+        rt.Grasp(cap.mesh, object())
+
+
+def test_session_methods_agree_on_the_held_pull(cap):
+    """The viewer's three methods, same pull held: the same settled force and field."""
+    mesh = cap.mesh
+    node = int(mesh.groups["pole"][0])
+    X = np.asarray(mesh.vertices)[node]
+    target = X + np.array([0.0, 0.0, 0.004])
+    results = {}
+    s = Session(mesh, cap.material, fixed="rim", settings=Settings(n_modes=20, alpha=60.0, grasp_stiffness=50.0))
+    for method in ("modal", "impedance", "direct"):
+        s.configure(method=method)
+        assert s.grab(X) == node
+        s.drag(target)
+        for k in range(1500):
+            s.step()
+            if k % 20 == 0:
+                s.displacements()  # the frame thread's call: feeds the impedance superposition
+        results[method] = (s.force, s.displacements())
+        s.release()
+        for k in range(3000):
+            s.step()
+            if k % 20 == 0:
+                u = s.displacements()
+        assert np.abs(u).max() < 1e-3 * np.abs(results[method][1]).max(), method  # let go: it settles back
+    f0, u0 = results["direct"]
+    for method in ("modal", "impedance"):
+        f, u = results[method]
+        np.testing.assert_allclose(f, f0, rtol=1e-5)
+        assert np.abs(u - u0).max() < 1e-5 * np.abs(u0).max() + 1e-12, method
+
+
+def test_session_rejects_nonsense_settings(cap):
+    s = Session(cap.mesh, cap.material, fixed="rim", settings=Settings(n_modes=10))
+    for bad, match in ((dict(method="fem"), "method"), (dict(dt=-1.0), "time step"), (dict(alpha=-2.0), "damping"),
+                       (dict(E=0.0), "Young")):
+        with pytest.raises(rt.ModelError, match=match):
+            s.configure(**bad)
+    assert s.settings.method == "modal"  # nothing lost
+    with pytest.raises(rt.ModelError, match="finite"):
+        s.drag([0.0, np.inf, 0.0])
+    with pytest.raises(rt.ModelError, match="no nodes"):
+        Session(cap.mesh, cap.material, fixed=[])
