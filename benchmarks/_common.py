@@ -6,6 +6,8 @@ import statistics
 import time
 from typing import Callable
 
+from rtfem.bench import format_table
+
 
 def median_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:
     """Median wall time of ``repeat`` calls of fn, and the last result."""
@@ -18,13 +20,7 @@ def median_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, objec
 
 
 def print_table(headers: list[str], rows: list[list[object]]) -> None:
-    cells = [[str(h) for h in headers]] + [[str(c) for c in r] for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
-    line = lambda r: "| " + " | ".join(c.rjust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
-    print(line(cells[0]))
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in cells[1:]:
-        print(line(r))
+    print(format_table(headers, rows))
 
 
 def fmt_s(t: float | None) -> str:

@@ -30,6 +30,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import fmt_s, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
+from rtfem.bench import per_step as _per_step  # noqa: E402
 
 DT = 1e-3
 DAMPING = rt.Damping(alpha=4.0)
@@ -37,13 +38,7 @@ PUSH, RELEASE, SAMPLE = 100, 100, 10
 
 
 def per_step(fn, batch: int, batches: int = 7) -> float:
-    times = []
-    for _ in range(batches):
-        t0 = time.perf_counter()
-        for _ in range(batch):
-            fn()
-        times.append((time.perf_counter() - t0) / batch)
-    return statistics.median(times)
+    return _per_step(fn, batch, batches)
 
 
 def history(sim, node, force):

@@ -18,7 +18,8 @@ from .modal import modal_analysis
 from .simulate import DirectSimulator, ModalSimulator
 
 
-def _per_step(fn, batch: int, batches: int = 5) -> float:
+def per_step(fn, batch: int, batches: int = 5) -> float:
+    """Median over ``batches`` of the mean time of ``batch`` calls of fn (s)."""
     times = []
     for _ in range(batches):
         t0 = time.perf_counter()
@@ -47,7 +48,7 @@ def dynamics_table(model, modes_list, *, dt: float = 1e-3, damping: Damping | No
     t0 = time.perf_counter()
     direct = DirectSimulator(model, dt, damping)
     direct_setup = time.perf_counter() - t0
-    t_direct = _per_step(lambda: direct.step({node: f}), max(1, direct_steps // 5))
+    t_direct = per_step(lambda: direct.step({node: f}), max(1, direct_steps // 5))
     rows = []
     for r in modes_list:
         t0 = time.perf_counter()
@@ -63,8 +64,8 @@ def dynamics_table(model, modes_list, *, dt: float = 1e-3, damping: Damping | No
             sim.step({node: f})
             sim.displacements()
 
-        t_h = _per_step(haptic, 2000)
-        t_f = _per_step(full, 50)
+        t_h = per_step(haptic, 2000)
+        t_f = per_step(full, 50)
         rows.append({
             "vertices": model.n_nodes, "dof": model.n_dofs, "r": basis.n_modes, "modes_s": t_modes,
             "haptic_step_s": t_h, "field_step_s": t_f, "direct_step_s": t_direct, "direct_setup_s": direct_setup,
@@ -81,15 +82,17 @@ def _fmt(t: float) -> str:
     return f"{t:.2f} s"
 
 
+def format_table(headers: list[str], rows: list[list[object]]) -> str:
+    """A Markdown table, columns right-aligned."""
+    cells = [[str(h) for h in headers]] + [[str(c) for c in r] for r in rows]
+    widths = [max(len(c[i]) for c in cells) for i in range(len(headers))]
+    line = lambda c: "| " + " | ".join(x.rjust(w) for x, w in zip(c, widths)) + " |"  # noqa: E731
+    return "\n".join([line(cells[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [line(c) for c in cells[1:]])
+
+
 def print_table(rows: list[dict]) -> None:
     headers = ["vertices", "dof", "r", "modes (precompute)", "modal haptic step", "modal field step",
                "direct Newmark step", "direct / haptic", "direct / field"]
-    cells = [headers] + [[f"{r['vertices']:,}", f"{r['dof']:,}", str(r["r"]), _fmt(r["modes_s"]),
-                          _fmt(r["haptic_step_s"]), _fmt(r["field_step_s"]), _fmt(r["direct_step_s"]),
-                          f"{r['ratio_haptic']:,.0f}x", f"{r['ratio_field']:,.0f}x"] for r in rows]
-    widths = [max(len(c[i]) for c in cells) for i in range(len(headers))]
-    line = lambda c: "| " + " | ".join(x.rjust(w) for x, w in zip(c, widths)) + " |"  # noqa: E731
-    print(line(cells[0]))
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for c in cells[1:]:
-        print(line(c))
+    print(format_table(headers, [[f"{r['vertices']:,}", f"{r['dof']:,}", r["r"], _fmt(r["modes_s"]),
+                                  _fmt(r["haptic_step_s"]), _fmt(r["field_step_s"]), _fmt(r["direct_step_s"]),
+                                  f"{r['ratio_haptic']:,.0f}x", f"{r['ratio_field']:,.0f}x"] for r in rows]))

@@ -69,6 +69,17 @@ def draw_surface(ax, mesh, u: np.ndarray | None = None, values: np.ndarray | Non
         ax.set_title(title, fontsize=9)
 
 
+def _save(fig, ax, path, *, legend: dict | None = None, grid: str = "major") -> Path:
+    plt = _plt()
+    if legend is not None:
+        ax.legend(**legend)
+    ax.grid(alpha=0.3, which=grid)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
 def mode_shapes_png(mesh, modes, path, n: int = 6) -> Path:
     plt = _plt()
     n = min(n, modes.n_modes)
@@ -144,11 +155,7 @@ def spectrum_png(modes, path) -> Path:
     ax.set_xlabel("mode number")
     ax.set_ylabel("frequency (Hz)")
     ax.set_title(f"Modal frequency spectrum ({f.size} lowest modes)")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, ax, path)
 
 
 def step_responses(model, node: int, force: np.ndarray, times: np.ndarray, damping: Damping, modes_list,
@@ -204,12 +211,7 @@ def step_response_png(res: dict, path, dt_direct: float, modes_list) -> Path:
     ax.set_xlabel("time (ms)")
     ax.set_ylabel("displacement along the load (mm)")
     ax.set_title("Step response of the loaded node")
-    ax.legend(fontsize=7, loc="lower right")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, ax, path, legend=dict(fontsize=7, loc="lower right"))
 
 
 def error_vs_modes(res: dict, basis, node: int, force: np.ndarray, damping: Damping, model, rs) -> dict:
@@ -245,12 +247,7 @@ def error_png(err: dict, path) -> Path:
     ax.set_xlabel("number of modes r")
     ax.set_ylabel("error relative to SLDM (0 .. 300 ms)")
     ax.set_title("Loaded-node step response: error against the number of modes")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, ax, path, legend={}, grid="both")
 
 
 def plot_bench(rows: list[dict], path) -> Path:
@@ -269,12 +266,7 @@ def plot_bench(rows: list[dict], path) -> Path:
     ax.set_xlabel("vertices")
     ax.set_ylabel("time per step (ms)")
     ax.set_title("Time per step, measured in one run")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, ax, path, legend=dict(fontsize=7), grid="both")
 
 
 def pictures(model, out: Path, *, n_modes: int = 40, damping: Damping | None = None, dt: float = 1e-3,
