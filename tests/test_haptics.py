@@ -91,7 +91,7 @@ def test_loop_surfaces_errors_and_bad_input(organ):
     bad = rt.ScriptedDevice(lambda t: [np.nan, 0.0, 0.0])
     with pytest.raises(rt.ModelError):
         rt.HapticLoop(probe, bad).run(0.01)
-    with pytest.raises(rt.ModelError, match="ModalSimulator or an ImpedanceMap"):
+    with pytest.raises(rt.ModelError, match="the probe drives a ModalSimulator"):
         rt.Probe(mesh, model)
     with pytest.raises(rt.ModelError, match="coupling"):
         rt.Probe(mesh, sim, coupling="glue")
