@@ -30,6 +30,13 @@ def liver_model(level: int = 4) -> rt.ShellModel:
     return model
 
 
+@pytest.fixture(scope="session")
+def liver3_modes():
+    """The level-3 liver (642 vertices) fixed at its attachment, and its 30 lowest modes."""
+    model = liver_model(3)
+    return model, rt.modal_analysis(model, 30)
+
+
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:
     """The six analytic rigid-body motions (6n, 6) of nodes at X: translations, rotations."""
     n = X.shape[0]

@@ -2,14 +2,12 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from conftest import liver_model
 
 
 @pytest.fixture(scope="module")
-def organ():
-    model = liver_model(3)
+def organ(liver3_modes):
+    model, basis = liver3_modes
     mesh = model.mesh
-    basis = rt.modal_analysis(model, 30)
     node = mesh.nearest_vertex([0.055, 0.05, 0.0])
     n = mesh.vertex_normals()[node]
     G = np.stack([model.solve_static({node: e})[node] for e in np.eye(3)], axis=1)  # static point compliance

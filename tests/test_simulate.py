@@ -2,14 +2,12 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from conftest import liver_model
 
 
 @pytest.fixture(scope="module")
-def setup():
-    model = liver_model(3)
+def setup(liver3_modes):
+    model, basis = liver3_modes
     mesh = model.mesh
-    basis = rt.modal_analysis(model, 30)
     node = mesh.nearest_vertex([0.06, 0.05, 0.0])
     return model, basis, node
 
