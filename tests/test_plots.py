@@ -39,7 +39,7 @@ def test_error_against_modes_falls_and_the_correction_helps(case, tmp_path):
     d = rt.Damping(alpha=8.0)
     res = plots.step_responses(model, node, f, t, d, [10, 40], basis, dt_direct=1e-3)
     rs = [5, 10, 20, 40, 80, 160, basis.n_modes]
-    err = plots.error_vs_modes(res, basis, node, f, d, model, rs)
+    err = plots.error_vs_modes(res, rs)
     assert np.all(np.diff(err["corrected_rms"]) < 0) and np.all(err["corrected_rms"][:-1] < err["plain_rms"][:-1])
     # all modes: modal superposition is exact, and so is SLDM (tol 1e-8): two algorithms agree
     assert err["plain"][-1] < 1e-6 and err["corrected"][-1] < 1e-6, err

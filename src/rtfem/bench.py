@@ -33,7 +33,7 @@ def probe_vertex(model) -> int:
     """The free vertex farthest from the supports: where a load moves the organ most."""
     from scipy.spatial import cKDTree
 
-    held = model.fixed[:, :3].all(axis=1)
+    held = model.held_nodes
     X = np.asarray(model.mesh.vertices)
     d = cKDTree(X[held]).query(X)[0] if held.any() else np.ones(X.shape[0])
     d[held] = -1.0

@@ -15,6 +15,7 @@ Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupte
 from __future__ import annotations
 
 import argparse
+import bisect
 import csv
 import sys
 import time
@@ -223,13 +224,8 @@ def cmd_modes(args: argparse.Namespace) -> int:
 
 
 def _probe_point(model, at: str | None) -> int:
-    mesh = model.mesh
-    free = ~model.fixed[:, :3].all(axis=1)
     if at is not None:
-        p = _vector(at, "--at")
-        d = np.linalg.norm(np.asarray(mesh.vertices) - p, axis=1)
-        d[~free] = np.inf
-        return int(np.argmin(d))
+        return model.nearest_free_node(_vector(at, "--at"))
     from .bench import probe_vertex
 
     return probe_vertex(model)
@@ -319,12 +315,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     else:
         nodes = sorted({n for _, n, _ in loads})
 
+        # the loads in force after each switch time, built once (rows are sorted by time)
+        switch = sorted({tl for tl, _, _ in loads})
+        states, cur, i = [], {}, 0
+        for ts in switch:
+            while i < len(loads) and loads[i][0] == ts:
+                cur[loads[i][1]] = loads[i][2]
+                i += 1
+            states.append({n: f for n, f in cur.items() if np.any(f)})
+
         def forces_at(t: float) -> dict[int, np.ndarray]:
-            cur: dict[int, np.ndarray] = {}
-            for tl, n, f in loads:
-                if tl <= t + 1e-12:
-                    cur[n] = f
-            return {n: f for n, f in cur.items() if np.any(f)}
+            k = bisect.bisect_right(switch, t + 1e-12) - 1
+            return states[k] if k >= 0 else {}
 
         header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
         if sim is None:  # SLDM: Duhamel superposition of the piecewise-constant loads
@@ -333,17 +335,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             times = (np.arange(n_steps) + 1) * args.dt
             solver = SLDM(model, damping)
 
-            def F_of(t: float) -> np.ndarray:
+            def F_of(state: dict[int, np.ndarray]) -> np.ndarray:
                 F = np.zeros((mesh.n_vertices, 3))
-                for n, f in forces_at(t).items():
+                for n, f in state.items():
                     F[n] = f
                 return F
 
-            switch = sorted({tl for tl, _, _ in loads})
-            U = solver.response([(tl, F_of(tl)) for tl in switch], times, tol=args.tol)
+            U = solver.response([(tl, F_of(st)) for tl, st in zip(switch, states)], times, tol=args.tol)
+            zero = np.zeros(3)
             for k, t in enumerate(times):
-                fa = F_of(t - args.dt)
-                rows.append([t] + [v for n in nodes for v in (*fa[n], *U[k, n])])
+                fa = forces_at(t - args.dt)
+                rows.append([t] + [v for n in nodes for v in (*fa.get(n, zero), *U[k, n])])
                 if (k + 1) % frame_every == 0:
                     frames.append((t, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, U[k])))
                 bar.update(k + 1)
@@ -439,9 +441,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     model = build_model(args)
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness).check()
-    nodes, _ = fixed_nodes(model.mesh, args.fix)
     print("precomputing ...", flush=True)
-    serve(model.mesh, material=model.material, fixed=nodes, settings=settings, host=args.host, port=args.port)
+    serve(model.mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host, port=args.port)
     return 0
 
 
@@ -478,8 +479,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "baseline) or sldm (Krylov, --load only)")
     p.add_argument("--duration", type=float, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
-    p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the demo point on "
-                   "the liver, else the free vertex farthest from the supports")
+    p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
+                   "farthest from the supports")
     p.add_argument("--depth", type=float, default=0.005, help="probe indentation in m (default 0.005)")
     p.add_argument("--stiffness", type=float, default=200.0, help="probe coupling spring in N/m (default 200)")
     p.add_argument("--tol", type=float, default=1e-6, help="SLDM tolerance (default 1e-6)")

@@ -121,9 +121,9 @@ class ImpedanceMap:
         if method not in ("modal", "sldm"):
             raise ModelError(f"method={method!r}; choose 'modal' or 'sldm'")
         n = model.n_nodes
-        free_nodes = np.flatnonzero(~model.fixed[:, :3].all(axis=1))
+        free_nodes = np.flatnonzero(~model.held_nodes)
         loaded = free_nodes if nodes is None else np.unique(model._nodes(nodes))
-        held = loaded[model.fixed[loaded, :3].all(axis=1)]
+        held = loaded[model.held_nodes[loaded]]
         loaded = np.setdiff1d(loaded, held)  # a load on a fixed node moves nothing
         if loaded.size == 0:
             raise ModelError("no free nodes to load (every node given is fixed)")

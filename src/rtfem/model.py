@@ -223,6 +223,20 @@ class ShellModel:
         return self
 
     @property
+    def held_nodes(self) -> np.ndarray:
+        """(n,) mask of the nodes whose three translations are all fixed: they cannot move."""
+        return self.fixed[:, :3].all(axis=1)
+
+    def nearest_free_node(self, point, displacements: np.ndarray | None = None) -> int:
+        """The node nearest ``point`` among those that can move, on the surface displaced by
+        ``displacements`` ((n, 3), default undeformed)."""
+        p = np.asarray(point, dtype=float)
+        X = np.asarray(self.mesh.vertices) if displacements is None else np.asarray(self.mesh.vertices) + displacements
+        d = np.linalg.norm(X - p, axis=1)
+        d[self.held_nodes] = np.inf
+        return int(np.argmin(d))
+
+    @property
     def fixed_dofs(self) -> np.ndarray:
         return np.flatnonzero(self.fixed.ravel())
 

@@ -158,27 +158,37 @@ def spectrum_png(modes, path) -> Path:
     return _save(fig, ax, path)
 
 
+def _modal_step(basis, node: int, force: np.ndarray, damping: Damping, times: np.ndarray, static: float):
+    """Closed-form modal step response at ``node`` along ``force``: r -> (r modes, r modes + static correction)."""
+    from .oscillator import step_response
+
+    e = force / np.linalg.norm(force)
+    phi_p = basis.shapes[node]  # (3, r)
+    lam = basis.omega**2
+    g = step_response(lam[:, None], damping.modal_alpha(basis.omega)[:, None], times[None, :])  # (r, nt)
+    gain = (e @ phi_p) * (force @ phi_p)  # (r,)
+
+    def at(r: int) -> tuple[np.ndarray, np.ndarray]:
+        plain = gain[:r] @ g[:r]
+        return plain, plain + static - (gain[:r] / lam[:r]).sum()
+
+    return at
+
+
 def step_responses(model, node: int, force: np.ndarray, times: np.ndarray, damping: Damping, modes_list,
                    basis, dt_direct: float = 2.5e-4, sldm_tol: float = 1e-8) -> dict:
     """u(t) at ``node`` (component along ``force``) for a step load there: modal (closed form per
     mode, truncated to each r, plain and with the static correction), SLDM and direct Newmark."""
-    from .oscillator import step_response
     from .simulate import DirectSimulator
     from .sldm import SLDM
 
     e = force / np.linalg.norm(force)
     out = {"t": times}
-    phi_p = basis.shapes[node]  # (3, r)
-    lam = basis.omega**2
-    g = step_response(lam[:, None], damping.modal_alpha(basis.omega)[:, None], times[None, :])  # (r, nt)
-    modal_gain = (e @ phi_p) * (force @ phi_p)  # (r,)
     F = {node: tuple(force)}
     static = model.solve_static(F)[node] @ e
+    out["modal"] = modal = _modal_step(basis, node, force, damping, times, static)
     for r in modes_list:
-        plain = modal_gain[:r] @ g[:r]
-        trunc_static = static - (modal_gain[:r] / lam[:r]).sum()
-        out[f"modal r={r}"] = plain
-        out[f"modal r={r} + static correction"] = plain + trunc_static
+        out[f"modal r={r}"], out[f"modal r={r} + static correction"] = modal(r)
     t0 = time.perf_counter()
     sl = SLDM(model, damping, tol=sldm_tol)
     out["sldm"] = sl.step_response(F, times)[:, node] @ e
@@ -214,22 +224,14 @@ def step_response_png(res: dict, path, dt_direct: float, modes_list) -> Path:
     return _save(fig, ax, path, legend=dict(fontsize=7, loc="lower right"))
 
 
-def error_vs_modes(res: dict, basis, node: int, force: np.ndarray, damping: Damping, model, rs) -> dict:
-    """Largest error over time of the modal step response (closed form) against SLDM, per r."""
-    from .oscillator import step_response
-
-    e = force / np.linalg.norm(force)
+def error_vs_modes(res: dict, rs) -> dict:
+    """Error of the modal step response of :func:`step_responses` against its SLDM one, per r:
+    largest over time and RMS, relative to the SLDM response, without and with the correction."""
     ref = res["sldm"]
-    times = res["t"]
-    lam = basis.omega**2
-    g = step_response(lam[:, None], damping.modal_alpha(basis.omega)[:, None], times[None, :])
-    gain = (e @ basis.shapes[node]) * (force @ basis.shapes[node])
-    static = res["static"]
     scale, rms = np.abs(ref).max(), np.sqrt(np.mean(ref**2))
     out = {"r": np.asarray(rs), "plain": [], "corrected": [], "plain_rms": [], "corrected_rms": []}
     for r in rs:
-        u = gain[:r] @ g[:r]
-        uc = u + static - (gain[:r] / lam[:r]).sum()
+        u, uc = res["modal"](r)
         out["plain"].append(np.abs(u - ref).max() / scale)
         out["corrected"].append(np.abs(uc - ref).max() / scale)
         out["plain_rms"].append(np.sqrt(np.mean((u - ref) ** 2)) / rms)
@@ -296,7 +298,7 @@ def pictures(model, out: Path, *, n_modes: int = 40, damping: Damping | None = N
     modes_list = [m for m in (10, n_modes) if m <= r_max]
     res = step_responses(model, node, force, times, damping, modes_list, basis)
     paths.append(step_response_png(res, out / "step_response.png", 2.5e-4, modes_list))
-    err = error_vs_modes(res, basis, node, force, damping, model, [r for r in (1, 2, 5, 10, 20, 40, 70, 100) if r <= r_max])
+    err = error_vs_modes(res, [r for r in (1, 2, 5, 10, 20, 40, 70, 100) if r <= r_max])
     paths.append(error_png(err, out / "error_vs_modes.png"))
     if scaling_levels:
         say("scaling: time per step on the liver at levels " + ", ".join(map(str, scaling_levels)) + " ...")

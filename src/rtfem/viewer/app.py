@@ -108,13 +108,12 @@ class Viewer:
         self.server.initial_camera.position = tuple(centre + size * np.array([0.1, -0.62, 0.5]))
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self.organ = sc.add_glb("/organ", glb_bytes(s.X, mesh.triangles, colormap(np.zeros(mesh.n_vertices), 1.0)))
-        fixed = np.flatnonzero(s.model.fixed[:, :3].all(axis=1))
+        fixed = np.flatnonzero(s.model.held_nodes)
         if fixed.size:
             sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,
                                point_shape="circle")
         self.marker = sc.add_icosphere("/grab", radius=0.012 * size, color=(230, 60, 40), visible=False)
         self.hand = sc.add_icosphere("/hand", radius=0.008 * size, color=(255, 255, 255), visible=False)
-        self.spring = None
         organ = self.organ
 
         @organ.on_drag("left")
@@ -129,8 +128,7 @@ class Viewer:
         s = self.session
         if event.phase == "start":
             self.mode_index = None
-            if self._mode_dropdown is not None:
-                self._mode_dropdown.value = "off"
+            self._mode_dropdown.value = "off"
             with self._drag_lock:
                 self._dragging = True
                 self.drags += 1
@@ -153,11 +151,8 @@ class Viewer:
         s = self.session
         # the surface moved: grab the vertex nearest the picked point on the *deformed* surface
         u = self._last_u
-        d = np.linalg.norm(s.X + u - point, axis=1)
-        d[s.model.fixed[:, :3].all(axis=1)] = np.inf
-        node = int(np.argmin(d))
         try:
-            s.grab(s.X[node])
+            node = s.grab(point, u)
         except RtfemError as exc:
             s.error = str(exc)
             return
@@ -211,8 +206,7 @@ class Viewer:
             apply = gui.add_button("apply")
             reset = gui.add_button("reset (let go, zero state)")
         with gui.add_folder("Mode browser"):
-            labels = ("off",) + tuple(f"{i + 1}: {f:.2f} Hz" for i, f in enumerate(s.modes.frequencies))
-            self._mode_dropdown = gui.add_dropdown("mode", labels, initial_value="off")
+            self._mode_dropdown = gui.add_dropdown("mode", self._mode_labels(), initial_value="off")
             self.mode_amp = gui.add_slider("amplitude (% of size)", min=1.0, max=20.0, step=1.0, initial_value=6.0)
             self.mode_md = gui.add_markdown("")
 
@@ -245,19 +239,23 @@ class Viewer:
             s.configure(**changes)
         except RtfemError as exc:
             s.error = str(exc)
-        labels = ("off",) + tuple(f"{i + 1}: {f:.2f} Hz" for i, f in enumerate(s.modes.frequencies[: s.settings.n_modes]))
-        self._mode_dropdown.options = labels
+        self._mode_dropdown.options = self._mode_labels()
+
+    def _mode_labels(self) -> tuple[str, ...]:
+        """The mode browser's choices: the r modes in use, with their frequencies."""
+        return ("off",) + tuple(f"{i + 1}: {f:.2f} Hz" for i, f in enumerate(self.session.reduced.frequencies))
 
     # ---------------------------------------------------------------- frames
     def _field(self) -> np.ndarray:
         s = self.session
-        if self.mode_index is not None and self.mode_index < s.modes.n_modes:
+        modes = s.reduced
+        if self.mode_index is not None and self.mode_index < modes.n_modes:
             i = self.mode_index
-            phi = s.modes.shapes[:, :, i]
+            phi = modes.shapes[:, :, i]
             scale = self.mode_amp.value / 100 * self.size / max(float(np.abs(phi).max()), 1e-30)
             f_vis = min(1.0, 0.5 + 0.1 * i)  # slowed down to be seen; the true frequency is in the panel
-            self.mode_md.content = (f"mode {i + 1}: **{s.modes.frequencies[i]:.3f} Hz** "
-                                    f"(omega = {s.modes.omega[i]:.2f} rad/s), shown at {f_vis:.1f} Hz")
+            self.mode_md.content = (f"mode {i + 1}: **{modes.frequencies[i]:.3f} Hz** "
+                                    f"(omega = {modes.omega[i]:.2f} rad/s), shown at {f_vis:.1f} Hz")
             return scale * np.sin(2 * np.pi * f_vis * time.perf_counter()) * phi
         return s.displacements()
 

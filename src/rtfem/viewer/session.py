@@ -109,7 +109,7 @@ class Session:
         basis: ModalBasis | None = getattr(self, "modes", None)
         if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
             basis = modal_analysis(model, max(s.n_modes, 40))
-        modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis
+        modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis  # the r in use
         damping = Damping(alpha=s.alpha)
         if s.method == "direct":
             driver = DirectSimulator(model, s.dt, damping)
@@ -123,6 +123,7 @@ class Session:
             if not keep_maps:
                 self._maps = {}
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
+            self.reduced = modes
             self.driver = driver
             self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force) \
                 if driver is not None else None
@@ -143,23 +144,16 @@ class Session:
     def _impedance_map(self, node: int) -> ImpedanceMap:
         m = self._maps.get(node)
         if m is None:
-            modes = self.modes.truncated(self.settings.n_modes) if self.modes.n_modes > self.settings.n_modes else self.modes
-            m = ImpedanceMap.build(self.model, self.damping, nodes=[node], modes=modes,
+            m = ImpedanceMap.build(self.model, self.damping, nodes=[node], modes=self.reduced,
                                    times=(0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0))
             self._maps[node] = m
         return m
 
     # ---------------------------------------------------------------- the hand
-    def nearest_free_vertex(self, point) -> int:
-        p = np.asarray(point, dtype=float)
-        free = ~self.model.fixed[:, :3].all(axis=1)
-        d = np.linalg.norm(self.X - p, axis=1)
-        d[~free] = np.inf
-        return int(np.argmin(d))
-
-    def grab(self, point) -> int:
-        """Grab the free vertex nearest ``point`` (undeformed coordinates); returns it."""
-        node = self.nearest_free_vertex(point)
+    def grab(self, point, displacements: np.ndarray | None = None) -> int:
+        """Grab the free vertex nearest ``point`` on the surface displaced by ``displacements``
+        (default undeformed); returns it."""
+        node = self.model.nearest_free_node(point, displacements)
         if self.settings.method == "impedance":
             m = self._impedance_map(node)  # before the lock: a few tens of ms
             with self._lock:
