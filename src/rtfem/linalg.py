@@ -101,6 +101,7 @@ def factorize(
     backend: str | None = None,
     what: str = "matrix",
     order: np.ndarray | None = None,
+    norm: float | None = None,
 ) -> Factorization:
     """Factorize a sparse square matrix.
 
@@ -112,6 +113,8 @@ def factorize(
     what : a name for the matrix in error messages.
     order : a fill-reducing symmetric permutation (e.g. from :func:`nested_dissection`) used
         by SuperLU instead of its own ordering; CHOLMOD orders by itself.
+    norm : the 1-norm used in the singularity check (default ||A||_1); a penalized matrix
+        passes the norm of the physical stiffness, whose conditioning is what matters.
 
     Raises
     ------
@@ -145,7 +148,7 @@ def factorize(
             lu = spla.splu(A)
     except RuntimeError as exc:  # "Factor is exactly singular"
         raise SolverError(f"{what} is singular: {exc}") from None
-    _check_not_singular(A, lu.solve, what)
+    _check_not_singular(A, lu.solve, what, norm)
     if order is None:
         return Factorization(A, "superlu", lu.solve)
 
@@ -157,7 +160,7 @@ def factorize(
     return Factorization(A, "superlu", solve)
 
 
-def _check_not_singular(A: sp.csc_matrix, solve, what: str) -> None:
+def _check_not_singular(A: sp.csc_matrix, solve, what: str, norm: float | None = None) -> None:
     """Refuse a numerically singular matrix: one solve with a random right-hand side.
 
     ||A||_1 ||x|| / ||b|| is a lower bound of the condition number; a (near) null vector of A
@@ -165,7 +168,7 @@ def _check_not_singular(A: sp.csc_matrix, solve, what: str) -> None:
     """
     b = np.random.default_rng(12345).standard_normal(A.shape[0])
     x = solve(b)
-    norm_a = abs(A).sum(axis=0).max()
+    norm_a = abs(A).sum(axis=0).max() if norm is None else norm
     est = norm_a * np.linalg.norm(x) / np.linalg.norm(b)
     if not np.isfinite(est) or est > 1e-2 / np.finfo(float).eps:
         raise SolverError(f"{what} is singular to working precision (condition number at least {est:.1e})")

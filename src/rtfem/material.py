@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import validate
 from .errors import ModelError
 
 __all__ = ["Material", "Damping"]
@@ -14,13 +15,7 @@ __all__ = ["Material", "Damping"]
 
 def finite_positive(name: str, value: float, what: str, owner: str = "Material ") -> float:
     """``value`` as a float, or a ModelError naming it when it is not a finite number > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ModelError(f"{owner}{name}={value!r} is not a number; give {what}.") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ModelError(f"{owner}{name}={value!r} must be a finite number > 0 ({what}).")
-    return v
+    return validate.positive(value, f"{owner}{name}", what)
 
 
 @dataclass(frozen=True)
@@ -48,11 +43,8 @@ class Material:
         object.__setattr__(
             self, "density", finite_positive("density", self.density, "the mass density in kg/m^3")
         )
-        try:
-            nu = float(self.nu)
-        except (TypeError, ValueError):
-            raise ModelError(f"Material nu={self.nu!r} is not a number; give -1 < nu < 0.5.") from None
-        if not math.isfinite(nu) or not (-1.0 < nu < 0.5):
+        nu = validate.number(self.nu, "Material nu", "Poisson's ratio, -1 < nu < 0.5")
+        if not (-1.0 < nu < 0.5):
             raise ModelError(
                 f"Material nu={self.nu!r} is outside (-1, 0.5): an isotropic elastic material "
                 "needs -1 < nu < 0.5 (soft tissue: 0.45 .. 0.49)."
@@ -95,18 +87,15 @@ class Damping:
 
     def __post_init__(self) -> None:
         for name in ("alpha", "beta"):
-            v = getattr(self, name)
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise ModelError(f"Damping {name}={v!r} is not a number") from None
-            if not math.isfinite(v) or v < 0:
-                raise ModelError(f"Damping {name}={v!r} must be a finite number >= 0")
+            v = validate.nonnegative(getattr(self, name), f"Damping {name}",
+                                     "1/s" if name == "alpha" else "s")
             object.__setattr__(self, name, v)
         if self.zeta is not None:
-            z = np.atleast_1d(np.asarray(self.zeta, dtype=float))
-            if z.ndim != 1 or not np.all(np.isfinite(z)) or np.any(z < 0):
-                raise ModelError(f"Damping zeta={self.zeta!r} must be finite damping ratios >= 0")
+            if isinstance(self.zeta, (bool, np.bool_)):
+                raise ModelError(f"Damping zeta={self.zeta!r} must be damping ratios >= 0")
+            z = np.atleast_1d(validate.real_array(self.zeta, "Damping zeta", finite=False))
+            if z.ndim != 1 or z.size == 0 or not np.all(np.isfinite(z)) or np.any(z < 0):
+                raise ModelError(f"Damping zeta={validate.show(self.zeta)} must be finite damping ratios >= 0")
             object.__setattr__(self, "zeta", float(z[0]) if z.size == 1 and np.ndim(self.zeta) == 0 else tuple(z.tolist()))
 
     @property

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import shell
+from . import shell, validate
 from .errors import ModelError, RtfemWarning, SolverError
 from .linalg import Factorization, expand_node_order, factorize, nested_dissection
 from .material import Material
@@ -39,6 +39,9 @@ def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
     "rx"), concatenations ("xy", "z,rx") or a sequence of names or indices 0..5.
     """
     mask = np.zeros(6, bool)
+    if not isinstance(dofs, (str, Sequence, np.ndarray)):
+        raise ModelError(f"dofs={validate.show(dofs)} not understood; use 'all', 'xyz', 'rotations', or components "
+                         f"from {DOF_NAMES}")
     if isinstance(dofs, str):
         s = dofs.strip().lower()
         if s == "all":
@@ -62,10 +65,12 @@ def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
     for d in dofs:
         if isinstance(d, str):
             mask |= parse_dofs(d)
-        elif isinstance(d, (int, np.integer)) and 0 <= d < 6:
+        elif isinstance(d, (int, np.integer)) and not isinstance(d, (bool, np.bool_)) and 0 <= d < 6:
             mask[int(d)] = True
         else:
-            raise ModelError(f"dof {d!r} not understood; use names from {DOF_NAMES} or indices 0..5")
+            raise ModelError(f"dof {validate.show(d)} not understood; use names from {DOF_NAMES} or indices 0..5")
+    if not mask.any():
+        raise ModelError(f"dofs={validate.show(dofs)} names no dof; use 'all', 'xyz', 'rotations', ...")
     return mask
 
 
@@ -82,7 +87,10 @@ class ShellModel:
         as the paper's condensation assumes).
     constraints : "elimination" (fixed dofs removed, default) or "penalty" (the paper's method:
         diagonal of K and rows of F at fixed dofs multiplied by ``penalty``).
-    penalty : the penalty factor.
+    penalty : the penalty factor. It multiplies each fixed dof's own diagonal stiffness, so it
+        is relative and scales with the organ's stiffness by construction: the default 1e8
+        leaves ~1e-8 relative motion at the supports on any mesh, and 1e4 .. 1e16 agree with
+        elimination to that order.
     """
 
     def __init__(
@@ -99,12 +107,13 @@ class ShellModel:
             raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
         if not isinstance(material, Material):
             raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
-        if membrane not in shell.MEMBRANES:
-            raise ModelError(f"membrane={membrane!r}; choose one of {shell.MEMBRANES}")
-        if constraints not in ("elimination", "penalty"):
-            raise ModelError(f"constraints={constraints!r}; choose 'elimination' or 'penalty'")
-        if not (np.isfinite(penalty) and penalty > 1.0):
-            raise ModelError(f"penalty={penalty!r} must be a large finite number (e.g. 1e8)")
+        validate.choice(membrane, "membrane", shell.MEMBRANES)
+        validate.choice(constraints, "constraints", ("elimination", "penalty"))
+        penalty = validate.number(penalty, "penalty", "a large factor such as 1e8")
+        if penalty <= 1.0:
+            raise ModelError(f"penalty={validate.show(penalty)} must be a large factor (> 1, e.g. 1e8): it multiplies "
+                             "the stiffness diagonal at fixed dofs")
+        rotary_inertia = validate.flag(rotary_inertia, "rotary_inertia")
         self.mesh = mesh
         self.material = material
         self.membrane = membrane
@@ -185,20 +194,13 @@ class ShellModel:
             if nodes not in self.mesh.groups:
                 raise ModelError(f"no vertex group {nodes!r} in the mesh; groups: {sorted(self.mesh.groups) or 'none'}")
             return np.asarray(self.mesh.groups[nodes], dtype=np.int64)
-        arr = np.asarray(nodes)
-        if arr.dtype == bool:
+        if isinstance(nodes, np.ndarray) and nodes.dtype == bool or (
+                isinstance(nodes, (list, tuple)) and nodes and all(isinstance(v, (bool, np.bool_)) for v in nodes)):
+            arr = np.asarray(nodes)
             if arr.shape != (n,):
                 raise ModelError(f"a boolean node mask must have shape ({n},), got {arr.shape}")
             return np.flatnonzero(arr)
-        arr = np.atleast_1d(arr)
-        if arr.size == 0:
-            return arr.astype(np.int64)
-        if not np.issubdtype(arr.dtype, np.integer):
-            raise ModelError(f"nodes must be integer indices, a boolean mask or a group name, got dtype {arr.dtype}")
-        bad = arr[(arr < 0) | (arr >= n)]
-        if bad.size:
-            raise ModelError(f"node index {bad[0]} out of range 0..{n - 1}")
-        return arr.astype(np.int64).ravel()
+        return validate.nodes(nodes, n, "nodes", allow_empty=True)
 
     def fix(self, nodes, dofs: str | Sequence = "all") -> "ShellModel":
         """Fix (zero displacement) the given dofs of the given nodes. Calls accumulate.
@@ -209,7 +211,8 @@ class ShellModel:
         idx = self._nodes(nodes)
         if idx.size == 0:
             raise ModelError("fix() was given no nodes")
-        self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = True
+        mask = parse_dofs(dofs)
+        self.fixed[np.ix_(idx, np.flatnonzero(mask))] = True
         self._factor = None
         self._condensation = None
         return self
@@ -217,7 +220,8 @@ class ShellModel:
     def release(self, nodes=None, dofs: str | Sequence = "all") -> "ShellModel":
         """Undo fixes (all nodes when ``nodes`` is None)."""
         idx = np.arange(self.n_nodes) if nodes is None else self._nodes(nodes)
-        self.fixed[np.ix_(idx, np.flatnonzero(parse_dofs(dofs)))] = False
+        mask = parse_dofs(dofs)
+        self.fixed[np.ix_(idx, np.flatnonzero(mask))] = False
         self._factor = None
         self._condensation = None
         return self
@@ -230,8 +234,15 @@ class ShellModel:
     def nearest_free_node(self, point, displacements: np.ndarray | None = None) -> int:
         """The node nearest ``point`` among those that can move, on the surface displaced by
         ``displacements`` ((n, 3), default undeformed)."""
-        p = np.asarray(point, dtype=float)
-        X = np.asarray(self.mesh.vertices) if displacements is None else np.asarray(self.mesh.vertices) + displacements
+        p = validate.point(point, "point")
+        X = np.asarray(self.mesh.vertices)
+        if displacements is not None:
+            u = validate.real_array(displacements, "displacements", 2)
+            if u.shape != X.shape:
+                raise ModelError(f"displacements must have shape {X.shape}, got {u.shape}")
+            X = X + u
+        if self.held_nodes.all():
+            self.check_not_all_fixed()
         d = np.linalg.norm(X - p, axis=1)
         d[self.held_nodes] = np.inf
         return int(np.argmin(d))
@@ -244,12 +255,22 @@ class ShellModel:
     def free_dofs(self) -> np.ndarray:
         return np.flatnonzero(~self.fixed.ravel())
 
+    def check_not_all_fixed(self) -> None:
+        """Raise ModelError when every node is held (nothing left to move or to solve for)."""
+        if self.held_nodes.all():
+            raise ModelError(
+                f"every node is fixed (all {self.n_nodes} nodes have their translations held): nothing can "
+                "move. Fix a smaller region (e.g. --fix bottom:0.05, or model.release(...) some nodes); a flat "
+                "mesh lies entirely in its own 'bottom' slab"
+            )
+
     def check_restrained(self) -> None:
-        """Raise ModelError when the fixes leave a rigid-body motion free.
+        """Raise ModelError when the fixes leave a rigid-body motion free, or hold every node.
 
         For each connected piece of the mesh, the six rigid-body motions (3 translations,
         3 rotations about its centroid) restricted to the fixed dofs must have rank 6.
         """
+        self.check_not_all_fixed()
         n_comp, label = self.mesh.components()
         X = np.asarray(self.mesh.vertices)
         for c in range(n_comp):
@@ -285,43 +306,25 @@ class ShellModel:
                 )
 
     # ------------------------------------------------------------ forces
-    def force_vector(self, forces) -> np.ndarray:
+    def force_vector(self, forces, *, warn: bool = True) -> np.ndarray:
         """Validate forces and return the global load vector (6n,).
 
         ``forces``: (n, 3) nodal forces, (n, 6) forces and moments, or a mapping
-        ``{node: (fx, fy, fz)}`` (or 6 components).
+        ``{node: (fx, fy, fz)}`` (or 6 components) whose keys are integer node indices
+        (Python or numpy integers; a float, a bool or a string is refused). Nothing is
+        changed anywhere when the forces are refused. ``warn``: name loads on fixed dofs.
         """
-        n = self.n_nodes
-        F = np.zeros((n, 6))
-        if isinstance(forces, Mapping):
-            for node, f in forces.items():
-                i = int(self._nodes(node)[0]) if not isinstance(node, (int, np.integer)) else int(node)
-                if not 0 <= i < n:
-                    raise ModelError(f"force on node {node!r}: index out of range 0..{n - 1}")
-                v = np.asarray(f, dtype=float).ravel()
-                if v.size not in (3, 6):
-                    raise ModelError(f"force on node {node}: need 3 (or 6) components, got {v.size}")
-                F[i, : v.size] += v
-        else:
-            try:
-                A = np.asarray(forces, dtype=float)
-            except (TypeError, ValueError):
-                raise ModelError("forces must be an (n, 3) or (n, 6) array or a {node: (fx, fy, fz)} mapping") from None
-            if A.shape not in ((n, 3), (n, 6)):
-                raise ModelError(f"forces must have shape ({n}, 3) or ({n}, 6), got {A.shape}")
-            F[:, : A.shape[1]] = A
-        bad = np.flatnonzero(~np.isfinite(F).all(axis=1))
-        if bad.size:
-            raise ModelError(f"non-finite (NaN or infinite) force at node {bad[0]} ({bad.size} nodes in all)")
-        on_fixed = np.flatnonzero((self.fixed & (F != 0)).any(axis=1))
-        if on_fixed.size:
-            warnings.warn(
-                f"loads on fixed dofs at {on_fixed.size} node(s) (first: node {on_fixed[0]}, "
-                f"{F[on_fixed[0]][self.fixed[on_fixed[0]]].tolist()}) go straight into the supports "
-                "and move nothing; load free nodes instead",
-                RtfemWarning,
-                stacklevel=3,
-            )
+        F = validate.forces(forces, self.n_nodes, (3, 6))
+        if warn:
+            on_fixed = np.flatnonzero((self.fixed & (F != 0)).any(axis=1))
+            if on_fixed.size:
+                warnings.warn(
+                    f"loads on fixed dofs at {on_fixed.size} node(s) (first: node {on_fixed[0]}, "
+                    f"{F[on_fixed[0]][self.fixed[on_fixed[0]]].tolist()}) go straight into the supports "
+                    "and move nothing; load free nodes instead",
+                    RtfemWarning,
+                    stacklevel=3,
+                )
         return F.ravel()
 
     def pressure_forces(self, pressure: float) -> np.ndarray:
@@ -330,7 +333,8 @@ class ShellModel:
         Each triangle's resultant p A n is lumped equally to its corners (positive pressure
         pushes against the normal, i.e. inward on an outward-oriented closed surface).
         """
-        fn = self.mesh.face_normals(unit=False) * (-0.5 * float(pressure) / 3.0)
+        pressure = validate.number(pressure, "pressure", "a pressure in Pa")
+        fn = self.mesh.face_normals(unit=False) * (-0.5 * pressure / 3.0)
         out = np.zeros((self.n_nodes, 3))
         for k in range(3):
             np.add.at(out, self.mesh.triangles[:, k], fn)
@@ -359,15 +363,32 @@ class ShellModel:
             self.check_restrained()
             t0 = time.perf_counter()
             Kc, dofs = self.constrained_stiffness()
+            # the condition estimate uses the physical stiffness: the penalized diagonal
+            # would make it grow with the penalty factor and refuse a well-posed model
+            norm = float(abs(self.K).sum(axis=0).max())
             try:
-                self._factor = factorize(Kc, spd=True, what="the constrained stiffness", order=self.dof_order(dofs))
+                self._factor = factorize(Kc, spd=True, what="the constrained stiffness", order=self.dof_order(dofs),
+                                         norm=norm)
             except SolverError as exc:
+                if self.constraints == "penalty" and self._elimination_factorizes():
+                    raise ModelError(
+                        f"{exc}. With elimination the same fixes hold the model, so the penalty factor "
+                        f"{self.penalty:g} is the problem: use a smaller one (1e6 .. 1e8) or constraints='elimination'"
+                    ) from None
                 raise ModelError(
                     f"{exc}. The fixes cannot hold the model: a part can move freely (a mechanism, "
                     "e.g. pieces joined at a single vertex). Fix more nodes"
                 ) from None
             self.timings["factorize"] = time.perf_counter() - t0
         return self._factor
+
+    def _elimination_factorizes(self) -> bool:
+        free = self.free_dofs
+        try:
+            factorize(self.K[free][:, free], spd=True, what="K_ff", order=self.dof_order(free))
+        except SolverError:
+            return False
+        return True
 
     def dof_order(self, dofs: np.ndarray) -> np.ndarray:
         """Fill-reducing order of the given dofs (nested dissection of the mesh nodes)."""
@@ -383,6 +404,19 @@ class ShellModel:
         (K_condensed U_t = F_t), without forming the condensed matrix.
         """
         F = self.force_vector(forces)
+        return self._solve(F, return_rotations)
+
+    def unit_load_response(self, node: int, direction: int) -> np.ndarray:
+        """Static (n, 3) displacements under a unit force at ``node`` along axis ``direction``.
+
+        The columns of the static correction and of the impedance map: an internal load,
+        applied without the warning about loads on fixed dofs that a user's load gets.
+        """
+        F = np.zeros(self.n_dofs)
+        F[6 * validate.node(node, self.n_nodes) + validate.count(direction, "direction", 0, 2)] = 1.0
+        return self._solve(F, False)
+
+    def _solve(self, F: np.ndarray, return_rotations: bool = False) -> np.ndarray:
         fac = self.factorization()
         t0 = time.perf_counter()
         U = np.zeros(self.n_dofs)

@@ -24,9 +24,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import validate
 from .errors import ModelError
 from .linalg import factorize
-from .material import Damping, finite_positive
+from .material import Damping
 from .modal import ModalBasis
 from .oscillator import transition
 
@@ -37,7 +38,15 @@ _NEWMARK_GAMMA = 0.5  # delta in the paper
 
 
 def _check_dt(dt) -> float:
-    return finite_positive("dt", dt, "the time step in seconds", owner="")
+    return validate.time_step(dt, "dt")
+
+
+def _check_damping(damping) -> Damping:
+    if damping is None:
+        return Damping()
+    if not isinstance(damping, Damping):
+        raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
+    return damping
 
 
 def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float = _NEWMARK_GAMMA):
@@ -78,38 +87,20 @@ class _ForceInput:
     n_nodes: int
 
     def _as_array(self, forces) -> np.ndarray:
-        F = np.zeros((self.n_nodes, 3))
         if forces is None:
-            return F
-        if isinstance(forces, Mapping):
-            for node, f in forces.items():
-                F[self._node(node)] += self._vec(node, f)
-            return F
-        A = np.asarray(forces, dtype=float)
-        if A.shape != (self.n_nodes, 3):
-            raise ModelError(f"forces must be a {{node: (fx, fy, fz)}} mapping or an ({self.n_nodes}, 3) array, got shape {A.shape}")
-        bad = np.flatnonzero(~np.isfinite(A).all(axis=1))
-        if bad.size:
-            raise ModelError(f"non-finite (NaN or infinite) force at node {bad[0]} ({bad.size} nodes); the state was not advanced")
-        return A
+            return np.zeros((self.n_nodes, 3))
+        return validate.forces(forces, self.n_nodes)
 
     def _node(self, node) -> int:
-        try:
-            i = int(node)
-        except (TypeError, ValueError):
-            raise ModelError(f"force key {node!r} is not a node index") from None
-        if not 0 <= i < self.n_nodes:
-            raise ModelError(f"force on node {node}: index out of range 0..{self.n_nodes - 1}")
-        return i
+        return validate.node(node, self.n_nodes)
 
     @staticmethod
     def _vec(node, f) -> np.ndarray:
-        v = np.asarray(f, dtype=float).reshape(-1)
-        if v.size != 3:
-            raise ModelError(f"force on node {node}: need 3 components (fx, fy, fz), got {v.size}")
-        if not np.isfinite(v).all():
-            raise ModelError(f"non-finite (NaN or infinite) force on node {node}: {v.tolist()}; the state was not advanced")
-        return v
+        return validate.vector(f, f"force on node {node}", 3)
+
+    @staticmethod
+    def _n_steps(n_steps) -> int:
+        return validate.count(n_steps, "n_steps", 0, 10**9)
 
 
 class ModalSimulator(_ForceInput):
@@ -139,9 +130,9 @@ class ModalSimulator(_ForceInput):
             raise ModelError(f"modes must be a ModalBasis (rt.modal_analysis), got {type(modes).__name__}")
         self.modes = modes
         self.dt = _check_dt(dt)
-        self.damping = damping if damping is not None else Damping()
-        if not isinstance(self.damping, Damping):
-            raise ModelError(f"damping must be an rt.Damping, got {type(self.damping).__name__}")
+        self.damping = _check_damping(damping)
+        validate.choice(integrator, "integrator", ("exact", "newmark"))
+        static_correction = validate.flag(static_correction, "static_correction")
         self.integrator = integrator
         self.n_nodes = modes.n_nodes
         r = modes.n_modes
@@ -166,6 +157,7 @@ class ModalSimulator(_ForceInput):
         self._T1 = np.zeros((2, r))
         self._T2 = np.zeros((2, r))
         self._f = np.zeros(r)
+        self._f_next = np.zeros(r)
         self._f_old = np.zeros(r)
         self._fn = np.zeros(r)
         self.time = 0.0
@@ -182,13 +174,19 @@ class ModalSimulator(_ForceInput):
                 raise ModelError("static_correction needs a restrained model (this basis has rigid-body modes)")
 
     # ---------------------------------------------------------------- stepping
-    def _modal_force(self, forces, out: np.ndarray) -> None:
+    def _modal_force(self, forces) -> None:
+        """Parse ``forces`` into the modal force of the next step; on a refusal nothing changes.
+
+        The modal force is accumulated in a scratch vector and the loads in a local dict;
+        only when every entry is valid do they replace the simulator's.
+        """
+        out = self._f_next
         out.fill(0.0)
-        self._loads = {}
-        self._load_array = None
+        loads: dict[int, np.ndarray] = {}
+        load_array = None
         if forces is None:
-            return
-        if type(forces) is dict or isinstance(forces, Mapping):
+            pass
+        elif type(forces) is dict or isinstance(forces, Mapping):
             fn, fv, n = self._fn, self._fv, self.n_nodes
             for node, f in forces.items():
                 # fast path for the haptic loop: plain ints and 3-sequences of floats
@@ -204,12 +202,14 @@ class ModalSimulator(_ForceInput):
                 np.dot(fv, self._phi[i], out=fn)
                 out += fn
                 if self.static_correction:
-                    self._loads[i] = self._loads.get(i, 0.0) + fv.copy()
-            return
-        A = self._as_array(forces)
-        np.dot(A.reshape(-1), self._P, out=out)
-        if self.static_correction:
-            self._load_array = A
+                    loads[i] = loads.get(i, 0.0) + fv.copy()
+        else:
+            A = self._as_array(forces)
+            np.dot(A.reshape(-1), self._P, out=out)
+            if self.static_correction:
+                load_array = A
+        self._f, self._f_next = out, self._f
+        self._loads, self._load_array = loads, load_array
 
     def step(self, forces=None) -> None:
         """Advance one time step under ``forces``: {node: (fx, fy, fz)} or an (n, 3) array.
@@ -217,7 +217,7 @@ class ModalSimulator(_ForceInput):
         With the "exact" integrator the force is held over the step; with "newmark" it is the
         force at the end of the step (Eq. 14). Cost O(k r) for k loaded nodes.
         """
-        self._modal_force(forces, self._f)
+        self._modal_force(forces)
         S, T1, T2 = self._S, self._T1, self._T2
         np.multiply(self._C1, S, out=T1)
         np.multiply(self._C2, S[::-1], out=T2)
@@ -234,7 +234,9 @@ class ModalSimulator(_ForceInput):
 
     def run(self, forces, n_steps: int) -> None:
         """``n_steps`` steps under the same forces."""
-        for _ in range(int(n_steps)):
+        n_steps = self._n_steps(n_steps)
+        self._as_array(forces) if not isinstance(forces, Mapping) else validate.forces(forces, self.n_nodes)
+        for _ in range(n_steps):
             self.step(forces)
 
     # ---------------------------------------------------------------- outputs
@@ -253,12 +255,7 @@ class ModalSimulator(_ForceInput):
         D = self._D.get(node)
         if D is None:
             model = self.modes.model
-            F = np.zeros((model.n_nodes, 6))
-            cols = []
-            for k in range(3):
-                F[:] = 0.0
-                F[node, k] = 1.0
-                cols.append(model.solve_static(F))
+            cols = [model.unit_load_response(node, k) for k in range(3)]
             Kinv = np.stack(cols, axis=2)  # (n, 3, 3): displacement, load direction
             D = Kinv - np.einsum("nir,r,jr->nij", self._phi, 1.0 / self.modes.omega**2, self._phi[node])
             self._D[node] = D
@@ -266,9 +263,10 @@ class ModalSimulator(_ForceInput):
 
     def prepare(self, nodes) -> None:
         """Precompute the static-correction columns of the nodes that will be loaded."""
+        nodes = validate.nodes(nodes, self.n_nodes)
         if self.static_correction:
-            for n in np.atleast_1d(nodes):
-                self._correction_column(int(n))
+            for n in nodes.tolist():
+                self._correction_column(n)
 
     def predict(self, node: int) -> np.ndarray:
         """Displacement (3,) of ``node`` after one more step with no new load, O(r).
@@ -277,6 +275,7 @@ class ModalSimulator(_ForceInput):
         u(k+1) = predict(node) + W f: the relation a haptic contact solves (James & Pai's
         capacitance approach) before stepping.
         """
+        node = self._node(node)
         S = self._S
         x = self._C1[0] * S[0] + self._C2[0] * S[1]
         if self._G0 is not None:
@@ -288,6 +287,7 @@ class ModalSimulator(_ForceInput):
 
         W = sum_i phi_i(p) phi_i(p)^T Gamma_i (+ D_pp with the static correction).
         """
+        node = self._node(node)
         P = self._phi[node]
         W = (P * self._G1[0]) @ P.T
         if self.static_correction:
@@ -301,7 +301,7 @@ class ModalSimulator(_ForceInput):
         if self.static_correction:
             if self._load_array is not None:
                 model = self.modes.model
-                Kinv_f = model.solve_static(self._load_array)
+                Kinv_f = model._solve(model.force_vector(self._load_array, warn=False))
                 modal = self._phi @ ((self._phi.reshape(-1, r).T @ self._load_array.reshape(-1)) / self.modes.omega**2)
                 u += Kinv_f - modal
             for node, f in self._loads.items():
@@ -344,15 +344,25 @@ class ModalSimulator(_ForceInput):
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
         """Restore a state from :meth:`get_state` (or q/qdot arrays of length r)."""
         r = self._S.shape[1]
-        q = np.asarray(state["q"], dtype=float)
-        qd = np.asarray(state.get("qdot", np.zeros(r)), dtype=float)
-        if q.shape != (r,) or qd.shape != (r,):
-            raise ModelError(f"state arrays must have shape ({r},), got {q.shape} and {qd.shape}")
-        if not (np.isfinite(q).all() and np.isfinite(qd).all()):
-            raise ModelError("state contains NaN or infinite values")
-        self._S[0], self._S[1] = q, qd
-        self._f_old[:] = np.asarray(state.get("f_old", np.zeros(r)), dtype=float)
-        self.steps = int(state.get("steps", 0))
+        if not isinstance(state, Mapping) or "q" not in state:
+            raise ModelError(f"state={validate.show(state)} must be a mapping with 'q' (and optionally 'qdot', "
+                             "'f_old', 'steps'), as get_state() returns")
+        unknown = set(state) - {"q", "qdot", "f_old", "steps"}
+        if unknown:
+            raise ModelError(f"state has unknown entries {sorted(map(str, unknown))}; expected q, qdot, f_old, steps")
+        arrays = {}
+        for key in ("q", "qdot", "f_old"):
+            a = validate.real_array(state.get(key, np.zeros(r)), f"state[{key!r}]", 1)
+            if a.shape != (r,):
+                raise ModelError(f"state[{key!r}] must have shape ({r},), got {a.shape}")
+            arrays[key] = a
+        steps = state.get("steps", 0)
+        if isinstance(steps, np.ndarray) and steps.ndim == 0:
+            steps = steps[()]
+        steps = validate.count(steps, "state['steps']", 0)
+        self._S[0], self._S[1] = arrays["q"], arrays["qdot"]
+        self._f_old[:] = arrays["f_old"]
+        self.steps = steps
         self.time = self.steps * self.dt
 
 
@@ -370,10 +380,14 @@ class DirectSimulator(_ForceInput):
     """
 
     def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str = "newmark") -> None:
+        from .model import ShellModel
+
+        if not isinstance(model, ShellModel):
+            raise ModelError(f"model={validate.show(model)} must be a ShellModel")
         self.model = model
-        self.dt = _check_dt(dt)
-        self.damping = damping if damping is not None else Damping()
-        self.method = method
+        self.dt = dt = _check_dt(dt)
+        self.damping = _check_damping(damping)
+        self.method = validate.choice(method, "method", ("newmark", "central"))
         self.n_nodes = model.n_nodes
         model.check_restrained()
         K, dofs = model.constrained_stiffness()
@@ -522,7 +536,10 @@ class DirectSimulator(_ForceInput):
         self.time = self.steps * self.dt
 
     def run(self, forces, n_steps: int) -> None:
-        for _ in range(int(n_steps)):
+        """``n_steps`` steps under the same forces."""
+        n_steps = self._n_steps(n_steps)
+        self._as_array(forces)
+        for _ in range(n_steps):
             self.step(forces)
 
     def displacements(self) -> np.ndarray:

@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.linalg as sla
 
+from . import validate
 from .errors import ModelError, RtfemWarning, SolverError
 from .lanczos import REORTHOGONALIZATIONS, Lanczos
 from .material import Damping
@@ -94,6 +95,17 @@ class SLDM:
         m_max: int = 3000,
         reorth: str = "cgs2",
     ) -> None:
+        from .model import ShellModel
+
+        if not isinstance(model, ShellModel):
+            raise ModelError(f"model={validate.show(model)} must be a ShellModel")
+        if damping is not None and not isinstance(damping, Damping):
+            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
+        validate.choice(reorth, "reorth", REORTHOGONALIZATIONS)
+        tol = self._check_tol(tol)
+        m = None if m is None else validate.count(m, "m", 1, 100_000, what="the Krylov dimension")
+        m_max = validate.count(m_max, "m_max", 1, 100_000, what="the largest Krylov dimension")
+        model.check_not_all_fixed()
         if model.constraints != "elimination":
             raise ModelError(
                 "SLDM needs fixes by elimination: a penalty adds eigenvalues ~penalty times the "
@@ -126,10 +138,7 @@ class SLDM:
 
     @staticmethod
     def _check_tol(tol) -> float:
-        tol = float(tol)
-        if not (0 < tol < 1) or not math.isfinite(tol):
-            raise ModelError(f"tol={tol!r} must be in (0, 1)")
-        return tol
+        return validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="a relative accuracy")
 
     # ---------------------------------------------------------------- operators
     def apply(self, y: np.ndarray) -> np.ndarray:
@@ -244,6 +253,7 @@ class SLDM:
         """
         times = self._times(times)
         tol = self.tol if tol is None else self._check_tol(tol)
+        m = None if m is None else validate.count(m, "m", 1, 100_000, what="the Krylov dimension")
         b = self._load(forces)
         if not np.any(b):
             return np.zeros((times.size, self.model.n_nodes, 3))
@@ -268,9 +278,8 @@ class SLDM:
         Solves (K - w^2 M + i w B) u = F for every frequency (in Hz) from one Krylov basis:
         u = M^-1/2 beta0 Q V diag(1 / (lam - w^2 + i w a(lam))) V^T e1.
         """
-        f = np.atleast_1d(np.asarray(frequencies, dtype=float))
-        if f.ndim != 1 or f.size == 0 or not np.all(np.isfinite(f)) or np.any(f < 0):
-            raise ModelError("frequencies must be a non-empty 1-D array of finite values >= 0 (Hz)")
+        f = validate.times(frequencies, "frequencies", bound="nonnegative", increasing=False)
+        m = None if m is None else validate.count(m, "m", 1, 100_000, what="the Krylov dimension")
         if not self.restrained and np.any(f == 0):
             raise ModelError("an unconstrained model has no static (0 Hz) response: fix some nodes")
         w = 2 * np.pi * f
@@ -299,10 +308,15 @@ class SLDM:
         """
         times = self._times(times, allow_negative=True)
         tol = self.tol if tol is None else self._check_tol(tol)
+        if isinstance(forces_of_time, (str, bytes)) or not hasattr(forces_of_time, "__iter__"):
+            raise ModelError(f"forces_of_time={validate.show(forces_of_time)} must be a sequence of (t_k, forces_k)")
         events = list(forces_of_time)
         if not events:
             raise ModelError("forces_of_time is empty: give a sequence of (t_k, forces_k)")
-        t_k = np.array([float(e[0]) for e in events])
+        for e in events:
+            if not isinstance(e, (tuple, list)) or len(e) != 2:
+                raise ModelError(f"each entry of forces_of_time must be a (t_k, forces_k) pair, got {validate.show(e)}")
+        t_k = np.array([validate.number(e[0], "switch time t_k", "a time in seconds") for e in events])
         if not np.all(np.isfinite(t_k)) or np.any(np.diff(t_k) <= 0):
             raise ModelError("the switch times t_k of forces_of_time must be finite and strictly increasing")
         loads = [self._load(e[1]) for e in events]
@@ -347,10 +361,7 @@ class SLDM:
 
     @staticmethod
     def _times(times, allow_negative: bool = False) -> np.ndarray:
-        t = np.atleast_1d(np.asarray(times, dtype=float))
-        if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)) or (not allow_negative and np.any(t < 0)):
-            raise ModelError("times must be a non-empty 1-D array of finite values >= 0 (seconds)")
-        return t
+        return validate.times(times, "times", bound="any" if allow_negative else "nonnegative")
 
 
 def _eig_tridiagonal(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
