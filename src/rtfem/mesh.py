@@ -14,6 +14,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.spatial import cKDTree
 
+from . import validate
 from .errors import MeshError
 
 __all__ = ["TriMesh", "MeshReport"]
@@ -111,7 +112,11 @@ class TriMesh:
         merge_tol: float = 1e-10,
         groups: Mapping[str, np.ndarray] | None = None,
     ) -> None:
+        repair = validate.flag(repair, "repair", error=MeshError)
+        merge_tol = validate.in_range(merge_tol, "merge_tol", 0.0, 1.0, hi_open=True,
+                                      what="a fraction of the bounding-box diagonal", error=MeshError)
         V, T = _check_arrays(vertices, triangles)
+        groups = _check_groups(groups, V.shape[0])
         report = MeshReport(n_vertices_in=V.shape[0], n_triangles_in=T.shape[0])
         vmap = np.arange(V.shape[0])
         if repair:
@@ -128,7 +133,7 @@ class TriMesh:
         self.report = report
         self.groups: dict[str, np.ndarray] = {}
         for name, idx in (groups or {}).items():
-            mapped = vmap[np.asarray(idx, dtype=np.int64)]
+            mapped = vmap[idx]
             self.groups[name] = np.unique(mapped[mapped >= 0])
         self._cache: dict[str, object] = {}
         report.min_angle_deg = float(np.degrees(self.angles().min()))
@@ -253,10 +258,14 @@ class TriMesh:
     # -------------------------------------------------------------- derived
     def scaled(self, factor: float) -> "TriMesh":
         """A copy with coordinates multiplied by ``factor`` (e.g. 1e-3 for mm -> m)."""
-        return TriMesh(self._vertices * float(factor), self._triangles, repair=False, groups=self.groups)
+        factor = validate.positive(factor, "factor", "a scale factor", error=MeshError)
+        return TriMesh(self._vertices * factor, self._triangles, repair=False, groups=self.groups)
 
     def subdivided(self, levels: int = 1) -> "TriMesh":
         """Each triangle split into 4 by its edge mid-points, ``levels`` times (groups carried)."""
+        levels = validate.count(levels, "levels", 0, 8, error=MeshError)
+        if self.n_triangles * 4**levels > 20_000_000:
+            raise MeshError(f"{levels} subdivisions of {self.n_triangles} triangles would exceed 20,000,000 triangles")
         V, T, groups = self._vertices, self._triangles, dict(self.groups)
         for _ in range(levels):
             edges, inverse = _edge_index(T)
@@ -282,6 +291,19 @@ class TriMesh:
 
 
 # ---------------------------------------------------------------- helpers
+def _check_groups(groups, n: int) -> dict[str, np.ndarray]:
+    if groups is None:
+        return {}
+    if not isinstance(groups, Mapping):
+        raise MeshError(f"groups={validate.show(groups)} must be a mapping {{name: vertex indices}}")
+    out = {}
+    for name, idx in groups.items():
+        if not isinstance(name, str) or not name:
+            raise MeshError(f"group name {validate.show(name)} must be a non-empty string")
+        out[name] = validate.nodes(idx, n, f"group {name!r}", allow_empty=True, error=MeshError)
+    return out
+
+
 def _check_arrays(vertices, triangles) -> tuple[np.ndarray, np.ndarray]:
     try:
         V = np.array(vertices, dtype=np.float64)
@@ -360,23 +382,48 @@ def _refuse_unrepaired(V: np.ndarray, T: np.ndarray) -> None:
         )
 
 
+def _merge_classes(V: np.ndarray, tol: float) -> np.ndarray:
+    """For each vertex, the lowest index of the vertices it merges with (within ``tol``).
+
+    O(n log n) time and O(n) memory however the points cluster: vertices are first binned
+    into cells of size ``tol`` (one cell = one class), then only the cells' representatives
+    are paired within ``tol`` -- at most a few dozen neighbours each, where pairing all points
+    directly would list n^2 / 2 pairs for n coincident vertices.
+    """
+    n = V.shape[0]
+    if tol > 0:
+        key = np.floor((V - V.min(axis=0)) / tol).astype(np.int64)
+    else:
+        key = V
+    _, first, cell = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    cell = cell.ravel()
+    reps = V[first]
+    if tol > 0 and first.size > 1:
+        pairs = cKDTree(reps).query_pairs(tol, output_type="ndarray")
+    else:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    k = first.size
+    if pairs.shape[0]:
+        G = sp.coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
+        _, label = connected_components(G, directed=False)
+    else:
+        label = np.arange(k)
+    label = label[cell]
+    # representative of each class: its lowest index
+    rep = np.full(int(label.max()) + 1, n, dtype=np.int64)
+    np.minimum.at(rep, label, np.arange(n))
+    return rep[label]
+
+
 def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: MeshReport):
     n_in = V.shape[0]
     # 1. merge duplicate vertices within a tolerance relative to the model size
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     tol = merge_tol * (diag if diag > 0 else 1.0)
-    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
-    if pairs.shape[0]:
-        G = sp.coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n_in, n_in))
-        _, label = connected_components(G, directed=False)
-        # representative of each class: its lowest index
-        rep = np.full(label.max() + 1, n_in, dtype=np.int64)
-        np.minimum.at(rep, label, np.arange(n_in))
-        merge = rep[label]
-        report.merged_vertices = int(np.sum(merge != np.arange(n_in)))
+    merge = _merge_classes(V, tol)
+    report.merged_vertices = int(np.sum(merge != np.arange(n_in)))
+    if report.merged_vertices:
         T = merge[T]
-    else:
-        merge = np.arange(n_in)
     # 2. degenerate triangles
     deg = _degenerate(V, T)
     report.removed_degenerate = int(deg.sum())
@@ -436,15 +483,20 @@ def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> n
     # sign relation between adjacent triangles: flip[t2] = flip[t1] xor same
     rel = sp.coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[t1, t2], np.r_[t2, t1])), shape=(m, m)).tocsr()
     flip = np.zeros(m, bool)
+    # one breadth-first walk over every component at once: a virtual root (index m) joined
+    # to one triangle of each component, so the work is O(m) however many pieces there are
     _, roots = np.unique(label, return_index=True)
-    for root in roots.tolist():
-        bfs, pred = breadth_first_order(G, root, directed=False, return_predecessors=True)
-        if bfs.size < 2:
-            continue
-        p = pred[bfs[1:]]
-        s = np.asarray(rel[p, bfs[1:]]).ravel() == 2
-        for child, parent, si in zip(bfs[1:].tolist(), p.tolist(), s.tolist()):
-            flip[child] = flip[parent] ^ si
+    Gc = G.tocoo()
+    Gr = sp.coo_matrix((np.ones(Gc.nnz + roots.size), (np.r_[Gc.row, np.full(roots.size, m)], np.r_[Gc.col, roots])),
+                       shape=(m + 1, m + 1)).tocsr()
+    bfs, pred = breadth_first_order(Gr, m, directed=False, return_predecessors=True)
+    child = bfs[1:]
+    parent = pred[child]
+    inner = parent != m
+    child, parent = child[inner], parent[inner]
+    s_rel = (np.asarray(rel[parent, child]).ravel() == 2) if child.size else np.zeros(0, bool)
+    for c_, p_, si in zip(child.tolist(), parent.tolist(), s_rel.tolist()):
+        flip[c_] = flip[p_] ^ si
     consistent = (flip[t1] ^ flip[t2]) == same
     if not consistent.all():
         report.orientable = False

@@ -8,23 +8,28 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import validate
 from .errors import MeshError
 from .mesh import TriMesh
 
 __all__ = ["plate", "cylinder", "hemisphere", "icosphere", "liver"]
 
 
-def _count(name: str, value, minimum: int) -> int:
-    if int(value) != value or value < minimum:
-        raise MeshError(f"{name}={value!r} must be an integer >= {minimum}")
-    return int(value)
+_MAX_TRIANGLES = 20_000_000  # a generated mesh larger than this is a typo, not a request
+
+
+def _count(name: str, value, minimum: int, maximum: int = 10**6) -> int:
+    return validate.count(value, name, minimum, maximum, error=MeshError)
 
 
 def _length(name: str, value) -> float:
-    v = float(value)
-    if not np.isfinite(v) or v <= 0:
-        raise MeshError(f"{name}={value!r} must be a finite length > 0 (in metres)")
-    return v
+    return validate.positive(value, name, "a length in metres", error=MeshError)
+
+
+def _size_check(n_triangles: int, what: str) -> None:
+    if n_triangles > _MAX_TRIANGLES:
+        raise MeshError(f"{what} would have {n_triangles:,} triangles (the limit is {_MAX_TRIANGLES:,}); "
+                        "ask for fewer cells")
 
 
 def plate(a: float = 1.0, b: float | None = None, nx: int = 8, ny: int | None = None, pattern: str = "alternate") -> TriMesh:
@@ -38,8 +43,8 @@ def plate(a: float = 1.0, b: float | None = None, nx: int = 8, ny: int | None = 
     b = a if b is None else _length("b", b)
     nx = _count("nx", nx, 1)
     ny = nx if ny is None else _count("ny", ny, 1)
-    if pattern not in ("alternate", "right", "left"):
-        raise MeshError(f"pattern={pattern!r} must be 'alternate', 'right' or 'left'")
+    validate.choice(pattern, "pattern", ("alternate", "right", "left"), error=MeshError)
+    _size_check(2 * nx * ny, "the plate")
     xs = np.linspace(0.0, a, nx + 1)
     ys = np.linspace(0.0, b, ny + 1)
     X, Y = np.meshgrid(xs, ys, indexing="ij")
@@ -72,6 +77,7 @@ def cylinder(radius: float = 0.05, length: float = 0.2, n_around: int = 24, n_al
     """Open circular cylinder along z from 0 to ``length``. Groups ``bottom`` and ``top``."""
     radius, length = _length("radius", radius), _length("length", length)
     na, nl = _count("n_around", n_around, 3), _count("n_along", n_along, 1)
+    _size_check(2 * na * nl, "the cylinder")
     th = 2 * np.pi * np.arange(na) / na
     z = np.linspace(0, length, nl + 1)
     # rotate every other ring by half a step: near-equilateral triangles
@@ -95,7 +101,7 @@ def hemisphere(radius: float = 0.05, n_rings: int = 12) -> TriMesh:
     Groups ``rim`` (the equator) and ``pole``.
     """
     radius = _length("radius", radius)
-    nr = _count("n_rings", n_rings, 1)
+    nr = _count("n_rings", n_rings, 1, 1000)
     pts = [np.array([[0.0, 0.0, radius]])]
     rings = [np.array([0])]
     count = 1
@@ -138,7 +144,7 @@ def hemisphere(radius: float = 0.05, n_rings: int = 12) -> TriMesh:
 def icosphere(radius: float = 1.0, level: int = 3) -> TriMesh:
     """Sphere from a subdivided icosahedron: 10 * 4**level + 2 vertices, well-shaped triangles."""
     radius = _length("radius", radius)
-    level = _count("level", level, 0)
+    level = _count("level", level, 0, 9)
     t = (1 + 5**0.5) / 2
     V = np.array(
         [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
@@ -185,7 +191,7 @@ def liver(level: int = 4) -> TriMesh:
     "bare area" where the liver is held by the coronary ligament and the vena cava.
     Generated from an icosphere by a smooth map; no data files are involved.
     """
-    level = _count("level", level, 1)
+    level = _count("level", level, 1, 8)
     # relax on a coarse sphere, then refine in parameter space and relax a little more:
     # subdivision keeps the shapes, so each level needs only a few smoothing sweeps
     sph = icosphere(1.0, min(level, 3))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import validate
 from .errors import MeshError
 from .mesh import TriMesh
 
@@ -33,17 +34,14 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
         the model works in SI units, so ``scale=1e-3`` turns mm into m.
     repair, merge_tol : see :class:`TriMesh`; the repairs are listed in ``mesh.report``.
     """
-    p = Path(path)
+    p = Path(validate.path_like(path, "path", error=MeshError))
+    s = validate.positive(scale, "scale", "a factor on the coordinates (1e-3 turns mm into m)", error=MeshError)
+    repair = validate.flag(repair, "repair", error=MeshError)
+    merge_tol = validate.in_range(merge_tol, "merge_tol", 0.0, 1.0, hi_open=True, error=MeshError)
     if not p.exists():
         raise MeshError(f"mesh file {str(p)!r} does not exist")
     if p.is_dir():
         raise MeshError(f"{str(p)!r} is a directory, not a mesh file")
-    try:
-        s = float(scale)
-    except (TypeError, ValueError):
-        raise MeshError(f"scale={scale!r} is not a number") from None
-    if not np.isfinite(s) or s <= 0:
-        raise MeshError(f"scale={scale!r} must be a finite number > 0 (1e-3 turns mm into m)")
     points, triangles, groups = _read(p)
     mesh = TriMesh(points * s, triangles, repair=repair, merge_tol=merge_tol, groups=groups)
     if s != 1.0:
@@ -52,22 +50,48 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
 
 
 def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = None) -> None:
-    """Write a mesh (optionally with per-vertex data) in the format the file suffix names."""
+    """Write a mesh (optionally with per-vertex data) in the format the file suffix names.
+
+    The file is written beside the target and renamed over it: an interrupted save leaves
+    any previous file intact.
+    """
     import meshio
 
-    meshio.write_points_cells(
-        str(path), np.asarray(mesh.vertices), [("triangle", np.asarray(mesh.triangles))], point_data=point_data or {}
-    )
+    from .io import _field, atomic_target
+
+    if not isinstance(mesh, TriMesh):
+        raise MeshError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
+    p = Path(validate.path_like(path, "path", error=MeshError))
+    fmt = getattr(meshio, "extension_to_filetypes", {}).get(p.suffix.lower())
+    if not fmt:
+        raise MeshError(f"{str(p)!r}: the suffix {p.suffix!r} names no mesh format; use one of {_SURFACE_FORMATS}")
+    data = {str(k): _field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
+    with atomic_target(p, "mesh file") as tmp:
+        try:
+            meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), [("triangle", np.asarray(mesh.triangles))],
+                                      point_data=data, file_format=fmt[0])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise MeshError(f"could not write {str(p)!r}: {_clean(exc)}") from None
+
+
+def _clean(exc: BaseException) -> str:
+    return validate.show(f"{type(exc).__name__}: {exc}", 200)
 
 
 def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     import meshio
 
     err: Exception | None = None
-    if p.suffix.lower() == ".vtk" and _is_legacy_ascii_vtk(p):
+    suffix = p.suffix.lower()
+    if suffix == ".obj":
+        return _read_obj(p)
+    if suffix == ".stl":
+        _check_binary_stl(p)
+    if suffix == ".vtk" and _is_legacy_ascii_vtk(p):
         return _read_legacy_vtk(p)
     try:
-        with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()), \
+                warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # meshio's STL size probe overflows harmlessly
             m = meshio.read(str(p))
     except (Exception, SystemExit) as exc:  # meshio raises many kinds (and may sys.exit); report one clear error
@@ -77,12 +101,89 @@ def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
             return _read_legacy_vtk(p)
         known = "" if p.suffix.lower() in _SURFACE_FORMATS.split() else f" (suffix {p.suffix!r} is not a known mesh format)"
         raise MeshError(
-            f"could not read {str(p)!r} as a mesh{known}: {type(err).__name__}: {err}. "
+            f"could not read {str(p)!r} as a mesh{known}: {_clean(err)}. "
             f"Readable formats include {_SURFACE_FORMATS}"
         )
     tris = _triangles_from_cells([(c.type, np.asarray(c.data)) for c in m.cells], p)
     groups = {k: np.asarray(v).ravel() for k, v in (m.point_sets or {}).items()}
     return np.asarray(m.points, dtype=float), tris, groups
+
+
+def _read_obj(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Wavefront OBJ: ``v`` lines and ``f`` lines (polygons fan-split).
+
+    Face corners may be ``v``, ``v/vt``, ``v//vn`` or ``v/vt/vn``, with 1-based indices or
+    negative ones relative to the vertices read so far (``f -3 -2 -1``). Errors name the
+    line and use the file's own numbering. Other statements (vt, vn, g, o, s, usemtl, ...)
+    are skipped.
+    """
+    try:
+        text = p.read_bytes().decode("utf-8", errors="replace")
+    except OSError as exc:
+        raise MeshError(f"could not read {str(p)!r}: {exc.strerror or exc}") from None
+    verts: list[tuple[float, float, float]] = []
+    faces: list[list[int]] = []
+    face_lines: list[int] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "v":
+            try:
+                xyz = (float(parts[1]), float(parts[2]), float(parts[3]))
+            except (IndexError, ValueError):
+                raise MeshError(f"{str(p)!r} line {lineno}: a vertex needs 3 numbers, got "
+                                f"{validate.show(line.strip(), 60)}") from None
+            verts.append(xyz)
+        elif key == "f":
+            corners = []
+            for c in parts[1:]:
+                head = c.split("/", 1)[0]
+                try:
+                    k = int(head)
+                except ValueError:
+                    raise MeshError(f"{str(p)!r} line {lineno}: face corner {validate.show(c, 30)} is not a vertex "
+                                    "index") from None
+                if k == 0:
+                    raise MeshError(f"{str(p)!r} line {lineno}: vertex index 0 does not exist (OBJ counts from 1)")
+                corners.append(k - 1 if k > 0 else len(verts) + k)
+                if corners[-1] < 0:
+                    raise MeshError(f"{str(p)!r} line {lineno}: relative vertex index {k} reaches before the "
+                                    f"first vertex ({len(verts)} vertices read so far)")
+            if len(corners) < 3:
+                raise MeshError(f"{str(p)!r} line {lineno}: a face needs at least 3 corners, got {len(corners)}")
+            faces.append(corners)
+            face_lines.append(lineno)
+    if not faces:
+        raise MeshError(f"{str(p)!r} holds no faces ('f' lines): it is not a surface mesh")
+    nv = len(verts)
+    tris, lines = [], []
+    for corners, lineno in zip(faces, face_lines):
+        bad = [c for c in corners if c >= nv]
+        if bad:
+            raise MeshError(f"{str(p)!r} line {lineno}: face refers to vertex {bad[0] + 1}; the file has vertices "
+                            f"1..{nv}")
+        for i in range(1, len(corners) - 1):
+            tris.append((corners[0], corners[i], corners[i + 1]))
+    return np.array(verts, dtype=float).reshape(-1, 3), np.array(tris, dtype=np.int64), {}
+
+
+def _check_binary_stl(p: Path) -> None:
+    """A binary STL must hold 50 bytes per triangle its header counts; say so when it is cut short."""
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(84)
+    if head[:5].lower() == b"solid" and b"facet" in open(p, "rb").read(1024):
+        return  # ASCII STL
+    if len(head) < 84:
+        raise MeshError(f"could not read {str(p)!r}: {size} bytes is neither an ASCII STL nor a binary one (its header "
+                        "alone is 84 bytes); the file is truncated or not an STL")
+    count = int.from_bytes(head[80:84], "little")
+    need = 84 + 50 * count
+    if size < need:
+        raise MeshError(f"{str(p)!r} is truncated: its header counts {count} triangles ({need} bytes) but the file has "
+                        f"{size} bytes ({max(size - 84, 0) // 50} complete triangles); export it again")
 
 
 def _split_polygons(cells: np.ndarray) -> np.ndarray:
@@ -147,6 +248,18 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
         pos += k
         return out
 
+    def count(what: str) -> int:
+        tok = take(1, what)[0]
+        try:
+            k = int(tok)
+        except ValueError:
+            raise MeshError(f"{str(p)!r}: the count of {what} is {validate.show(tok, 30)}, not a whole number") from None
+        if k < 0:
+            raise MeshError(f"{str(p)!r}: negative count {k} in {what}")
+        if k > len(tokens):
+            raise MeshError(f"{str(p)!r} is truncated: {what} declares {k} entries, the file holds fewer values")
+        return k
+
     def numbers(k: int, what: str, dtype) -> np.ndarray:
         values = take(k, what)
         try:
@@ -165,15 +278,18 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
             if kind not in ("POLYDATA", "UNSTRUCTURED_GRID"):
                 raise MeshError(f"{str(p)!r}: VTK dataset {kind} is not a surface mesh (need POLYDATA or UNSTRUCTURED_GRID)")
         elif key == "POINTS":
-            n = int(take(1, "POINTS")[0])
+            n = count("POINTS")
             take(1, "POINTS")  # data type
             points = numbers(3 * n, "POINTS", float).reshape(n, 3)
         elif key in ("POLYGONS", "TRIANGLE_STRIPS", "CELLS", "VERTICES", "LINES"):
-            n, size = (int(x) for x in take(2, key))
+            n, size = count(key), count(key)
             flat = numbers(size, key, np.int64)
             rows, i = [], 0
-            for _ in range(n):
-                k = int(flat[i])
+            for c in range(n):
+                k = int(flat[i]) if i < flat.size else -1
+                if k < 0 or i + 1 + k > flat.size:
+                    raise MeshError(f"{str(p)!r}: {key} declares {n} cells in {size} values, but cell {c} does not fit "
+                                    "(a short or damaged cell list)")
                 rows.append(flat[i + 1 : i + 1 + k])
                 i += k + 1
             if key == "POLYGONS":
@@ -187,7 +303,7 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
             elif key == "CELLS":
                 cells_conn = rows
         elif key == "CELL_TYPES":
-            n = int(take(1, "CELL_TYPES")[0])
+            n = count("CELL_TYPES")
             types = numbers(n, "CELL_TYPES", np.int64)
             if cells_conn is None or len(cells_conn) != n:
                 raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
