@@ -26,6 +26,7 @@ import numpy as np
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from . import validate
 from .errors import ModelError
 from .io import load_versioned, save_versioned
 from .material import Damping
@@ -52,13 +53,48 @@ class ImpedanceMap:
     def __init__(self, n_nodes: int, times: np.ndarray, loaded: np.ndarray, offsets: np.ndarray,
                  neighbours: np.ndarray, responses: np.ndarray, point: np.ndarray, fingerprint: str,
                  info: dict | None = None) -> None:
-        self.n_nodes = int(n_nodes)
-        self.times = np.asarray(times, dtype=float)  # (n_t,) samples; the static limit is appended
-        self.loaded = np.asarray(loaded, dtype=np.int64)  # (L,) loaded nodes
-        self.offsets = np.asarray(offsets, dtype=np.int64)  # (L + 1,) into neighbours/responses
-        self.neighbours = np.asarray(neighbours, dtype=np.int64)  # (N,) kept nodes per loaded node
-        self.responses = np.asarray(responses)  # (N, n_t + 1, 3, 3): [kept node, time, u comp, load dir]
-        self.point = np.asarray(point)  # (L, n_t + 1, 3, 3): exact responses at the loaded node itself
+        n = validate.count(n_nodes, "n_nodes", 1)
+        times = validate.times(times, "times")
+        loaded = validate.int_array(loaded, "loaded")
+        offsets = validate.int_array(offsets, "offsets")
+        neighbours = validate.int_array(neighbours, "neighbours")
+        L, nt = loaded.size, times.size + 1
+        if L == 0:
+            raise ModelError("loaded is empty: a map needs at least one loaded node")
+        if loaded.min() < 0 or loaded.max() >= n:
+            raise ModelError(f"loaded holds node {loaded.max() if loaded.max() >= n else loaded.min()} outside "
+                             f"0..{n - 1} (n_nodes = {n})")
+        if np.unique(loaded).size != L:
+            raise ModelError("loaded lists a node twice")
+        if offsets.size != L + 1 or offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != neighbours.size:
+            raise ModelError(f"offsets must rise from 0 to {neighbours.size} (the length of neighbours) in {L + 1} "
+                             f"entries, one slot per loaded node; got {offsets.size} entries from "
+                             f"{offsets[0] if offsets.size else '-'} to {offsets[-1] if offsets.size else '-'}")
+        if neighbours.size and (neighbours.min() < 0 or neighbours.max() >= n):
+            bad = neighbours.max() if neighbours.max() >= n else neighbours.min()
+            raise ModelError(f"neighbours holds node {bad} outside 0..{n - 1} (n_nodes = {n})")
+        inner = np.ones(neighbours.size, bool)
+        inner[offsets[:-1][offsets[:-1] < neighbours.size]] = False  # first entry of each slot
+        if neighbours.size > 1 and np.any(np.diff(neighbours)[inner[1:]] <= 0):
+            raise ModelError("neighbours are not strictly increasing within each loaded node's slot")
+        responses = validate.real_array(responses, "responses", 4)
+        if responses.shape != (neighbours.size, nt, 3, 3):
+            raise ModelError(f"responses must have shape ({neighbours.size}, {nt}, 3, 3) for {neighbours.size} kept "
+                             f"nodes and {times.size} times + the static limit, got {responses.shape}")
+        point = validate.real_array(point, "point", 4)
+        if point.shape != (L, nt, 3, 3):
+            raise ModelError(f"point must have shape ({L}, {nt}, 3, 3), got {point.shape}")
+        if not isinstance(fingerprint, str):
+            raise ModelError(f"fingerprint={validate.show(fingerprint)} must be a string (the mesh hash)")
+        if info is not None and not isinstance(info, dict):
+            raise ModelError(f"info={validate.show(info)} must be a dict")
+        self.n_nodes = n
+        self.times = times  # (n_t,) samples; the static limit is appended
+        self.loaded = loaded  # (L,) loaded nodes
+        self.offsets = offsets  # (L + 1,) into neighbours/responses
+        self.neighbours = neighbours  # (N,) kept nodes per loaded node, increasing
+        self.responses = responses  # (N, n_t + 1, 3, 3): [kept node, time, u comp, load dir]
+        self.point = point  # (L, n_t + 1, 3, 3): exact responses at the loaded node itself
         self.fingerprint = fingerprint
         self.info = dict(info or {})
         self._slot = np.full(self.n_nodes, -1, dtype=np.int64)
@@ -105,21 +141,38 @@ class ImpedanceMap:
             ``n_modes`` modes (method "modal").
 
         A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
-        (``info["complete"]`` is False) and can be saved.
+        (``info["complete"]`` is False, ``info["requested_nodes"]`` says how many were asked
+        for) and can be saved; an interruption before the first node is re-raised.
         """
+        from .model import ShellModel
+
+        if not isinstance(model, ShellModel):
+            raise ModelError(f"model={validate.show(model)} must be a ShellModel")
+        if damping is not None and not isinstance(damping, Damping):
+            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
         damping = damping if damping is not None else Damping()
+        t = validate.times(times, "times")
+        validate.choice(metric, "metric", ("euclidean", "geodesic"))
+        if radius is not None:
+            radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
+        if threshold is not None:
+            threshold = validate.in_range(threshold, "threshold", 0.0, 1.0, hi_open=True,
+                                          what="a fraction of each column's peak, or None")
+        validate.choice(method, "method", ("modal", "sldm"))
+        n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
+        tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
+        memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
+        if progress is not None and not callable(progress):
+            raise ModelError(f"progress={validate.show(progress)} must be a callable (done, total, seconds) or None")
+        workers = validate.count(workers, "workers", 1, 256)
+        if modes is not None:
+            from .modal import ModalBasis
+
+            if (not isinstance(modes, ModalBasis) or modes.n_nodes != model.n_nodes
+                    or modes.fingerprint != mesh_fingerprint(model.mesh)
+                    or (modes.model is not None and modes.model is not model)):
+                raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
         model.check_restrained()
-        t = np.asarray(times, dtype=float)
-        if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)) or np.any(t <= 0) or np.any(np.diff(t) <= 0):
-            raise ModelError("times must be increasing, finite and > 0 (seconds)")
-        if metric not in ("euclidean", "geodesic"):
-            raise ModelError(f"metric={metric!r}; choose 'euclidean' or 'geodesic'")
-        if radius is not None and not (np.isfinite(radius) and radius > 0):
-            raise ModelError(f"radius={radius!r} must be a length > 0 in metres (or None)")
-        if threshold is not None and not (0 <= threshold < 1):
-            raise ModelError(f"threshold={threshold!r} must be in [0, 1)")
-        if method not in ("modal", "sldm"):
-            raise ModelError(f"method={method!r}; choose 'modal' or 'sldm'")
         n = model.n_nodes
         free_nodes = np.flatnonzero(~model.held_nodes)
         loaded = free_nodes if nodes is None else np.unique(model._nodes(nodes))
@@ -139,11 +192,6 @@ class ImpedanceMap:
                 f"node, {t.size + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
                 f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
             )
-        if modes is not None:
-            from .modal import ModalBasis
-
-            if not isinstance(modes, ModalBasis) or modes.n_nodes != n or (modes.model is not None and modes.model is not model):
-                raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
         engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
                   else _SLDMColumns(model, damping, t, tol))
         def one(j: int):
@@ -154,23 +202,17 @@ class ImpedanceMap:
                 keep = keep[mag >= threshold * mag.max()]
             return j, keep, cols[keep], cols[j]
 
-        offsets = [0]
-        kept_nodes, kept_resp, point = [], [], []
-        done_nodes = []
+        # one append per finished node: a Ctrl-C between two bytecodes cannot leave the
+        # partial results inconsistent
+        results: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         t0 = time.perf_counter()
         complete = True
 
         def collect(result) -> None:
-            j, keep, resp, pt = result
-            kept_nodes.append(keep)
-            kept_resp.append(resp)
-            point.append(pt)
-            offsets.append(offsets[-1] + keep.size)
-            done_nodes.append(j)
+            results.append(result)
             if progress is not None:
-                progress(len(done_nodes), loaded.size, time.perf_counter() - t0)
+                progress(len(results), loaded.size, time.perf_counter() - t0)
 
-        workers = max(1, int(workers))
         try:
             if workers == 1:
                 for j in loaded:
@@ -189,15 +231,20 @@ class ImpedanceMap:
                         collect(pending.pop(0).result())
         except KeyboardInterrupt:
             complete = False
-        if not done_nodes:
-            raise ModelError("the build was interrupted before the first node was finished")
+        results = list(results)
+        if not results:
+            raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
+        done_nodes = [r[0] for r in results]
+        offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
         info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
                 "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
                 "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
                 "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
-                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size)}
-        return cls(n, t, np.array(done_nodes), np.array(offsets), np.concatenate(kept_nodes),
-                   np.concatenate(kept_resp), np.array(point), mesh_fingerprint(model.mesh), info)
+                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size),
+                "requested_nodes": int(loaded.size)}
+        return cls(n, t, np.array(done_nodes), offsets, np.concatenate([r[1] for r in results]),
+                   np.concatenate([r[2] for r in results]), np.array([r[3] for r in results]),
+                   mesh_fingerprint(model.mesh), info)
 
     # ---------------------------------------------------------------- sizes
     @property
@@ -215,8 +262,9 @@ class ImpedanceMap:
                 f"+ static, {self.nbytes / 2**20:.1f} MiB, method={self.info.get('method')!r})")
 
     # ---------------------------------------------------------------- run time
-    def _slot_of(self, node: int) -> int:
-        if not 0 <= node < self.n_nodes or self._slot[node] < 0:
+    def _slot_of(self, node, name: str = "node") -> int:
+        node = validate.node(node, self.n_nodes, name)
+        if self._slot[node] < 0:
             raise ModelError(f"node {node} is not a loaded node of this impedance map")
         return int(self._slot[node])
 
@@ -243,15 +291,25 @@ class ImpedanceMap:
         ``loads``: :class:`Load` objects or ``(node, (fx, fy, fz), onset)`` tuples; a load that
         ends is a second load of opposite sign at the release time.
         """
-        u = np.zeros((self.n_nodes, 3))
+        t = validate.instant(t, "t")
+        if isinstance(loads, (str, bytes)) or not hasattr(loads, "__iter__"):
+            raise ModelError(f"loads={validate.show(loads)} must be a list of Load or (node, (fx, fy, fz), onset)")
+        parsed = []
         for ld in loads:
-            node, f, onset = (ld.node, ld.force, ld.onset) if isinstance(ld, Load) else (ld[0], ld[1], ld[2] if len(ld) > 2 else 0.0)
-            f = np.asarray(f, dtype=float)
-            if f.shape != (3,) or not np.all(np.isfinite(f)):
-                raise ModelError(f"load on node {node}: need 3 finite force components, got {f!r}")
-            s = self._slot_of(int(node))
+            if isinstance(ld, Load):
+                node, f, onset = ld.node, ld.force, ld.onset
+            elif isinstance(ld, (tuple, list)) and len(ld) in (2, 3):
+                node, f, onset = ld[0], ld[1], ld[2] if len(ld) > 2 else 0.0
+            else:
+                raise ModelError(f"load {validate.show(ld)} must be a Load or a (node, (fx, fy, fz), onset) tuple")
+            s = self._slot_of(node, "load node")
+            f = validate.vector(f, f"force on node {node}", 3)
+            onset = validate.instant(onset, "onset")
+            parsed.append((s, f, onset))
+        u = np.zeros((self.n_nodes, 3))
+        for s, f, onset in parsed:
             R = self.responses[self.offsets[s] : self.offsets[s + 1]]
-            Rt = self._sample(R, t - float(onset))
+            Rt = self._sample(R, t - onset)
             if Rt is None:
                 continue
             u[self.neighbours[self.offsets[s] : self.offsets[s + 1]]] += Rt @ f
@@ -263,10 +321,12 @@ class ImpedanceMap:
         O(k log kept): what a haptic update needs (the field near the contact), without
         superposing the whole map. Nodes outside the kept set get zeros.
         """
-        s = self._slot_of(int(loaded))
+        s = self._slot_of(loaded, "loaded")
+        nodes = validate.nodes(nodes, self.n_nodes)
+        if t is not None:
+            t = validate.instant(t, "t")
         lo, hi = self.offsets[s], self.offsets[s + 1]
         kept = self.neighbours[lo:hi]  # sorted
-        nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
         pos = np.clip(np.searchsorted(kept, nodes), 0, max(kept.size - 1, 0))
         hit = kept[pos] == nodes
         out = np.zeros((nodes.size, 3, 3))
@@ -274,7 +334,7 @@ class ImpedanceMap:
         if t is None:
             out[hit] = R[:, -1]
         else:
-            Rt = self._sample(R, float(t))
+            Rt = self._sample(R, t)
             if Rt is not None:
                 out[hit] = Rt
         return out
@@ -285,11 +345,13 @@ class ImpedanceMap:
         ``t=None`` gives the static compliance (G_pp = [K^-1]_pp), otherwise the step-response
         compliance after a delay ``t``. Exact (it does not depend on the truncation).
         """
-        s = self._slot_of(int(node))
+        s = self._slot_of(node)
+        if t is not None:
+            t = validate.instant(t, "t")
         P = self.point[s][None]
         if t is None:
             return self.point[s, -1].copy()
-        out = self._sample(P, float(t))
+        out = self._sample(P, t)
         return np.zeros((3, 3)) if out is None else out[0]
 
     # ---------------------------------------------------------------- files
@@ -306,11 +368,28 @@ class ImpedanceMap:
         """Load a saved map; with ``model`` it must belong to that model's mesh."""
         z, info = load_versioned(path, "rtfem.ImpedanceMap", FORMAT_VERSION, cls._ARRAYS + ["n_nodes", "fingerprint"],
                                   "impedance map")
-        fp = str(z.pop("fingerprint"))
-        n = int(z.pop("n_nodes"))
-        if model is not None and fp != mesh_fingerprint(model.mesh):
-            raise ModelError(f"{str(path)!r} was built for a different mesh; rebuild it with ImpedanceMap.build")
-        return cls(n, fingerprint=fp, info=info, **z)
+        fp, n = z.pop("fingerprint"), z.pop("n_nodes")
+        where = repr(str(path))
+        if fp.dtype.kind != "U" or fp.ndim != 0:
+            raise ModelError(f"{where}: field 'fingerprint' is not a string: the file is damaged or altered")
+        if n.ndim != 0 or not np.issubdtype(n.dtype, np.integer):
+            raise ModelError(f"{where}: field 'n_nodes' is not an integer: the file is damaged or altered")
+        fp, n = str(fp), int(n)
+        if model is not None:
+            from .model import ShellModel
+
+            if not isinstance(model, ShellModel):
+                raise ModelError(f"model={validate.show(model)} must be a ShellModel (or None)")
+            if n != model.n_nodes:
+                raise ModelError(f"{where}: field 'n_nodes' = {n} but the model has {model.n_nodes} nodes: "
+                                 "the map was built for a different mesh (or the file was altered)")
+            if fp != mesh_fingerprint(model.mesh):
+                raise ModelError(f"{where} was built for a different mesh (field 'fingerprint'); rebuild it with "
+                                 "ImpedanceMap.build")
+        try:
+            return cls(n, fingerprint=fp, info=info, **z)
+        except ModelError as exc:
+            raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
 
 
 class _NeighbourFinder:
@@ -349,12 +428,9 @@ class _ModalColumns:
         # modal part: u(t) = sum_i phi_i g_i(t) phi_i(j)^T e_k
         cols = np.einsum("nir,rt,kr->ntik", phi, self.g, pj, optimize=True)
         # static correction: D = K^-1 e_jk - Phi Lambda^-1 Phi^T e_jk, added at every time
-        F = np.zeros((self.model.n_nodes, 6))
         static = np.empty((self.model.n_nodes, 3, 3))
         for k in range(3):
-            F[:] = 0.0
-            F[j, k] = 1.0
-            static[:, :, k] = self.model.solve_static(F)
+            static[:, :, k] = self.model.unit_load_response(j, k)
         modal_static = cols[:, -1]
         cols += (static - modal_static)[:, None]
         return cols
@@ -374,12 +450,14 @@ class _SLDMColumns:
 
     def columns(self, j: int) -> np.ndarray:
         n = self.model.n_nodes
-        cols = np.empty((n, self.times.size + 1, 3, 3))
+        cols = np.zeros((n, self.times.size + 1, 3, 3))
         F = np.zeros((n, 6))
         for k in range(3):
+            if self.model.fixed[j, k]:
+                continue  # a load on a fixed dof goes into the support: a zero column
             F[:] = 0.0
             F[j, k] = 1.0
             U = self.sldm.step_response(F[:, :3], self.times)  # (n_t, n, 3)
             cols[:, :-1, :, k] = U.transpose(1, 0, 2)
-            cols[:, -1, :, k] = self.model.solve_static(F)
+            cols[:, -1, :, k] = self.model.unit_load_response(j, k)
         return cols

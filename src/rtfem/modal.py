@@ -21,6 +21,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import validate
 from .errors import ModelError, SolverError
 from .io import load_versioned, save_versioned
 from .linalg import factorize
@@ -54,10 +55,27 @@ class ModalBasis:
     """
 
     def __init__(self, omega: np.ndarray, shapes: np.ndarray, fingerprint: str, model=None, info: dict | None = None):
-        omega = np.asarray(omega, dtype=float)
-        shapes = np.asarray(shapes, dtype=float)
-        if shapes.ndim != 3 or shapes.shape[1] != 3 or shapes.shape[2] != omega.size:
-            raise ModelError(f"mode shapes must be (n, 3, {omega.size}), got {shapes.shape}")
+        omega = validate.real_array(omega, "omega", 1)
+        if omega.size == 0:
+            raise ModelError("omega is empty: a modal basis needs at least one mode")
+        if np.any(omega < 0):
+            raise ModelError(f"omega holds a negative frequency ({omega.min():.4g} rad/s); frequencies are >= 0")
+        if np.any(np.diff(omega) < 0):
+            i = int(np.flatnonzero(np.diff(omega) < 0)[0])
+            raise ModelError(f"omega is not ascending (mode {i + 1}: {omega[i + 1]:.6g} after {omega[i]:.6g} rad/s)")
+        shapes = validate.real_array(shapes, "shapes", 3)
+        if shapes.shape[1] != 3 or shapes.shape[2] != omega.size or shapes.shape[0] == 0:
+            raise ModelError(f"shapes must be (n, 3, {omega.size}) for {omega.size} frequencies in omega, got {shapes.shape}")
+        if not isinstance(fingerprint, str):
+            raise ModelError(f"fingerprint={validate.show(fingerprint)} must be a string (the mesh hash)")
+        if model is not None:
+            from .model import ShellModel
+
+            if not isinstance(model, ShellModel) or model.n_nodes != shapes.shape[0]:
+                raise ModelError(f"model={validate.show(model)} must be the ShellModel of this basis "
+                                 f"({shapes.shape[0]} nodes)")
+        if info is not None and not isinstance(info, dict):
+            raise ModelError(f"info={validate.show(info)} must be a dict")
         self.omega = omega
         self.shapes = shapes
         self.fingerprint = fingerprint
@@ -89,8 +107,7 @@ class ModalBasis:
 
     def truncated(self, n_modes: int) -> "ModalBasis":
         """The first ``n_modes`` modes."""
-        if not 1 <= n_modes <= self.n_modes:
-            raise ModelError(f"n_modes={n_modes} must be between 1 and {self.n_modes}")
+        n_modes = validate.count(n_modes, "n_modes", 1, self.n_modes, what=f"this basis has {self.n_modes} modes")
         return ModalBasis(self.omega[:n_modes].copy(), np.ascontiguousarray(self.shapes[:, :, :n_modes]), self.fingerprint, self.model, self.info)
 
     def __repr__(self) -> str:
@@ -107,7 +124,20 @@ class ModalBasis:
     def load(cls, path: str | os.PathLike, model=None, mesh: TriMesh | None = None) -> "ModalBasis":
         """Load a saved basis; with ``model`` (or ``mesh``) it must belong to that mesh."""
         z, info = load_versioned(path, "rtfem.ModalBasis", FORMAT_VERSION, ["omega", "shapes", "fingerprint"], "modal basis")
-        omega, shapes, fp = z["omega"], z["shapes"], str(z["fingerprint"])
+        omega, shapes, fp = z["omega"], z["shapes"], z["fingerprint"]
+        if fp.dtype.kind != "U" or fp.ndim != 0:
+            raise ModelError(f"{str(path)!r}: field 'fingerprint' is not a string: the file is damaged or altered")
+        fp = str(fp)
+        try:
+            basis = cls(omega, shapes, fp, None, info)
+        except ModelError as exc:
+            raise ModelError(f"{str(path)!r}: {exc}; the file is damaged or altered") from None
+        from .model import ShellModel
+
+        if model is not None and not isinstance(model, ShellModel):
+            raise ModelError(f"model={validate.show(model)} must be a ShellModel (or None)")
+        if mesh is not None and not isinstance(mesh, TriMesh):
+            raise ModelError(f"mesh={validate.show(mesh)} must be a TriMesh (or None)")
         target = model.mesh if model is not None else mesh
         if target is not None:
             if shapes.shape[0] != target.n_vertices or fp != mesh_fingerprint(target):
@@ -116,7 +146,8 @@ class ModalBasis:
                     f"fingerprint {fp[:8]}) than the one given ({target.n_vertices} nodes, "
                     f"fingerprint {mesh_fingerprint(target)[:8]}); recompute it with rt.modal_analysis"
                 )
-        return cls(omega, shapes, fp, model, info)
+        basis.model = model
+        return basis
 
 
 def _constrained_mass(model, dofs: np.ndarray) -> sp.csr_matrix:
@@ -148,6 +179,18 @@ def modal_analysis(
     -------
     ModalBasis with ascending w, mass-normalized shapes (Phi^T M Phi = I).
     """
+    from .model import ShellModel
+
+    if not isinstance(model, ShellModel):
+        raise ModelError(f"model={validate.show(model)} must be a ShellModel")
+    if not (isinstance(n_modes, str) and n_modes == "all"):
+        n_modes = validate.count(n_modes, "n_modes", 1, what="a number of modes, or 'all'")
+    if sigma is not None:
+        sigma = validate.number(sigma, "sigma", "a shift in rad^2/s^2")
+    tol = validate.in_range(tol, "tol", 0.0, 1.0, hi_open=True, what="ARPACK's relative accuracy, 0 for machine precision")
+    if progress is not None and not callable(progress):
+        raise ModelError(f"progress={validate.show(progress)} must be a callable (or None)")
+    model.check_not_all_fixed()
     say = progress or (lambda msg: None)
     t_start = time.perf_counter()
     K, dofs = model.constrained_stiffness()
@@ -155,14 +198,10 @@ def modal_analysis(
     massed = int(np.count_nonzero(M.diagonal()))
     restrained = bool(model.fixed.any())
     if isinstance(n_modes, str):
-        if n_modes != "all":
-            raise ModelError(f"n_modes={n_modes!r}: give a number or 'all'")
         n_modes = massed - (int(model.fixed[:, :3].sum()) if model.constraints == "penalty" else 0)
         if massed > _DENSE_ALL:
             raise ModelError(f"n_modes='all' needs a dense eigensolver of size {massed}; ask for fewer modes")
     n_modes = int(n_modes)
-    if n_modes < 1:
-        raise ModelError(f"n_modes={n_modes} must be >= 1")
     if n_modes > massed or (n_modes == massed and massed > _DENSE_ALL):
         raise ModelError(f"n_modes={n_modes} must be below the number of massed dofs ({massed})")
     if n_modes > 0.1 * massed and massed <= _DENSE_ALL:
