@@ -39,7 +39,7 @@ class Progress:
 
     def update(self, done: float, note: str = "", force: bool = False) -> None:
         now = time.perf_counter()
-        if not force and now - self._last < (0.1 if self.tty else 5.0):
+        if not force and now - self._last < (0.1 if self.tty else 1.0):
             return
         self._last = now
         if self.total:
@@ -61,6 +61,104 @@ class Progress:
             self.stream.flush()
 
 
+# ---------------------------------------------------------------- option types (argparse type= checks)
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def positive(text: str) -> float:
+    v = _number(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return v
+
+
+def nonnegative(text: str) -> float:
+    v = _number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return v
+
+
+def fraction(text: str) -> float:
+    v = _number(text)
+    if not 0 <= v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be in [0, 1)")
+    return v
+
+
+def open_fraction(text: str) -> float:
+    v = _number(text)
+    if not 0 < v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be in (0, 1)")
+    return v
+
+
+def poisson(text: str) -> float:
+    v = _number(text)
+    if not -1 < v < 0.5:
+        raise argparse.ArgumentTypeError(f"{text!r} must be in (-1, 0.5)")
+    return v
+
+
+def count(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return v
+
+
+def mode_count(text: str) -> int:
+    try:
+        return count(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"{text!r}: ask for at least one mode (a whole number >= 1)") from None
+
+
+def port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"port {text!r} is not a whole number") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"port {v} is outside 0..65535")
+    return v
+
+
+def time_list(text: str) -> list[float]:
+    parts = [t.strip() for t in text.split(",")]
+    if not text.strip() or any(not t for t in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give times in s separated by commas, e.g. 0.01,0.1,0.5")
+    values = [_number(t) for t in parts]
+    if any(v <= 0 for v in values) or any(b <= a for a, b in zip(values, values[1:])):
+        raise argparse.ArgumentTypeError(f"{text!r}: times must be > 0 and increasing")
+    return values
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``rtfem: error: ...`` and exit 2, no usage dump."""
+
+    def error(self, message: str):  # type: ignore[override]
+        cmd = self.prog.split()[-1] if " " in self.prog else ""
+        hint = f"; see rtfem {cmd} --help" if cmd else "; see rtfem --help"
+        self.exit(2, f"rtfem: error: {_one_line(message)}{hint}\n")
+
+
+def _one_line(text: str) -> str:
+    """A message for the terminal: one line, no control characters."""
+    text = " ".join(str(text).split())
+    return "".join(c if c.isprintable() else "?" for c in text)
+
+
 def _vector(text: str, what: str) -> np.ndarray:
     try:
         v = np.array([float(x) for x in text.split(",")])
@@ -75,7 +173,10 @@ def load_mesh_arg(path: str | None, scale: float = 1.0):
     from . import meshes
     from .meshfile import load_mesh
 
-    return meshes.liver() if path is None else load_mesh(path, scale=scale)
+    if path is None:
+        mesh = meshes.liver()
+        return mesh if scale == 1.0 else mesh.scaled(scale)
+    return load_mesh(path, scale=scale)
 
 
 def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
@@ -132,20 +233,20 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
 
     m = Material()
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
-    p.add_argument("--scale", type=float, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
     g = p.add_argument_group("material and supports")
-    g.add_argument("--E", type=float, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
-    g.add_argument("--nu", type=float, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
-    g.add_argument("--thickness", type=float, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
-    g.add_argument("--density", type=float, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
+    g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
+    g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
+    g.add_argument("--thickness", type=positive, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
+    g.add_argument("--density", type=positive, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
     g.add_argument("--fix", default=None, metavar="REGION",
                    help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
                         "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
     if dynamics:
         g = p.add_argument_group("dynamics")
-        g.add_argument("-n", "--modes", type=int, default=40, help="number of modes r (default 40)")
-        g.add_argument("--alpha", type=float, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
-        g.add_argument("--dt", type=float, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
+        g.add_argument("-n", "--modes", type=mode_count, default=40, help="number of modes r (default 40)")
+        g.add_argument("--alpha", type=nonnegative, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
+        g.add_argument("--dt", type=positive, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
 
 
 def build_model(args, *, quiet: bool = False):
@@ -170,10 +271,8 @@ def damping_of(args):
     return Damping(alpha=args.alpha)
 
 
-def check_positive(name: str, value: float) -> float:
-    if not (np.isfinite(value) and value > 0):
-        raise RtfemError(f"{name}={value!r} must be a positive number")
-    return value
+MAX_STEPS = 2_000_000  # steps of one `rtfem simulate` run (each keeps a CSV row in memory)
+MAX_FRAMES = 10_000  # VTU frames of one run
 
 
 def _modes(model, args, *, quiet=False):
@@ -213,7 +312,16 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _output_file(path: str) -> Path:
+    """Refuse an output that is an existing directory before any work is done."""
+    out = Path(path)
+    if out.is_dir():
+        raise RtfemError(f"-o {path!r} is a directory; give a file name, e.g. {str(out / 'out.npz')!r}")
+    return out
+
+
 def cmd_modes(args: argparse.Namespace) -> int:
+    _output_file(args.output)
     model = build_model(args)
     basis = _modes(model, args)
     f = basis.frequencies
@@ -263,8 +371,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .io import write_pvd, write_vtu
     from .simulate import DirectSimulator, ModalSimulator
 
-    check_positive("--duration", args.duration)
-    check_positive("--dt", args.dt)
+    from .validate import time_step
+
+    time_step(args.dt, "--dt")
     if args.at is not None:
         _vector(args.at, "--at")
     if args.method == "sldm" and not args.load:
@@ -273,12 +382,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     mesh = model.mesh
     loads = _read_loads(args.load, mesh.n_vertices) if args.load else None
     damping = damping_of(args)
-    n_steps = int(round(args.duration / args.dt))
+    n_float = args.duration / args.dt
+    if n_float > MAX_STEPS:
+        raise RtfemError(f"--duration {args.duration:g} s at --dt {args.dt:g} s is {n_float:.3g} steps, more than the "
+                         f"{MAX_STEPS:,} steps a run may take (one CSV row each): shorten --duration or raise --dt")
+    n_steps = int(round(n_float))
     if n_steps < 1:
         raise RtfemError(f"--duration {args.duration} is shorter than one step (--dt {args.dt})")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     frame_every = max(1, int(round(1 / args.fps / args.dt)))
+    if n_steps // frame_every > MAX_FRAMES:
+        raise RtfemError(f"--fps {args.fps:g} over {args.duration:g} s writes {n_steps // frame_every:,} VTU frames, more "
+                         f"than {MAX_FRAMES:,}: lower --fps")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
+    out.mkdir(parents=True, exist_ok=True)
     if args.method == "modal":
         sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True)
     elif args.method == "direct":
@@ -381,8 +499,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_impedance(args: argparse.Namespace) -> int:
     from .impedance import ImpedanceMap
 
+    output = _output_file(args.output)
     model = build_model(args)
-    times = [float(t) for t in args.times.split(",")] if args.times else None
+    times = args.times
     nodes = None
     if args.nodes:
         nodes, how = fixed_nodes(model.mesh, args.nodes, "--nodes")
@@ -399,12 +518,18 @@ def cmd_impedance(args: argparse.Namespace) -> int:
     if times is not None:
         kw["times"] = times
     imap = ImpedanceMap.build(model, damping_of(args), **kw)
+    if not imap.info.get("complete", True):
+        # interrupted: keep what was finished, beside (never over) the requested output
+        name = output.name[:-4] if output.name.endswith(".npz") else output.name
+        partial = imap.save(output.with_name(name + ".partial.npz"))
+        bar.done(f"interrupted at {imap.loaded.size}/{imap.info['requested_nodes']} nodes")
+        print(f"rtfem: interrupted: kept {imap.loaded.size} of {imap.info['requested_nodes']} loaded nodes in "
+              f"{partial}; {args.output} was not touched", file=sys.stderr)
+        return 130
     bar.done()
-    out = imap.save(args.output)
+    out = imap.save(output)
     print(f"map         {imap}")
     print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ImpedanceMap.load(path, model=...)")
-    if not imap.info.get("complete", True):
-        print("note        interrupted: the map holds the nodes finished so far")
     return 0
 
 
@@ -438,12 +563,34 @@ def cmd_view(args: argparse.Namespace) -> int:
     from .viewer.app import serve
     from .viewer.session import Settings
 
+    check_address(args.host, args.port)
     model = build_model(args)
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness).check()
     print("precomputing ...", flush=True)
     serve(model.mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host, port=args.port)
     return 0
+
+
+def check_address(host: str, port: int) -> None:
+    """Refuse, before any precompute, a host that is not an address of this machine."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise RtfemError(f"--host {host}: unknown address ({getattr(exc, 'strerror', None) or exc})") from None
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return  # the viewer moves to the next free port and says so
+            raise RtfemError(f"--host {host}: cannot serve on this address ({exc.strerror or exc}); give an address "
+                             "of this machine, e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (the network)") from None
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -454,14 +601,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="rtfem", description="Real-time simulation of deformable shell finite-element "
+    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable shell finite-element "
                                  "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
                                  epilog="Every command runs on the embedded default liver when no MESH is given.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("info", help="check a mesh file (or the embedded liver) and report repairs")
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
-    p.add_argument("--scale", type=float, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("modes", help="precompute the r lowest modes and save them (.npz)")
@@ -477,14 +624,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("modal", "direct", "sldm"), default="modal",
                    help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
                         "baseline) or sldm (Krylov, --load only)")
-    p.add_argument("--duration", type=float, default=1.0, help="simulated time in s (default 1)")
+    p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
                    "farthest from the supports")
-    p.add_argument("--depth", type=float, default=0.005, help="probe indentation in m (default 0.005)")
-    p.add_argument("--stiffness", type=float, default=200.0, help="probe coupling spring in N/m (default 200)")
-    p.add_argument("--tol", type=float, default=1e-6, help="SLDM tolerance (default 1e-6)")
-    p.add_argument("--fps", type=float, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
+    p.add_argument("--depth", type=positive, default=0.005, help="probe indentation in m (default 0.005)")
+    p.add_argument("--stiffness", type=positive, default=200.0, help="probe coupling spring in N/m (default 200)")
+    p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--fps", type=positive, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
     p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
     p.set_defaults(func=cmd_simulate)
 
@@ -492,20 +639,20 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_options(p)
     p.add_argument("-o", "--output", default="liver.map.npz", help="output file (default liver.map.npz)")
     p.add_argument("--nodes", metavar="REGION", help="loaded nodes, same forms as --fix (default: every free node)")
-    p.add_argument("--radius", type=float, help="radius of influence in m (default: none)")
+    p.add_argument("--radius", type=positive, help="radius of influence in m (default: none)")
     p.add_argument("--metric", choices=("euclidean", "geodesic"), default="euclidean", help="distance for --radius")
-    p.add_argument("--threshold", type=float, help="drop responses below this fraction of each column's largest")
-    p.add_argument("--times", help="response samples in s, comma-separated (default 0.005,...,0.5)")
+    p.add_argument("--threshold", type=fraction, help="drop responses below this fraction of each column's largest")
+    p.add_argument("--times", type=time_list, help="response samples in s, comma-separated (default 0.005,...,0.5)")
     p.add_argument("--method", choices=("modal", "sldm"), default="modal", help="modal (r modes + static correction) or sldm")
-    p.add_argument("--tol", type=float, default=1e-6, help="SLDM tolerance (default 1e-6)")
-    p.add_argument("--workers", type=int, default=1, help="threads (default 1)")
-    p.add_argument("--memory-limit", type=float, default=4.0, help="refuse maps above this many GiB (default 4)")
+    p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--workers", type=count, default=1, help="threads (default 1)")
+    p.add_argument("--memory-limit", type=positive, default=4.0, help="refuse maps above this many GiB (default 4)")
     p.set_defaults(func=cmd_impedance)
 
     p = sub.add_parser("bench", help="time per step of the modal simulator against direct integration, measured now")
     add_model_options(p)
-    p.add_argument("--modes-list", type=int, nargs="+", default=[10, 40, 100], help="r values (default 10 40 100)")
-    p.add_argument("--direct-steps", type=int, default=30, help="direct Newmark steps timed (default 30)")
+    p.add_argument("--modes-list", type=count, nargs="+", default=[10, 40, 100], help="r values (default 10 40 100)")
+    p.add_argument("--direct-steps", type=count, default=30, help="direct Newmark steps timed (default 30)")
     p.add_argument("--plot", metavar="PNG", help="also plot the table")
     p.set_defaults(func=cmd_bench)
 
@@ -520,9 +667,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
     add_model_options(p)
     p.add_argument("--method", choices=("modal", "impedance", "direct"), default="modal", help="dynamics (default modal)")
-    p.add_argument("--stiffness", type=float, default=200.0, help="grasp spring in N/m (default 200)")
+    p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
+                   "and says so)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
@@ -532,14 +680,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option (2, one line already printed)
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
     try:
         return int(args.func(args))
     except RtfemError as exc:
-        print(f"rtfem: error: {exc}", file=sys.stderr)
+        print(f"rtfem: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"rtfem: error: {exc}", file=sys.stderr)
+        print(f"rtfem: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("rtfem: error: out of memory: use a coarser mesh, fewer modes or a smaller map (--radius, --threshold)",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("\nrtfem: interrupted", file=sys.stderr)

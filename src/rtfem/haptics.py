@@ -38,6 +38,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import validate
 from .errors import ModelError
 from .impedance import ImpedanceMap
 from .mesh import TriMesh
@@ -65,12 +66,11 @@ class Probe:
         if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
             raise ModelError("the probe drives a ModalSimulator, a (Newmark) DirectSimulator or an ImpedanceMap, "
                              f"not {type(driver).__name__}")
-        if coupling not in ("spring", "constraint"):
-            raise ModelError(f"coupling={coupling!r}; choose 'spring' or 'constraint'")
-        if not (np.isfinite(radius) and radius >= 0):
-            raise ModelError(f"radius={radius!r} must be >= 0 (m)")
-        if not (np.isfinite(stiffness) and stiffness > 0):
-            raise ModelError(f"stiffness={stiffness!r} must be > 0 (N/m)")
+        check_driver_mesh(mesh, driver, "probe")
+        validate.choice(coupling, "coupling", ("spring", "constraint"))
+        radius = validate.nonnegative(radius, "radius", "the probe tip radius in m")
+        stiffness = validate.positive(stiffness, "stiffness", "the coupling stiffness in N/m")
+        candidates = validate.count(candidates, "candidates", 1, 10_000)
         self.mesh = mesh
         self.driver = driver
         self.radius = float(radius)
@@ -101,9 +101,12 @@ class Probe:
         if nodes is None:
             if around is None:
                 raise ModelError("give nodes, or a point around which to prepare the contact compliances")
-            nodes = self._tree.query_ball_point(np.asarray(around, dtype=float), float(radius))
-        nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
-        for v in nodes:
+            centre = validate.point(around, "around")
+            radius = validate.positive(radius, "radius", "a distance in m")
+            nodes = np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)
+        else:
+            nodes = validate.nodes(nodes, self.mesh.n_vertices)
+        for v in nodes.tolist():
             self._compliance(int(v))
         return int(nodes.size)
 
@@ -140,9 +143,7 @@ class Probe:
 
     def update(self, position) -> np.ndarray:
         """Advance one step with the probe at ``position``; returns the force on the probe (N)."""
-        c = np.asarray(position, dtype=float)
-        if c.shape != (3,) or not np.all(np.isfinite(c)):
-            raise ModelError(f"probe position must be 3 finite coordinates, got {position!r}")
+        c = validate.point(position, "probe position")
         if self.contact_node is not None:
             # stay on the vertex in contact: under a frictionless load the surface slides
             # sideways and a nearest-vertex search would hop to a neighbour, dropping the force
@@ -196,12 +197,12 @@ class Grasp:
     def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None) -> None:
         if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
             raise ModelError(f"a grasp drives a ModalSimulator, a DirectSimulator or an ImpedanceMap, not {type(driver).__name__}")
-        if not (np.isfinite(stiffness) and stiffness > 0):
-            raise ModelError(f"stiffness={stiffness!r} must be > 0 (N/m)")
-        if max_force is not None and not (np.isfinite(max_force) and max_force > 0):
-            raise ModelError(f"max_force={max_force!r} must be > 0 (N) or None")
+        check_driver_mesh(mesh, driver, "grasp")
+        stiffness = validate.positive(stiffness, "stiffness", "the grasp spring stiffness in N/m")
+        if max_force is not None:
+            max_force = validate.positive(max_force, "max_force", "a force cap in N, or None")
         self.mesh, self.driver = mesh, driver
-        self.stiffness = float(stiffness)
+        self.stiffness = stiffness
         self.max_force = max_force
         self.X = np.asarray(mesh.vertices)
         self.node: int | None = None
@@ -217,9 +218,7 @@ class Grasp:
         return W
 
     def grab(self, node: int) -> None:
-        node = int(node)
-        if not 0 <= node < self.X.shape[0]:
-            raise ModelError(f"vertex {node} is not on the mesh (0..{self.X.shape[0] - 1})")
+        node = validate.node(node, self.X.shape[0])
         self.compliance(node)
         self.node = node
 
@@ -234,10 +233,8 @@ class Grasp:
         """
         d = self.driver
         f = np.zeros(3)
-        if self.node is not None and target is not None:
-            c = np.asarray(target, dtype=float)
-            if c.shape != (3,) or not np.all(np.isfinite(c)):
-                raise ModelError(f"grasp target must be 3 finite coordinates, got {target!r}")
+        c = None if target is None else validate.point(target, "grasp target")
+        if self.node is not None and c is not None:
             p = self.node
             u_free = np.zeros(3) if isinstance(d, ImpedanceMap) else d.predict(p)
             k = self.stiffness
@@ -284,6 +281,8 @@ class ScriptedDevice:
     """A probe that follows a trajectory: ``trajectory(t) -> (3,)`` position in metres."""
 
     def __init__(self, trajectory: Callable[[float], np.ndarray]) -> None:
+        if not callable(trajectory):
+            raise ModelError(f"trajectory={validate.show(trajectory)} must be a callable t -> (3,) position")
         self.trajectory = trajectory
         self.forces: list[np.ndarray] = []
         self.times: list[float] = []
@@ -300,6 +299,9 @@ class CallbackDevice:
     """Plug a real device driver (or the viewer) in: ``get_position() -> (3,)``, ``set_force(f)``."""
 
     def __init__(self, get_position: Callable[[], np.ndarray], set_force: Callable[[np.ndarray], None]) -> None:
+        for name, fn in (("get_position", get_position), ("set_force", set_force)):
+            if not callable(fn):
+                raise ModelError(f"{name}={validate.show(fn)} must be a callable")
         self._get, self._set = get_position, set_force
 
     def position(self, t: float) -> np.ndarray:
@@ -318,24 +320,38 @@ class HapticLoop:
     too coarse for 1 ms periods).
     """
 
+    MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
+
     def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4) -> None:
-        if not (np.isfinite(rate) and rate > 0):
-            raise ModelError(f"rate={rate!r} must be > 0 (Hz)")
+        if not hasattr(probe, "update") or not isinstance(probe, (Probe, Grasp)):
+            raise ModelError(f"probe={validate.show(probe)} must be an rt.Probe (or an rt.Grasp)")
+        if not (callable(getattr(device, "position", None)) and callable(getattr(device, "set_force", None))):
+            raise ModelError(f"device={validate.show(device)} must have position(t) and set_force(t, f) methods "
+                             "(rt.ScriptedDevice, rt.CallbackDevice)")
+        rate = validate.positive(rate, "rate", "ticks per second, in Hz")
+        if rate > self.MAX_RATE:
+            raise ModelError(f"rate={rate:g} Hz is above the {self.MAX_RATE:g} Hz a loop can be scheduled at; "
+                             "haptic devices run at 1 .. 10 kHz")
+        spin = validate.in_range(spin, "spin", 0.0, 0.1, what="seconds of busy-waiting before each tick")
         self.probe, self.device = probe, device
-        self.period = 1.0 / float(rate)
+        self.rate = rate
+        self.period = 1.0 / rate
         self.spin = spin
         self.stats = LoopStats()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
 
-    def _run(self, max_steps: int | None) -> None:
-        st = self.stats
+    def _run(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
+        st = stats
         t0 = time.perf_counter()
+        deadline = None if seconds is None else t0 + seconds
         k = 0
         try:
             while not self._stop.is_set() and (max_steps is None or k < max_steps):
                 target = t0 + k * self.period
+                if deadline is not None and target >= deadline:
+                    break
                 while True:
                     now = time.perf_counter()
                     wait = target - now
@@ -344,10 +360,12 @@ class HapticLoop:
                     if wait > self.spin:
                         time.sleep(wait - self.spin)
                 start = time.perf_counter()
-                st.lateness.append(start - target)
+                if deadline is not None and start >= deadline:
+                    break  # a loop that cannot keep the rate stops on time (the lateness says by how much)
                 t = k * self.period
                 f = self.probe.update(self.device.position(t))
                 self.device.set_force(t, f)
+                st.lateness.append(start - target)
                 st.compute.append(time.perf_counter() - start)
                 st.peak_force = max(st.peak_force, float(np.linalg.norm(f)))
                 k += 1
@@ -355,12 +373,34 @@ class HapticLoop:
                 st.seconds = time.perf_counter() - t0
         except BaseException as exc:  # surfaced by stop()/join()
             self.error = exc
+        finally:
+            st.seconds = time.perf_counter() - t0
+            with _OWNERS_LOCK:
+                if _OWNERS.get(id(self.probe)) is self:
+                    del _OWNERS[id(self.probe)]
 
-    def start(self, max_steps: int | None = None) -> "HapticLoop":
+    def start(self, max_steps: int | None = None, *, seconds: float | None = None) -> "HapticLoop":
+        """Start the loop on its own thread (fresh statistics); stop with :meth:`stop`.
+
+        One loop per probe: a second loop on a probe that is already driven is refused (two
+        loops would step the same simulator twice per tick).
+        """
+        if max_steps is not None:
+            max_steps = validate.count(max_steps, "max_steps", 1)
+        if seconds is not None:
+            seconds = validate.positive(seconds, "seconds", "a duration in seconds")
         if self._thread is not None and self._thread.is_alive():
-            raise ModelError("the haptic loop is already running")
+            raise ModelError("this haptic loop is already running; stop() it first")
+        with _OWNERS_LOCK:
+            owner = _OWNERS.get(id(self.probe))
+            if owner is not None and owner is not self:
+                raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
+            _OWNERS[id(self.probe)] = self
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, args=(max_steps,), name="rtfem-haptic-loop", daemon=True)
+        self.error = None
+        self.stats = LoopStats()
+        self._thread = threading.Thread(target=self._run, args=(self.stats, max_steps, seconds),
+                                        name="rtfem-haptic-loop", daemon=True)
         self._thread.start()
         return self
 
@@ -369,11 +409,43 @@ class HapticLoop:
         if self._thread is not None:
             self._thread.join()
         if self.error is not None:
-            raise self.error
+            err, self.error = self.error, None
+            raise err
         return self.stats
 
     def run(self, seconds: float) -> LoopStats:
-        """Run in real time for ``seconds`` (blocking) and return the statistics."""
-        self.start(max_steps=int(round(seconds / self.period)))
+        """Run for ``seconds`` of wall-clock time (blocking) and return the statistics.
+
+        A loop that cannot keep its rate still stops on time; its statistics show how many
+        ticks it managed and how late they were.
+        """
+        seconds = validate.positive(seconds, "seconds", "a duration in seconds")
+        if seconds > 1e6:
+            raise ModelError(f"seconds={seconds:g} is more than 11 days; use start() and stop() for an open-ended loop")
+        self.start(seconds=seconds)
         self._thread.join()  # type: ignore[union-attr]
         return self.stop()
+
+
+_OWNERS: dict[int, HapticLoop] = {}  # id(probe) -> the loop driving it
+_OWNERS_LOCK = threading.Lock()
+
+
+def check_driver_mesh(mesh, driver, what: str) -> None:
+    """Refuse a driver computed for another mesh (size or fingerprint), when it says which."""
+    from .modal import mesh_fingerprint
+
+    if not isinstance(mesh, TriMesh):
+        raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (the organ the {what} touches)")
+    if isinstance(driver, ModalSimulator):
+        n, fp = driver.n_nodes, driver.modes.fingerprint
+    elif isinstance(driver, DirectSimulator):
+        n, fp = driver.n_nodes, None if driver.model.mesh is mesh else mesh_fingerprint(driver.model.mesh)
+    else:
+        n, fp = driver.n_nodes, driver.fingerprint
+    if n != mesh.n_vertices:
+        raise ModelError(f"the {what}'s driver was computed for a mesh of {n} nodes, not this mesh of "
+                         f"{mesh.n_vertices}: give the mesh it was computed for")
+    if fp is not None and fp != mesh_fingerprint(mesh):
+        raise ModelError(f"the {what}'s driver was computed for another mesh of the same size (fingerprint "
+                         f"{str(fp)[:8]}, this mesh {mesh_fingerprint(mesh)[:8]}): give the mesh it was computed for")

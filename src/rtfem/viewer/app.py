@@ -10,6 +10,7 @@ colour-coded surface at up to 30 frames per second, the contact-force plot and t
 from __future__ import annotations
 
 import threading
+import sys
 import time
 from pathlib import Path
 
@@ -81,6 +82,14 @@ class Viewer:
         except OSError as exc:
             raise RtfemError(f"cannot serve on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
         self.host, self.port = host, self.server.get_port()
+        if port and self.port != port:
+            print(f"rtfem viewer: port {port} is in use; serving on port {self.port} instead", file=sys.stderr,
+                  flush=True)
+        if not _is_loopback(host):
+            print(f"rtfem viewer: WARNING: serving on {host}:{self.port} makes the organ and its controls reachable "
+                  "from other machines on the network, and the viewer has no authentication: anyone who can "
+                  "reach this port can use it. Serve on 127.0.0.1 unless that is what you want.", file=sys.stderr,
+                  flush=True)
         self.url = f"http://{host}:{self.port}"
         self.frames = 0
         self.frame_rate = 0.0
@@ -367,6 +376,21 @@ def serve(mesh: TriMesh | None = None, *, material: Material | None = None, fixe
                 time.sleep(0.5)
         except KeyboardInterrupt:
             print("\nrtfem viewer: stopped", flush=True)
+            raise  # the command exits 130, as every interrupted command does
         finally:
             viewer.stop()
     return viewer
+
+
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+    import socket
+
+    try:
+        addrs = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except (socket.gaierror, UnicodeError):
+        return False
+    try:
+        return all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addrs)
+    except ValueError:
+        return False

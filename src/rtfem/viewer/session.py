@@ -19,10 +19,11 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from .. import validate
 from ..errors import ModelError
 from ..haptics import Grasp
 from ..impedance import ImpedanceMap
@@ -48,19 +49,16 @@ class Settings:
     max_force: float = 2.0  # N
 
     def check(self) -> "Settings":
-        if self.method not in METHODS:
-            raise ModelError(f"method={self.method!r}; choose one of {', '.join(METHODS)}")
-        if not (1 <= int(self.n_modes) <= 2000):
-            raise ModelError(f"n_modes={self.n_modes!r}: choose 1..2000 modes")
-        if not (np.isfinite(self.dt) and 1e-5 <= self.dt <= 0.05):
-            raise ModelError(f"dt={self.dt!r}: choose a time step between 1e-5 and 0.05 s")
-        if not (np.isfinite(self.alpha) and self.alpha >= 0):
-            raise ModelError(f"alpha={self.alpha!r}: damping must be >= 0 (1/s)")
-        if self.E is not None and not (np.isfinite(self.E) and self.E > 0):
-            raise ModelError(f"E={self.E!r}: Young's modulus must be > 0 (Pa)")
-        if not (np.isfinite(self.grasp_stiffness) and self.grasp_stiffness > 0):
-            raise ModelError(f"grasp_stiffness={self.grasp_stiffness!r} must be > 0 (N/m)")
-        return self
+        """Validate every field; returns a checked copy (numbers as floats, n_modes as an int)."""
+        return Settings(
+            method=validate.choice(self.method, "method", METHODS),
+            n_modes=validate.count(self.n_modes, "n_modes", 1, 2000, what="modes in use"),
+            dt=validate.in_range(self.dt, "dt", 1e-5, 0.05, what="the viewer's time step in s"),
+            alpha=validate.nonnegative(self.alpha, "alpha", "mass-proportional damping in 1/s"),
+            E=None if self.E is None else validate.positive(self.E, "E", "Young's modulus in Pa"),
+            grasp_stiffness=validate.positive(self.grasp_stiffness, "grasp_stiffness", "the grasp spring in N/m"),
+            max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
+        )
 
 
 @dataclass
@@ -78,6 +76,12 @@ class Session:
 
     def __init__(self, mesh: TriMesh, material: Material | None = None, fixed="attachment",
                  settings: Settings | None = None) -> None:
+        if not isinstance(mesh, TriMesh):
+            raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
+        if material is not None and not isinstance(material, Material):
+            raise ModelError(f"material={validate.show(material)} must be an rt.Material (or None)")
+        if settings is not None and not isinstance(settings, Settings):
+            raise ModelError(f"settings={validate.show(settings)} must be a viewer Settings (or None)")
         self.mesh = mesh
         self.material = material if material is not None else Material()
         self.settings = (settings or Settings()).check()
@@ -137,8 +141,13 @@ class Session:
 
     def configure(self, **changes) -> None:
         """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, max_force) and rebuild."""
+        known = {f.name for f in fields(Settings)}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise ModelError(f"unknown setting {unknown[0]!r}; the settings are {', '.join(sorted(known))}")
         s = replace(self.settings, **changes).check()
-        s.n_modes = int(s.n_modes)
+        if s.n_modes > self.model.n_dofs // 6 * 3 - 1:
+            raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
         self._build(s)
 
     def _impedance_map(self, node: int) -> ImpedanceMap:
@@ -170,9 +179,7 @@ class Session:
         return node
 
     def drag(self, target) -> None:
-        t = np.asarray(target, dtype=float)
-        if t.shape != (3,) or not np.all(np.isfinite(t)):
-            raise ModelError(f"drag target must be 3 finite coordinates, got {target!r}")
+        t = validate.point(target, "drag target")
         with self._lock:
             if self.node is not None:
                 self.target = t
