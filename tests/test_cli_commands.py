@@ -167,4 +167,4 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
     finally:
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=30)
-    assert p.returncode == 0 and "stopped" in out and "Traceback" not in err
+    assert p.returncode == 130 and "stopped" in out and "Traceback" not in err
