@@ -275,7 +275,8 @@ class ModalSimulator(_ForceInput):
         u(k+1) = predict(node) + W f: the relation a haptic contact solves (James & Pai's
         capacitance approach) before stepping.
         """
-        node = self._node(node)
+        if type(node) is not int or not 0 <= node < self.n_nodes:
+            node = self._node(node)
         S = self._S
         x = self._C1[0] * S[0] + self._C2[0] * S[1]
         if self._G0 is not None:

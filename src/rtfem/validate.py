@@ -149,7 +149,10 @@ def vector(value: Any, name: str, size: int | Sequence[int] = 3, *, error: type 
 
 
 def point(value: Any, name: str = "point", *, error: type = ModelError) -> np.ndarray:
-    """A point (or a vector) in 3-D: three finite numbers."""
+    """A point (or a vector) in 3-D: three finite numbers (a float (3,) array is returned as is)."""
+    if type(value) is np.ndarray and value.shape == (3,) and value.dtype == np.float64 \
+            and math.isfinite(value[0]) and math.isfinite(value[1]) and math.isfinite(value[2]):
+        return value  # the haptic loop's fast path: no conversion, no copy
     return vector(value, name, 3, error=error)
 
 
