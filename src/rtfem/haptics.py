@@ -40,9 +40,8 @@ from scipy.spatial import cKDTree
 
 from . import validate
 from .errors import ModelError
-from .impedance import ImpedanceMap
 from .mesh import TriMesh
-from .simulate import DirectSimulator, ModalSimulator
+from .simulate import as_driver, displacements_at
 
 __all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
 
@@ -63,9 +62,7 @@ class Probe:
 
     def __init__(self, mesh: TriMesh, driver, *, radius: float = 0.0, coupling: str = "spring",
                  stiffness: float = 200.0, candidates: int = 8) -> None:
-        if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
-            raise ModelError("the probe drives a ModalSimulator, a (Newmark) DirectSimulator or an ImpedanceMap, "
-                             f"not {type(driver).__name__}")
+        driver = as_driver(driver, "probe")
         check_driver_mesh(mesh, driver, "probe")
         validate.choice(coupling, "coupling", ("spring", "constraint"))
         radius = validate.nonnegative(radius, "radius", "the probe tip radius in m")
@@ -88,7 +85,6 @@ class Probe:
         self.force = np.zeros(3)  # force on the probe (what the user feels), N
         self.contact_node: int | None = None
         self.penetration = 0.0
-        self._map_load: tuple[int, np.ndarray] | None = None  # (node, force on the organ), map route
 
     def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
         """Precompute the contact compliances W of the vertices the probe may touch.
@@ -112,34 +108,16 @@ class Probe:
 
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacement field now (for drawing; O(n), not for the force loop)."""
-        d = self.driver
-        if not isinstance(d, ImpedanceMap):
-            return d.displacements()
-        if self._map_load is None:
-            return np.zeros((self.mesh.n_vertices, 3))
-        p, f = self._map_load
-        return d.displacements([(p, f, 0.0)], np.inf)
+        return self.driver.displacements()
 
     def _compliance(self, node: int) -> np.ndarray:
         W = self._W.get(node)
         if W is None:
-            if isinstance(self.driver, ImpedanceMap):
-                W = self.driver.point_compliance(node)
-            else:
-                W = self.driver.step_compliance(node)
-            self._W[node] = W
+            W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
         return W
 
     def _deformed(self, nodes: np.ndarray) -> np.ndarray:
-        d = self.driver
-        if isinstance(d, ModalSimulator):
-            return self.X[nodes] + d._phi[nodes] @ d.q
-        if isinstance(d, DirectSimulator):
-            return self.X[nodes] + d.displacements()[nodes]
-        if self._map_load is None:
-            return self.X[nodes]
-        p, f = self._map_load
-        return self.X[nodes] + d.compliance_at(p, nodes) @ f
+        return self.X[nodes] + displacements_at(self.driver, nodes)
 
     def update(self, position) -> np.ndarray:
         """Advance one step with the probe at ``position``; returns the force on the probe (N)."""
@@ -158,19 +136,13 @@ class Probe:
         g = float(n @ (c - self.X[p])) - self.radius
         d = self.driver
         lam = 0.0
-        if isinstance(d, ImpedanceMap):
-            u_free = np.zeros(3)
-        else:
-            u_free = d.predict(p)
+        u_free = d.predict(p)
         if n @ u_free > g:  # the surface would pass the probe: contact
             W = self._compliance(p)
             denom = float(n @ W @ n) + (1.0 / self.stiffness if self.coupling == "spring" else 0.0)
             lam = (float(n @ u_free) - g) / denom
         f_organ = -lam * n
-        if not isinstance(d, ImpedanceMap):
-            d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
-        else:  # quasi-static: the static response to the contact force (evaluated where needed)
-            self._map_load = (p, f_organ) if lam > 0 else None
+        d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
         self.contact_node = p if lam > 0 else None
         self.penetration = max(0.0, float(n @ u_free) - g) if lam > 0 else 0.0
         self.force = -f_organ
@@ -195,8 +167,7 @@ class Grasp:
     """
 
     def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None) -> None:
-        if not isinstance(driver, (ModalSimulator, DirectSimulator, ImpedanceMap)):
-            raise ModelError(f"a grasp drives a ModalSimulator, a DirectSimulator or an ImpedanceMap, not {type(driver).__name__}")
+        driver = as_driver(driver, "grasp")
         check_driver_mesh(mesh, driver, "grasp")
         stiffness = validate.positive(stiffness, "stiffness", "the grasp spring stiffness in N/m")
         if max_force is not None:
@@ -212,9 +183,7 @@ class Grasp:
     def compliance(self, node: int) -> np.ndarray:
         W = self._W.get(node)
         if W is None:
-            d = self.driver
-            W = d.point_compliance(node) if isinstance(d, ImpedanceMap) else d.step_compliance(node)
-            self._W[node] = W
+            W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
         return W
 
     def grab(self, node: int) -> None:
@@ -228,23 +197,22 @@ class Grasp:
     def update(self, target=None) -> np.ndarray:
         """One step with the hand at ``target`` (None or no grab: the organ moves freely).
 
-        Returns the force on the organ (N). With an ImpedanceMap nothing is stepped: the
-        force is the quasi-static one and the caller superposes the map's responses.
+        Returns the force on the organ (N). With an ImpedanceMap the step is quasi-static (the
+        map's driver holds the force; its field is the superposed static responses).
         """
         d = self.driver
         f = np.zeros(3)
         c = None if target is None else validate.point(target, "grasp target")
         if self.node is not None and c is not None:
             p = self.node
-            u_free = np.zeros(3) if isinstance(d, ImpedanceMap) else d.predict(p)
+            u_free = d.predict(p)
             k = self.stiffness
             f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - u_free))
             if self.max_force is not None:
                 mag = float(np.linalg.norm(f))
                 if mag > self.max_force:
                     f *= self.max_force / mag
-        if not isinstance(d, ImpedanceMap):
-            d.step({self.node: (f[0], f[1], f[2])} if self.node is not None and np.any(f) else None)
+        d.step({self.node: (f[0], f[1], f[2])} if self.node is not None and np.any(f) else None)
         self.force = f
         return f
 
@@ -323,8 +291,9 @@ class HapticLoop:
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
 
     def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4) -> None:
-        if not hasattr(probe, "update") or not isinstance(probe, (Probe, Grasp)):
-            raise ModelError(f"probe={validate.show(probe)} must be an rt.Probe (or an rt.Grasp)")
+        if not callable(getattr(probe, "update", None)) or not hasattr(probe, "driver"):
+            raise ModelError(f"probe={validate.show(probe)} must be an rt.Probe (or an rt.Grasp): an object with "
+                             "update(position) and a driver")
         if not (callable(getattr(device, "position", None)) and callable(getattr(device, "set_force", None))):
             raise ModelError(f"device={validate.show(device)} must have position(t) and set_force(t, f) methods "
                              "(rt.ScriptedDevice, rt.CallbackDevice)")
@@ -437,12 +406,7 @@ def check_driver_mesh(mesh, driver, what: str) -> None:
 
     if not isinstance(mesh, TriMesh):
         raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (the organ the {what} touches)")
-    if isinstance(driver, ModalSimulator):
-        n, fp = driver.n_nodes, driver.modes.fingerprint
-    elif isinstance(driver, DirectSimulator):
-        n, fp = driver.n_nodes, None if driver.model.mesh is mesh else mesh_fingerprint(driver.model.mesh)
-    else:
-        n, fp = driver.n_nodes, driver.fingerprint
+    n, fp = driver.n_nodes, getattr(driver, "fingerprint", None)
     if n != mesh.n_vertices:
         raise ModelError(f"the {what}'s driver was computed for a mesh of {n} nodes, not this mesh of "
                          f"{mesh.n_vertices}: give the mesh it was computed for")

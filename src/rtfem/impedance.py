@@ -33,7 +33,7 @@ from .material import Damping
 from .modal import mesh_fingerprint, modal_analysis
 from .oscillator import step_response
 
-__all__ = ["ImpedanceMap", "Load"]
+__all__ = ["ImpedanceMap", "ImpedanceDriver", "Load"]
 
 FORMAT_VERSION = 1
 
@@ -354,6 +354,10 @@ class ImpedanceMap:
         out = self._sample(P, t)
         return np.zeros((3, 3)) if out is None else out[0]
 
+    def as_driver(self, dt: float = 1e-3) -> "ImpedanceDriver":
+        """This map as a quasi-static Driver (what Probe and Grasp use when given the map)."""
+        return ImpedanceDriver(self, dt)
+
     # ---------------------------------------------------------------- files
     _ARRAYS = ["times", "loaded", "offsets", "neighbours", "responses", "point"]
 
@@ -461,3 +465,88 @@ class _SLDMColumns:
             cols[:, :-1, :, k] = U.transpose(1, 0, 2)
             cols[:, -1, :, k] = self.model.unit_load_response(j, k)
         return cols
+
+
+class ImpedanceDriver:
+    """An ImpedanceMap as a quasi-static Driver (paper 4.1: the organ answers a contact force
+    with its static response).
+
+    ``step(forces)`` makes ``forces`` the current loads (loaded nodes of the map only);
+    with no load the organ is at rest, so ``predict`` is zero and ``step_compliance`` is the
+    exact static point compliance G_pp. The displacement field is the superposition of the
+    static columns of the current loads. Nothing is solved at run time.
+    """
+
+    def __init__(self, imap: ImpedanceMap, dt: float = 1e-3) -> None:
+        if not isinstance(imap, ImpedanceMap):
+            raise ModelError(f"imap={validate.show(imap)} must be an ImpedanceMap")
+        self.map = imap
+        self.dt = validate.time_step(dt)
+        self.n_nodes = imap.n_nodes
+        self.fingerprint = imap.fingerprint
+        self.time = 0.0
+        self.steps = 0
+        self._loads: dict[int, np.ndarray] = {}
+
+    def step(self, forces=None) -> None:
+        loads: dict[int, np.ndarray] = {}
+        if forces is not None:
+            from collections.abc import Mapping
+
+            if isinstance(forces, Mapping):
+                for node, f in forces.items():
+                    i = validate.node(node, self.n_nodes, "force key")
+                    v = validate.vector(f, f"force on node {i}", 3)
+                    self.map._slot_of(i)
+                    loads[i] = loads.get(i, 0.0) + v
+            else:
+                F = validate.forces(forces, self.n_nodes)
+                for i in np.flatnonzero(np.any(F != 0, axis=1)).tolist():
+                    self.map._slot_of(i)
+                    loads[i] = F[i]
+        self._loads = {i: f for i, f in loads.items() if np.any(f)}
+        self.steps += 1
+        self.time = self.steps * self.dt
+
+    def predict(self, node) -> np.ndarray:
+        validate.node(node, self.n_nodes)
+        return np.zeros(3)
+
+    def step_compliance(self, node) -> np.ndarray:
+        return self.map.point_compliance(node)
+
+    def displacements_at(self, nodes) -> np.ndarray:
+        nodes = validate.nodes(nodes, self.n_nodes)
+        u = np.zeros((nodes.size, 3))
+        for p, f in self._loads.items():
+            u += self.map.compliance_at(p, nodes) @ f
+        return u
+
+    def displacement(self, node) -> np.ndarray:
+        return self.displacements_at([validate.node(node, self.n_nodes)])[0]
+
+    def displacements(self) -> np.ndarray:
+        if not self._loads:
+            return np.zeros((self.n_nodes, 3))
+        return self.map.displacements([(p, f, 0.0) for p, f in self._loads.items()], np.inf)
+
+    def reset(self) -> None:
+        self._loads = {}
+        self.time = 0.0
+        self.steps = 0
+
+    def get_state(self) -> dict:
+        return {"loads": {p: f.copy() for p, f in self._loads.items()}, "steps": self.steps}
+
+    def set_state(self, state) -> None:
+        from collections.abc import Mapping
+
+        if not isinstance(state, Mapping) or set(state) != {"loads", "steps"} or not isinstance(state["loads"], Mapping):
+            raise ModelError("state must be a mapping with 'loads' ({node: force}) and 'steps', as get_state() returns")
+        loads = {}
+        for node, f in state["loads"].items():
+            i = validate.node(node, self.n_nodes, "load node")
+            self.map._slot_of(i)
+            loads[i] = validate.vector(f, f"load on node {i}", 3)
+        steps = validate.count(state["steps"], "state['steps']", 0)
+        self._loads, self.steps, self.time = loads, steps, steps * self.dt

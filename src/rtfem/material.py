@@ -104,7 +104,8 @@ class Damping:
         return self.zeta is not None and (np.ndim(self.zeta) > 0 or self.zeta != 0.0)
 
     def modal_alpha(self, omega: np.ndarray) -> np.ndarray:
-        """Per-mode damping coefficients alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i."""
+        """Per-mode damping coefficients alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i (Eq. 9): the one
+        copy of the formula (SLDM evaluates it at Ritz values through :meth:`alpha_of_eigenvalue`)."""
         w = np.asarray(omega, dtype=float)
         a = self.alpha + self.beta * w**2
         if self.zeta is not None:
@@ -113,6 +114,10 @@ class Damping:
                 raise ModelError(f"Damping has {z.size} modal damping ratios but the basis has {w.size} modes")
             a = a + 2.0 * z * w
         return a
+
+    def alpha_of_eigenvalue(self, lam: np.ndarray) -> np.ndarray:
+        """:meth:`modal_alpha` at w = sqrt(lam) (lam = w^2 >= 0; round-off negatives clipped)."""
+        return self.modal_alpha(np.sqrt(np.clip(np.asarray(lam, dtype=float), 0.0, None)))
 
     def matrix(self, M, K):
         """The full-system damping matrix B = alpha M + beta K (refused for modal ratios)."""

@@ -18,7 +18,7 @@ Newmark (effective stiffness factorized once) or the central-difference method.
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,7 +31,8 @@ from .material import Damping
 from .modal import ModalBasis
 from .oscillator import transition
 
-__all__ = ["ModalSimulator", "DirectSimulator", "newmark_coefficients"]
+__all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "ModalSimulator", "DirectSimulator",
+           "newmark_coefficients"]
 
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
@@ -49,6 +50,20 @@ def _check_damping(damping) -> Damping:
     return damping
 
 
+def newmark_constants(dt: float, beta: float = _NEWMARK_BETA, gamma: float = _NEWMARK_GAMMA) -> tuple[float, ...]:
+    """The six constants of Newmark's method (Bathe's a0..a5; the paper's Eq. 12-15):
+    c0 = 1/(beta dt^2), c1 = gamma/(beta dt), c2 = 1/(beta dt), c3 = 1/(2 beta) - 1,
+    c4 = gamma/beta - 1, c5 = dt/2 (gamma/beta - 2); the one copy used by the modal and
+    the full-order Newmark updates."""
+    return (1.0 / (beta * dt * dt), gamma / (beta * dt), 1.0 / (beta * dt), 1.0 / (2 * beta) - 1.0,
+            gamma / beta - 1.0, 0.5 * dt * (gamma / beta - 2.0))
+
+
+def newmark_velocity(v, acc, acc_new, dt: float, gamma: float = _NEWMARK_GAMMA):
+    """v_{t+dt} = v_t + dt ((1 - gamma) a_t + gamma a_{t+dt})."""
+    return v + dt * ((1 - gamma) * acc + gamma * acc_new)
+
+
 def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float = _NEWMARK_GAMMA):
     """Newmark's scalar update as a linear map (Eq. 12-15).
 
@@ -57,12 +72,7 @@ def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float =
     [x, v]_{t+dt} = Phi [x, v]_t + G0 f_t + G1 f_{t+dt}.
     """
     lam, a = np.broadcast_arrays(np.asarray(lam, float), np.asarray(a, float))
-    c0 = 1.0 / (beta * dt * dt)
-    c1 = gamma / (beta * dt)
-    c2 = 1.0 / (beta * dt)
-    c3 = 1.0 / (2 * beta) - 1.0
-    c4 = gamma / beta - 1.0
-    c5 = 0.5 * dt * (gamma / beta - 2.0)
+    c0, c1, c2, c3, c4, c5 = newmark_constants(dt, beta, gamma)
     khat = lam + a * c1 + c0
 
     def advance(x, v, f0, f1):
@@ -70,7 +80,7 @@ def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float =
         fhat = f1 + c0 * x + c2 * v + c3 * acc + a * (c1 * x + c4 * v + c5 * acc)
         xn = fhat / khat
         an = c0 * (xn - x) - c2 * v - c3 * acc
-        vn = v + dt * ((1 - gamma) * acc + gamma * an)
+        vn = newmark_velocity(v, acc, an, dt, gamma)
         return xn, vn
 
     one, zero = np.ones_like(lam), np.zeros_like(lam)
@@ -79,6 +89,57 @@ def newmark_coefficients(lam, a, dt, beta: float = _NEWMARK_BETA, gamma: float =
     G0 = np.stack(advance(zero, zero, one, zero), -1)
     G1 = np.stack(advance(zero, zero, zero, one), -1)
     return Phi, G0, G1
+
+
+@runtime_checkable
+class Driver(Protocol):
+    """What Probe, Grasp, HapticLoop and the viewer ask of anything that advances in time.
+
+    ``step(forces)`` advances one step of ``dt`` under ``forces`` ({node: (fx, fy, fz)} or an
+    (n, 3) array; None for no load) and, like every member, refuses bad input before changing
+    any state. ``predict(node)`` is where the node would be after one more step with no load and
+    ``step_compliance(node)`` the 3x3 W with u(k+1) = predict(node) + W f for a force f on it.
+    Implemented by :class:`ModalSimulator`, the full-order simulators of :class:`DirectSimulator`
+    and the impedance map's driver (:meth:`ImpedanceMap.as_driver`); a user's own class with
+    these members works with every consumer. Optional, with a fallback on the members:
+    ``displacements_at(nodes)`` (a batched query), ``fingerprint`` (the mesh hash, checked by
+    the consumers when present).
+    """
+
+    dt: float
+    time: float
+    n_nodes: int
+
+    def step(self, forces=None) -> None: ...
+    def predict(self, node: int) -> np.ndarray: ...
+    def step_compliance(self, node: int) -> np.ndarray: ...
+    def displacement(self, node: int) -> np.ndarray: ...
+    def displacements(self) -> np.ndarray: ...
+    def reset(self) -> None: ...
+    def get_state(self) -> dict: ...
+    def set_state(self, state) -> None: ...
+
+
+DRIVER_MEMBERS = ("step", "predict", "step_compliance", "displacement", "displacements", "reset", "get_state",
+                  "set_state", "dt", "time", "n_nodes")
+
+
+def as_driver(obj, what: str = "probe"):
+    """``obj`` as a Driver: objects with ``as_driver()`` (an ImpedanceMap) are converted; anything
+    lacking a protocol member is refused, naming what it lacks."""
+    if hasattr(obj, "as_driver") and callable(obj.as_driver):
+        obj = obj.as_driver()
+    missing = [m for m in DRIVER_MEMBERS if not hasattr(obj, m)]
+    if missing:
+        raise ModelError(f"the {what} drives a ModalSimulator, a Newmark DirectSimulator, an ImpedanceMap or any Driver "
+                         f"(a class with {', '.join(DRIVER_MEMBERS)}); {validate.show(obj)} lacks {', '.join(missing)}")
+    return obj
+
+
+def displacements_at(driver, nodes: np.ndarray) -> np.ndarray:
+    """(k, 3) displacements of some nodes: the driver's batched query when it has one."""
+    fn = getattr(driver, "displacements_at", None)
+    return fn(nodes) if fn is not None else np.asarray(driver.displacements())[nodes]
 
 
 class _ForceInput:
@@ -318,6 +379,21 @@ class ModalSimulator(_ForceInput):
                 u = u + self._correction_column(j)[i] @ f
         return u
 
+    def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
+        """(k, 3) displacements of ``nodes`` (indices), O(k r) plus the static correction of the loads."""
+        u = self._phi[nodes] @ self._S[0]
+        if self.static_correction:
+            if self._load_array is not None:
+                return self.displacements()[nodes]
+            for j, f in self._loads.items():
+                u = u + self._correction_column(j)[nodes] @ f
+        return u
+
+    @property
+    def fingerprint(self) -> str:
+        """The hash of the mesh the basis belongs to."""
+        return self.modes.fingerprint
+
     def velocities(self) -> np.ndarray:
         r = self._phi.shape[2]
         return (self._phi.reshape(-1, r) @ self._S[1]).reshape(-1, 3)
@@ -397,8 +473,7 @@ class DirectSimulator(_ForceInput):
         if method == "newmark":
             M = sp.diags(m, format="csr")
             B = self.damping.matrix(M, K)
-            b, g = _NEWMARK_BETA, _NEWMARK_GAMMA
-            self._c = (1 / (b * dt**2), g / (b * dt), 1 / (b * dt), 1 / (2 * b) - 1, g / b - 1, 0.5 * dt * (g / b - 2))
+            self._c = newmark_constants(dt)
             c0, c1 = self._c[0], self._c[1]
             Khat = (K + c1 * B + c0 * M).tocsc()
             self._M = m
@@ -526,7 +601,7 @@ class DirectSimulator(_ForceInput):
                 un = self._fac.solve(F[self._dofs] + self._rhs_free())
             self._free = None
             an = c0 * (un - u) - c2 * v - c3 * a
-            self._v = v + self.dt * (0.5 * a + 0.5 * an)
+            self._v = newmark_velocity(v, a, an, self.dt)
             self._u, self._a = un, an
         else:
             F = self._load(forces)
@@ -554,10 +629,46 @@ class DirectSimulator(_ForceInput):
     def displacement(self, node: int) -> np.ndarray:
         return self.displacements()[self._node(node)]
 
+    def _state_names(self) -> tuple[str, ...]:
+        return ("_u", "_v", "_a") if self.method == "newmark" else ("_u", "_u_old")
+
     def reset(self) -> None:
-        for name in ("_u", "_v", "_a", "_u_old"):
-            if hasattr(self, name):
-                getattr(self, name)[:] = 0.0
+        for name in self._state_names():
+            getattr(self, name)[:] = 0.0
         self._free = None
         self.time = 0.0
         self.steps = 0
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """A copy of the state (solved-dof vectors and the step count)."""
+        out = {name[1:]: getattr(self, name).copy() for name in self._state_names()}
+        out["steps"] = np.array(self.steps)
+        return out
+
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        """Restore a state from :meth:`get_state`; checked whole before anything changes."""
+        names = self._state_names()
+        if not isinstance(state, Mapping) or set(state) != {n[1:] for n in names} | {"steps"}:
+            raise ModelError(f"state must be a mapping with {', '.join(n[1:] for n in names)} and steps, as get_state() "
+                             "returns")
+        arrays = {}
+        for name in names:
+            a = validate.real_array(state[name[1:]], f"state[{name[1:]!r}]", 1)
+            if a.shape != getattr(self, name).shape:
+                raise ModelError(f"state[{name[1:]!r}] must have shape {getattr(self, name).shape}, got {a.shape}")
+            arrays[name] = a
+        steps = state["steps"]
+        steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
+        for name, a in arrays.items():
+            setattr(self, name, a.copy())
+        self._free = None
+        self.steps = steps
+        self.time = steps * self.dt
+
+    @property
+    def fingerprint(self) -> str:
+        from .modal import mesh_fingerprint
+
+        if getattr(self, "_fingerprint", None) is None:
+            self._fingerprint = mesh_fingerprint(self.model.mesh)
+        return self._fingerprint

@@ -151,11 +151,7 @@ class SLDM:
         return self._s * self._c.load(self.model.force_vector(forces))
 
     def _alpha_of(self, lam: np.ndarray) -> np.ndarray:
-        d = self.damping
-        a = d.alpha + d.beta * lam
-        if d.zeta is not None:
-            a = a + 2.0 * float(d.zeta) * np.sqrt(np.clip(lam, 0.0, None))
-        return a
+        return self.damping.alpha_of_eigenvalue(lam)
 
     def _displacements(self, L: Lanczos, z: np.ndarray) -> np.ndarray:
         """u = M^-1/2 beta0 Q_m z for every column of z: (k, n, 3) nodal translations.
