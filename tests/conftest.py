@@ -49,3 +49,16 @@ def rigid_body_modes(X: np.ndarray) -> np.ndarray:
         R[:, :3, 3 + k] = np.cross(e, c)
         R[:, 3 + k, 3 + k] = 1.0
     return R.reshape(6 * n, 6)
+
+
+def wait_for_viewer_address(p, timeout: float = 120.0) -> str:
+    """The viewer's "open http://..." line from a `rtfem view` subprocess ('' if it never came)."""
+    import time
+
+    t0 = time.time()
+    line = ""
+    while "open http" not in line and time.time() - t0 < timeout:
+        line = p.stdout.readline()
+        if not line and p.poll() is not None:
+            break
+    return line

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 
 import numpy as np
@@ -15,7 +14,7 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli import main
-from conftest import organ
+from conftest import organ, wait_for_viewer_address
 
 GB = ["--scale", "1e-3", "--fix", "bottom:0.2"]  # the gallbladder file is in mm, free-floating
 
@@ -155,12 +154,7 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
     p = subprocess.Popen([sys.executable, "-m", "rtfem.cli", "view", gallbladder(), *GB, "--port", str(port)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        t0 = time.time()
-        line = ""
-        while "open http" not in line and time.time() - t0 < 120:
-            line = p.stdout.readline()
-            if not line and p.poll() is not None:
-                break
+        line = wait_for_viewer_address(p)
         assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read()
         assert b"<html" in page.lower()

@@ -22,7 +22,7 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli import main
-from conftest import ORGANS, liver_model, organ
+from conftest import ORGANS, liver_model, organ, wait_for_viewer_address
 
 PY = sys.executable
 NAN = float("nan")
@@ -636,21 +636,11 @@ def _view(*extra) -> subprocess.Popen:
                              *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_address(p: subprocess.Popen) -> str:
-    t0 = time.time()
-    line = ""
-    while "open http" not in line and time.time() - t0 < 120:
-        line = p.stdout.readline()
-        if not line and p.poll() is not None:
-            break
-    return line
-
-
 def test_view_warns_loudly_when_serving_the_network_and_exits_130_on_ctrl_c():
     pytest.importorskip("viser")
     p = _view("--host", "0.0.0.0", "--port", str(free_port()))
     try:
-        line = _wait_for_address(p)
+        line = wait_for_viewer_address(p)
         assert "open http" in line
     finally:
         p.send_signal(signal.SIGINT)
@@ -667,7 +657,7 @@ def test_view_says_when_its_port_is_busy():
         port = busy.getsockname()[1]
         p = _view("--port", str(port))
         try:
-            line = _wait_for_address(p)
+            line = wait_for_viewer_address(p)
         finally:
             p.send_signal(signal.SIGINT)
             out, err = p.communicate(timeout=30)

@@ -183,6 +183,24 @@ def _entries() -> list[Entry]:
     for meth in ("displacement", "predict", "step_compliance"):
         add(f"DirectSimulator.{meth}", lambda o, meth=meth, **k: getattr(direct_shared, meth)(**k), dict(node=node),
             dict(node=nodes_bad(n)), make=lambda: direct_shared, snapshot=_direct_state)
+    add("ModalSimulator.displacements_at", lambda o, **k: sim_shared.displacements_at(**k), dict(nodes=[node]),
+        dict(nodes=[[-1], [10**9], [2.5], "abc", OBJ, True, None]), make=lambda: sim_shared, snapshot=sim_snap)
+    add("DirectSimulator.set_state", lambda o, **k: direct_shared.set_state(**k), dict(state=direct_shared.get_state()),
+        dict(state=[{}, "abc", None, 5, {**direct_shared.get_state(), "u": "x"},
+                    {**direct_shared.get_state(), "u": np.full(3, NAN)}, {**direct_shared.get_state(), "steps": -1},
+                    {**direct_shared.get_state(), "bogus": 1}]),
+        make=lambda: direct_shared, snapshot=_direct_state)
+    map_driver = imap.as_driver()
+
+    def map_driver_snap(d):
+        return [d.get_state(), d.displacements(), d.time]
+
+    add("ImpedanceDriver.step", lambda o, **k: map_driver.step(**k), dict(forces=f),
+        dict(forces=forces_bad(n, node) + [{0: (0.1, 0.0, 0.0)}]), make=lambda: map_driver, snapshot=map_driver_snap)
+    add("ImpedanceDriver.set_state", lambda o, **k: map_driver.set_state(**k), dict(state=map_driver.get_state()),
+        dict(state=[{}, "abc", {"loads": {0: (1.0, 0.0, 0.0)}, "steps": 0}, {"loads": {node: (NAN, 0, 0)}, "steps": 0},
+                    {"loads": {}, "steps": 2.5}]), make=lambda: map_driver, snapshot=map_driver_snap)
+    add("ImpedanceMap.as_driver", lambda o, **k: imap.as_driver(**k), dict(dt=1e-3), dict(dt=POSITIVE))
     add("SLDM", lambda o, **k: rt.SLDM(**k), dict(model=model, damping=w["damping"]),
         dict(model=[None, "abc", OBJ], damping=["abc", 5], tol=[NAN, 0.0, 1.0, -1.0, "abc", None], m=[0, -1, 2.5, "abc", NAN, True],
              m_max=[0, -1, 2.5, "abc", NAN], reorth=CHOICE))

@@ -381,6 +381,7 @@ class ModalSimulator(_ForceInput):
 
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         """(k, 3) displacements of ``nodes`` (indices), O(k r) plus the static correction of the loads."""
+        nodes = validate.nodes(nodes, self.n_nodes)
         u = self._phi[nodes] @ self._S[0]
         if self.static_correction:
             if self._load_array is not None:
