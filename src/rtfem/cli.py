@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import validate
 from .errors import RtfemError
 
 
@@ -62,86 +63,41 @@ class Progress:
 
 
 # ---------------------------------------------------------------- option types (argparse type= checks)
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not np.isfinite(v):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
-    return v
+def _option(check, parse=float, expect: str = "a number"):
+    """An argparse ``type=``: the text parsed by ``parse``, then checked by a :mod:`rtfem.validate`
+    rule (the same rules as the library's arguments); a refusal becomes argparse's one-line error."""
+
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {expect}") from None
+        try:
+            return check(value)
+        except RtfemError as exc:
+            raise argparse.ArgumentTypeError(validate.one_line(str(exc))) from None
+
+    return convert
 
 
-def positive(text: str) -> float:
-    v = _number(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
-
-
-def nonnegative(text: str) -> float:
-    v = _number(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
-    return v
-
-
-def fraction(text: str) -> float:
-    v = _number(text)
-    if not 0 <= v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in [0, 1)")
-    return v
-
-
-def open_fraction(text: str) -> float:
-    v = _number(text)
-    if not 0 < v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in (0, 1)")
-    return v
-
-
-def poisson(text: str) -> float:
-    v = _number(text)
-    if not -1 < v < 0.5:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in (-1, 0.5)")
-    return v
-
-
-def count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
-    return v
-
-
-def mode_count(text: str) -> int:
-    try:
-        return count(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"{text!r}: ask for at least one mode (a whole number >= 1)") from None
-
-
-def port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"port {text!r} is not a whole number") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"port {v} is outside 0..65535")
-    return v
-
-
-def time_list(text: str) -> list[float]:
+def _comma_floats(text: str) -> list[float]:
+    """'0.01,0.1,0.5' -> [0.01, 0.1, 0.5]; empty items are an error."""
     parts = [t.strip() for t in text.split(",")]
-    if not text.strip() or any(not t for t in parts):
-        raise argparse.ArgumentTypeError(f"{text!r}: give times in s separated by commas, e.g. 0.01,0.1,0.5")
-    values = [_number(t) for t in parts]
-    if any(v <= 0 for v in values) or any(b <= a for a, b in zip(values, values[1:])):
-        raise argparse.ArgumentTypeError(f"{text!r}: times must be > 0 and increasing")
-    return values
+    if any(not t for t in parts):
+        raise ValueError(text)
+    return [float(t) for t in parts]
+
+
+positive = _option(lambda x: validate.positive(x, "value"))
+nonnegative = _option(lambda x: validate.nonnegative(x, "value"))
+fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, hi_open=True))
+open_fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, lo_open=True, hi_open=True))
+poisson = _option(lambda x: validate.in_range(x, "nu", -1.0, 0.5, lo_open=True, hi_open=True, what="Poisson's ratio"))
+count = _option(lambda x: validate.count(x, "value", 1), int, "a whole number")
+mode_count = _option(lambda x: validate.count(x, "value", 1, what="ask for at least one mode"), int, "a whole number")
+port = _option(lambda x: validate.count(x, "port", 0, 65535), int, "a whole number")
+time_list = _option(lambda x: validate.times(x, "times").tolist(), _comma_floats,
+                    "a comma-separated list of times in s, e.g. 0.01,0.1,0.5")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -153,10 +109,8 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"rtfem: error: {_one_line(message)}{hint}\n")
 
 
-def _one_line(text: str) -> str:
-    """A message for the terminal: one line, no control characters."""
-    text = " ".join(str(text).split())
-    return "".join(c if c.isprintable() else "?" for c in text)
+def _one_line(text) -> str:
+    return validate.one_line(str(text))
 
 
 def _vector(text: str, what: str) -> np.ndarray:

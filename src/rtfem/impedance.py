@@ -231,7 +231,6 @@ class ImpedanceMap:
                         collect(pending.pop(0).result())
         except KeyboardInterrupt:
             complete = False
-        results = list(results)
         if not results:
             raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
         done_nodes = [r[0] for r in results]

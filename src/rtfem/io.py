@@ -60,17 +60,9 @@ def write_vtu(
 
 def _field(values, n: int, name: str) -> np.ndarray:
     """Per-vertex data: a finite numeric array with n rows."""
-    try:
-        a = np.asarray(values)
-        if a.dtype == object or not np.issubdtype(a.dtype, np.number):
-            raise TypeError
-        a = a.astype(float)
-    except (TypeError, ValueError):
-        raise ModelError(f"{name}={validate.show(values)} must be a numeric array with {n} rows") from None
+    a = validate.real_array(values, name)
     if a.ndim == 0 or a.shape[0] != n:
         raise ModelError(f"{name} must have {n} rows (one per vertex), got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ModelError(f"{name} holds NaN or infinite values")
     return a
 
 
@@ -243,9 +235,7 @@ def _read_npz(path: Path, what: str, max_bytes: int | None) -> dict[str, np.ndar
 
 
 def _clean(exc: BaseException) -> str:
-    from .validate import show
-
-    return show(str(exc), 160).strip("'\"")
+    return validate.one_line(str(exc), 160)
 
 
 def _size(nbytes: int) -> str:

@@ -75,7 +75,7 @@ def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = 
 
 
 def _clean(exc: BaseException) -> str:
-    return validate.show(f"{type(exc).__name__}: {exc}", 200)
+    return validate.one_line(f"{type(exc).__name__}: {exc}", 200)
 
 
 def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:

@@ -241,8 +241,7 @@ class ShellModel:
             if u.shape != X.shape:
                 raise ModelError(f"displacements must have shape {X.shape}, got {u.shape}")
             X = X + u
-        if self.held_nodes.all():
-            self.check_not_all_fixed()
+        self.check_not_all_fixed()
         d = np.linalg.norm(X - p, axis=1)
         d[self.held_nodes] = np.inf
         return int(np.argmin(d))
@@ -396,14 +395,16 @@ class ShellModel:
             self._cache["nd"] = nested_dissection(self.mesh.adjacency(), np.asarray(self.mesh.vertices))
         return expand_node_order(self._cache["nd"], 6, dofs)
 
-    def solve_static(self, forces, *, return_rotations: bool = False) -> np.ndarray:
+    def solve_static(self, forces, *, return_rotations: bool = False, warn: bool = True) -> np.ndarray:
         """Static displacements under nodal loads: K U = F with the fixes applied.
 
         Returns (n, 3) translations, or (n, 6) with rotations when ``return_rotations``.
+        ``warn=False`` silences the warning about loads on fixed dofs (for loads rtfem applies
+        itself, such as the static correction's).
         Solving the full system with zero moments is exactly the condensed problem of Eq. 5
         (K_condensed U_t = F_t), without forming the condensed matrix.
         """
-        F = self.force_vector(forces)
+        F = self.force_vector(forces, warn=warn)
         return self._solve(F, return_rotations)
 
     def unit_load_response(self, node: int, direction: int) -> np.ndarray:

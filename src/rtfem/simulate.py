@@ -296,7 +296,7 @@ class ModalSimulator(_ForceInput):
     def run(self, forces, n_steps: int) -> None:
         """``n_steps`` steps under the same forces."""
         n_steps = self._n_steps(n_steps)
-        self._as_array(forces) if not isinstance(forces, Mapping) else validate.forces(forces, self.n_nodes)
+        self._as_array(forces)  # refuse bad forces before the first step
         for _ in range(n_steps):
             self.step(forces)
 
@@ -363,7 +363,7 @@ class ModalSimulator(_ForceInput):
         if self.static_correction:
             if self._load_array is not None:
                 model = self.modes.model
-                Kinv_f = model._solve(model.force_vector(self._load_array, warn=False))
+                Kinv_f = model.solve_static(self._load_array, warn=False)
                 modal = self._phi @ ((self._phi.reshape(-1, r).T @ self._load_array.reshape(-1)) / self.modes.omega**2)
                 u += Kinv_f - modal
             for node, f in self._loads.items():

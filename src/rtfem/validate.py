@@ -18,11 +18,18 @@ import numpy as np
 from .errors import ModelError
 
 __all__ = [
-    "show", "number", "positive", "nonnegative", "in_range", "count", "node", "nodes", "point", "vector",
-    "choice", "flag", "times", "time_step", "path_like",
+    "one_line", "show", "number", "positive", "nonnegative", "in_range", "count", "node", "nodes", "point", "vector",
+    "choice", "flag", "times", "instant", "time_step", "path_like", "real_array", "int_array", "forces",
 ]
 
 DT_MIN, DT_MAX = 1e-9, 1e3  # time steps outside this range are typos (ns .. ks)
+
+
+def one_line(text: str, limit: int | None = None) -> str:
+    """``text`` for a terminal: whitespace runs collapsed to one space, control characters as '?',
+    cut to ``limit`` characters."""
+    text = "".join(c if c.isprintable() else "?" for c in " ".join(text.split()))
+    return text if limit is None or len(text) <= limit else text[: limit - 3] + "..."
 
 
 def show(value: Any, limit: int = 60) -> str:
@@ -35,9 +42,21 @@ def show(value: Any, limit: int = 60) -> str:
             text = repr(value)
         except Exception:  # pragma: no cover - a repr that raises
             text = f"<{type(value).__name__}>"
-    text = " ".join(text.split())
-    text = "".join(c if c.isprintable() else "?" for c in text)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return one_line(text, limit)
+
+
+def _float_array(value: Any) -> np.ndarray | None:
+    """``value`` as a float array when it is real numeric data (not None, text, bools, objects
+    or complex numbers); None otherwise. The one conversion behind every array check here."""
+    if value is None or isinstance(value, (str, bytes)):
+        return None
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return None
+    if a.dtype == object or a.dtype == bool or not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        return None
+    return a.astype(float, copy=False)
 
 
 def _label(name: str, value: Any) -> str:
@@ -132,15 +151,9 @@ def vector(value: Any, name: str, size: int | Sequence[int] = 3, *, error: type 
     """A 1-D array of finite numbers with one of the allowed sizes."""
     sizes = (size,) if isinstance(size, int) else tuple(size)
     want = str(sizes[0]) + "".join(f" (or {s})" for s in sizes[1:])
-    if value is None or isinstance(value, (str, bytes)):
+    arr = _float_array(value)
+    if arr is None:
         raise error(f"{_label(name, value)}: give {want} numbers")
-    try:
-        arr = np.asarray(value)
-        if arr.dtype == object or arr.dtype.kind in "USVb" or not np.issubdtype(arr.dtype, np.number):
-            raise TypeError
-        arr = arr.astype(float)
-    except (TypeError, ValueError):
-        raise error(f"{_label(name, value)}: give {want} numbers") from None
     if arr.ndim != 1 or arr.size not in sizes:
         raise error(f"{_label(name, value)}: need {want} components, got {arr.size} (shape {arr.shape})")
     if not np.all(np.isfinite(arr)):
@@ -178,15 +191,10 @@ def times(value: Any, name: str = "times", *, bound: str = "positive", increasin
 
     ``bound``: "positive" (> 0), "nonnegative" (>= 0) or "any"; ``increasing``: strictly.
     """
-    if value is None or isinstance(value, (str, bytes)):
+    arr = _float_array(value)
+    if arr is None:
         raise error(f"{_label(name, value)}: give a list of numbers")
-    try:
-        arr = np.asarray(value)
-        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or arr.dtype == bool:
-            raise TypeError
-        arr = np.atleast_1d(arr.astype(float))
-    except (TypeError, ValueError):
-        raise error(f"{_label(name, value)}: give a list of numbers") from None
+    arr = np.atleast_1d(arr)
     if arr.ndim != 1 or arr.size == 0:
         raise error(f"{_label(name, value)}: give a non-empty flat list of numbers")
     if not np.all(np.isfinite(arr)):
@@ -227,15 +235,9 @@ def path_like(value: Any, name: str = "path", *, error: type = ModelError):
 def real_array(value: Any, name: str, ndim: int | None = None, *, finite: bool = True,
                error: type = ModelError) -> np.ndarray:
     """A float array (from any real numeric input) with ``ndim`` dimensions, finite unless told."""
-    if value is None or isinstance(value, (str, bytes)):
+    a = _float_array(value)
+    if a is None:
         raise error(f"{_label(name, value)} must be a numeric array")
-    try:
-        a = np.asarray(value)
-        if a.dtype == object or a.dtype == bool or not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
-            raise TypeError
-        a = a.astype(float, copy=False)
-    except (TypeError, ValueError):
-        raise error(f"{_label(name, value)} must be a numeric array") from None
     if ndim is not None and a.ndim != ndim:
         raise error(f"{name} must have {ndim} dimensions, got shape {a.shape}")
     if finite and not _all_finite(a):
@@ -280,15 +282,9 @@ def forces(value: Any, n: int, widths: Sequence[int] = (3,), *, error: type = Mo
             v = vector(f, f"force on node {i}", widths, error=error)
             F[i, : v.size] += v
         return F
-    if value is None or isinstance(value, (str, bytes)):
+    A = _float_array(value)
+    if A is None:
         raise error(f"forces={show(value)} must be a {{node: (fx, fy, fz)}} mapping or an {shapes} array")
-    try:
-        A = np.asarray(value)
-        if A.dtype == object or A.dtype == bool or not np.issubdtype(A.dtype, np.number):
-            raise TypeError
-        A = A.astype(float)
-    except (TypeError, ValueError):
-        raise error(f"forces={show(value)} must be a {{node: (fx, fy, fz)}} mapping or an {shapes} array") from None
     if A.ndim != 2 or A.shape[0] != n or A.shape[1] not in widths:
         raise error(f"forces must be a {{node: (fx, fy, fz)}} mapping or an {shapes} array, got shape {A.shape}")
     bad = np.flatnonzero(~np.isfinite(A).all(axis=1))
