@@ -8,9 +8,11 @@ from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .modal import ModalBasis, modal_analysis
 from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice
-from .impedance import ImpedanceMap, Load
-from .model import ShellModel
-from .simulate import DirectSimulator, ModalSimulator
+from .impedance import ImpedanceDriver, ImpedanceMap, Load
+from .model import Model, ShellModel, make_model
+from .selection import select_nodes
+from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator
+from .simulate import Driver, ModalSimulator
 from .sldm import SLDM
 
 __version__ = "0.1.0"
@@ -18,7 +20,14 @@ __version__ = "0.1.0"
 __all__ = [
     "Damping",
     "CallbackDevice",
+    "CentralDifferenceSimulator",
     "DirectSimulator",
+    "Driver",
+    "ImpedanceDriver",
+    "Model",
+    "NewmarkSimulator",
+    "make_model",
+    "select_nodes",
     "Grasp",
     "HapticLoop",
     "Probe",

@@ -15,7 +15,8 @@ import numpy as np
 
 from .material import Damping
 from .modal import modal_analysis
-from .simulate import DirectSimulator, ModalSimulator
+from .fullorder import DirectSimulator
+from .simulate import ModalSimulator
 
 
 def per_step(fn, batch: int, batches: int = 5) -> float:

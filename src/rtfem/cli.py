@@ -134,48 +134,13 @@ def load_mesh_arg(path: str | None, scale: float = 1.0):
 
 
 def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
-    """Parse a region (--fix, --nodes): a group name, AXIS<VALUE / AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k."""
-    X = np.asarray(mesh.vertices)
+    """Parse a region (--fix, --nodes) with :func:`rtfem.select_nodes`; None: the group 'attachment' if
+    the mesh has one, else bottom:0.1. An empty region is refused."""
+    from .selection import describe_selection
+
     if spec is None:
-        if "attachment" in mesh.groups:
-            spec = "attachment"
-        else:
-            spec = "bottom:0.1"
-    axes = {"x": 0, "y": 1, "z": 2}
-    s = spec.strip()
-    if s in mesh.groups:
-        nodes = np.asarray(mesh.groups[s])
-        how = f"group '{s}'"
-    elif len(s) > 2 and s[0] in axes and s[1] in "<>":
-        try:
-            value = float(s[2:])
-        except ValueError:
-            raise RtfemError(f"{option} {spec!r}: write AXIS<VALUE or AXIS>VALUE in metres, e.g. z<0.01") from None
-        c = X[:, axes[s[0]]]
-        nodes = np.flatnonzero(c < value if s[1] == "<" else c > value)
-        how = f"{s} m"
-    elif s.startswith("bottom:"):
-        try:
-            frac = float(s.split(":", 1)[1])
-        except ValueError:
-            frac = -1.0
-        if not 0 < frac < 1:
-            raise RtfemError(f"{option} {spec!r}: bottom:FRACTION needs 0 < FRACTION < 1, e.g. bottom:0.1")
-        z = X[:, 2]
-        nodes = np.flatnonzero(z <= z.min() + frac * (z.max() - z.min()))
-        how = f"the lowest {frac * 100:g} % of the height (z)"
-    elif s.startswith("nodes:"):
-        try:
-            nodes = np.array([int(v) for v in s[6:].split(",") if v.strip()])
-        except ValueError:
-            raise RtfemError(f"{option} {spec!r}: nodes:i,j,k takes vertex indices") from None
-        if nodes.size == 0 or nodes.min() < 0 or nodes.max() >= mesh.n_vertices:
-            raise RtfemError(f"{option} {spec!r}: vertex indices must be in 0..{mesh.n_vertices - 1}")
-        how = f"{nodes.size} listed vertices"
-    else:
-        groups = ", ".join(sorted(mesh.groups)) or "none in this mesh"
-        raise RtfemError(f"{option} {spec!r}: give a group name ({groups}), AXIS<VALUE or AXIS>VALUE (m), "
-                         "bottom:FRACTION or nodes:i,j,k")
+        spec = "attachment" if "attachment" in mesh.groups else "bottom:0.1"
+    nodes, how = describe_selection(mesh, spec, option)
     if nodes.size == 0:
         what = "nothing would hold the organ" if option == "--fix" else "nothing to load"
         raise RtfemError(f"{option} {spec!r} selects no vertex: {what}; choose another region")
@@ -323,7 +288,8 @@ def _read_loads(path: str, n_nodes: int) -> list[tuple[float, int, np.ndarray]]:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .haptics import Probe, ScriptedDevice
     from .io import write_pvd, write_vtu
-    from .simulate import DirectSimulator, ModalSimulator
+    from .fullorder import DirectSimulator
+    from .simulate import ModalSimulator
 
     from .validate import time_step
 

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
-from .simulate import as_driver, displacements_at
+from .simulate import as_driver, displacements_at, prepare
 
 __all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
 
@@ -113,6 +113,7 @@ class Probe:
     def _compliance(self, node: int) -> np.ndarray:
         W = self._W.get(node)
         if W is None:
+            prepare(self.driver, [node])
             W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
         return W
 
@@ -181,8 +182,10 @@ class Grasp:
         self._W: dict[int, np.ndarray] = {}
 
     def compliance(self, node: int) -> np.ndarray:
+        """The 3x3 step compliance W at ``node`` (the driver prepares the node the first time)."""
         W = self._W.get(node)
         if W is None:
+            prepare(self.driver, [node])
             W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
         return W
 

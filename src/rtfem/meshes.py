@@ -12,7 +12,10 @@ from . import validate
 from .errors import MeshError
 from .mesh import TriMesh
 
-__all__ = ["plate", "cylinder", "hemisphere", "icosphere", "liver"]
+__all__ = ["plate", "cylinder", "hemisphere", "icosphere", "liver", "PROBE_POINT"]
+
+#: where the default liver is pressed: its vertex group "probe" is the vertex nearest this point (m)
+PROBE_POINT = (0.055, 0.05, 0.0)
 
 
 _MAX_TRIANGLES = 20_000_000  # a generated mesh larger than this is a typo, not a request
@@ -188,7 +191,9 @@ def liver(level: int = 4) -> TriMesh:
     About 0.2 x 0.15 x 0.08 m. ``level`` 4 gives 2,562 vertices (the default), 5 gives
     10,242 and 6 gives 40,962 (refinements of the same surface, for benchmarks).
     ``mesh.groups["attachment"]`` is the default fixed region: the posterior-superior
-    "bare area" where the liver is held by the coronary ligament and the vena cava.
+    "bare area" where the liver is held by the coronary ligament and the vena cava;
+    ``mesh.groups["probe"]`` is one vertex on the free anterior edge of the right lobe (nearest
+    :data:`PROBE_POINT`), where the examples, demo and benchmarks press.
     Generated from an icosphere by a smooth map; no data files are involved.
     """
     level = _count("level", level, 1, 8)
@@ -203,7 +208,8 @@ def liver(level: int = 4) -> TriMesh:
     V = _liver_map(P)
     x, y, z = P[:, 0], P[:, 1], P[:, 2]
     attach = np.flatnonzero((y < -0.55) & (z > 0.05) & (x > -0.55) & (x < 0.25))
-    return TriMesh(V, sph.triangles, repair=False, groups={"attachment": attach})
+    probe = np.argmin(np.linalg.norm(V - PROBE_POINT, axis=1))
+    return TriMesh(V, sph.triangles, repair=False, groups={"attachment": attach, "probe": [probe]})
 
 
 def _relax_on_map(P: np.ndarray, sph: TriMesh, fmap, iterations: int = 40, step: float = 0.5) -> np.ndarray:

@@ -18,13 +18,13 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from . import validate
 from .errors import ModelError, SolverError
 from .io import load_versioned, save_versioned
 from .linalg import factorize
+from .model import check_model
 from .mesh import TriMesh
 
 __all__ = ["ModalBasis", "modal_analysis", "mesh_fingerprint"]
@@ -69,10 +69,9 @@ class ModalBasis:
         if not isinstance(fingerprint, str):
             raise ModelError(f"fingerprint={validate.show(fingerprint)} must be a string (the mesh hash)")
         if model is not None:
-            from .model import ShellModel
-
-            if not isinstance(model, ShellModel) or model.n_nodes != shapes.shape[0]:
-                raise ModelError(f"model={validate.show(model)} must be the ShellModel of this basis "
+            check_model(model)
+            if model.n_nodes != shapes.shape[0]:
+                raise ModelError(f"model={validate.show(model)} must be the model of this basis "
                                  f"({shapes.shape[0]} nodes)")
         if info is not None and not isinstance(info, dict):
             raise ModelError(f"info={validate.show(info)} must be a dict")
@@ -132,10 +131,8 @@ class ModalBasis:
             basis = cls(omega, shapes, fp, None, info)
         except ModelError as exc:
             raise ModelError(f"{str(path)!r}: {exc}; the file is damaged or altered") from None
-        from .model import ShellModel
-
-        if model is not None and not isinstance(model, ShellModel):
-            raise ModelError(f"model={validate.show(model)} must be a ShellModel (or None)")
+        if model is not None:
+            check_model(model)
         if mesh is not None and not isinstance(mesh, TriMesh):
             raise ModelError(f"mesh={validate.show(mesh)} must be a TriMesh (or None)")
         target = model.mesh if model is not None else mesh
@@ -148,11 +145,6 @@ class ModalBasis:
                 )
         basis.model = model
         return basis
-
-
-def _constrained_mass(model, dofs: np.ndarray) -> sp.csr_matrix:
-    m = model.mass_diagonal[dofs].copy()
-    return sp.diags(m, format="csr")
 
 
 def modal_analysis(
@@ -179,10 +171,7 @@ def modal_analysis(
     -------
     ModalBasis with ascending w, mass-normalized shapes (Phi^T M Phi = I).
     """
-    from .model import ShellModel
-
-    if not isinstance(model, ShellModel):
-        raise ModelError(f"model={validate.show(model)} must be a ShellModel")
+    check_model(model)
     if not (isinstance(n_modes, str) and n_modes == "all"):
         n_modes = validate.count(n_modes, "n_modes", 1, what="a number of modes, or 'all'")
     if sigma is not None:
@@ -194,7 +183,7 @@ def modal_analysis(
     say = progress or (lambda msg: None)
     t_start = time.perf_counter()
     K, dofs = model.constrained_stiffness()
-    M = _constrained_mass(model, dofs)
+    M, _ = model.constrained_mass()
     massed = int(np.count_nonzero(M.diagonal()))
     restrained = bool(model.fixed.any())
     if isinstance(n_modes, str):
@@ -253,9 +242,7 @@ def modal_analysis(
         omega = np.sqrt(np.clip(lam, 0.0, None))
         phi = vec
         method = f"shift-invert Lanczos ({count[0]} solves)"
-    full = np.zeros((model.n_dofs, phi.shape[1]))
-    full[dofs] = phi
-    shapes = full.reshape(model.n_nodes, 6, -1)[:, :3, :]
+    shapes = model.nodal_translations(phi, dofs)  # (n, 3, r)
     # deterministic sign: the largest translation of each mode is positive
     flat = shapes.reshape(-1, shapes.shape[2])
     sign = np.sign(flat[np.argmax(np.abs(flat), axis=0), np.arange(flat.shape[1])])
@@ -266,7 +253,7 @@ def modal_analysis(
     elapsed = time.perf_counter() - t_start
     say(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
     info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
-            "membrane": model.membrane, "constraints": model.constraints}
+            **model.metadata}
     return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
 
 

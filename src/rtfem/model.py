@@ -13,7 +13,7 @@ import re
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 import scipy.sparse as sp
@@ -24,12 +24,80 @@ from .errors import ModelError, RtfemWarning, SolverError
 from .linalg import Factorization, expand_node_order, factorize, nested_dissection
 from .material import Material
 from .mesh import TriMesh
+from .selection import select_nodes
 
-__all__ = ["ShellModel", "DOF_NAMES", "parse_dofs"]
+__all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "ShellModel", "DOF_NAMES", "parse_dofs"]
 
 DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
 _CHUNK = 16384  # elements per batch during assembly (bounds the temporary memory)
+
+
+@runtime_checkable
+class Model(Protocol):
+    """What ``modal_analysis``, ``SLDM``, ``ImpedanceMap``, the full-order simulators, the viewer and
+    the CLI ask of a model, and nothing more (DESIGN.md, "The two seams").
+
+    Dofs: each node has ``dofs_per_node`` dofs whose first three are the translations (x, y, z);
+    dof ``d`` of node ``i`` is global dof ``i * dofs_per_node + d``. ``constrained_stiffness()`` and
+    ``constrained_mass()`` are sparse on the same dofs (the free ones with elimination, all with
+    a penalty) and return those dofs, the map back to nodes (:meth:`nodal_translations`).
+    ``solve_static`` and ``unit_load_response`` go through the cached ``factorization()``; the
+    latter is the one copy of the unit-load loop (static correction, impedance map).
+    ``condensation()`` gives K_c = K_tt - K_tr K_rr^-1 K_rt on the free translations t (for a
+    model without rotations, K_tt). Satisfied by :class:`ShellModel`.
+    """
+
+    mesh: object  # the surface that is drawn and touched: triangles over model nodes
+    material: object
+    n_nodes: int
+    n_dofs: int
+    dofs_per_node: int
+    constraints: str  # "elimination" or "penalty"
+    fixed: np.ndarray  # (n_nodes, dofs_per_node) bool
+    held_nodes: np.ndarray  # (n_nodes,) bool: all three translations fixed
+    mass_diagonal: np.ndarray  # (n_dofs,) lumped mass
+    metadata: dict  # what a saved result records about the model (kind, element, ...)
+
+    def select_nodes(self, nodes) -> np.ndarray: ...
+    def fix(self, nodes, dofs="all"): ...
+    def release(self, nodes=None, dofs="all"): ...
+    def nearest_free_node(self, point, displacements=None) -> int: ...
+    def check_not_all_fixed(self) -> None: ...
+    def check_restrained(self) -> None: ...
+    def constrained_stiffness(self) -> tuple: ...
+    def constrained_mass(self) -> tuple: ...
+    def nodal_translations(self, values, dofs) -> np.ndarray: ...
+    def translation_dofs(self, node: int) -> np.ndarray: ...
+    def dof_order(self, dofs) -> np.ndarray: ...
+    def factorization(self): ...
+    def force_vector(self, forces, *, warn: bool = True) -> np.ndarray: ...
+    def solve_static(self, forces, *, warn: bool = True) -> np.ndarray: ...
+    def unit_load_response(self, node: int, direction: int) -> np.ndarray: ...
+    def condensation(self): ...
+
+
+MODEL_MEMBERS = ("mesh", "material", "n_nodes", "n_dofs", "dofs_per_node", "constraints", "fixed", "held_nodes",
+                 "mass_diagonal", "metadata", "select_nodes", "fix", "release", "nearest_free_node",
+                 "check_not_all_fixed", "check_restrained", "constrained_stiffness", "constrained_mass",
+                 "nodal_translations", "translation_dofs", "dof_order", "factorization", "force_vector",
+                 "solve_static", "unit_load_response", "condensation")
+
+
+def check_model(model, what: str = "model"):
+    """``model`` if it satisfies the Model protocol; otherwise a ModelError naming what it lacks."""
+    missing = [m for m in MODEL_MEMBERS if not hasattr(type(model), m) and not hasattr(model, m)]
+    if missing:
+        raise ModelError(f"{what}={validate.show(model)} is not a model: rtfem needs a ShellModel or any class with "
+                         f"the Model protocol's members; it lacks {', '.join(missing[:6])}"
+                         f"{' ...' if len(missing) > 6 else ''}")
+    return model
+
+
+def make_model(mesh, material: Material, **options) -> "ShellModel":
+    """The model of ``mesh``: a :class:`ShellModel` for a triangle surface (the one kind today;
+    where the CLI and the viewer build models, so that a new kind is added in one place)."""
+    return ShellModel(mesh, material, **options)
 
 
 def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
@@ -137,6 +205,13 @@ class ShellModel:
     def n_dofs(self) -> int:
         return 6 * self.mesh.n_vertices
 
+    dofs_per_node = 6  # x, y, z, rx, ry, rz
+
+    @property
+    def metadata(self) -> dict:
+        """What a saved basis or map records about the model."""
+        return {"model": "shell", "membrane": self.membrane, "constraints": self.constraints}
+
     def __repr__(self) -> str:
         nf = int(self.fixed.any(axis=1).sum())
         return (
@@ -188,19 +263,10 @@ class ShellModel:
         self.timings["assemble"] = time.perf_counter() - t0
 
     # ------------------------------------------------------------ fixes
-    def _nodes(self, nodes) -> np.ndarray:
-        n = self.n_nodes
-        if isinstance(nodes, str):
-            if nodes not in self.mesh.groups:
-                raise ModelError(f"no vertex group {nodes!r} in the mesh; groups: {sorted(self.mesh.groups) or 'none'}")
-            return np.asarray(self.mesh.groups[nodes], dtype=np.int64)
-        if isinstance(nodes, np.ndarray) and nodes.dtype == bool or (
-                isinstance(nodes, (list, tuple)) and nodes and all(isinstance(v, (bool, np.bool_)) for v in nodes)):
-            arr = np.asarray(nodes)
-            if arr.shape != (n,):
-                raise ModelError(f"a boolean node mask must have shape ({n},), got {arr.shape}")
-            return np.flatnonzero(arr)
-        return validate.nodes(nodes, n, "nodes", allow_empty=True)
+    def select_nodes(self, nodes) -> np.ndarray:
+        """Node indices from indices, a boolean mask, a vertex group name, ``"z<0.01"``, ``"bottom:0.1"`` or
+        ``"nodes:i,j"`` (:func:`rtfem.select_nodes`)."""
+        return select_nodes(self.mesh, nodes)
 
     def fix(self, nodes, dofs: str | Sequence = "all") -> "ShellModel":
         """Fix (zero displacement) the given dofs of the given nodes. Calls accumulate.
@@ -208,7 +274,7 @@ class ShellModel:
         ``nodes``: indices, a boolean mask, or the name of a mesh vertex group (e.g. "attachment").
         ``dofs``: "all", "xyz", "z", "rx", "xy,rz", ... (see :func:`parse_dofs`).
         """
-        idx = self._nodes(nodes)
+        idx = self.select_nodes(nodes)
         if idx.size == 0:
             raise ModelError("fix() was given no nodes")
         mask = parse_dofs(dofs)
@@ -219,7 +285,7 @@ class ShellModel:
 
     def release(self, nodes=None, dofs: str | Sequence = "all") -> "ShellModel":
         """Undo fixes (all nodes when ``nodes`` is None)."""
-        idx = np.arange(self.n_nodes) if nodes is None else self._nodes(nodes)
+        idx = np.arange(self.n_nodes) if nodes is None else self.select_nodes(nodes)
         mask = parse_dofs(dofs)
         self.fixed[np.ix_(idx, np.flatnonzero(mask))] = False
         self._factor = None
@@ -356,6 +422,23 @@ class ShellModel:
         K.setdiag(d)
         return K.tocsr(), np.arange(self.n_dofs)
 
+    def constrained_mass(self) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The (lumped, diagonal) mass on the dofs of :meth:`constrained_stiffness`."""
+        dofs = self.free_dofs if self.constraints == "elimination" else np.arange(self.n_dofs)
+        return sp.diags(self.mass_diagonal[dofs], format="csr"), dofs
+
+    def nodal_translations(self, values, dofs) -> np.ndarray:
+        """Values on ``dofs`` ((len(dofs),) or (len(dofs), k)) as nodal translations (n, 3) or
+        (n, 3, k); other dofs read zero."""
+        values = np.asarray(values)
+        full = np.zeros((self.n_dofs,) + values.shape[1:], dtype=values.dtype)
+        full[dofs] = values
+        return full.reshape((self.n_nodes, self.dofs_per_node) + values.shape[1:])[:, :3].copy()
+
+    def translation_dofs(self, node: int) -> np.ndarray:
+        """The global dofs (3,) of a node's x, y, z translations."""
+        return self.dofs_per_node * validate.node(node, self.n_nodes) + np.arange(3)
+
     def factorization(self) -> Factorization:
         """The cached sparse factorization of the constrained stiffness."""
         if self._factor is None:
@@ -414,7 +497,7 @@ class ShellModel:
         applied without the warning about loads on fixed dofs that a user's load gets.
         """
         F = np.zeros(self.n_dofs)
-        F[6 * validate.node(node, self.n_nodes) + validate.count(direction, "direction", 0, 2)] = 1.0
+        F[self.translation_dofs(node)[validate.count(direction, "direction", 0, 2)]] = 1.0
         return self._solve(F, False)
 
     def _solve(self, F: np.ndarray, return_rotations: bool = False) -> np.ndarray:

@@ -179,7 +179,7 @@ def step_responses(model, node: int, force: np.ndarray, times: np.ndarray, dampi
                    basis, dt_direct: float = 2.5e-4, sldm_tol: float = 1e-8) -> dict:
     """u(t) at ``node`` (component along ``force``) for a step load there: modal (closed form per
     mode, truncated to each r, plain and with the static correction), SLDM and direct Newmark."""
-    from .simulate import DirectSimulator
+    from .fullorder import DirectSimulator
     from .sldm import SLDM
 
     e = force / np.linalg.norm(force)

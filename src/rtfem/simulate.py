@@ -1,4 +1,5 @@
-"""Run-time dynamics: the reduced ModalSimulator and the full-order DirectSimulator baseline.
+"""Run-time dynamics: the Driver protocol and the reduced ModalSimulator (the full-order
+simulators are in :mod:`rtfem.fullorder`).
 
 ModalSimulator integrates the decoupled modal equations x_i'' + alpha_i x_i' + w_i^2 x_i = f_i
 (Eq. 9-10) and maps back U = Phi_r X (Eq. 11). Integrators:
@@ -11,8 +12,7 @@ ModalSimulator integrates the decoupled modal equations x_i'' + alpha_i x_i' + w
 Both are written as one vectorized two-state recursion per step,
 [x, v]_{k+1} = C1 * [x, v]_k + C2 * [v, x]_k + G1 f_{k+1} (+ G0 f_k for Newmark),
 with coefficients precomputed, so a step costs a handful of numpy operations on r-vectors
-and allocates no arrays. DirectSimulator integrates the full sparse system with implicit
-Newmark (effective stiffness factorized once) or the central-difference method.
+and allocates no arrays.
 """
 
 from __future__ import annotations
@@ -21,18 +21,15 @@ import math
 from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from . import validate
 from .errors import ModelError
-from .linalg import factorize
 from .material import Damping
 from .modal import ModalBasis
 from .oscillator import transition
 
-__all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "ModalSimulator", "DirectSimulator",
-           "newmark_coefficients"]
+__all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "prepare", "ModalSimulator", "newmark_coefficients",
+           "newmark_constants"]
 
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
@@ -102,8 +99,9 @@ class Driver(Protocol):
     Implemented by :class:`ModalSimulator`, the full-order simulators of :class:`DirectSimulator`
     and the impedance map's driver (:meth:`ImpedanceMap.as_driver`); a user's own class with
     these members works with every consumer. Optional, with a fallback on the members:
-    ``displacements_at(nodes)`` (a batched query), ``fingerprint`` (the mesh hash, checked by
-    the consumers when present).
+    ``displacements_at(nodes)`` (a batched query), ``prepare(nodes)`` (precompute what loads on
+    those nodes will need; see :func:`prepare`), ``fingerprint`` (the mesh hash, checked by the
+    consumers when present).
     """
 
     dt: float
@@ -134,6 +132,15 @@ def as_driver(obj, what: str = "probe"):
         raise ModelError(f"the {what} drives a ModalSimulator, a Newmark DirectSimulator, an ImpedanceMap or any Driver "
                          f"(a class with {', '.join(DRIVER_MEMBERS)}); {validate.show(obj)} lacks {', '.join(missing)}")
     return obj
+
+
+def prepare(driver, nodes) -> None:
+    """Let the driver compute what it needs at ``nodes`` before they are loaded (its optional
+    ``prepare(nodes)``: static-correction or compliance columns, impedance maps); a no-op for
+    drivers without one. Consumers call it when a node is first touched, outside the force loop."""
+    fn = getattr(driver, "prepare", None)
+    if fn is not None:
+        fn(nodes)
 
 
 def displacements_at(driver, nodes: np.ndarray) -> np.ndarray:
@@ -442,234 +449,3 @@ class ModalSimulator(_ForceInput):
         self._f_old[:] = arrays["f_old"]
         self.steps = steps
         self.time = self.steps * self.dt
-
-
-class DirectSimulator(_ForceInput):
-    """Direct integration of the full system M U'' + B U' + K U = F (the paper's baseline).
-
-    Parameters
-    ----------
-    model : a restrained :class:`~rtfem.ShellModel`.
-    dt : time step (s).
-    damping : :class:`~rtfem.Damping` with alpha and/or beta (B = alpha M + beta K).
-    method : "newmark" (implicit, average acceleration, unconditionally stable; the effective
-        stiffness K + (2/dt) B + (4/dt^2) M is factorized once) or "central" (explicit central
-        differences on the rotation-condensed system; stable only for dt <= T_n / pi).
-    """
-
-    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str = "newmark") -> None:
-        from .model import ShellModel
-
-        if not isinstance(model, ShellModel):
-            raise ModelError(f"model={validate.show(model)} must be a ShellModel")
-        self.model = model
-        self.dt = dt = _check_dt(dt)
-        self.damping = _check_damping(damping)
-        self.method = validate.choice(method, "method", ("newmark", "central"))
-        self.n_nodes = model.n_nodes
-        model.check_restrained()
-        K, dofs = model.constrained_stiffness()
-        self._dofs = dofs
-        m = model.mass_diagonal[dofs]
-        if method == "newmark":
-            M = sp.diags(m, format="csr")
-            B = self.damping.matrix(M, K)
-            self._c = newmark_constants(dt)
-            c0, c1 = self._c[0], self._c[1]
-            Khat = (K + c1 * B + c0 * M).tocsc()
-            self._M = m
-            self._B = sp.csr_matrix(B) if sp.issparse(B) else None
-            self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=model.dof_order(dofs))
-            nd = dofs.size
-            self._u, self._v, self._a = np.zeros(nd), np.zeros(nd), np.zeros(nd)
-            self._cols: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # node -> (rows, directions, Khat^-1 columns)
-            self._free: tuple[int, np.ndarray] | None = None  # (step, no-new-load solution) of predict()
-        elif method == "central":
-            if self.damping.beta != 0 or self.damping.is_modal_only:
-                raise ModelError("the central-difference method needs diagonal damping: use Damping(alpha=...) only")
-            if model.constraints != "elimination":
-                raise ModelError("the central-difference method needs fixes by elimination (penalty dofs are far too stiff)")
-            self._Kc = model.condensed_operator()
-            t = model.translational_free_dofs()
-            self._t = t
-            self._mt = model.mass_diagonal[t]
-            if np.any(self._mt <= 0):
-                raise ModelError("the central-difference method needs mass on every free translation")
-            self.critical_dt, self.omega_max = self._stability_limit()
-            if dt > self.critical_dt:
-                raise ModelError(
-                    f"central differences are unstable for dt = {dt:.3g} s: the limit is T_n/pi = "
-                    f"{self.critical_dt:.3g} s (highest frequency {self.omega_max / 2 / np.pi:.4g} Hz, "
-                    f"shortest period T_n = {2 * np.pi / self.omega_max:.3g} s). Use dt <= {self.critical_dt:.3g} "
-                    "or method='newmark'"
-                )
-            self._u = np.zeros(t.size)
-            self._u_old = np.zeros(t.size)
-        else:
-            raise ModelError(f"method={method!r}; choose 'newmark' or 'central'")
-        self.time = 0.0
-        self.steps = 0
-
-    def _stability_limit(self) -> tuple[float, float]:
-        """dt_crit = 2 / w_max = T_n / pi, with w_max from Lanczos on M^-1/2 K_c M^-1/2."""
-        s = 1.0 / np.sqrt(self._mt)
-        op = spla.LinearOperator(self._Kc.shape, matvec=lambda x: s * self._Kc.matvec(s * x), dtype=float)
-        lam = spla.eigsh(op, k=1, which="LA", tol=1e-6, return_eigenvectors=False)[0]
-        w = math.sqrt(lam * (1 + 1e-5))  # a hair above: the Lanczos estimate is from below
-        return 2.0 / w, w
-
-    def _load(self, forces) -> np.ndarray:
-        F = self._as_array(forces)
-        full = np.zeros((self.n_nodes, 6))
-        full[:, :3] = F
-        return full.ravel()
-
-    def _rhs_free(self) -> np.ndarray:
-        c0, c1, c2, c3, c4, c5 = self._c
-        u, v, a = self._u, self._v, self._a
-        rhs = self._M * (c0 * u + c2 * v + c3 * a)
-        if self._B is not None:
-            rhs += self._B @ (c1 * u + c4 * v + c5 * a)
-        return rhs
-
-    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
-        """Positions of the node's free translations in the solved vector, and their directions."""
-        want = 6 * node + np.arange(3)
-        pos = np.minimum(np.searchsorted(self._dofs, want), self._dofs.size - 1)
-        ok = self._dofs[pos] == want
-        return pos[ok], np.flatnonzero(ok)
-
-    def _newmark_only(self, what: str) -> None:
-        if self.method != "newmark":
-            raise ModelError(f"{what} needs method='newmark' (the implicit step has a compliance; central differences do not)")
-
-    def predict(self, node: int) -> np.ndarray:
-        """Displacement (3,) of ``node`` after one more step with no new load (one sparse solve).
-
-        With :meth:`step_compliance` W, a step under a force f on that node gives
-        u(k+1) = predict(node) + W f, as for :meth:`ModalSimulator.predict`; the following
-        :meth:`step` reuses this solve when its loads are on nodes whose compliance is known.
-        """
-        self._newmark_only("predict")
-        node = self._node(node)
-        if self._free is None or self._free[0] != self.steps:
-            self._free = (self.steps, self._fac.solve(self._rhs_free()))
-        rows, dirs = self._node_rows(node)
-        out = np.zeros(3)
-        out[dirs] = self._free[1][rows]
-        return out
-
-    def step_compliance(self, node: int) -> np.ndarray:
-        """W (3x3): displacement of ``node`` after one step per unit force on it (K_eff^-1 block)."""
-        self._newmark_only("step_compliance")
-        node = self._node(node)
-        if node not in self._cols:
-            rows, dirs = self._node_rows(node)
-            E = np.zeros((self._dofs.size, rows.size))
-            E[rows, np.arange(rows.size)] = 1.0
-            cols = self._fac.solve(E) if rows.size else E
-            self._cols[node] = (rows, dirs, cols.reshape(self._dofs.size, rows.size))
-        rows, dirs, cols = self._cols[node]
-        W = np.zeros((3, 3))
-        W[np.ix_(dirs, dirs)] = cols[rows]
-        return W
-
-    def _superposed(self, forces) -> np.ndarray | None:
-        """The next step by superposition on predict()'s solve, when every load has its columns."""
-        if self._free is None or self._free[0] != self.steps:
-            return None
-        if forces is None:
-            return self._free[1].copy()
-        if not isinstance(forces, Mapping):
-            return None
-        un = self._free[1].copy()
-        for node, f in forces.items():
-            i = self._node(node)
-            if i not in self._cols:
-                return None
-            rows, dirs, cols = self._cols[i]
-            un += cols @ self._vec(node, f)[dirs]
-        return un
-
-    def step(self, forces=None) -> None:
-        """Advance one step; ``forces`` act at the end of the step (Newmark) or at its start (central)."""
-        if self.method == "newmark":
-            c0, c1, c2, c3, c4, c5 = self._c
-            u, v, a = self._u, self._v, self._a
-            un = self._superposed(forces)
-            if un is None:
-                F = self._load(forces)
-                un = self._fac.solve(F[self._dofs] + self._rhs_free())
-            self._free = None
-            an = c0 * (un - u) - c2 * v - c3 * a
-            self._v = newmark_velocity(v, a, an, self.dt)
-            self._u, self._a = un, an
-        else:
-            F = self._load(forces)
-            dt, al, m = self.dt, self.damping.alpha, self._mt
-            rhs = dt * dt * (F[self._t] - self._Kc.matvec(self._u)) + 2 * m * self._u - m * (1 - 0.5 * dt * al) * self._u_old
-            self._u_old, self._u = self._u, rhs / (m * (1 + 0.5 * dt * al))
-        self.steps += 1
-        self.time = self.steps * self.dt
-
-    def run(self, forces, n_steps: int) -> None:
-        """``n_steps`` steps under the same forces."""
-        n_steps = self._n_steps(n_steps)
-        self._as_array(forces)
-        for _ in range(n_steps):
-            self.step(forces)
-
-    def displacements(self) -> np.ndarray:
-        full = np.zeros(self.model.n_dofs)
-        if self.method == "newmark":
-            full[self._dofs] = self._u
-        else:
-            full[self._t] = self._u
-        return full.reshape(-1, 6)[:, :3].copy()
-
-    def displacement(self, node: int) -> np.ndarray:
-        return self.displacements()[self._node(node)]
-
-    def _state_names(self) -> tuple[str, ...]:
-        return ("_u", "_v", "_a") if self.method == "newmark" else ("_u", "_u_old")
-
-    def reset(self) -> None:
-        for name in self._state_names():
-            getattr(self, name)[:] = 0.0
-        self._free = None
-        self.time = 0.0
-        self.steps = 0
-
-    def get_state(self) -> dict[str, np.ndarray]:
-        """A copy of the state (solved-dof vectors and the step count)."""
-        out = {name[1:]: getattr(self, name).copy() for name in self._state_names()}
-        out["steps"] = np.array(self.steps)
-        return out
-
-    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
-        """Restore a state from :meth:`get_state`; checked whole before anything changes."""
-        names = self._state_names()
-        if not isinstance(state, Mapping) or set(state) != {n[1:] for n in names} | {"steps"}:
-            raise ModelError(f"state must be a mapping with {', '.join(n[1:] for n in names)} and steps, as get_state() "
-                             "returns")
-        arrays = {}
-        for name in names:
-            a = validate.real_array(state[name[1:]], f"state[{name[1:]!r}]", 1)
-            if a.shape != getattr(self, name).shape:
-                raise ModelError(f"state[{name[1:]!r}] must have shape {getattr(self, name).shape}, got {a.shape}")
-            arrays[name] = a
-        steps = state["steps"]
-        steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
-        for name, a in arrays.items():
-            setattr(self, name, a.copy())
-        self._free = None
-        self.steps = steps
-        self.time = steps * self.dt
-
-    @property
-    def fingerprint(self) -> str:
-        from .modal import mesh_fingerprint
-
-        if getattr(self, "_fingerprint", None) is None:
-            self._fingerprint = mesh_fingerprint(self.model.mesh)
-        return self._fingerprint

@@ -41,6 +41,7 @@ from . import validate
 from .errors import ModelError, RtfemWarning, SolverError
 from .lanczos import REORTHOGONALIZATIONS, Lanczos
 from .material import Damping
+from .model import check_model
 from .oscillator import step_response as _step_fn
 
 __all__ = ["SLDM", "SLDMInfo"]
@@ -95,10 +96,7 @@ class SLDM:
         m_max: int = 3000,
         reorth: str = "cgs2",
     ) -> None:
-        from .model import ShellModel
-
-        if not isinstance(model, ShellModel):
-            raise ModelError(f"model={validate.show(model)} must be a ShellModel")
+        check_model(model)
         if damping is not None and not isinstance(damping, Damping):
             raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
         validate.choice(reorth, "reorth", REORTHOGONALIZATIONS)
@@ -160,7 +158,8 @@ class SLDM:
         """
         k = z.shape[1]
         out = np.zeros((k, 3 * self.model.n_nodes), dtype=z.dtype)
-        idx = (self._t // 6) * 3 + self._t % 6
+        dpn = self.model.dofs_per_node
+        idx = (self._t // dpn) * 3 + self._t % dpn
         Q = L.Q
         chunk = max(1, int(2**24 // max(Q.shape[0], 1)))
         for c in range(0, k, chunk):

@@ -6,10 +6,10 @@ snapshots and forwards the mouse. Tests drive a :class:`Session` directly as wel
 Methods
 -------
 ``modal``      the modal simulator (r modes, exact integrator, static correction): 1 kHz.
-``impedance``  the impedance map: the precomputed responses of the grabbed vertex to unit
-               loads, superposed over the history of the grasp force (the paper's run-time
-               route); the force is the quasi-static one. A vertex's map is built when it is
-               first grabbed and kept.
+``impedance``  the impedance map (:class:`~rtfem.ImpedanceDriver`, dynamic): the precomputed
+               responses of the grabbed vertex to unit loads, superposed over the history of
+               the grasp force (the paper's run-time route); the force is the quasi-static one.
+               A vertex's map is built when it is first grabbed and kept until a rebuild.
 ``direct``     direct Newmark integration of the full model, the paper's baseline: it cannot
                keep up with the clock on a real mesh, and the panel shows by how much.
 """
@@ -26,14 +26,17 @@ import numpy as np
 from .. import validate
 from ..errors import ModelError
 from ..haptics import Grasp
-from ..impedance import ImpedanceMap
+from ..fullorder import DirectSimulator
+from ..impedance import ImpedanceDriver
 from ..material import Damping, Material
 from ..mesh import TriMesh
 from ..modal import ModalBasis, modal_analysis
-from ..model import ShellModel
-from ..simulate import DirectSimulator, ModalSimulator
+from ..model import make_model
+from ..simulate import ModalSimulator, as_driver, prepare
 
 METHODS = ("modal", "impedance", "direct")
+#: response samples of the maps the impedance method builds per grabbed vertex (s)
+MAP_TIMES = (0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0)
 
 
 @dataclass
@@ -95,16 +98,22 @@ class Session:
         self.stats = Stats()
         self.target: np.ndarray | None = None
         self.error: str | None = None
-        self._maps: dict[int, ImpedanceMap] = {}
-        self._history: list[tuple[int, np.ndarray, float]] = []  # impedance route: (node, df, onset)
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
-    def _model(self, E: float) -> ShellModel:
-        model = ShellModel(self.mesh, replace(self.material, E=E))
+    def _model(self, E: float):
+        model = make_model(self.mesh, replace(self.material, E=E))
         model.fix(self._fixed)
         model.check_restrained()
         return model
+
+    def _driver(self, s: Settings, model, modes, damping):
+        """The Driver of a method: the one place the methods differ."""
+        if s.method == "direct":
+            return DirectSimulator(model, s.dt, damping)
+        if s.method == "modal":
+            return ModalSimulator(modes, s.dt, damping, static_correction=True)
+        return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
         """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock)."""
@@ -115,27 +124,26 @@ class Session:
             basis = modal_analysis(model, max(s.n_modes, 40))
         modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis  # the r in use
         damping = Damping(alpha=s.alpha)
-        if s.method == "direct":
-            driver = DirectSimulator(model, s.dt, damping)
-        elif s.method == "modal":
-            driver = ModalSimulator(modes, s.dt, damping, static_correction=True)
-        else:
-            driver = None  # maps are built per grabbed vertex
+        driver = self._driver(s, model, modes, damping)
         with self._lock:
-            keep_maps = old is model and getattr(self, "settings", None) is not None and \
-                self.settings.alpha == s.alpha and self.settings.n_modes == s.n_modes
-            if not keep_maps:
-                self._maps = {}
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
             self.reduced = modes
             self.driver = driver
-            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force) \
-                if driver is not None else None
-            self._history, self._recorded, self._rec_node = [], np.zeros(3), None
-            self._map_force = np.zeros(3)
+            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force)
             self.node: int | None = None
             self.target = None
             self._t0_sim = 0.0
+            self.stats.steps, self.stats.sim_time = 0, 0.0
+            self.stats.forces.clear()
+
+    def use_driver(self, driver) -> None:
+        """Drive the organ with any Driver of this mesh (a user's own class) until the next
+        :meth:`configure`; the grasp, the clock and the panel work through the protocol only."""
+        driver = as_driver(driver, "viewer")
+        grasp = Grasp(self.mesh, driver, stiffness=self.settings.grasp_stiffness, max_force=self.settings.max_force)
+        with self._lock:
+            self.driver, self.grasp = driver, grasp
+            self.node, self.target = None, None
             self.stats.steps, self.stats.sim_time = 0, 0.0
             self.stats.forces.clear()
 
@@ -146,36 +154,26 @@ class Session:
         if unknown:
             raise ModelError(f"unknown setting {unknown[0]!r}; the settings are {', '.join(sorted(known))}")
         s = replace(self.settings, **changes).check()
-        if s.n_modes > self.model.n_dofs // 6 * 3 - 1:
+        if s.n_modes > self.model.n_dofs // self.model.dofs_per_node * 3 - 1:
             raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
         self._build(s)
-
-    def _impedance_map(self, node: int) -> ImpedanceMap:
-        m = self._maps.get(node)
-        if m is None:
-            m = ImpedanceMap.build(self.model, self.damping, nodes=[node], modes=self.reduced,
-                                   times=(0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0))
-            self._maps[node] = m
-        return m
 
     # ---------------------------------------------------------------- the hand
     def grab(self, point, displacements: np.ndarray | None = None) -> int:
         """Grab the free vertex nearest ``point`` on the surface displaced by ``displacements``
-        (default undeformed); returns it."""
+        (default undeformed); returns it. What the driver needs there (a map, compliance
+        columns) is prepared here, outside the lock the stepping thread takes."""
         node = self.model.nearest_free_node(point, displacements)
-        if self.settings.method == "impedance":
-            m = self._impedance_map(node)  # before the lock: a few tens of ms
-            with self._lock:
-                self._map_grasp = Grasp(self.mesh, m, stiffness=self.settings.grasp_stiffness,
-                                        max_force=self.settings.max_force)
-                self._map_grasp.grab(node)
-        else:
-            self.grasp.compliance(node)  # the solves, outside the lock
         with self._lock:
-            if self.settings.method != "impedance":
-                self.grasp.grab(node)
+            grasp = self.grasp
+        prepare(grasp.driver, [node])
+        grasp.compliance(node)
+        with self._lock:
+            if grasp is not self.grasp:  # rebuilt meanwhile
+                return node
+            self.grasp.grab(node)
             self.node = node
-            self.target = self.X[node] + self._displacement(node)
+            self.target = self.X[node] + self.driver.displacement(node)
         return node
 
     def drag(self, target) -> None:
@@ -187,65 +185,24 @@ class Session:
     def release(self) -> None:
         with self._lock:
             self.node, self.target = None, None
-            if self.grasp is not None:
-                self.grasp.release()
+            self.grasp.release()
 
     # ---------------------------------------------------------------- stepping
     def step(self) -> None:
-        """One time step of the current method under the current grasp."""
+        """One time step of the driver under the current grasp."""
         with self._lock:
-            s = self.settings
-            if s.method == "impedance":
-                if self.node is not None and self.target is not None:
-                    self._map_force = self._map_grasp.update(self.target)
-                else:
-                    self._map_force = np.zeros(3)
-            else:
-                self.grasp.update(self.target)
+            self.grasp.update(self.target)
             self.stats.steps += 1
-            self.stats.sim_time = self._t0_sim + self.stats.steps * s.dt
+            self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
 
     @property
     def force(self) -> np.ndarray:
         """Force on the organ at the grabbed vertex (N); the hand feels the opposite."""
-        return self._map_force.copy() if self.settings.method == "impedance" else self.grasp.force.copy()
-
-    def _displacement(self, node: int) -> np.ndarray:
-        if self.settings.method == "impedance":
-            return np.zeros(3) if not self._history else self._map_field()[node]
-        return self.driver.displacement(node)
-
-    def _map_field(self) -> np.ndarray:
-        """Superposed responses to the grasp-force history; settled steps merge into one static load."""
-        t = self.stats.sim_time
-        settled: dict[int, np.ndarray] = {}
-        live = []
-        for node, df, onset in self._history:
-            if t - onset > self._maps[node].times[-1]:
-                settled[node] = settled.get(node, 0.0) + df
-            else:
-                live.append((node, df, onset))
-        self._history = [(n, f, -np.inf) for n, f in settled.items()] + live
-        u = np.zeros((self.mesh.n_vertices, 3))
-        for node in {n for n, _, _ in self._history}:
-            u += self._maps[node].displacements([h for h in self._history if h[0] == node], t)
-        return u
+        return self.grasp.force.copy()
 
     def displacements(self) -> np.ndarray:
-        """The (n, 3) displacement field now (called at the frame rate)."""
+        """The (n, 3) displacement field now (called at the frame rate; reads only)."""
         with self._lock:
-            if self.settings.method == "impedance":
-                # superposition: the change of the grasp force since the last frame is a new
-                # step load on the grabbed vertex, starting now (a release unloads the old one)
-                t, f, node = self.stats.sim_time, self._map_force, self.node
-                if self._rec_node is not None and (node != self._rec_node) and np.any(self._recorded):
-                    self._history.append((self._rec_node, -self._recorded, t))
-                    self._recorded = np.zeros(3)
-                if node is not None and np.any(np.abs(f - self._recorded) > 1e-9):
-                    self._history.append((node, f - self._recorded, t))
-                    self._recorded = f.copy()
-                    self._rec_node = node
-                return self._map_field()
             return self.driver.displacements()
 
     def record_force(self) -> None:
@@ -259,7 +216,7 @@ class Session:
         window_steps, window_start, computes = 0, time.perf_counter(), []
         try:
             while not self._stop.is_set():
-                dt = self.settings.dt
+                dt = self.driver.dt
                 if st.steps < steps0:  # rebuilt: restart the schedule
                     wall0, steps0 = time.perf_counter(), st.steps
                 target = wall0 + (st.steps - steps0) * dt

@@ -1,0 +1,315 @@
+"""Full-order dynamics M U'' + B U' + K U = F: the paper's direct-integration baseline.
+
+Two integrators, one class each, both Drivers: :class:`NewmarkSimulator` (implicit average
+acceleration, the effective stiffness K + c1 B + c0 M factorized once) and
+:class:`CentralDifferenceSimulator` (explicit, on the rotation-condensed system, stable for
+dt <= T_n / pi). ``DirectSimulator(model, dt, damping, method=...)`` is the factory users call;
+both classes are DirectSimulators.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import validate
+from .errors import ModelError
+from .linalg import factorize
+from .material import Damping
+from .model import check_model
+from .simulate import _check_damping, _check_dt, _ForceInput, newmark_constants, newmark_velocity
+
+__all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator"]
+
+METHODS = ("newmark", "central")
+
+
+class DirectSimulator(_ForceInput):
+    """Direct integration of the full system M U'' + B U' + K U = F (the paper's baseline).
+
+    ``DirectSimulator(model, dt, damping, method="newmark")`` returns a :class:`NewmarkSimulator`,
+    ``method="central"`` a :class:`CentralDifferenceSimulator`.
+
+    Parameters
+    ----------
+    model : a restrained model (the Model protocol, e.g. :class:`~rtfem.ShellModel`).
+    dt : time step (s).
+    damping : :class:`~rtfem.Damping` with alpha and/or beta (B = alpha M + beta K).
+    method : "newmark" (implicit, average acceleration, unconditionally stable) or "central"
+        (explicit central differences; stable only for dt <= T_n / pi).
+    """
+
+    method = ""
+    _state: tuple[str, ...] = ()  # names of the state vectors
+
+    def __new__(cls, model=None, dt=None, damping=None, *, method: str = "newmark"):
+        if cls is DirectSimulator:
+            cls = _METHOD_CLASS[validate.choice(method, "method", METHODS)]
+        return super().__new__(cls)
+
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
+        if method is not None and method != self.method:
+            raise ModelError(f"method={validate.show(method)} given to {type(self).__name__}, which is {self.method!r}")
+        self.model = check_model(model)
+        self.dt = _check_dt(dt)
+        self.damping = _check_damping(damping)
+        self.n_nodes = model.n_nodes
+        model.check_restrained()
+        self.time = 0.0
+        self.steps = 0
+        self._fingerprint: str | None = None
+
+    def run(self, forces, n_steps: int) -> None:
+        """``n_steps`` steps under the same forces."""
+        n_steps = self._n_steps(n_steps)
+        self._as_array(forces)
+        for _ in range(n_steps):
+            self.step(forces)
+
+    def displacement(self, node: int) -> np.ndarray:
+        return self.displacements()[self._node(node)]
+
+    def _state_changed(self) -> None:
+        """Called after reset/set_state (caches of the old state are dropped)."""
+
+    def reset(self) -> None:
+        for name in self._state:
+            getattr(self, name)[:] = 0.0
+        self._state_changed()
+        self.time = 0.0
+        self.steps = 0
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """A copy of the state (solved-dof vectors and the step count)."""
+        out = {name[1:]: getattr(self, name).copy() for name in self._state}
+        out["steps"] = np.array(self.steps)
+        return out
+
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        """Restore a state from :meth:`get_state`; checked whole before anything changes."""
+        names = self._state
+        if not isinstance(state, Mapping) or set(state) != {n[1:] for n in names} | {"steps"}:
+            raise ModelError(f"state must be a mapping with {', '.join(n[1:] for n in names)} and steps, as get_state() "
+                             "returns")
+        arrays = {}
+        for name in names:
+            a = validate.real_array(state[name[1:]], f"state[{name[1:]!r}]", 1)
+            if a.shape != getattr(self, name).shape:
+                raise ModelError(f"state[{name[1:]!r}] must have shape {getattr(self, name).shape}, got {a.shape}")
+            arrays[name] = a
+        steps = state["steps"]
+        steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
+        for name, a in arrays.items():
+            setattr(self, name, a.copy())
+        self._state_changed()
+        self.steps = steps
+        self.time = steps * self.dt
+
+    @property
+    def fingerprint(self) -> str:
+        """The hash of the model's mesh."""
+        from .modal import mesh_fingerprint
+
+        if self._fingerprint is None:
+            self._fingerprint = mesh_fingerprint(self.model.mesh)
+        return self._fingerprint
+
+
+class NewmarkSimulator(DirectSimulator):
+    """Implicit average-acceleration Newmark on the full model (Eq. 12-15): the effective
+    stiffness K^ = K + c1 B + c0 M is factorized once; forces act at the end of the step."""
+
+    method = "newmark"
+    _state = ("_u", "_v", "_a")
+
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
+        super().__init__(model, dt, damping, method=method)
+        model = self.model
+        K, dofs = model.constrained_stiffness()
+        M, _ = model.constrained_mass()
+        self._dofs = dofs
+        B = self.damping.matrix(M, K)
+        self._c = newmark_constants(self.dt)
+        c0, c1 = self._c[0], self._c[1]
+        Khat = (K + c1 * B + c0 * M).tocsc()
+        self._M = sp.csr_matrix(M)
+        self._B = sp.csr_matrix(B) if sp.issparse(B) else None
+        self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=model.dof_order(dofs))
+        nd = dofs.size
+        self._u, self._v, self._a = np.zeros(nd), np.zeros(nd), np.zeros(nd)
+        self._cols: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # node -> (rows, dirs, K^-1 columns)
+        self._free: tuple[int, np.ndarray] | None = None  # (step, no-new-load solution) of predict()
+
+    def _rhs_free(self) -> np.ndarray:
+        c0, c1, c2, c3, c4, c5 = self._c
+        u, v, a = self._u, self._v, self._a
+        rhs = self._M @ (c0 * u + c2 * v + c3 * a)
+        if self._B is not None:
+            rhs += self._B @ (c1 * u + c4 * v + c5 * a)
+        return rhs
+
+    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of the node's free translations in the solved vector, and their directions."""
+        want = self.model.translation_dofs(node)
+        pos = np.minimum(np.searchsorted(self._dofs, want), self._dofs.size - 1)
+        ok = self._dofs[pos] == want
+        return pos[ok], np.flatnonzero(ok)
+
+    def prepare(self, nodes) -> None:
+        """Solve the step-compliance columns of the nodes that will be loaded (3 solves each)."""
+        for n in validate.nodes(nodes, self.n_nodes).tolist():
+            self.step_compliance(n)
+
+    def predict(self, node: int) -> np.ndarray:
+        """Displacement (3,) of ``node`` after one more step with no new load (one sparse solve).
+
+        With :meth:`step_compliance` W, a step under a force f on that node gives
+        u(k+1) = predict(node) + W f; the following :meth:`step` reuses this solve when its
+        loads are on nodes whose compliance is known.
+        """
+        node = self._node(node)
+        if self._free is None or self._free[0] != self.steps:
+            self._free = (self.steps, self._fac.solve(self._rhs_free()))
+        rows, dirs = self._node_rows(node)
+        out = np.zeros(3)
+        out[dirs] = self._free[1][rows]
+        return out
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """W (3x3): displacement of ``node`` after one step per unit force on it (K^-1 block)."""
+        node = self._node(node)
+        if node not in self._cols:
+            rows, dirs = self._node_rows(node)
+            E = np.zeros((self._dofs.size, rows.size))
+            E[rows, np.arange(rows.size)] = 1.0
+            cols = self._fac.solve(E) if rows.size else E
+            self._cols[node] = (rows, dirs, cols.reshape(self._dofs.size, rows.size))
+        rows, dirs, cols = self._cols[node]
+        W = np.zeros((3, 3))
+        W[np.ix_(dirs, dirs)] = cols[rows]
+        return W
+
+    def _superposed(self, forces) -> np.ndarray | None:
+        """The next step by superposition on predict()'s solve, when every load has its columns."""
+        if self._free is None or self._free[0] != self.steps:
+            return None
+        if forces is None:
+            return self._free[1].copy()
+        if not isinstance(forces, Mapping):
+            return None
+        un = self._free[1].copy()
+        for node, f in forces.items():
+            i = self._node(node)
+            if i not in self._cols:
+                return None
+            rows, dirs, cols = self._cols[i]
+            un += cols @ self._vec(node, f)[dirs]
+        return un
+
+    def step(self, forces=None) -> None:
+        """Advance one step; ``forces`` act at the end of the step."""
+        c0, c2, c3 = self._c[0], self._c[2], self._c[3]
+        u, v, a = self._u, self._v, self._a
+        un = self._superposed(forces)
+        if un is None:
+            F = self.model.force_vector(self._as_array(forces), warn=False)
+            un = self._fac.solve(F[self._dofs] + self._rhs_free())
+        self._free = None
+        an = c0 * (un - u) - c2 * v - c3 * a
+        self._v = newmark_velocity(v, a, an, self.dt)
+        self._u, self._a = un, an
+        self.steps += 1
+        self.time = self.steps * self.dt
+
+    def displacements(self) -> np.ndarray:
+        return self.model.nodal_translations(self._u, self._dofs)
+
+    def _state_changed(self) -> None:
+        self._free = None
+
+
+class CentralDifferenceSimulator(DirectSimulator):
+    """Explicit central differences on the condensed system (Eq. 5) with diagonal mass and
+    mass-proportional damping: m u_{k+1} (1 + dt a/2) = dt^2 (F_k - K_c u_k) + 2 m u_k
+    - m (1 - dt a/2) u_{k-1}. Forces act at the start of the step; stable for dt <= T_n / pi."""
+
+    method = "central"
+    _state = ("_u", "_u_old")
+
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
+        super().__init__(model, dt, damping, method=method)
+        model, dt = self.model, self.dt
+        if self.damping.beta != 0 or self.damping.is_modal_only:
+            raise ModelError("the central-difference method needs diagonal damping: use Damping(alpha=...) only")
+        if model.constraints != "elimination":
+            raise ModelError("the central-difference method needs fixes by elimination (penalty dofs are far too stiff)")
+        c = model.condensation()
+        self._Kc = c.apply
+        self._t = c.t
+        self._mt = model.mass_diagonal[c.t]
+        if np.any(self._mt <= 0):
+            raise ModelError("the central-difference method needs mass on every free translation")
+        self.critical_dt, self.omega_max = self._stability_limit()
+        if dt > self.critical_dt:
+            raise ModelError(
+                f"central differences are unstable for dt = {dt:.3g} s: the limit is T_n/pi = "
+                f"{self.critical_dt:.3g} s (highest frequency {self.omega_max / 2 / np.pi:.4g} Hz, "
+                f"shortest period T_n = {2 * np.pi / self.omega_max:.3g} s). Use dt <= {self.critical_dt:.3g} "
+                "or method='newmark'"
+            )
+        al = self.damping.alpha
+        self._gain = dt * dt / (self._mt * (1 + 0.5 * dt * al))  # u_{k+1} per unit force at step k
+        self._keep = 2.0 / (1 + 0.5 * dt * al)
+        self._back = (1 - 0.5 * dt * al) / (1 + 0.5 * dt * al)
+        self._u = np.zeros(self._t.size)
+        self._u_old = np.zeros(self._t.size)
+
+    def _stability_limit(self) -> tuple[float, float]:
+        """dt_crit = 2 / w_max = T_n / pi, with w_max from Lanczos on M^-1/2 K_c M^-1/2."""
+        s = 1.0 / np.sqrt(self._mt)
+        op = spla.LinearOperator((s.size, s.size), matvec=lambda x: s * self._Kc(s * x), dtype=float)
+        lam = spla.eigsh(op, k=1, which="LA", tol=1e-6, return_eigenvectors=False)[0]
+        w = math.sqrt(lam * (1 + 1e-5))  # a hair above: the Lanczos estimate is from below
+        return 2.0 / w, w
+
+    def _free_update(self) -> np.ndarray:
+        return self._keep * self._u - self._back * self._u_old - self._gain * self._Kc(self._u)
+
+    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
+        want = self.model.translation_dofs(node)
+        pos = np.minimum(np.searchsorted(self._t, want), self._t.size - 1)
+        ok = self._t[pos] == want
+        return pos[ok], np.flatnonzero(ok)
+
+    def predict(self, node: int) -> np.ndarray:
+        """Displacement (3,) of ``node`` after one more step with no load (one K_c product)."""
+        rows, dirs = self._node_rows(self._node(node))
+        out = np.zeros(3)
+        out[dirs] = self._free_update()[rows]
+        return out
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """W (3x3) = dt^2 / (m (1 + dt a / 2)) on the node's free translations: the explicit step
+        moves only the loaded node."""
+        rows, dirs = self._node_rows(self._node(node))
+        W = np.zeros((3, 3))
+        W[dirs, dirs] = self._gain[rows]
+        return W
+
+    def step(self, forces=None) -> None:
+        """Advance one step; ``forces`` act at the start of the step."""
+        F = self.model.force_vector(self._as_array(forces), warn=False)
+        un = self._free_update() + self._gain * F[self._t]
+        self._u_old, self._u = self._u, un
+        self.steps += 1
+        self.time = self.steps * self.dt
+
+    def displacements(self) -> np.ndarray:
+        return self.model.nodal_translations(self._u, self._t)
+
+
+_METHOD_CLASS = {"newmark": NewmarkSimulator, "central": CentralDifferenceSimulator}
