@@ -41,7 +41,7 @@ def run(levels: list[int], repeat: int, dense_gb: float) -> None:
 
         rep = repeat if mesh.n_vertices < 20000 else 1
         t_asm, model = median_time(assemble, rep)
-        node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+        node = mesh.groups["probe"][0]
         F = np.zeros((mesh.n_vertices, 3))
         F[node] = -0.2 * mesh.vertex_normals()[node]
 

@@ -63,7 +63,7 @@ def run(levels, modes_list):
         t0 = time.perf_counter()
         model.factorization()
         t_fac = time.perf_counter() - t0
-        node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+        node = int(mesh.groups["probe"][0])
         force = tuple(-0.2 * mesh.vertex_normals()[node])
         # the direct baseline
         t0 = time.perf_counter()

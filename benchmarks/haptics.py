@@ -32,13 +32,7 @@ DAMPING = rt.Damping(alpha=8.0)
 
 def press_trajectory(X, n, depth=0.004, period=2.0):
     """In 0.2 s from 2 mm outside to ``depth`` inside, hold, release; repeat every ``period``."""
-
-    def traj(t):
-        s = (t % period) / period
-        d = -0.002 + (depth + 0.002) * (min(s / 0.1, 1.0) if s < 0.5 else max(0.0, 1 - (s - 0.5) / 0.1))
-        return X - d * n
-
-    return traj
+    return rt.ScriptedDevice.press(X, n, depth, period, ramp=0.1, release=0.5, repeat=True).trajectory
 
 
 def offline(probe, traj, steps):
@@ -59,7 +53,7 @@ def run(levels, seconds, n_modes):
         mesh = rt.meshes.liver(level)
         model = rt.ShellModel(mesh, rt.Material())
         model.fix("attachment")
-        node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+        node = int(mesh.groups["probe"][0])
         X, n = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
         traj = press_trajectory(X, n)
         t0 = time.perf_counter()

@@ -105,7 +105,7 @@ def run(levels, horizon, samples, tols=TOLS, ramp=True, horizon_table=True):
         mesh = rt.meshes.liver(level)
         model = rt.ShellModel(mesh, rt.Material())
         model.fix("attachment")
-        node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+        node = int(mesh.groups["probe"][0])
         force = tuple(-0.2 * mesh.vertex_normals()[node])
         t0 = time.perf_counter()
         sldm = rt.SLDM(model, DAMPING)
@@ -175,7 +175,7 @@ def run(levels, horizon, samples, tols=TOLS, ramp=True, horizon_table=True):
     mesh = rt.meshes.liver(4)
     model = rt.ShellModel(mesh, rt.Material())
     model.fix("attachment")
-    node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+    node = int(mesh.groups["probe"][0])
     sldm = rt.SLDM(model, DAMPING, m_max=6000)
     rows = []
     for T in (0.005, 0.01, 0.05, 0.1, 0.5, 1.0):

@@ -14,7 +14,7 @@ mesh = rt.load_mesh(sys.argv[1]) if len(sys.argv) > 1 else rt.meshes.liver()
 model = rt.ShellModel(mesh, rt.Material(E=30e3, nu=0.45, thickness=0.003, density=1000.0))
 model.fix("attachment")  # or vertex indices, or a boolean mask
 
-node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+node = mesh.groups["probe"][0]
 force = -0.2 * mesh.vertex_normals()[node]  # 0.2 N inward along the surface normal
 u = model.solve_static({node: force})  # (n, 3) displacements in metres
 

@@ -18,7 +18,7 @@ modes = rt.modal_analysis(model, 40)  # K phi = w^2 M phi, the 40 lowest
 print("lowest frequencies (Hz):", np.round(modes.frequencies[:6], 3))
 
 dt, damping = 1e-3, rt.Damping(alpha=8.0)  # B = alpha M
-node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+node = mesh.groups["probe"][0]
 push = tuple(-0.2 * mesh.vertex_normals()[node])
 
 modal = rt.ModalSimulator(modes, dt, damping, static_correction=True)

@@ -14,16 +14,10 @@ model = rt.ShellModel(mesh, rt.Material())
 model.fix("attachment")
 sim = rt.ModalSimulator(rt.modal_analysis(model, 40), 1e-3, rt.Damping(alpha=8.0), static_correction=True)
 
-node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+node = mesh.groups["probe"][0]  # a vertex on the free edge of the right lobe
 X, n = mesh.vertices[node], mesh.vertex_normals()[node]
-
-
-def trajectory(t):  # 2 mm above the surface, press 5 mm in over 0.5 s, hold, pull out at 1.5 s
-    depth = -0.002 + 0.007 * min(t / 0.5, 1.0) if t < 1.5 else -0.002
-    return X - depth * n
-
-
-device = rt.ScriptedDevice(trajectory)
+# 2 mm above the surface, press 5 mm in over 0.5 s, hold, pull out from 1.5 s
+device = rt.ScriptedDevice.press(X, n, depth=0.005, duration=2.0, ramp=0.25, release=0.75)
 probe = rt.Probe(mesh, sim, stiffness=200.0)  # virtual coupling spring, N/m
 probe.prepare(around=X, radius=0.01)  # contact compliances, before the clock starts
 stats = rt.HapticLoop(probe, device, rate=1000.0).run(2.0)

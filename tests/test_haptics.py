@@ -8,7 +8,7 @@ import rtfem as rt
 def organ(liver3_modes):
     model, basis = liver3_modes
     mesh = model.mesh
-    node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+    node = mesh.groups["probe"][0]
     n = mesh.vertex_normals()[node]
     G = np.stack([model.solve_static({node: e})[node] for e in np.eye(3)], axis=1)  # static point compliance
     return mesh, model, basis, node, n, G

@@ -12,7 +12,7 @@ def setup():
     model = liver_model(3)
     mesh = model.mesh
     damping = rt.Damping(alpha=8.0)
-    a = mesh.nearest_vertex([0.055, 0.05, 0.0])
+    a = mesh.groups["probe"][0]
     b = mesh.nearest_vertex([-0.06, 0.04, -0.01])
     imap = rt.ImpedanceMap.build(model, damping, nodes=[a, b], times=TIMES, n_modes=40)
     return model, damping, imap, a, b

@@ -58,9 +58,12 @@ def test_truncated_and_progress(liver3):
     assert np.array_equal(basis.truncated(5).omega, basis.omega[:5])
     with pytest.raises(rt.ModelError):
         basis.truncated(0)
-    messages = []
-    rt.modal_analysis(model, 4, progress=messages.append)
-    assert any("Lanczos" in m for m in messages) and "modes in" in messages[-1]
+    calls = []
+    rt.modal_analysis(model, 4, progress=lambda done, total, message: calls.append((done, total, message)))
+    assert any("Lanczos" in m for _, _, m in calls) and "modes in" in calls[-1][2]
+    assert all(0 <= d <= t for d, t, _ in calls) and calls[-1][0] == calls[-1][1]  # ends at 100 %
+    solves = [d for d, _, m in calls if m.startswith("Lanczos:")]
+    assert solves == list(range(1, len(solves) + 1))  # one call per solve, counted
 
 
 def test_bad_requests(liver3):

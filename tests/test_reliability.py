@@ -48,7 +48,7 @@ def free_port() -> int:
 def small():
     """The level-2 liver (162 vertices), fixed at its attachment, with 8 modes."""
     model = liver_model(2)
-    return model, rt.modal_analysis(model, 8), model.nearest_free_node([0.055, 0.05, 0.0])
+    return model, rt.modal_analysis(model, 8), int(model.mesh.groups["probe"][0])
 
 
 # ============================================================== data loss: atomic saves

@@ -51,7 +51,7 @@ def world() -> dict:
     model = rt.ShellModel(mesh, rt.Material())
     model.fix("attachment")
     modes = rt.modal_analysis(model, 8)
-    node = model.nearest_free_node([0.055, 0.05, 0.0])
+    node = int(model.mesh.groups["probe"][0])
     damping = rt.Damping(alpha=8.0)
     imap = rt.ImpedanceMap.build(model, damping, nodes=[node], modes=modes)
     other = rt.TriMesh(np.asarray(mesh.vertices) * 2.0, mesh.triangles, groups=mesh.groups)  # same size, another organ

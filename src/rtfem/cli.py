@@ -15,8 +15,7 @@ Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupte
 from __future__ import annotations
 
 import argparse
-import bisect
-import csv
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -28,38 +27,61 @@ from .errors import RtfemError
 
 
 # ---------------------------------------------------------------- shared pieces
-class Progress:
-    """One self-overwriting progress line on stderr (plain lines when not a terminal)."""
+class _LineProgress:
+    """Plain progress lines, at most one a second (stderr is a file or a pipe: no bar to redraw)."""
 
-    def __init__(self, label: str, total: float | None = None, stream=None) -> None:
-        self.label, self.total = label, total
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self.t0 = time.perf_counter()
-        self._last = 0.0
+    def __init__(self, label: str, unit: str, stream) -> None:
+        self.label, self.unit, self.stream = label, unit, stream
+        self.t0 = self._last = time.perf_counter()
+        self.done = self.total = 0
+        self.message = ""
 
-    def update(self, done: float, note: str = "", force: bool = False) -> None:
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        self.done, self.total, self.message = done, total, message
         now = time.perf_counter()
-        if not force and now - self._last < (0.1 if self.tty else 1.0):
-            return
-        self._last = now
-        if self.total:
-            frac = min(max(done / self.total, 0.0), 1.0)
-            bar = "#" * int(round(30 * frac)) + "-" * (30 - int(round(30 * frac)))
-            text = f"{self.label} [{bar}] {frac * 100:5.1f} % {note} {now - self.t0:6.1f} s"
-        else:
-            text = f"{self.label} {note} {now - self.t0:6.1f} s"
-        self.stream.write(("\r" + text + "\033[K") if self.tty else text + "\n")
+        if now - self._last >= 1.0:
+            self._last = now
+            self._write(now)
+
+    def _write(self, now: float) -> None:
+        self.stream.write(f"{self.label}: {self.done}/{self.total} {self.unit} {self.message} "
+                          f"({now - self.t0:.1f} s)\n")
         self.stream.flush()
 
-    def done(self, note: str = "") -> None:
-        if self.total:
-            self.update(self.total, note, force=True)
-        else:
-            self.update(0, note, force=True)
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+    def close(self) -> None:
+        self._write(time.perf_counter())
+
+
+class _TqdmProgress:
+    """A tqdm bar on a terminal, fed by progress(done, total, message)."""
+
+    def __init__(self, label: str, unit: str, stream) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc=label, unit=unit, file=stream, total=None, dynamic_ncols=True, mininterval=0.1, leave=True)
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        bar = self.bar
+        if total != bar.total:
+            bar.total = total
+        if message:
+            bar.set_postfix_str(message, refresh=False)
+        bar.update(done - bar.n)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, unit: str = "it", stream=None):
+    """The CLI's rendering of the library's progress(done, total, message) callbacks: a tqdm bar on
+    a terminal, a plain line a second otherwise (logs, CI, pipes)."""
+    stream = stream or sys.stderr
+    bar = _TqdmProgress(label, unit, stream) if stream.isatty() else _LineProgress(label, unit, stream)
+    try:
+        yield bar
+    finally:
+        bar.close()
 
 
 # ---------------------------------------------------------------- option types (argparse type= checks)
@@ -200,20 +222,10 @@ def _modes(model, args, *, quiet=False):
     r = args.modes
     if r < 1:
         raise RtfemError(f"--modes {r}: ask for at least one mode")
-    # ARPACK's shift-invert Lanczos takes about 1.5-2 ncv solves (ncv = 2r + 1): the bar's estimate
-    bar = Progress(f"modes       r = {r}", total=4 * r + 2)
-
-    def progress(msg: str) -> None:
-        words = msg.split()
-        if "solves," in words:
-            done = int(words[words.index("solves,") - 1])
-            bar.total = max(bar.total, done * 1.05)
-            bar.update(done, f"{done} solves")
-
-    basis = modal_analysis(model, r, progress=None if quiet else progress)
-    if not quiet:
-        bar.done(f"{basis.n_modes} modes ({basis.info['method']})")
-    return basis
+    if quiet:
+        return modal_analysis(model, r)
+    with progress_bar(f"modes (r = {r})", unit="solve") as bar:
+        return modal_analysis(model, r, progress=bar)
 
 
 # ---------------------------------------------------------------- commands
@@ -258,39 +270,8 @@ def _probe_point(model, at: str | None) -> int:
     return probe_vertex(model)
 
 
-def _read_loads(path: str, n_nodes: int) -> list[tuple[float, int, np.ndarray]]:
-    """CSV rows t,node,fx,fy,fz: from time t on, node carries (fx, fy, fz) (N) until its next row."""
-    rows = []
-    try:
-        with open(path, newline="") as fh:
-            for i, row in enumerate(csv.reader(fh), start=1):
-                if not row or row[0].strip().startswith("#") or row[0].strip().lower() == "t":
-                    continue
-                if len(row) != 5:
-                    raise RtfemError(f"{path}, line {i}: expected 5 columns t,node,fx,fy,fz, found {len(row)}")
-                try:
-                    t, node = float(row[0]), int(row[1])
-                    f = np.array([float(v) for v in row[2:]])
-                except ValueError:
-                    raise RtfemError(f"{path}, line {i}: not numbers: {','.join(row)}") from None
-                if not (np.isfinite(t) and t >= 0 and np.all(np.isfinite(f))):
-                    raise RtfemError(f"{path}, line {i}: time must be >= 0 and forces finite")
-                if not 0 <= node < n_nodes:
-                    raise RtfemError(f"{path}, line {i}: node {node} is not on the mesh (0..{n_nodes - 1})")
-                rows.append((t, node, f))
-    except UnicodeDecodeError:
-        raise RtfemError(f"{path}: not a text CSV file") from None
-    if not rows:
-        raise RtfemError(f"{path}: no load rows (t,node,fx,fy,fz)")
-    return sorted(rows, key=lambda r: r[0])
-
-
-def cmd_simulate(args: argparse.Namespace) -> int:
-    from .haptics import Probe, ScriptedDevice
-    from .io import write_pvd, write_vtu
-    from .fullorder import DirectSimulator
-    from .simulate import ModalSimulator
-
+def _check_simulate(args: argparse.Namespace) -> tuple[int, int]:
+    """Refuse a run that cannot work before any work: returns (steps, steps per frame)."""
     from .validate import time_step
 
     time_step(args.dt, "--dt")
@@ -298,10 +279,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         _vector(args.at, "--at")
     if args.method == "sldm" and not args.load:
         raise RtfemError("--method sldm answers given loads (it has no state to step a contact with): add --load FILE")
-    model = build_model(args)
-    mesh = model.mesh
-    loads = _read_loads(args.load, mesh.n_vertices) if args.load else None
-    damping = damping_of(args)
     n_float = args.duration / args.dt
     if n_float > MAX_STEPS:
         raise RtfemError(f"--duration {args.duration:g} s at --dt {args.dt:g} s is {n_float:.3g} steps, more than the "
@@ -316,103 +293,91 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
-    out.mkdir(parents=True, exist_ok=True)
+    return n_steps, frame_every
+
+
+def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tuple[RunWriter, str]:
+    """A scripted point probe presses the organ: one CSV row per step, frames at --fps."""
+    from .haptics import Probe, ScriptedDevice
+    from .scenario import RunWriter
+
+    mesh = model.mesh
+    node = _probe_point(model, args.at)
+    X, nrm = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
+    device = ScriptedDevice.press(X, nrm, args.depth, args.duration, approach=0.001)
+    probe = Probe(mesh, sim, stiffness=args.stiffness)
+    out = RunWriter(args.out, mesh, ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force",
+                                     "contact_node", "u_x", "u_y", "u_z"], frame_every)
+    for k in range(n_steps):
+        t = k * args.dt
+        pos = device.position(t)
+        f = probe.update(pos)
+        contact = probe.contact_node if probe.contact_node is not None else -1
+        out.row([t + args.dt, *pos, *f, float(np.linalg.norm(f)), contact, *sim.displacement(node)])
+        out.frame(k + 1, t + args.dt, sim.displacements)
+        bar(k + 1, n_steps, f"t = {t:.3f} s")
+    what = (f"point probe at vertex {node}, {args.depth * 1e3:g} mm deep along its inward normal, stiffness "
+            f"{args.stiffness:g} N/m")
+    return out, what
+
+
+def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: int, bar) -> RunWriter:
+    """Given loads: stepped by a driver, or answered whole by SLDM (Duhamel superposition)."""
+    from .scenario import RunWriter
+
+    nodes = schedule.nodes
+    header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
+    out = RunWriter(args.out, model.mesh, header, frame_every)
+    zero = np.zeros(3)
+    times = (np.arange(n_steps) + 1) * args.dt
+    if sim is None:
+        from .sldm import SLDM
+
+        U_all = SLDM(model, damping_of(args)).response(schedule, times, tol=args.tol)
+    for k, t in enumerate(times):
+        f = schedule.forces_at(t - args.dt)
+        if sim is None:
+            U = U_all[k]
+        else:
+            sim.step({n: tuple(v) for n, v in f.items()} or None)
+            U = sim.displacements()
+        out.row([t] + [v for n in nodes for v in (*f.get(n, zero), *U[n])])
+        out.frame(k + 1, t, U)
+        bar(k + 1, n_steps, f"t = {t:.3f} s")
+    return out
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .fullorder import DirectSimulator
+    from .scenario import LoadSchedule
+    from .simulate import ModalSimulator
+
+    n_steps, frame_every = _check_simulate(args)
+    model = build_model(args)
+    schedule = LoadSchedule.from_csv(args.load, model.n_nodes) if args.load else None
+    damping = damping_of(args)
     if args.method == "modal":
         sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True)
     elif args.method == "direct":
         sim = DirectSimulator(model, args.dt, damping)
     else:
         sim = None
-    rows, frames = [], []
     t0 = time.perf_counter()
-    bar = Progress(f"simulate    {args.method}", total=n_steps)
-    if loads is None:
-        node = _probe_point(model, args.at)
-        X, nrm = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
-        T, depth = args.duration, args.depth
-
-        def trajectory(t: float) -> np.ndarray:  # 1 mm above; press to depth; hold; back out
-            s = t / T
-            d = -0.001 + (depth + 0.001) * (min(s / 0.2, 1.0) if s < 0.6 else max(0.0, 1 - (s - 0.6) / 0.2))
-            return X - d * nrm
-
-        device = ScriptedDevice(trajectory)
-        probe = Probe(mesh, sim, stiffness=args.stiffness)
-        for k in range(n_steps):
-            t = k * args.dt
-            pos = device.position(t)
-            f = probe.update(pos)
-            u = sim.displacement(node)
-            rows.append([t + args.dt, *pos, *f, float(np.linalg.norm(f)), probe.contact_node if probe.contact_node is not None else -1, *u])
-            if (k + 1) % frame_every == 0:
-                frames.append((t + args.dt, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, sim.displacements())))
-            bar.update(k + 1)
-        header = ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force", "contact_node",
-                  "u_x", "u_y", "u_z"]
-        what = f"point probe at vertex {node}, {depth * 1e3:g} mm deep along its inward normal, stiffness {args.stiffness:g} N/m"
-    else:
-        nodes = sorted({n for _, n, _ in loads})
-
-        # the loads in force after each switch time, built once (rows are sorted by time)
-        switch = sorted({tl for tl, _, _ in loads})
-        states, cur, i = [], {}, 0
-        for ts in switch:
-            while i < len(loads) and loads[i][0] == ts:
-                cur[loads[i][1]] = loads[i][2]
-                i += 1
-            states.append({n: f for n, f in cur.items() if np.any(f)})
-
-        def forces_at(t: float) -> dict[int, np.ndarray]:
-            k = bisect.bisect_right(switch, t + 1e-12) - 1
-            return states[k] if k >= 0 else {}
-
-        header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
-        if sim is None:  # SLDM: Duhamel superposition of the piecewise-constant loads
-            from .sldm import SLDM
-
-            times = (np.arange(n_steps) + 1) * args.dt
-            solver = SLDM(model, damping)
-
-            def F_of(state: dict[int, np.ndarray]) -> np.ndarray:
-                F = np.zeros((mesh.n_vertices, 3))
-                for n, f in state.items():
-                    F[n] = f
-                return F
-
-            U = solver.response([(tl, F_of(st)) for tl, st in zip(switch, states)], times, tol=args.tol)
-            zero = np.zeros(3)
-            for k, t in enumerate(times):
-                fa = forces_at(t - args.dt)
-                rows.append([t] + [v for n in nodes for v in (*fa.get(n, zero), *U[k, n])])
-                if (k + 1) % frame_every == 0:
-                    frames.append((t, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, U[k])))
-                bar.update(k + 1)
+    with progress_bar(f"simulate ({args.method})", unit="steps") as bar:
+        if schedule is None:
+            out, what = _simulate_probe(args, model, sim, n_steps, frame_every, bar)
         else:
-            for k in range(n_steps):
-                t = k * args.dt
-                f = forces_at(t)
-                sim.step({n: tuple(v) for n, v in f.items()} or None)
-                U = sim.displacements()
-                rows.append([t + args.dt] + [v for n in nodes for v in (*f.get(n, np.zeros(3)), *U[n])])
-                if (k + 1) % frame_every == 0:
-                    frames.append((t + args.dt, write_vtu(out / f"frame_{len(frames):05d}.vtu", mesh, U)))
-                bar.update(k + 1)
-        what = f"{len(loads)} load rows from {args.load} on {len(nodes)} node(s)"
-    bar.done()
+            out = _simulate_schedule(args, model, sim, schedule, n_steps, frame_every, bar)
+            what = f"{len(schedule)} load rows from {args.load} on {len(schedule.nodes)} node(s)"
     elapsed = time.perf_counter() - t0
-    csv_path = out / "response.csv"
-    with open(csv_path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        w.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in rows])
-    pvd = write_pvd(out / "response.pvd", frames)
-    forces = np.array([r[7] for r in rows]) if loads is None else None
+    csv_path, pvd = out.close()
     print(f"load        {what}")
     print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({args.method}) in {elapsed:.2f} s "
           f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")
-    if forces is not None:
+    if schedule is None:
+        forces = np.array([r[7] for r in out.rows])
         print(f"force       peak {forces.max():.4f} N, final {forces[-1]:.4f} N")
-    print(f"wrote       {csv_path} ({len(rows)} rows), {pvd} ({len(frames)} frames; open in ParaView)")
+    print(f"wrote       {csv_path} ({len(out.rows)} rows), {pvd} ({len(out.frames)} frames; open in ParaView)")
     return 0
 
 
@@ -426,27 +391,19 @@ def cmd_impedance(args: argparse.Namespace) -> int:
     if args.nodes:
         nodes, how = fixed_nodes(model.mesh, args.nodes, "--nodes")
         print(f"loaded      {nodes.size} nodes ({how})")
-    bar = Progress("impedance  ", total=1)
-
-    def progress(done: int, total: int, seconds: float) -> None:
-        bar.total = total
-        bar.update(done, f"{done}/{total} nodes")
-
     kw = dict(nodes=nodes, radius=args.radius, metric=args.metric, threshold=args.threshold, method=args.method,
-              n_modes=args.modes, tol=args.tol, progress=progress, workers=args.workers,
-              memory_limit=args.memory_limit * 2**30)
+              n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30)
     if times is not None:
         kw["times"] = times
-    imap = ImpedanceMap.build(model, damping_of(args), **kw)
+    with progress_bar("impedance", unit="nodes") as bar:
+        imap = ImpedanceMap.build(model, damping_of(args), progress=bar, **kw)
     if not imap.info.get("complete", True):
         # interrupted: keep what was finished, beside (never over) the requested output
         name = output.name[:-4] if output.name.endswith(".npz") else output.name
         partial = imap.save(output.with_name(name + ".partial.npz"))
-        bar.done(f"interrupted at {imap.loaded.size}/{imap.info['requested_nodes']} nodes")
         print(f"rtfem: interrupted: kept {imap.loaded.size} of {imap.info['requested_nodes']} loaded nodes in "
               f"{partial}; {args.output} was not touched", file=sys.stderr)
         return 130
-    bar.done()
     out = imap.save(output)
     print(f"map         {imap}")
     print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ImpedanceMap.load(path, model=...)")

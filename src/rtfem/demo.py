@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 import rtfem as rt
-from rtfem.io import write_pvd, write_vtu
+from rtfem.io import write_vtu
+from rtfem.scenario import RunWriter
 
 
 def static_poke(out: Path, force: float = 0.2) -> dict:
@@ -23,7 +24,7 @@ def static_poke(out: Path, force: float = 0.2) -> dict:
     model = rt.ShellModel(mesh, material)
     model.fix("attachment")
     # poke the anterior edge of the left lobe, inward along the surface normal
-    node = mesh.nearest_vertex([0.055, 0.05, 0.0])
+    node = mesh.groups["probe"][0]
     normal = mesh.vertex_normals()[node]
     t0 = time.perf_counter()
     K = model.K
@@ -63,7 +64,7 @@ def probe_dynamics(out: Path, n_modes: int = 40, dt: float = 1e-3, force: float 
     modes = rt.modal_analysis(model, n_modes)
     t_modal = time.perf_counter() - t0
     damping = rt.Damping(alpha=8.0)
-    node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+    node = int(mesh.groups["probe"][0])
     push = -force * mesh.vertex_normals()[node]
     # mode acceleration: the truncated modes' static share of the probe load is added back,
     # so 40 modes still give the right indentation under the probe
@@ -72,10 +73,9 @@ def probe_dynamics(out: Path, n_modes: int = 40, dt: float = 1e-3, force: float 
     plain = rt.ModalSimulator(modes, dt, damping)
     ramp, hold, free = 100, 300, 600
     n_steps = ramp + hold + free
-    frame_every = max(1, int(round(1 / 60 / dt)))  # 60 Hz frames
-    frames, contact, step_times = [], [], []
-    folder = out / "dynamics"
-    folder.mkdir(parents=True, exist_ok=True)
+    frames = RunWriter(out, mesh, [], max(1, int(round(1 / 60 / dt))), name="liver_dynamics",  # 60 Hz frames
+                       frame_folder=out / "dynamics")
+    contact, step_times = [], []
     for k in range(n_steps):
         s = min(1.0, (k + 1) / ramp) if k < ramp + hold else 0.0
         load = {node: (s * push[0], s * push[1], s * push[2])} if s else None
@@ -87,10 +87,8 @@ def probe_dynamics(out: Path, n_modes: int = 40, dt: float = 1e-3, force: float 
         plain.step(load)
         if k == ramp + hold - 1:
             plain_hold = np.linalg.norm(plain.displacement(node))
-        if (k + 1) % frame_every == 0:
-            path = write_vtu(folder / f"frame_{len(frames):04d}.vtu", mesh, sim.displacements())
-            frames.append((sim.time, path))
-    pvd = write_pvd(out / "liver_dynamics.pvd", frames)
+        frames.frame(k + 1, sim.time, sim.displacements)
+    _, pvd = frames.close()
     # the paper's baseline, for comparison: direct integration of the full system
     t0 = time.perf_counter()
     direct = rt.DirectSimulator(model, dt, damping)
@@ -115,7 +113,7 @@ def probe_dynamics(out: Path, n_modes: int = 40, dt: float = 1e-3, force: float 
     print(f"  contact     {contact[ramp + hold - 1] * 1e3:.2f} mm at the end of the hold (static solve: "
           f"{u_static * 1e3:.2f} mm; {n_modes} modes without the correction: {plain_hold * 1e3:.2f} mm), peak "
           f"{contact.max() * 1e3:.2f} mm, {contact[-1] * 1e3:.3f} mm {free} ms after release")
-    print(f"  wrote       {pvd} ({len(frames)} frames at 60 Hz; open in ParaView and press play)")
+    print(f"  wrote       {pvd} ({len(frames.frames)} frames at 60 Hz; open in ParaView and press play)")
     return {"contact": contact, "modes": modes}
 
 
@@ -126,15 +124,9 @@ def haptic_session(seconds: float = 3.0, n_modes: int = 40) -> dict:
     model.fix("attachment")
     modes = rt.modal_analysis(model, n_modes)
     sim = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=8.0), static_correction=True)
-    node = int(mesh.nearest_vertex([0.055, 0.05, 0.0]))
+    node = int(mesh.groups["probe"][0])
     X, n = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
-
-    def trajectory(t: float) -> np.ndarray:  # 2 mm above, 5 mm in over 0.3 s, hold, back out
-        s = t / seconds
-        depth = -0.002 + 0.007 * (min(s / 0.2, 1.0) if s < 0.6 else max(0.0, 1 - (s - 0.6) / 0.2))
-        return X - depth * n
-
-    device = rt.ScriptedDevice(trajectory)
+    device = rt.ScriptedDevice.press(X, n, depth=0.005, duration=seconds)  # 2 mm above, 5 mm in, hold, out
     probe = rt.Probe(mesh, sim, stiffness=200.0)
     t0 = time.perf_counter()
     prepared = probe.prepare(around=X, radius=0.01)

@@ -43,7 +43,7 @@ from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, prepare
 
-__all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "CallbackDevice", "LoopStats"]
+__all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "LoopStats"]
 
 
 class Probe:
@@ -258,12 +258,50 @@ class ScriptedDevice:
         self.forces: list[np.ndarray] = []
         self.times: list[float] = []
 
+    @classmethod
+    def press(cls, point, normal, depth: float, duration: float, *, approach: float = 0.002, ramp: float = 0.2,
+              release: float = 0.6, repeat: bool = False) -> "ScriptedDevice":
+        """A press along the inward normal: from ``approach`` (m) outside the surface point to
+        ``depth`` (m) inside over ``ramp * duration``, held until ``release * duration``, backed
+        out over ``ramp * duration`` and left outside; ``repeat`` starts again every ``duration``.
+        The one scripted press of the CLI, the demo, the examples and the benchmarks."""
+        return cls(Press(point, normal, depth, duration, approach, ramp, release, repeat))
+
     def position(self, t: float) -> np.ndarray:
         return np.asarray(self.trajectory(t), dtype=float)
 
     def set_force(self, t: float, force: np.ndarray) -> None:
         self.times.append(t)
         self.forces.append(np.array(force))
+
+
+class Press:
+    """The trajectory of :meth:`ScriptedDevice.press`: ``press(t)`` is the probe position (3,) and
+    ``press.depth_at(t)`` how far inside the undeformed surface it is (m; negative outside)."""
+
+    def __init__(self, point, normal, depth, duration, approach=0.002, ramp=0.2, release=0.6, repeat=False) -> None:
+        self.point = validate.point(point, "point")
+        n = validate.vector(normal, "normal", 3)
+        if not np.linalg.norm(n) > 0:
+            raise ModelError("normal must be a non-zero vector (the surface's outward normal)")
+        self.normal = n / np.linalg.norm(n)
+        self.depth = validate.number(depth, "depth", "a press depth in m")
+        self.duration = validate.positive(duration, "duration", "a time in s")
+        self.approach = validate.nonnegative(approach, "approach", "a distance in m")
+        self.ramp = validate.in_range(ramp, "ramp", 0.0, 0.5, lo_open=True, what="a fraction of the duration")
+        self.release = validate.in_range(release, "release", self.ramp, 1.0 - self.ramp, what="a fraction of the duration")
+        self.repeat = validate.flag(repeat, "repeat")
+
+    def depth_at(self, t: float) -> float:
+        s = (t % self.duration if self.repeat else t) / self.duration
+        if s < self.release:
+            level = min(s / self.ramp, 1.0)
+        else:
+            level = max(0.0, 1.0 - (s - self.release) / self.ramp)
+        return -self.approach + (self.depth + self.approach) * level
+
+    def __call__(self, t: float) -> np.ndarray:
+        return self.point - self.depth_at(t) * self.normal
 
 
 class CallbackDevice:

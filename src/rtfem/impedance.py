@@ -117,7 +117,7 @@ class ImpedanceMap:
         n_modes: int = 100,
         tol: float = 1e-6,
         memory_limit: float = 4 * 2**30,
-        progress: Callable[[int, int, float], None] | None = None,
+        progress: Callable[[int, int, str], None] | None = None,
         workers: int = 1,
         modes=None,
     ) -> "ImpedanceMap":
@@ -135,7 +135,8 @@ class ImpedanceMap:
         times : response samples (s), increasing, > 0; the static limit is kept as well.
         method : "modal" (``n_modes`` modes + static correction) or "sldm" (tolerance ``tol``).
         memory_limit : refuse to start if the estimate exceeds it (bytes).
-        progress : ``progress(done, total, seconds)`` after each loaded node.
+        progress : ``progress(done, total, message)`` after each loaded node (nodes done, nodes asked
+            for, a message with the node and the seconds so far).
         workers : loaded nodes computed in parallel by this many threads (the sparse solves
             and the BLAS products release the interpreter lock).
         modes : a :class:`~rtfem.ModalBasis` of this model to use instead of computing
@@ -160,8 +161,7 @@ class ImpedanceMap:
         n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
         tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
         memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
-        if progress is not None and not callable(progress):
-            raise ModelError(f"progress={validate.show(progress)} must be a callable (done, total, seconds) or None")
+        progress = validate.progress(progress)
         workers = validate.count(workers, "workers", 1, 256)
         if modes is not None:
             from .modal import ModalBasis
@@ -209,7 +209,7 @@ class ImpedanceMap:
         def collect(result) -> None:
             results.append(result)
             if progress is not None:
-                progress(len(results), loaded.size, time.perf_counter() - t0)
+                progress(len(results), loaded.size, f"node {result[0]}, {time.perf_counter() - t0:.1f} s")
 
         try:
             if workers == 1:

@@ -153,7 +153,7 @@ def modal_analysis(
     *,
     sigma: float | None = None,
     tol: float = 0.0,
-    progress: Callable[[str], None] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> ModalBasis:
     """The lowest ``n_modes`` eigenpairs of K phi = w^2 M phi (Eq. 8).
 
@@ -165,7 +165,8 @@ def modal_analysis(
         the static factorization) and a small negative value for an unconstrained one, so
         that its six rigid-body modes come first.
     tol : relative accuracy of ARPACK (0: machine precision).
-    progress : optional callable receiving one-line progress messages.
+    progress : ``progress(done, total, message)``: solves done, an estimate of the solves
+        needed (it may grow) and a one-line message; called at each step of the solve.
 
     Returns
     -------
@@ -177,15 +178,50 @@ def modal_analysis(
     if sigma is not None:
         sigma = validate.number(sigma, "sigma", "a shift in rad^2/s^2")
     tol = validate.in_range(tol, "tol", 0.0, 1.0, hi_open=True, what="ARPACK's relative accuracy, 0 for machine precision")
-    if progress is not None and not callable(progress):
-        raise ModelError(f"progress={validate.show(progress)} must be a callable (or None)")
+    progress = validate.progress(progress)
     model.check_not_all_fixed()
-    say = progress or (lambda msg: None)
+    report = _Reporter(progress)
     t_start = time.perf_counter()
     K, dofs = model.constrained_stiffness()
     M, _ = model.constrained_mass()
+    n_modes, massed = _mode_count(model, M, n_modes)
+    if n_modes > 0.1 * massed and massed <= _DENSE_ALL:
+        omega, phi = _dense_modes(model, K, M, dofs, n_modes)
+        method = "dense"
+    else:
+        sigma = _default_shift(model, K, M) if sigma is None else sigma
+        omega, phi, method = _shift_invert_modes(model, K, M, dofs, n_modes, sigma, tol, report)
+    shapes = _nodal_shapes(model, phi, dofs)
+    elapsed = time.perf_counter() - t_start
+    report.done(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
+    info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
+            **model.metadata}
+    return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
+
+
+class _Reporter:
+    """progress(done, total, message) with a total that grows when the estimate was short."""
+
+    def __init__(self, progress) -> None:
+        self.progress, self.done_count, self.total = progress, 0, 1
+
+    def __call__(self, message: str, done: int | None = None, total: int | None = None) -> None:
+        if self.progress is None:
+            return
+        if done is not None:
+            self.done_count = done
+        if total is not None:
+            self.total = total
+        self.total = max(self.total, self.done_count)
+        self.progress(self.done_count, self.total, message)
+
+    def done(self, message: str) -> None:
+        self(message, self.total, self.total)
+
+
+def _mode_count(model, M, n_modes) -> tuple[int, int]:
+    """The number of modes asked for ("all" resolved) and the number of massed dofs."""
     massed = int(np.count_nonzero(M.diagonal()))
-    restrained = bool(model.fixed.any())
     if isinstance(n_modes, str):
         n_modes = massed - (int(model.fixed[:, :3].sum()) if model.constraints == "penalty" else 0)
         if massed > _DENSE_ALL:
@@ -193,68 +229,67 @@ def modal_analysis(
     n_modes = int(n_modes)
     if n_modes > massed or (n_modes == massed and massed > _DENSE_ALL):
         raise ModelError(f"n_modes={n_modes} must be below the number of massed dofs ({massed})")
-    if n_modes > 0.1 * massed and massed <= _DENSE_ALL:
-        omega, phi = _dense_modes(model, K, M, dofs, n_modes)
-        method = "dense"
+    return n_modes, massed
+
+
+def _default_shift(model, K, M) -> float:
+    """0 for a restrained model (reusing the static factorization); below the rigid-body modes
+    for a free one, so that K - sigma M is positive definite."""
+    if model.fixed.any():
+        return 0.0
+    d, m = K.diagonal(), M.diagonal()
+    return -1e-6 * float(np.median(d[m > 0] / m[m > 0]))
+
+
+def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: float, report):
+    """ARPACK's shift-invert Lanczos through the model's factorization (or one of K - sigma M)."""
+    restrained = bool(model.fixed.any())
+    report(f"factorizing the shifted stiffness ({K.shape[0]} dof, shift {sigma:.3g})")
+    if sigma == 0.0 and restrained:
+        solve = model.factorization().solve
     else:
-        if sigma is None:
-            if restrained:
-                sigma = 0.0
-            else:  # below the rigid-body modes; K - sigma M is then positive definite
-                d = K.diagonal()
-                m = M.diagonal()
-                sigma = -1e-6 * float(np.median(d[m > 0] / m[m > 0]))
-        say(f"factorizing the shifted stiffness ({K.shape[0]} dof, shift {sigma:.3g})")
-        if sigma == 0.0 and restrained:
-            fac = model.factorization()
-            solve = fac.solve
-        else:
-            A = (K - sigma * M).tocsc()
-            try:
-                fac = factorize(A, spd=sigma < 0 or restrained, what="K - sigma M", order=model.dof_order(dofs))
-            except SolverError as exc:
-                raise ModelError(f"{exc}; try another sigma") from None
-            solve = fac.solve
-        count = [0]
-        t0 = time.perf_counter()
-
-        def op(b: np.ndarray) -> np.ndarray:
-            count[0] += 1
-            if count[0] % 10 == 0:
-                say(f"  Lanczos: {count[0]} solves, {time.perf_counter() - t0:.1f} s")
-            return solve(b)
-
-        OPinv = spla.LinearOperator(K.shape, matvec=op, dtype=float)
-        ncv = min(massed, max(2 * n_modes + 1, 20))
-        say(f"shift-invert Lanczos for {n_modes} modes (ncv = {ncv})")
         try:
-            lam, vec = spla.eigsh(K, k=n_modes, M=M, sigma=sigma, which="LM", OPinv=OPinv, ncv=ncv, tol=tol)
-        except spla.ArpackNoConvergence as exc:
-            raise SolverError(
-                f"ARPACK did not converge for {n_modes} modes ({len(exc.eigenvalues)} converged); "
-                "ask for fewer modes or a looser tol"
-            ) from None
-        order = np.argsort(lam)
-        lam, vec = lam[order], vec[:, order]
-        # mass-normalize explicitly (Phi^T M Phi = I)
-        norms = np.sqrt(np.einsum("ij,i,ij->j", vec, M.diagonal(), vec))
-        vec = vec / norms
-        omega = np.sqrt(np.clip(lam, 0.0, None))
-        phi = vec
-        method = f"shift-invert Lanczos ({count[0]} solves)"
-    shapes = model.nodal_translations(phi, dofs)  # (n, 3, r)
-    # deterministic sign: the largest translation of each mode is positive
+            solve = factorize((K - sigma * M).tocsc(), spd=sigma < 0 or restrained, what="K - sigma M",
+                              order=model.dof_order(dofs)).solve
+        except SolverError as exc:
+            raise ModelError(f"{exc}; try another sigma") from None
+    massed = int(np.count_nonzero(M.diagonal()))
+    ncv = min(massed, max(2 * n_modes + 1, 20))
+    count = [0]
+    t0 = time.perf_counter()
+    expected = 2 * ncv  # ARPACK typically needs 1.5-2 ncv solves
+
+    def op(b: np.ndarray) -> np.ndarray:
+        count[0] += 1
+        report(f"Lanczos: {count[0]} solves, {time.perf_counter() - t0:.1f} s", count[0], max(expected, count[0] + 1))
+        return solve(b)
+
+    report(f"shift-invert Lanczos for {n_modes} modes (ncv = {ncv})", 0, expected)
+    try:
+        lam, vec = spla.eigsh(K, k=n_modes, M=M, sigma=sigma, which="LM",
+                              OPinv=spla.LinearOperator(K.shape, matvec=op, dtype=float), ncv=ncv, tol=tol)
+    except spla.ArpackNoConvergence as exc:
+        raise SolverError(
+            f"ARPACK did not converge for {n_modes} modes ({len(exc.eigenvalues)} converged); "
+            "ask for fewer modes or a looser tol"
+        ) from None
+    order = np.argsort(lam)
+    lam, vec = lam[order], vec[:, order]
+    vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
+    return np.sqrt(np.clip(lam, 0.0, None)), vec, f"shift-invert Lanczos ({count[0]} solves)"
+
+
+def _nodal_shapes(model, phi: np.ndarray, dofs: np.ndarray) -> np.ndarray:
+    """Mode shapes (n, 3, r) on the nodes, signed so that each mode's largest translation is
+    positive, and exactly zero at dofs a penalty holds."""
+    shapes = model.nodal_translations(phi, dofs)
     flat = shapes.reshape(-1, shapes.shape[2])
     sign = np.sign(flat[np.argmax(np.abs(flat), axis=0), np.arange(flat.shape[1])])
     shapes = shapes * sign
     if model.constraints == "penalty":
         # the penalty leaves ~1/penalty motion at fixed dofs: remove it so shapes vanish there
         shapes[model.fixed[:, :3]] = 0.0
-    elapsed = time.perf_counter() - t_start
-    say(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
-    info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
-            **model.metadata}
-    return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
+    return shapes
 
 
 def _dense_modes(model, K, M, dofs, n_modes):

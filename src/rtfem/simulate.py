@@ -234,6 +234,7 @@ class ModalSimulator(_ForceInput):
         self._loads: dict[int, np.ndarray] = {}
         self._load_array: np.ndarray | None = None
         self._D: dict[int, np.ndarray] = {}
+        self._D_array: dict[bytes, np.ndarray] = {}  # static corrections of (n, 3) loads, last few kept
         if self.static_correction:
             model = modes.model
             if model is None:
@@ -329,6 +330,20 @@ class ModalSimulator(_ForceInput):
             self._D[node] = D
         return D
 
+    def _array_correction(self, F: np.ndarray) -> np.ndarray:
+        """D F for an (n, 3) load: one static solve per distinct load, kept for the next call
+        (a load schedule repeats a few patterns; haptic loads are dicts on prepared nodes)."""
+        key = F.tobytes()
+        hit = self._D_array.get(key)
+        if hit is None:
+            r = self._phi.shape[2]
+            Kinv_f = self.modes.model.solve_static(F, warn=False)
+            modal = self._phi @ ((self._phi.reshape(-1, r).T @ F.reshape(-1)) / self.modes.omega**2)
+            if len(self._D_array) >= 8:
+                self._D_array.pop(next(iter(self._D_array)))
+            hit = self._D_array[key] = Kinv_f - modal
+        return hit
+
     def prepare(self, nodes) -> None:
         """Precompute the static-correction columns of the nodes that will be loaded."""
         nodes = validate.nodes(nodes, self.n_nodes)
@@ -365,14 +380,10 @@ class ModalSimulator(_ForceInput):
 
     def displacements(self, out: np.ndarray | None = None) -> np.ndarray:
         """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction."""
-        r = self._phi.shape[2]
         u = np.dot(self._P, self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
         if self.static_correction:
             if self._load_array is not None:
-                model = self.modes.model
-                Kinv_f = model.solve_static(self._load_array, warn=False)
-                modal = self._phi @ ((self._phi.reshape(-1, r).T @ self._load_array.reshape(-1)) / self.modes.omega**2)
-                u += Kinv_f - modal
+                u += self._array_correction(self._load_array)
             for node, f in self._loads.items():
                 u += self._correction_column(node) @ f
         return u

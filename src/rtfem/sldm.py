@@ -43,6 +43,7 @@ from .lanczos import REORTHOGONALIZATIONS, Lanczos
 from .material import Damping
 from .model import check_model
 from .oscillator import step_response as _step_fn
+from .scenario import LoadSchedule
 
 __all__ = ["SLDM", "SLDMInfo"]
 
@@ -84,6 +85,8 @@ class SLDM:
     m : fix the Krylov dimension instead of choosing it adaptively.
     m_max : cap of the adaptive Krylov dimension (default 3000).
     reorth : "cgs2" (classical Gram-Schmidt twice, default) or "householder" (the paper's).
+    progress : ``progress(done, total, message)`` as the Krylov basis grows: its dimension m and
+        the dimension expected (which grows when the estimate is short).
     """
 
     def __init__(
@@ -95,6 +98,7 @@ class SLDM:
         m: int | None = None,
         m_max: int = 3000,
         reorth: str = "cgs2",
+        progress: Callable[[int, int, str], None] | None = None,
     ) -> None:
         check_model(model)
         if damping is not None and not isinstance(damping, Damping):
@@ -122,6 +126,7 @@ class SLDM:
             raise ModelError(f"m={m} must be >= 1")
         self.m_max = int(m_max)
         self.reorth = reorth
+        self.progress = validate.progress(progress)
         self.restrained = bool(model.fixed.any())
         t0 = time.perf_counter()
         self._c = model.condensation()
@@ -196,15 +201,9 @@ class SLDM:
             if L.breakdown:
                 estimate = 0.0
                 break
-            p = max(5, m // 8)
-            if m > p:
-                a2, b2 = a[: m - p], bt[: m - p - 1]
-                lam2, V2 = _eig_tridiagonal(a2, b2)
-                z2 = V2 @ coefficients(lam2, V2[0], check)
-                diff = np.abs(z.copy())
-                diff[: m - p] = np.abs(z[: m - p] - z2)
-                scale = np.linalg.norm(z, axis=0).max()
-                estimate = float(np.linalg.norm(diff, axis=0).max() / scale) if scale > 0 else 0.0
+            estimate = _difference_estimate(a, bt, z, coefficients, check, estimate)
+            if self.progress is not None:
+                self.progress(m, max(m, m0 // 2, target or 0, 10), f"Lanczos m = {m}, error estimate {estimate:.1e}")
             if target is not None:
                 if m >= target:
                     break
@@ -296,15 +295,19 @@ class SLDM:
     def response(self, forces_of_time, times: Sequence[float], *, tol: float | None = None) -> np.ndarray:
         """Displacements (len(times), n, 3) under a piecewise-constant force history (Duhamel).
 
-        ``forces_of_time``: a sequence of ``(t_k, forces_k)`` with increasing t_k; the load is
-        ``forces_k`` from t_k until t_{k+1} and zero before t_0. The history is the sum of the
+        ``forces_of_time``: a :class:`~rtfem.scenario.LoadSchedule`, or a sequence of
+        ``(t_k, forces_k)`` with increasing t_k; the load is ``forces_k`` from t_k until t_{k+1}
+        and zero before t_0. The history is the sum of the
         step responses of its jumps F_k - F_{k-1}, each delayed to t_k; jumps along the same
         spatial pattern share one Krylov basis (a scalar force profile needs only one).
         """
         times = self._times(times, allow_negative=True)
         tol = self.tol if tol is None else self._check_tol(tol)
+        if isinstance(forces_of_time, LoadSchedule):
+            forces_of_time = forces_of_time.piecewise()
         if isinstance(forces_of_time, (str, bytes)) or not hasattr(forces_of_time, "__iter__"):
-            raise ModelError(f"forces_of_time={validate.show(forces_of_time)} must be a sequence of (t_k, forces_k)")
+            raise ModelError(f"forces_of_time={validate.show(forces_of_time)} must be a LoadSchedule or a sequence of "
+                             "(t_k, forces_k)")
         events = list(forces_of_time)
         if not events:
             raise ModelError("forces_of_time is empty: give a sequence of (t_k, forces_k)")
@@ -357,6 +360,21 @@ class SLDM:
     @staticmethod
     def _times(times, allow_negative: bool = False) -> np.ndarray:
         return validate.times(times, "times", bound="any" if allow_negative else "nonnegative")
+
+
+def _difference_estimate(a, bt, z, coefficients, check, previous: float) -> float:
+    """The error estimate of z_m: its change against the reduced response of T_{m-p} (p = m/8,
+    at least 5); ``previous`` when m is too small to compare."""
+    m = a.size
+    p = max(5, m // 8)
+    if m <= p:
+        return previous
+    lam2, V2 = _eig_tridiagonal(a[: m - p], bt[: m - p - 1])
+    z2 = V2 @ coefficients(lam2, V2[0], check)
+    diff = np.abs(z.copy())
+    diff[: m - p] = np.abs(z[: m - p] - z2)
+    scale = np.linalg.norm(z, axis=0).max()
+    return float(np.linalg.norm(diff, axis=0).max() / scale) if scale > 0 else 0.0
 
 
 def _eig_tridiagonal(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

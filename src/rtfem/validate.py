@@ -262,6 +262,14 @@ def _all_finite(a: np.ndarray, chunk: int = 1 << 22) -> bool:
     return all(bool(np.isfinite(flat[i:i + chunk]).all()) for i in range(0, flat.size, chunk))
 
 
+def progress(value: Any, name: str = "progress", *, error: type = ModelError):
+    """A progress callback ``progress(done, total, message)`` or None (the one signature of
+    modal_analysis, SLDM and ImpedanceMap.build)."""
+    if value is not None and not callable(value):
+        raise error(f"{_label(name, value)} must be a callable progress(done, total, message) or None")
+    return value
+
+
 def forces(value: Any, n: int, widths: Sequence[int] = (3,), *, error: type = ModelError) -> np.ndarray:
     """Nodal forces as an (n, w) float array, from an (n, w) array or a {node: components} mapping.
 

@@ -21,7 +21,7 @@ from rtfem.oscillator import step_response
 
 def liver_model_and_node(level):
     model = liver_model(level)
-    return model, model.mesh.nearest_vertex([0.055, 0.05, 0.0])
+    return model, model.mesh.groups["probe"][0]
 
 
 def rel_err(U, R):
