@@ -1,0 +1,88 @@
+"""Sparse factorizations: every available backend solves the same system to round-off,
+orderings are permutations that cut fill, singular matrices are refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import rtfem as rt
+from rtfem import linalg
+
+
+@pytest.fixture(scope="module")
+def stiffness():
+    model = rt.ShellModel(rt.meshes.liver(3), rt.Material()).fix("attachment")
+    K, dofs = model.constrained_stiffness()
+    return model, K.tocsc(), dofs
+
+
+@pytest.mark.parametrize("backend", linalg.available_backends())
+@pytest.mark.parametrize("ordered", [False, True])
+def test_every_backend_solves_the_stiffness_to_round_off(stiffness, backend, ordered):
+    model, K, dofs = stiffness
+    order = model.dof_order(dofs) if ordered and backend == "superlu" else None
+    fac = linalg.factorize(K, backend=backend, order=order)
+    assert fac.backend == backend
+    rng = np.random.default_rng(3)
+    x_true = rng.standard_normal((K.shape[0], 3))
+    b = K @ x_true
+    x = fac.solve(b)
+    # backward error: the residual relative to ||K|| ||x||, the measure a stable solver meets
+    res = np.linalg.norm(K @ x - b) / (sp.linalg.norm(K, 1) * np.linalg.norm(x))
+    assert res < 1e-13
+    np.testing.assert_allclose(fac.solve(b[:, 0]), x[:, 0], rtol=0, atol=1e-12 * np.abs(x).max())
+
+
+def test_backends_agree_with_each_other(stiffness):
+    model, K, dofs = stiffness
+    b = np.random.default_rng(4).standard_normal(K.shape[0])
+    answers = [linalg.factorize(K, backend=k).solve(b) for k in linalg.available_backends()]
+    answers.append(linalg.factorize(K, order=model.dof_order(dofs), backend="superlu").solve(b))
+    for x in answers[1:]:
+        np.testing.assert_allclose(x, answers[0], rtol=1e-9, atol=1e-9 * np.abs(answers[0]).max())
+
+
+def test_nested_dissection_is_a_permutation_and_cuts_fill(stiffness):
+    model, K, dofs = stiffness
+    mesh = model.mesh
+    order = linalg.nested_dissection(mesh.adjacency(), np.asarray(mesh.vertices), leaf=16)
+    assert np.array_equal(np.sort(order), np.arange(mesh.n_vertices))
+    p = linalg.expand_node_order(order, 6, dofs)
+    assert np.array_equal(np.sort(p), np.arange(dofs.size))
+    import scipy.sparse.linalg as spla
+
+    A = K[p][:, p].tocsc()
+    nd = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    natural = spla.splu(K, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    assert nd.L.nnz < 0.5 * natural.L.nnz  # the mesh's own numbering fills far more
+
+
+def test_expand_node_order_keeps_node_blocks_together():
+    order = np.array([2, 0, 1])
+    kept = np.array([0, 1, 3, 4, 5, 7])  # dofs of 3 nodes with 3 dofs each, some dropped
+    p = linalg.expand_node_order(order, 3, kept)
+    # node 2 (dofs 6, 7, 8 -> kept 7 at position 5) first, then node 0 (0, 1), then node 1 (3, 4, 5)
+    assert p.tolist() == [5, 0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize("backend", linalg.available_backends())
+def test_a_singular_matrix_is_refused(backend):
+    A = sp.diags([1.0, 2.0, 0.0, 3.0]).tocsc()
+    with pytest.raises(rt.SolverError, match="singular"):
+        linalg.factorize(A, backend=backend, what="the test matrix")
+    lap = sp.diags([-np.ones(9), 2 * np.ones(10), -np.ones(9)], [-1, 0, 1]).tolil()
+    lap[0, 0] = lap[-1, -1] = 1.0  # free-free: constants are in the null space
+    with pytest.raises(rt.SolverError, match="singular|positive"):
+        linalg.factorize(lap.tocsc(), backend=backend)
+
+
+def test_wrong_shapes_and_backends_are_refused():
+    with pytest.raises(rt.SolverError, match="not square"):
+        linalg.factorize(sp.random(3, 4, density=0.5, format="csc"))
+    with pytest.raises(rt.SolverError, match="unknown backend"):
+        linalg.factorize(sp.eye(3, format="csc"), backend="magic")
+    fac = linalg.factorize(sp.eye(3, format="csc"))
+    with pytest.raises(rt.SolverError, match="rows"):
+        fac.solve(np.ones(4))
