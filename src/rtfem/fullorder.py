@@ -21,14 +21,14 @@ from .errors import ModelError
 from .linalg import factorize
 from .material import Damping
 from .model import check_model
-from .simulate import _check_damping, _check_dt, _ForceInput, newmark_constants, newmark_velocity
+from .simulate import ForceInput, check_damping, check_dt, newmark_constants, newmark_velocity
 
 __all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator"]
 
 METHODS = ("newmark", "central")
 
 
-class DirectSimulator(_ForceInput):
+class DirectSimulator(ForceInput):
     """Direct integration of the full system M U'' + B U' + K U = F (the paper's baseline).
 
     ``DirectSimulator(model, dt, damping, method="newmark")`` returns a :class:`NewmarkSimulator`,
@@ -55,8 +55,8 @@ class DirectSimulator(_ForceInput):
         if method is not None and method != self.method:
             raise ModelError(f"method={validate.show(method)} given to {type(self).__name__}, which is {self.method!r}")
         self.model = check_model(model)
-        self.dt = _check_dt(dt)
-        self.damping = _check_damping(damping)
+        self.dt = check_dt(dt)
+        self.damping = check_damping(damping)
         self.n_nodes = model.n_nodes
         model.check_restrained()
         self.time = 0.0

@@ -171,27 +171,12 @@ class ImpedanceMap:
                     or (modes.model is not None and modes.model is not model)):
                 raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
         model.check_restrained()
-        n = model.n_nodes
-        free_nodes = np.flatnonzero(~model.held_nodes)
-        loaded = free_nodes if nodes is None else np.unique(model.select_nodes(nodes))
-        held = loaded[model.held_nodes[loaded]]
-        loaded = np.setdiff1d(loaded, held)  # a load on a fixed node moves nothing
-        if loaded.size == 0:
-            raise ModelError("no free nodes to load (every node given is fixed)")
-        X = np.asarray(model.mesh.vertices)
+        loaded, held = _loaded_nodes(model, nodes)
         within = _NeighbourFinder(model.mesh, radius, metric)
-        # memory estimate before starting (sampled neighbourhood sizes)
-        sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
-        mean_kept = np.mean([within(j).size for j in sample])
-        estimate = loaded.size * mean_kept * (t.size + 1) * 9 * 8
-        if estimate > memory_limit:
-            raise ModelError(
-                f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
-                f"node, {t.size + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
-                f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
-            )
+        _check_memory(loaded, within, t.size, memory_limit)
         engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
                   else _SLDMColumns(model, damping, t, tol))
+
         def one(j: int):
             cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
             keep = within(j)
@@ -200,48 +185,18 @@ class ImpedanceMap:
                 keep = keep[mag >= threshold * mag.max()]
             return j, keep, cols[keep], cols[j]
 
-        # one append per finished node: a Ctrl-C between two bytecodes cannot leave the
-        # partial results inconsistent
-        results: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         t0 = time.perf_counter()
-        complete = True
-
-        def collect(result) -> None:
-            results.append(result)
-            if progress is not None:
-                progress(len(results), loaded.size, f"node {result[0]}, {time.perf_counter() - t0:.1f} s")
-
-        try:
-            if workers == 1:
-                for j in loaded:
-                    collect(one(int(j)))
-            else:
-                from concurrent.futures import ThreadPoolExecutor
-
-                with ThreadPoolExecutor(max_workers=workers) as pool:
-                    # in order, a window of 2 x workers in flight
-                    pending = []
-                    for j in loaded:
-                        pending.append(pool.submit(one, int(j)))
-                        if len(pending) >= 2 * workers:
-                            collect(pending.pop(0).result())
-                    while pending:
-                        collect(pending.pop(0).result())
-        except KeyboardInterrupt:
-            complete = False
-        if not results:
-            raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
-        done_nodes = [r[0] for r in results]
-        offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
+        results, complete = _run_nodes(one, loaded, workers, progress)
         info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
                 "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
                 "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
                 "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
                 "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size),
                 "requested_nodes": int(loaded.size)}
-        return cls(n, t, np.array(done_nodes), offsets, np.concatenate([r[1] for r in results]),
-                   np.concatenate([r[2] for r in results]), np.array([r[3] for r in results]),
-                   mesh_fingerprint(model.mesh), info)
+        offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
+        return cls(model.n_nodes, t, np.array([r[0] for r in results]), offsets,
+                   np.concatenate([r[1] for r in results]), np.concatenate([r[2] for r in results]),
+                   np.array([r[3] for r in results]), mesh_fingerprint(model.mesh), info)
 
     # ---------------------------------------------------------------- sizes
     @property
@@ -389,6 +344,67 @@ class ImpedanceMap:
             return cls(n, fingerprint=fp, info=info, **z)
         except ModelError as exc:
             raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
+
+
+def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes to load (default every free node) and those given that are held (skipped: a
+    load on a fixed node moves nothing)."""
+    loaded = np.flatnonzero(~model.held_nodes) if nodes is None else np.unique(model.select_nodes(nodes))
+    held = loaded[model.held_nodes[loaded]]
+    loaded = np.setdiff1d(loaded, held)
+    if loaded.size == 0:
+        raise ModelError("no free nodes to load (every node given is fixed)")
+    return loaded, held
+
+
+def _check_memory(loaded: np.ndarray, within, n_times: int, memory_limit: float) -> None:
+    """Refuse before starting when the map would exceed ``memory_limit`` (kept neighbourhoods
+    sampled at 20 loaded nodes)."""
+    sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
+    mean_kept = np.mean([within(j).size for j in sample])
+    estimate = loaded.size * mean_kept * (n_times + 1) * 9 * 8
+    if estimate > memory_limit:
+        raise ModelError(
+            f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
+            f"node, {n_times + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
+            f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
+        )
+
+
+def _run_nodes(one, loaded: np.ndarray, workers: int, progress) -> tuple[list, bool]:
+    """``one(j)`` for every loaded node, in order, on ``workers`` threads; a KeyboardInterrupt
+    keeps the finished nodes (complete = False) unless there are none (re-raised)."""
+    # one append per finished node: a Ctrl-C between two bytecodes cannot leave the
+    # partial results inconsistent
+    results: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    t0 = time.perf_counter()
+    complete = True
+
+    def collect(result) -> None:
+        results.append(result)
+        if progress is not None:
+            progress(len(results), loaded.size, f"node {result[0]}, {time.perf_counter() - t0:.1f} s")
+
+    try:
+        if workers == 1:
+            for j in loaded:
+                collect(one(int(j)))
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                pending = []  # in order, a window of 2 x workers in flight
+                for j in loaded:
+                    pending.append(pool.submit(one, int(j)))
+                    if len(pending) >= 2 * workers:
+                        collect(pending.pop(0).result())
+                while pending:
+                    collect(pending.pop(0).result())
+    except KeyboardInterrupt:
+        complete = False
+    if not results:
+        raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
+    return results, complete
 
 
 class _NeighbourFinder:

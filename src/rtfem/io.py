@@ -42,9 +42,9 @@ def write_vtu(
     X = np.asarray(mesh.vertices, dtype=float)
     data = {}
     for name, values in (point_data or {}).items():
-        data[str(name)] = _field(values, X.shape[0], f"point_data[{name!r}]")
+        data[str(name)] = point_field(values, X.shape[0], f"point_data[{name!r}]")
     if displacements is not None:
-        u = _field(displacements, X.shape[0], "displacements")
+        u = point_field(displacements, X.shape[0], "displacements")
         if u.ndim != 2 or u.shape[1] < 3:
             raise ModelError(f"displacements must be an ({X.shape[0]}, 3) array, got shape {u.shape}")
         u = u[:, :3]
@@ -58,7 +58,7 @@ def write_vtu(
     return path
 
 
-def _field(values, n: int, name: str) -> np.ndarray:
+def point_field(values, n: int, name: str) -> np.ndarray:
     """Per-vertex data: a finite numeric array with n rows."""
     a = validate.real_array(values, name)
     if a.ndim == 0 or a.shape[0] != n:

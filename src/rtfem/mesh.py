@@ -458,33 +458,50 @@ def _check_manifold_edges(V: np.ndarray, T: np.ndarray) -> None:
         )
 
 
-def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> np.ndarray:
-    """Consistent orientation by a breadth-first walk over edge-adjacent triangles."""
-    m = T.shape[0]
-    e_dir = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
-    e_key = np.sort(e_dir, axis=1)
-    edges, inv = np.unique(e_key, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    count = np.bincount(inv, minlength=edges.shape[0])
-    report.n_boundary_edges = int(np.sum(count == 1))
-    report.closed = report.n_boundary_edges == 0
-    # the two half-edges of each interior edge
-    order = np.argsort(inv, kind="stable")
-    sorted_inv = inv[order]
-    starts = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
-    pair_edges = starts[count[sorted_inv[starts]] == 2]
-    h1, h2 = order[pair_edges], order[pair_edges + 1]
-    t1, t2 = h1 // 3, h2 // 3
-    same = e_dir[h1, 0] == e_dir[h2, 0]  # same direction -> inconsistent orientation
+@dataclass
+class _HalfEdges:
+    """Directed edges (3 per triangle, half-edge h of triangle h // 3), the undirected edges and
+    the two half-edges (h1, h2) of each interior edge, with their triangles (t1, t2)."""
+
+    e_dir: np.ndarray
+    edges: np.ndarray
+    inv: np.ndarray  # half-edge -> undirected edge
+    count: np.ndarray  # triangles per undirected edge
+    h1: np.ndarray
+    h2: np.ndarray
+
+    @classmethod
+    def of(cls, T: np.ndarray) -> "_HalfEdges":
+        e_dir = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
+        edges, inv = np.unique(np.sort(e_dir, axis=1), axis=0, return_inverse=True)
+        inv = inv.ravel()
+        count = np.bincount(inv, minlength=edges.shape[0])
+        order = np.argsort(inv, kind="stable")
+        sorted_inv = inv[order]
+        starts = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
+        pair_edges = starts[count[sorted_inv[starts]] == 2]
+        return cls(e_dir, edges, inv, count, order[pair_edges], order[pair_edges + 1])
+
+    @property
+    def t1(self) -> np.ndarray:
+        return self.h1 // 3
+
+    @property
+    def t2(self) -> np.ndarray:
+        return self.h2 // 3
+
+
+def _orientation_flips(m: int, he: _HalfEdges) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Which triangles to flip for one orientation per component: (flip, component label,
+    number of components, orientable). One breadth-first walk over every component at once."""
+    t1, t2 = he.t1, he.t2
+    same = he.e_dir[he.h1, 0] == he.e_dir[he.h2, 0]  # same direction -> inconsistent orientation
     G = sp.coo_matrix((np.ones(t1.size), (t1, t2)), shape=(m, m)).tocsr()
     G = G + G.T
     n_comp, label = connected_components(G, directed=False)
-    report.n_components = int(n_comp)
     # sign relation between adjacent triangles: flip[t2] = flip[t1] xor same
     rel = sp.coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[t1, t2], np.r_[t2, t1])), shape=(m, m)).tocsr()
-    flip = np.zeros(m, bool)
-    # one breadth-first walk over every component at once: a virtual root (index m) joined
-    # to one triangle of each component, so the work is O(m) however many pieces there are
+    # a virtual root (index m) joined to one triangle of each component: O(m) however many pieces
     _, roots = np.unique(label, return_index=True)
     Gc = G.tocoo()
     Gr = sp.coo_matrix((np.ones(Gc.nnz + roots.size), (np.r_[Gc.row, np.full(roots.size, m)], np.r_[Gc.col, roots])),
@@ -495,10 +512,47 @@ def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> n
     inner = parent != m
     child, parent = child[inner], parent[inner]
     s_rel = (np.asarray(rel[parent, child]).ravel() == 2) if child.size else np.zeros(0, bool)
-    for c_, p_, si in zip(child.tolist(), parent.tolist(), s_rel.tolist()):
+    flip = np.zeros(m, bool)
+    for c_, p_, si in zip(child.tolist(), parent.tolist(), s_rel.tolist()):  # in BFS order: parents first
         flip[c_] = flip[p_] ^ si
-    consistent = (flip[t1] ^ flip[t2]) == same
-    if not consistent.all():
+    orientable = bool(((flip[t1] ^ flip[t2]) == same).all())
+    return flip, label, int(n_comp), orientable
+
+
+def _outward_turns(V: np.ndarray, T: np.ndarray, label: np.ndarray, n_comp: int, he: _HalfEdges) -> np.ndarray:
+    """Triangles of closed components with negative enclosed volume (to be turned outward)."""
+    c = V[T]
+    vol6 = np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2]))
+    comp_closed = np.ones(n_comp, bool)
+    open_tris = np.zeros(T.shape[0], bool)
+    open_tris[np.flatnonzero(he.count[he.inv] == 1) // 3] = True
+    comp_closed[np.unique(label[open_tris])] = False
+    comp_vol = np.bincount(label, weights=vol6, minlength=n_comp)
+    return (comp_closed & (comp_vol < 0))[label]
+
+
+def _nonmanifold_vertices(T: np.ndarray, he: _HalfEdges, n_vertices: int) -> np.ndarray:
+    """Vertices whose corners do not share one fan of edge-adjacent triangles (bow ties)."""
+    m = T.shape[0]
+    t1, t2 = he.t1, he.t2
+    corner_of = lambda t, v: 3 * t + np.argmax(T[t] == v[:, None], axis=1)  # noqa: E731
+    a, b = he.edges[he.inv[he.h1]][:, 0], he.edges[he.inv[he.h1]][:, 1]
+    ca = np.r_[corner_of(t1, a), corner_of(t1, b)]
+    cb = np.r_[corner_of(t2, a), corner_of(t2, b)]
+    _, fan = connected_components(sp.coo_matrix((np.ones(ca.size), (ca, cb)), shape=(3 * m, 3 * m)), directed=False)
+    pairs = np.unique(np.stack([T.ravel(), fan], axis=1), axis=0)
+    return np.flatnonzero(np.bincount(pairs[:, 0], minlength=n_vertices) > 1)
+
+
+def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> np.ndarray:
+    """Consistent orientation by a breadth-first walk over edge-adjacent triangles; closed
+    components outward; boundary, components and non-manifold vertices into the report."""
+    he = _HalfEdges.of(T)
+    report.n_boundary_edges = int(np.sum(he.count == 1))
+    report.closed = report.n_boundary_edges == 0
+    flip, label, n_comp, orientable = _orientation_flips(T.shape[0], he)
+    report.n_components = n_comp
+    if not orientable:
         report.orientable = False
         report.notes.append(
             "note: the surface is not orientable (a Moebius-like band); normals cannot be made "
@@ -508,31 +562,10 @@ def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> n
     T = T.copy()
     if repair and report.orientable:
         T[flip] = T[flip][:, ::-1]
-        # closed components: outward normals (positive enclosed volume)
-        c = V[T]
-        vol6 = np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2]))
-        comp_closed = np.ones(n_comp, bool)
-        open_tris = np.zeros(m, bool)
-        bnd_half = np.flatnonzero(count[inv] == 1)
-        open_tris[bnd_half // 3] = True
-        comp_closed[np.unique(label[open_tris])] = False
-        comp_vol = np.bincount(label, weights=vol6, minlength=n_comp)
-        turn = comp_closed & (comp_vol < 0)
-        f2 = turn[label]
-        T[f2] = T[f2][:, ::-1]
-        report.flipped_triangles = int(np.sum(flip ^ f2))
+        turn = _outward_turns(V, T, label, n_comp, he)
+        T[turn] = T[turn][:, ::-1]
+        report.flipped_triangles = int(np.sum(flip ^ turn))
     elif not repair and report.orientable and flip.any() and not np.all(flip[label == label[0]]):
         report.notes.append("note: orientation is inconsistent (repair=False left it as given)")
-    # non-manifold vertices: corners of one vertex that do not share a fan
-    corner_of = lambda t, v: 3 * t + np.argmax(T[t] == v[:, None], axis=1)  # noqa: E731
-    a = edges[inv[h1]][:, 0]
-    b = edges[inv[h1]][:, 1]
-    ca = np.r_[corner_of(t1, a), corner_of(t1, b)]
-    cb = np.r_[corner_of(t2, a), corner_of(t2, b)]
-    C = sp.coo_matrix((np.ones(ca.size), (ca, cb)), shape=(3 * m, 3 * m))
-    _, fan = connected_components(C, directed=False)
-    vert = T.ravel()
-    pairs = np.unique(np.stack([vert, fan], axis=1), axis=0)
-    fans_per_vertex = np.bincount(pairs[:, 0], minlength=V.shape[0])
-    report.nonmanifold_vertices = np.flatnonzero(fans_per_vertex > 1)
+    report.nonmanifold_vertices = _nonmanifold_vertices(T, he, V.shape[0])
     return T

@@ -57,7 +57,7 @@ def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = 
     """
     import meshio
 
-    from .io import _field, atomic_target
+    from .io import atomic_target, point_field
 
     if not isinstance(mesh, TriMesh):
         raise MeshError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
@@ -65,7 +65,7 @@ def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = 
     fmt = getattr(meshio, "extension_to_filetypes", {}).get(p.suffix.lower())
     if not fmt:
         raise MeshError(f"{str(p)!r}: the suffix {p.suffix!r} names no mesh format; use one of {_SURFACE_FORMATS}")
-    data = {str(k): _field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
+    data = {str(k): point_field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
     with atomic_target(p, "mesh file") as tmp:
         try:
             meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), [("triangle", np.asarray(mesh.triangles))],
@@ -226,6 +226,80 @@ def _is_legacy_ascii_vtk(p: Path) -> bool:
     return len(head) >= 3 and head[0].startswith("# vtk DataFile") and head[2].strip().upper() == "ASCII"
 
 
+class _VtkTokens:
+    """The whitespace-separated values of a legacy VTK file after its header, read in order;
+    every shortfall or bad value is a MeshError naming the file and the section."""
+
+    def __init__(self, p: Path, tokens: list[str]) -> None:
+        self.p, self.tokens, self.pos = p, tokens, 0
+
+    def more(self) -> bool:
+        return self.pos < len(self.tokens)
+
+    def take(self, k: int, what: str) -> list[str]:
+        if self.pos + k > len(self.tokens):
+            raise MeshError(f"{str(self.p)!r} is truncated: expected {k} more values in {what}")
+        out = self.tokens[self.pos : self.pos + k]
+        self.pos += k
+        return out
+
+    def count(self, what: str) -> int:
+        tok = self.take(1, what)[0]
+        try:
+            k = int(tok)
+        except ValueError:
+            raise MeshError(f"{str(self.p)!r}: the count of {what} is {validate.show(tok, 30)}, not a whole number") from None
+        if k < 0:
+            raise MeshError(f"{str(self.p)!r}: negative count {k} in {what}")
+        if k > len(self.tokens):
+            raise MeshError(f"{str(self.p)!r} is truncated: {what} declares {k} entries, the file holds fewer values")
+        return k
+
+    def numbers(self, k: int, what: str, dtype) -> np.ndarray:
+        values = self.take(k, what)
+        try:
+            return np.array(values, dtype=dtype)
+        except ValueError:
+            raise MeshError(f"{str(self.p)!r}: non-numeric value in {what}") from None
+
+    def cell_rows(self, key: str) -> list[np.ndarray]:
+        """A cell list: its count, its size, then per cell the number of indices and the indices."""
+        n, size = self.count(key), self.count(key)
+        flat = self.numbers(size, key, np.int64)
+        rows, i = [], 0
+        for c in range(n):
+            k = int(flat[i]) if i < flat.size else -1
+            if k < 0 or i + 1 + k > flat.size:
+                raise MeshError(f"{str(self.p)!r}: {key} declares {n} cells in {size} values, but cell {c} does not fit "
+                                "(a short or damaged cell list)")
+            rows.append(flat[i + 1 : i + 1 + k])
+            i += k + 1
+        return rows
+
+
+def _vtk_polygons(rows: list[np.ndarray]) -> list[np.ndarray]:
+    return [_split_polygons(np.array([r for r in rows if len(r) == k])) for k in sorted({len(r) for r in rows}) if k >= 3]
+
+
+def _vtk_strips(rows: list[np.ndarray]) -> list[np.ndarray]:
+    """Triangle strips as triangles, alternate ones flipped to keep the orientation."""
+    return [(r[[j, j + 1, j + 2]] if j % 2 == 0 else r[[j + 1, j, j + 2]])[None, :] for r in rows for j in range(len(r) - 2)]
+
+
+def _vtk_typed_cells(p: Path, cells_conn, types: np.ndarray) -> list[np.ndarray]:
+    """UNSTRUCTURED_GRID cells by VTK type (triangle 5, quad 9, polygon 7, tetra 10) as triangles."""
+    if cells_conn is None or len(cells_conn) != types.size:
+        raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
+    cells = []
+    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra"}.items():
+        sel = [np.asarray(cells_conn[i]) for i in np.flatnonzero(types == t)]
+        if sel and name != "polygon":
+            cells.append((name, np.array(sel)))
+        elif sel:
+            cells += [("polygon", s[None, :]) for s in sel]
+    return [_triangles_from_cells(cells, p)] if cells else []
+
+
 def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     """Parse a legacy ASCII VTK file (POLYDATA polygons/strips or UNSTRUCTURED_GRID)."""
     try:
@@ -237,87 +311,28 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
         raise MeshError(f"{str(p)!r} is not a VTK file (no '# vtk DataFile' header)")
     if lines[2].strip().upper() != "ASCII":
         raise MeshError(f"{str(p)!r}: binary legacy VTK that meshio could not read either; convert it to .vtu or .vtk ASCII")
-    tokens = " ".join(lines[3:]).split()
-    pos = 0
-
-    def take(k: int, what: str) -> list[str]:
-        nonlocal pos
-        if pos + k > len(tokens):
-            raise MeshError(f"{str(p)!r} is truncated: expected {k} more values in {what}")
-        out = tokens[pos : pos + k]
-        pos += k
-        return out
-
-    def count(what: str) -> int:
-        tok = take(1, what)[0]
-        try:
-            k = int(tok)
-        except ValueError:
-            raise MeshError(f"{str(p)!r}: the count of {what} is {validate.show(tok, 30)}, not a whole number") from None
-        if k < 0:
-            raise MeshError(f"{str(p)!r}: negative count {k} in {what}")
-        if k > len(tokens):
-            raise MeshError(f"{str(p)!r} is truncated: {what} declares {k} entries, the file holds fewer values")
-        return k
-
-    def numbers(k: int, what: str, dtype) -> np.ndarray:
-        values = take(k, what)
-        try:
-            return np.array(values, dtype=dtype)
-        except ValueError:
-            raise MeshError(f"{str(p)!r}: non-numeric value in {what}") from None
-
-    points = None
-    tris: list[np.ndarray] = []
-    cells_conn = None
-    while pos < len(tokens):
-        key = tokens[pos].upper()
-        pos += 1
+    tok = _VtkTokens(p, " ".join(lines[3:]).split())
+    points, tris, cells_conn = None, [], None
+    while tok.more():
+        key = tok.take(1, "a section name")[0].upper()
         if key == "DATASET":
-            kind = take(1, "DATASET")[0].upper()
+            kind = tok.take(1, "DATASET")[0].upper()
             if kind not in ("POLYDATA", "UNSTRUCTURED_GRID"):
                 raise MeshError(f"{str(p)!r}: VTK dataset {kind} is not a surface mesh (need POLYDATA or UNSTRUCTURED_GRID)")
         elif key == "POINTS":
-            n = count("POINTS")
-            take(1, "POINTS")  # data type
-            points = numbers(3 * n, "POINTS", float).reshape(n, 3)
+            n = tok.count("POINTS")
+            tok.take(1, "POINTS")  # data type
+            points = tok.numbers(3 * n, "POINTS", float).reshape(n, 3)
         elif key in ("POLYGONS", "TRIANGLE_STRIPS", "CELLS", "VERTICES", "LINES"):
-            n, size = count(key), count(key)
-            flat = numbers(size, key, np.int64)
-            rows, i = [], 0
-            for c in range(n):
-                k = int(flat[i]) if i < flat.size else -1
-                if k < 0 or i + 1 + k > flat.size:
-                    raise MeshError(f"{str(p)!r}: {key} declares {n} cells in {size} values, but cell {c} does not fit "
-                                    "(a short or damaged cell list)")
-                rows.append(flat[i + 1 : i + 1 + k])
-                i += k + 1
+            rows = tok.cell_rows(key)
             if key == "POLYGONS":
-                for k in sorted({len(r) for r in rows}):
-                    if k >= 3:
-                        tris.append(_split_polygons(np.array([r for r in rows if len(r) == k])))
+                tris += _vtk_polygons(rows)
             elif key == "TRIANGLE_STRIPS":
-                for r in rows:
-                    for j in range(len(r) - 2):
-                        tris.append((r[[j, j + 1, j + 2]] if j % 2 == 0 else r[[j + 1, j, j + 2]])[None, :])
+                tris += _vtk_strips(rows)
             elif key == "CELLS":
                 cells_conn = rows
         elif key == "CELL_TYPES":
-            n = count("CELL_TYPES")
-            types = numbers(n, "CELL_TYPES", np.int64)
-            if cells_conn is None or len(cells_conn) != n:
-                raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
-            typed = {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra"}
-            cells = []
-            for t, name in typed.items():
-                sel = [np.asarray(cells_conn[i]) for i in np.flatnonzero(types == t)]
-                if sel and name != "polygon":
-                    cells.append((name, np.array(sel)))
-                elif sel:
-                    for s in sel:
-                        cells.append(("polygon", s[None, :]))
-            if cells:
-                tris.append(_triangles_from_cells(cells, p))
+            tris += _vtk_typed_cells(p, cells_conn, tok.numbers(tok.count("CELL_TYPES"), "CELL_TYPES", np.int64))
         elif key in ("POINT_DATA", "CELL_DATA", "FIELD", "METADATA"):
             break  # attributes follow; the geometry is complete
     if points is None:

@@ -35,11 +35,13 @@ _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
 
 
-def _check_dt(dt) -> float:
+def check_dt(dt) -> float:
+    """A driver's time step in seconds (the rule every driver applies)."""
     return validate.time_step(dt, "dt")
 
 
-def _check_damping(damping) -> Damping:
+def check_damping(damping) -> Damping:
+    """A driver's damping: an rt.Damping, or None for none."""
     if damping is None:
         return Damping()
     if not isinstance(damping, Damping):
@@ -149,8 +151,9 @@ def displacements_at(driver, nodes: np.ndarray) -> np.ndarray:
     return fn(nodes) if fn is not None else np.asarray(driver.displacements())[nodes]
 
 
-class _ForceInput:
-    """Shared handling of the two load formats: {node: (fx, fy, fz)} or an (n, 3) array."""
+class ForceInput:
+    """For driver classes: the two load formats, {node: (fx, fy, fz)} or an (n, 3) array, and the
+    node and count rules, checked the same way in every driver."""
 
     n_nodes: int
 
@@ -171,7 +174,7 @@ class _ForceInput:
         return validate.count(n_steps, "n_steps", 0, 10**9)
 
 
-class ModalSimulator(_ForceInput):
+class ModalSimulator(ForceInput):
     """Reduced dynamics in modal coordinates (paper section 3).
 
     Parameters
@@ -197,8 +200,8 @@ class ModalSimulator(_ForceInput):
         if not isinstance(modes, ModalBasis):
             raise ModelError(f"modes must be a ModalBasis (rt.modal_analysis), got {type(modes).__name__}")
         self.modes = modes
-        self.dt = _check_dt(dt)
-        self.damping = _check_damping(damping)
+        self.dt = check_dt(dt)
+        self.damping = check_damping(damping)
         validate.choice(integrator, "integrator", ("exact", "newmark"))
         static_correction = validate.flag(static_correction, "static_correction")
         self.integrator = integrator
