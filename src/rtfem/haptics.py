@@ -143,7 +143,7 @@ class Probe:
             denom = float(n @ W @ n) + (1.0 / self.stiffness if self.coupling == "spring" else 0.0)
             lam = (float(n @ u_free) - g) / denom
         f_organ = -lam * n
-        d.step({p: (f_organ[0], f_organ[1], f_organ[2])} if lam > 0 else None)
+        d.step({p: (float(f_organ[0]), float(f_organ[1]), float(f_organ[2]))} if lam > 0 else None)
         self.contact_node = p if lam > 0 else None
         self.penetration = max(0.0, float(n @ u_free) - g) if lam > 0 else 0.0
         self.force = -f_organ
@@ -215,7 +215,7 @@ class Grasp:
                 mag = float(np.linalg.norm(f))
                 if mag > self.max_force:
                     f *= self.max_force / mag
-        d.step({self.node: (f[0], f[1], f[2])} if self.node is not None and np.any(f) else None)
+        d.step({self.node: (float(f[0]), float(f[1]), float(f[2]))} if self.node is not None and np.any(f) else None)
         self.force = f
         return f
 

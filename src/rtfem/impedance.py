@@ -16,6 +16,7 @@ per load vector; exact to ``tol`` at every sample, costlier to build).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -273,10 +274,15 @@ class ImpedanceMap:
         O(k log kept): what a haptic update needs (the field near the contact), without
         superposing the whole map. Nodes outside the kept set get zeros.
         """
-        s = self._slot_of(loaded, "loaded")
+        self._slot_of(loaded, "loaded")
         nodes = validate.nodes(nodes, self.n_nodes)
         if t is not None:
             t = validate.instant(t, "t")
+        return self._columns(int(loaded), nodes, t)
+
+    def _columns(self, loaded: int, nodes: np.ndarray, t: float | None) -> np.ndarray:
+        """:meth:`compliance_at` on checked arguments (the run-time path)."""
+        s = int(self._slot[loaded])
         lo, hi = self.offsets[s], self.offsets[s + 1]
         kept = self.neighbours[lo:hi]  # sorted
         pos = np.clip(np.searchsorted(kept, nodes), 0, max(kept.size - 1, 0))
@@ -578,6 +584,12 @@ class ImpedanceDriver:
         loads: dict[int, np.ndarray] = {}
         if forces is None:
             return loads
+        if type(forces) is dict and len(forces) == 1:  # the haptic loop's one contact: checked inline
+            for node, f in forces.items():
+                pass
+            if type(node) is int and node in self._owner and type(f) is tuple and len(f) == 3 \
+                    and all(type(v) is float and math.isfinite(v) for v in f):
+                return {node: np.array(f)} if any(f) else loads
         if isinstance(forces, Mapping):
             for node, f in forces.items():
                 i = validate.node(node, self.n_nodes, "force key")
@@ -628,7 +640,8 @@ class ImpedanceDriver:
 
     # ---------------------------------------------------------------- contact (quasi-static)
     def predict(self, node) -> np.ndarray:
-        validate.node(node, self.n_nodes)
+        if type(node) is not int or not 0 <= node < self.n_nodes:
+            validate.node(node, self.n_nodes)
         return np.zeros(3)
 
     def step_compliance(self, node) -> np.ndarray:
@@ -643,11 +656,13 @@ class ImpedanceDriver:
         return [(p, f, None if onset == -np.inf else self.time - onset) for p, f, onset in self._history]
 
     def displacements_at(self, nodes) -> np.ndarray:
-        nodes = validate.nodes(nodes, self.n_nodes)
+        if not (type(nodes) is np.ndarray and nodes.dtype == np.int64 and nodes.ndim == 1 and nodes.size
+                and 0 <= nodes.min() and nodes.max() < self.n_nodes):
+            nodes = validate.nodes(nodes, self.n_nodes)
         u = np.zeros((nodes.size, 3))
         for p, f, tau in self._entries():
             if tau is None or tau > 0:
-                u += self._owner[p].compliance_at(p, nodes, None if tau is None or tau > self._settle else tau) @ f
+                u += self._owner[p]._columns(p, nodes, None if tau is None or tau > self._settle else tau) @ f
         return u
 
     def displacement(self, node) -> np.ndarray:
