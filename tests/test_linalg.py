@@ -32,7 +32,11 @@ def test_every_backend_solves_the_stiffness_to_round_off(stiffness, backend, ord
     # backward error: the residual relative to ||K|| ||x||, the measure a stable solver meets
     res = np.linalg.norm(K @ x - b) / (sp.linalg.norm(K, 1) * np.linalg.norm(x))
     assert res < 1e-13
-    np.testing.assert_allclose(fac.solve(b[:, 0]), x[:, 0], rtol=0, atol=1e-12 * np.abs(x).max())
+    # one right-hand side alone: the same backward error (a supernodal solver blocks one and many
+    # right-hand sides differently, so the forward results differ by up to cond(K) eps)
+    x1 = fac.solve(b[:, 0])
+    assert x1.shape == (K.shape[0],)
+    assert np.linalg.norm(K @ x1 - b[:, 0]) / (sp.linalg.norm(K, 1) * np.linalg.norm(x1)) < 1e-13
 
 
 def test_backends_agree_with_each_other(stiffness):

@@ -6,6 +6,7 @@ from .material import Damping, Material
 from .mesh import MeshReport, TriMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
+from .linalg import available_backends
 from .modal import ModalBasis, modal_analysis
 from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice
 from .impedance import ImpedanceDriver, ImpedanceMap, Load
@@ -26,6 +27,7 @@ __all__ = [
     "ImpedanceDriver",
     "Model",
     "NewmarkSimulator",
+    "available_backends",
     "make_model",
     "select_nodes",
     "Grasp",

@@ -240,6 +240,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     print("check       " + str(mesh.report).replace("\n", "\n            "))
     if mesh.groups:
         print("groups      " + ", ".join(f"{k} ({len(v)} vertices)" for k, v in sorted(mesh.groups.items())))
+    from .linalg import available_backends, default_backend
+
+    print(f"solver      {default_backend()} (sparse Cholesky in use; available: {', '.join(available_backends())})")
     return 0
 
 

@@ -138,7 +138,7 @@ class NewmarkSimulator(DirectSimulator):
         Khat = (K + c1 * B + c0 * M).tocsc()
         self._M = sp.csr_matrix(M)
         self._B = sp.csr_matrix(B) if sp.issparse(B) else None
-        self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=model.dof_order(dofs))
+        self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=lambda: model.dof_order(dofs))
         nd = dofs.size
         self._u, self._v, self._a = np.zeros(nd), np.zeros(nd), np.zeros(nd)
         self._cols: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # node -> (rows, dirs, K^-1 columns)

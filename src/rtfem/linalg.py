@@ -1,11 +1,18 @@
 """Sparse factorizations with the best available backend.
 
-CHOLMOD (through scikit-sparse, ``pip install rtfem[cholmod]``) when it is installed and the
-matrix is symmetric positive definite, SuperLU (scipy) otherwise. A factorization is made
-once and reused for every right-hand side.
+For a symmetric positive definite matrix (a restrained stiffness, Newmark's effective
+stiffness): Intel MKL PARDISO's supernodal Cholesky (``pip install rtfem[fast]``, x86-64; the
+``mkl`` wheel it pulls is about 300 MB) or CHOLMOD (scikit-sparse, which builds against
+SuiteSparse) when installed; otherwise, and for other matrices, SuperLU from scipy, which
+always works. ``RTFEM_BACKEND=superlu`` (or ``pardiso``, ``cholmod``) chooses one by name. A
+factorization is made once and reused for every right-hand side.
 """
 
 from __future__ import annotations
+
+import ctypes
+import os
+import threading
 
 import numpy as np
 import scipy.sparse as sp
@@ -13,7 +20,8 @@ import scipy.sparse.linalg as spla
 
 from .errors import SolverError
 
-__all__ = ["Factorization", "factorize", "available_backends", "nested_dissection", "expand_node_order"]
+__all__ = ["Factorization", "factorize", "available_backends", "default_backend", "nested_dissection",
+           "expand_node_order", "BACKENDS"]
 
 try:  # optional, faster supernodal Cholesky
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore
@@ -22,10 +30,113 @@ try:  # optional, faster supernodal Cholesky
 except Exception:  # pragma: no cover - depends on the environment
     _HAVE_CHOLMOD = False
 
+BACKENDS = ("pardiso", "cholmod", "superlu")
+
+
+def _mkl_pardiso():
+    """MKL's ``pardiso`` entry point (located the way pypardiso locates mkl_rt), or None."""
+    global _PARDISO
+    if _PARDISO is False:
+        try:
+            import pypardiso  # noqa: F401  (its presence means the mkl wheel is installed)
+            from pypardiso.pardiso_wrapper import PyPardisoSolver
+
+            fn = PyPardisoSolver().libmkl.pardiso
+            i32 = ctypes.POINTER(ctypes.c_int32)
+            fn.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p, i32, i32, i32, i32,
+                           i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
+            fn.restype = None
+            _PARDISO = fn
+        except Exception:  # not installed, or no mkl_rt on this platform
+            _PARDISO = None
+    return _PARDISO
+
+
+_PARDISO = False  # not looked for yet
+
 
 def available_backends() -> list[str]:
-    """Backends that :func:`factorize` can use here, best first."""
-    return (["cholmod"] if _HAVE_CHOLMOD else []) + ["superlu"]
+    """Backends that :func:`factorize` can use here, best first (the first is the default for
+    symmetric positive definite matrices)."""
+    return (["pardiso"] if _mkl_pardiso() is not None else []) + (["cholmod"] if _HAVE_CHOLMOD else []) + ["superlu"]
+
+
+def default_backend() -> str:
+    """The backend used for SPD matrices: ``RTFEM_BACKEND`` if set and available, else the best."""
+    want = os.environ.get("RTFEM_BACKEND", "").strip().lower()
+    have = available_backends()
+    if want:
+        if want not in BACKENDS:
+            raise SolverError(f"RTFEM_BACKEND={want!r} names no backend; choose from {', '.join(BACKENDS)}")
+        if want not in have:
+            raise SolverError(f"RTFEM_BACKEND={want!r} is not installed here (available: {', '.join(have)})")
+        return want
+    return have[0]
+
+
+class _Pardiso:
+    """MKL PARDISO, real symmetric positive definite (mtype 2), on the upper triangle in CSR with
+    zero-based indices (iparm[34] = 1), METIS nested-dissection ordering (iparm[1] = 2). The
+    index arrays are converted once; a solve is one call (phase 33). Memory is released when the
+    object goes away (phase -1). Calls are serialized: one factor, one solve at a time."""
+
+    def __init__(self, A: sp.csc_matrix, what: str) -> None:
+        self._fn = _mkl_pardiso()
+        d = A.diagonal()
+        if not np.all(d > 0):  # PARDISO's SPD Cholesky needs every diagonal entry, positive
+            i = int(np.flatnonzero(~(d > 0))[0])
+            raise SolverError(f"{what} is singular or not positive definite (diagonal entry {i} is {d[i]:.3g})")
+        U = sp.triu(A, format="csr")
+        U.sort_indices()
+        self.n = U.shape[0]
+        self._a = np.ascontiguousarray(U.data, dtype=np.float64)
+        self._ia = np.ascontiguousarray(U.indptr, dtype=np.int32)
+        self._ja = np.ascontiguousarray(U.indices, dtype=np.int32)
+        self._pt = np.zeros(64, dtype=np.int64)
+        self._iparm = np.zeros(64, dtype=np.int32)
+        self._iparm[[0, 1, 34]] = (1, 2, 1)  # own settings, METIS ordering, zero-based indices
+        self._iparm[9] = 13  # pivot perturbation 1e-13 (unused for SPD, set as MKL's default for mtype 11)
+        self._lock = threading.Lock()
+        self._alive = False
+        err = self._call(12, np.zeros(1), np.zeros(1), 1)
+        if err:
+            self._release()
+            if err == -4:
+                raise SolverError(f"{what} is singular or not positive definite (PARDISO: zero pivot)")
+            raise SolverError(f"PARDISO could not factorize {what} (error {err})")
+        self._alive = True
+
+    def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> int:
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        err = ctypes.c_int32(0)
+        one = ctypes.c_int32(1)
+        self._fn(self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(one), ctypes.byref(one),
+                 ctypes.byref(ctypes.c_int32(2)), ctypes.byref(ctypes.c_int32(phase)), ctypes.byref(ctypes.c_int32(self.n)),
+                 self._a.ctypes.data, self._ia.ctypes.data_as(i32), self._ja.ctypes.data_as(i32),
+                 ctypes.POINTER(ctypes.c_int32)(), ctypes.byref(ctypes.c_int32(nrhs)), self._iparm.ctypes.data_as(i32),
+                 ctypes.byref(ctypes.c_int32(0)), b.ctypes.data, x.ctypes.data, ctypes.byref(err))
+        return int(err.value)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, dtype=np.float64)
+        nrhs = 1 if b.ndim == 1 else b.shape[1]
+        bf = np.asfortranarray(b)
+        x = np.zeros_like(bf, order="F")
+        with self._lock:
+            err = self._call(33, bf, x, nrhs)
+        if err:
+            raise SolverError(f"PARDISO solve failed (error {err})")
+        return np.ascontiguousarray(x)
+
+    def _release(self) -> None:
+        self._call(-1, np.zeros(1), np.zeros(1), 1)
+
+    def __del__(self) -> None:
+        if getattr(self, "_alive", False):
+            try:
+                self._release()
+            except Exception:  # interpreter shutting down
+                pass
 
 
 class Factorization:
@@ -109,10 +220,12 @@ def factorize(
     ----------
     A : sparse matrix.
     spd : the matrix is symmetric positive definite (a stiffness with enough supports).
-    backend : "cholmod" or "superlu"; default: the best available.
+    backend : "pardiso", "cholmod" or "superlu"; default: :func:`default_backend` for SPD
+        matrices, SuperLU otherwise.
     what : a name for the matrix in error messages.
-    order : a fill-reducing symmetric permutation (e.g. from :func:`nested_dissection`) used
-        by SuperLU instead of its own ordering; CHOLMOD orders by itself.
+    order : a fill-reducing symmetric permutation (e.g. from :func:`nested_dissection`), or a
+        callable returning one, used by SuperLU instead of its own ordering; PARDISO (METIS)
+        and CHOLMOD order by themselves (the callable is then never called).
     norm : the 1-norm used in the singularity check (default ||A||_1); a penalized matrix
         passes the norm of the physical stiffness, whose conditioning is what matters.
 
@@ -124,7 +237,15 @@ def factorize(
     if A.shape[0] != A.shape[1]:
         raise SolverError(f"{what} is not square: {A.shape}")
     if backend is None:
-        backend = "cholmod" if (spd and _HAVE_CHOLMOD) else "superlu"
+        backend = default_backend() if spd else "superlu"
+    if backend == "pardiso":
+        if _mkl_pardiso() is None:
+            raise SolverError("PARDISO is not installed: pip install pypardiso (or rtfem[fast]; x86-64 only)")
+        if not spd:
+            raise SolverError("the PARDISO backend here is the SPD Cholesky: use backend='superlu' for other matrices")
+        f = _Pardiso(A, what)
+        _check_not_singular(A, f.solve, what, norm)
+        return Factorization(A, "pardiso", f.solve)
     if backend == "cholmod":
         if not _HAVE_CHOLMOD:
             raise SolverError("CHOLMOD is not installed: pip install scikit-sparse (or rtfem[cholmod])")
@@ -135,6 +256,8 @@ def factorize(
         return Factorization(A, "cholmod", f)
     if backend != "superlu":
         raise SolverError(f"unknown backend {backend!r}; choose from {available_backends()}")
+    if callable(order):  # computed only when SuperLU needs it
+        order = order()
     if order is not None:
         order = np.asarray(order)
         if order.shape != (A.shape[0],):

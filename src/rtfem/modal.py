@@ -185,17 +185,18 @@ def modal_analysis(
     K, dofs = model.constrained_stiffness()
     M, _ = model.constrained_mass()
     n_modes, massed = _mode_count(model, M, n_modes)
+    timing: dict = {}
     if n_modes > 0.1 * massed and massed <= _DENSE_ALL:
         omega, phi = _dense_modes(model, K, M, dofs, n_modes)
         method = "dense"
     else:
         sigma = _default_shift(model, K, M) if sigma is None else sigma
-        omega, phi, method = _shift_invert_modes(model, K, M, dofs, n_modes, sigma, tol, report)
+        omega, phi, method = _shift_invert_modes(model, K, M, dofs, n_modes, sigma, tol, report, timing)
     shapes = _nodal_shapes(model, phi, dofs)
     elapsed = time.perf_counter() - t_start
     report.done(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
     info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
-            **model.metadata}
+            **timing, **model.metadata}
     return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
 
 
@@ -241,18 +242,25 @@ def _default_shift(model, K, M) -> float:
     return -1e-6 * float(np.median(d[m > 0] / m[m > 0]))
 
 
-def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: float, report):
-    """ARPACK's shift-invert Lanczos through the model's factorization (or one of K - sigma M)."""
+def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: float, report, timing: dict):
+    """ARPACK's shift-invert Lanczos through the model's factorization (or one of K - sigma M).
+    ``timing`` receives the split: factorize, solves, and the rest of the Lanczos iteration
+    (ARPACK's orthogonalization and restarts), in seconds, and the backend."""
     restrained = bool(model.fixed.any())
     report(f"factorizing the shifted stiffness ({K.shape[0]} dof, shift {sigma:.3g})")
+    t_fac = time.perf_counter()
     if sigma == 0.0 and restrained:
-        solve = model.factorization().solve
+        fac = model.factorization()
     else:
         try:
-            solve = factorize((K - sigma * M).tocsc(), spd=sigma < 0 or restrained, what="K - sigma M",
-                              order=model.dof_order(dofs)).solve
+            fac = factorize((K - sigma * M).tocsc(), spd=sigma < 0 or restrained, what="K - sigma M",
+                            order=lambda: model.dof_order(dofs))
         except SolverError as exc:
             raise ModelError(f"{exc}; try another sigma") from None
+    solve = fac.solve
+    timing["factorize_seconds"] = time.perf_counter() - t_fac
+    timing["backend"] = fac.backend
+    solve_time = [0.0]
     massed = int(np.count_nonzero(M.diagonal()))
     ncv = min(massed, max(2 * n_modes + 1, 20))
     count = [0]
@@ -262,7 +270,10 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
     def op(b: np.ndarray) -> np.ndarray:
         count[0] += 1
         report(f"Lanczos: {count[0]} solves, {time.perf_counter() - t0:.1f} s", count[0], max(expected, count[0] + 1))
-        return solve(b)
+        ts = time.perf_counter()
+        x = solve(b)
+        solve_time[0] += time.perf_counter() - ts
+        return x
 
     report(f"shift-invert Lanczos for {n_modes} modes (ncv = {ncv})", 0, expected)
     try:
@@ -273,6 +284,9 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
             f"ARPACK did not converge for {n_modes} modes ({len(exc.eigenvalues)} converged); "
             "ask for fewer modes or a looser tol"
         ) from None
+    timing["solve_seconds"] = solve_time[0]
+    timing["lanczos_other_seconds"] = time.perf_counter() - t0 - solve_time[0]
+    timing["solves"] = count[0]
     order = np.argsort(lam)
     lam, vec = lam[order], vec[:, order]
     vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I

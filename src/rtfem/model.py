@@ -449,7 +449,7 @@ class ShellModel:
             # would make it grow with the penalty factor and refuse a well-posed model
             norm = float(abs(self.K).sum(axis=0).max())
             try:
-                self._factor = factorize(Kc, spd=True, what="the constrained stiffness", order=self.dof_order(dofs),
+                self._factor = factorize(Kc, spd=True, what="the constrained stiffness", order=lambda: self.dof_order(dofs),
                                          norm=norm)
             except SolverError as exc:
                 if self.constraints == "penalty" and self._elimination_factorizes():
@@ -467,7 +467,7 @@ class ShellModel:
     def _elimination_factorizes(self) -> bool:
         free = self.free_dofs
         try:
-            factorize(self.K[free][:, free], spd=True, what="K_ff", order=self.dof_order(free))
+            factorize(self.K[free][:, free], spd=True, what="K_ff", order=lambda: self.dof_order(free))
         except SolverError:
             return False
         return True
@@ -533,7 +533,7 @@ class ShellModel:
             K = self.K
             Ktt = K[t][:, t].tocsr()
             Ktr = K[t][:, r].tocsr()
-            Krr = factorize(K[r][:, r], spd=True, what="K_rr", order=self.dof_order(r)) if r.size else None
+            Krr = factorize(K[r][:, r], spd=True, what="K_rr", order=lambda: self.dof_order(r)) if r.size else None
             self._condensation = Condensation(t, r, Ktt, Ktr, Ktr.T.tocsr(), Krr)
         return self._condensation
 

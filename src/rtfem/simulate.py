@@ -22,7 +22,7 @@ from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from . import validate
+from . import kernels, validate
 from .errors import ModelError
 from .material import Damping
 from .modal import ModalBasis
@@ -31,6 +31,7 @@ from .oscillator import transition
 __all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "prepare", "ModalSimulator", "newmark_coefficients",
            "newmark_constants"]
 
+_REAL = (float, np.float64)  # what the compiled step takes as a force component without conversion
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
 
@@ -221,6 +222,9 @@ class ModalSimulator(ForceInput):
         self._C2 = np.ascontiguousarray(np.stack([Phi[:, 0, 1], Phi[:, 1, 0]]))
         self._G1 = np.ascontiguousarray(G1.T)
         self._G0 = None if G0 is None else np.ascontiguousarray(G0.T)
+        G0_rows = self._G0 if self._G0 is not None else np.zeros((2, r))
+        self._coef = np.ascontiguousarray(np.vstack([self._C1, self._C2, self._G1, G0_rows]))  # the kernel's rows
+        self.compiled = kernels.HAVE_NUMBA  # the compiled point step (set False for the numpy path)
         self._phi = np.ascontiguousarray(modes.shapes)  # (n, 3, r)
         self._P = self._phi.reshape(-1, r)  # (3n, r) view
         self._fv = np.zeros(3)
@@ -289,6 +293,8 @@ class ModalSimulator(ForceInput):
         With the "exact" integrator the force is held over the step; with "newmark" it is the
         force at the end of the step (Eq. 14). Cost O(k r) for k loaded nodes.
         """
+        if self.compiled and self._compiled_step(forces):
+            return
         self._modal_force(forces)
         S, T1, T2 = self._S, self._T1, self._T2
         np.multiply(self._C1, S, out=T1)
@@ -303,6 +309,33 @@ class ModalSimulator(ForceInput):
         self._S, self._T1 = T1, S
         self.steps += 1
         self.time = self.steps * self.dt
+
+    def _compiled_step(self, forces) -> bool:
+        """The step of the haptic loop in one compiled call: no load, or one plain int node with a
+        3-sequence of finite floats. False (nothing changed) for anything else."""
+        if forces is None:
+            node, fx, fy, fz = -1, 0.0, 0.0, 0.0
+        elif type(forces) is dict and len(forces) == 1:
+            for node, f in forces.items():
+                pass
+            if type(node) is not int or not 0 <= node < self.n_nodes:
+                return False
+            try:
+                fx, fy, fz = f
+            except (TypeError, ValueError):
+                return False
+            if not (type(fx) in _REAL and type(fy) in _REAL and type(fz) in _REAL
+                    and math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+                return False
+        else:
+            return False
+        kernels.point_step(self._coef, self._S, self._f_old, self._phi, node, fx, fy, fz, self._G0 is not None)
+        if self.static_correction:
+            self._loads = {node: np.array((fx, fy, fz))} if node >= 0 else {}
+            self._load_array = None
+        self.steps += 1
+        self.time = self.steps * self.dt
+        return True
 
     def run(self, forces, n_steps: int) -> None:
         """``n_steps`` steps under the same forces."""
@@ -394,7 +427,11 @@ class ModalSimulator(ForceInput):
     def displacement(self, node: int) -> np.ndarray:
         """Displacement (3,) of one node, O(r)."""
         i = node if type(node) is int and 0 <= node < self.n_nodes else self._node(node)
-        u = self._phi[i] @ self._S[0]
+        if self.compiled:
+            u = np.empty(3)
+            kernels.point_displacement(self._phi, self._S, i, u)
+        else:
+            u = self._phi[i] @ self._S[0]
         if self.static_correction and self._loads:
             for j, f in self._loads.items():
                 u = u + self._correction_column(j)[i] @ f
