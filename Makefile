@@ -42,6 +42,7 @@ pictures: $(STAMP)
 BENCH_LEVELS ?= 4 5 6
 bench: $(STAMP)
 	$(BIN)/python benchmarks/assembly.py --levels $(BENCH_LEVELS)
+	$(BIN)/python benchmarks/eigen.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/dynamics.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/sldm.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)

@@ -360,7 +360,9 @@ class ShellModel:
                 Rb[:, :3, 3 + k] = np.cross(e, P)
                 Rb[:, 3 + k, 3 + k] = 1.0
             rows = Rb[fx]  # (n_fixed_dofs, 6)
-            s, vt = np.linalg.svd(rows, full_matrices=True)[1:]
+            # thin SVD: vt is 6 x 6 whenever there are >= 6 fixed dofs (the full one would form a
+            # dense square of the fixed-dof count: 16 s for the 15,365-vertex OpenHELP liver)
+            s, vt = np.linalg.svd(rows, full_matrices=rows.shape[0] < 6)[1:]
             rank = int(np.sum(s > 1e-9 * s[0])) if s.size else 0
             if rank < 6:
                 motions = [_describe_rigid_motion(v, centre, scale) for v in vt[rank:]]
