@@ -46,6 +46,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/sldm.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)
+	$(BIN)/python benchmarks/haptic_step.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache test-artifacts
