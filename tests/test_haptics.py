@@ -95,3 +95,27 @@ def test_loop_surfaces_errors_and_bad_input(organ):
         rt.Probe(mesh, sim, coupling="glue")
     with pytest.raises(rt.ModelError, match="rate"):
         rt.HapticLoop(probe, bad, rate=0)
+
+
+def test_a_loop_that_cannot_keep_its_rate_skips_ticks_and_says_so():
+    """A probe whose update takes 3 ms at 1 kHz: no burst of owed ticks, the skipped ones
+    counted, the achieved rate the real one (about 1 / 3 ms), every tick started within a
+    period of its slot, and the device's time the wall time."""
+    import time as _time
+
+    class SlowProbe:
+        driver = None
+
+        def update(self, position):
+            _time.sleep(0.003)
+            return np.zeros(3)
+
+    device = rt.ScriptedDevice(lambda t: np.zeros(3))
+    stats = rt.HapticLoop(SlowProbe(), device, rate=1000.0).run(0.3)
+    assert stats.behind and stats.missed >= 150  # ~2 of every 3 slots
+    assert 150 <= stats.rate <= 360  # Hz: what was achieved, not the 1 kHz asked for
+    assert max(stats.lateness) < 1e-3  # no tick runs on a slot more than a period old
+    assert "FELL BEHIND" in str(stats)
+    times = np.array(device.times)
+    assert np.all(np.diff(times) >= 2e-3 - 1e-12)  # the device saw the skipped time, not a burst
+    assert stats.steps + stats.missed == pytest.approx(300, abs=6)

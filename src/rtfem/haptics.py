@@ -229,6 +229,12 @@ class LoopStats:
     compute: list[float] = field(default_factory=list)  # per-step compute time (s)
     lateness: list[float] = field(default_factory=list)  # start time minus scheduled time (s)
     peak_force: float = 0.0
+    missed: int = 0  # ticks skipped because the loop was more than a period behind its schedule
+
+    @property
+    def behind(self) -> bool:
+        """True when the loop could not keep its rate (some ticks were skipped)."""
+        return self.missed > 0
 
     @property
     def rate(self) -> float:
@@ -243,9 +249,13 @@ class LoopStats:
         return float(np.std(self.lateness)) if self.lateness else float("nan")
 
     def __str__(self) -> str:
-        return (f"{self.steps} steps in {self.seconds:.2f} s: {self.rate:.0f} Hz achieved; compute median "
+        text = (f"{self.steps} steps in {self.seconds:.2f} s: {self.rate:.0f} Hz achieved; compute median "
                 f"{self.percentile(50) * 1e6:.1f} us, 99th percentile {self.percentile(99) * 1e6:.1f} us; "
                 f"jitter {self.jitter * 1e6:.1f} us; peak force {self.peak_force:.3f} N")
+        if self.missed:
+            share = 100.0 * self.missed / (self.missed + self.steps)
+            text += f"; FELL BEHIND: {self.missed} ticks skipped ({share:.1f} % of the schedule)"
+        return text
 
 
 class ScriptedDevice:
@@ -326,7 +336,10 @@ class HapticLoop:
     Each tick reads the device position, computes the contact force and hands it back. The
     schedule is absolute (tick k at start + k/rate): a late tick does not shift later ones.
     Waiting sleeps until shortly before the tick and spins for the rest (sleep alone is
-    too coarse for 1 ms periods).
+    too coarse for 1 ms periods). A tick that starts more than a period late does not burst
+    through the ticks it owes: they are skipped, counted in ``stats.missed`` (``stats.behind``,
+    and said by ``str(stats)``), and the loop resumes on the current slot of the schedule, so
+    ``stats.rate`` is the rate actually achieved and the device's time stays the wall time.
     """
 
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
@@ -358,7 +371,7 @@ class HapticLoop:
         deadline = None if seconds is None else t0 + seconds
         k = 0
         try:
-            while not self._stop.is_set() and (max_steps is None or k < max_steps):
+            while not self._stop.is_set() and (max_steps is None or k - st.missed < max_steps):
                 target = t0 + k * self.period
                 if deadline is not None and target >= deadline:
                     break
@@ -372,6 +385,11 @@ class HapticLoop:
                 start = time.perf_counter()
                 if deadline is not None and start >= deadline:
                     break  # a loop that cannot keep the rate stops on time (the lateness says by how much)
+                if start - target > self.period:  # behind by whole ticks: skip them, do not burst
+                    skip = int((start - target) / self.period)
+                    k += skip
+                    st.missed += skip
+                    target = t0 + k * self.period
                 t = k * self.period
                 f = self.probe.update(self.device.position(t))
                 self.device.set_force(t, f)
@@ -379,7 +397,7 @@ class HapticLoop:
                 st.compute.append(time.perf_counter() - start)
                 st.peak_force = max(st.peak_force, float(np.linalg.norm(f)))
                 k += 1
-                st.steps = k
+                st.steps = k - st.missed
                 st.seconds = time.perf_counter() - t0
         except BaseException as exc:  # surfaced by stop()/join()
             self.error = exc
