@@ -43,4 +43,8 @@ def test_modal_dynamics(tmp_path):
 def test_haptic_session(tmp_path):
     out = run("03_haptic_session.py", tmp_path)
     assert number(r"hold: ([\d.]+) N", out) > 0.05 and number(r"pulling out: ([\d.]+) N", out) == 0.0
-    assert number(r"(\d+) steps in", out) == 2000  # functional only: no timing asserted
+    # functional only, no timing asserted: every slot of the 2 s schedule at 1 kHz is either run or,
+    # on a loaded machine, skipped and counted (the loop does not burst to catch up)
+
+    skipped = re.search(r"(\d+) ticks skipped", out)
+    assert number(r"(\d+) steps in", out) + (int(skipped.group(1)) if skipped else 0) == 2000
