@@ -275,9 +275,7 @@ def _probe_point(model, at: str | None) -> int:
 
 def _check_simulate(args: argparse.Namespace) -> tuple[int, int]:
     """Refuse a run that cannot work before any work: returns (steps, steps per frame)."""
-    from .validate import time_step
-
-    time_step(args.dt, "--dt")
+    validate.time_step(args.dt, "--dt")
     if args.at is not None:
         _vector(args.at, "--at")
     if args.method == "sldm" and not args.load:

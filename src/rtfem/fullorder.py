@@ -70,6 +70,18 @@ class DirectSimulator(ForceInput):
         for _ in range(n_steps):
             self.step(forces)
 
+    _solved: np.ndarray  # the global dofs of the state vector, sorted (set by each integrator)
+
+    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of the node's free translations in the state vector, and their directions."""
+        want = self.model.translation_dofs(node)
+        pos = np.minimum(np.searchsorted(self._solved, want), self._solved.size - 1)
+        ok = self._solved[pos] == want
+        return pos[ok], np.flatnonzero(ok)
+
+    def displacements(self) -> np.ndarray:
+        return self.model.nodal_translations(self._u, self._solved)
+
     def displacement(self, node: int) -> np.ndarray:
         return self.displacements()[self._node(node)]
 
@@ -131,7 +143,7 @@ class NewmarkSimulator(DirectSimulator):
         model = self.model
         K, dofs = model.constrained_stiffness()
         M, _ = model.constrained_mass()
-        self._dofs = dofs
+        self._solved = dofs
         B = self.damping.matrix(M, K)
         self._c = newmark_constants(self.dt)
         c0, c1 = self._c[0], self._c[1]
@@ -151,13 +163,6 @@ class NewmarkSimulator(DirectSimulator):
         if self._B is not None:
             rhs += self._B @ (c1 * u + c4 * v + c5 * a)
         return rhs
-
-    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
-        """Positions of the node's free translations in the solved vector, and their directions."""
-        want = self.model.translation_dofs(node)
-        pos = np.minimum(np.searchsorted(self._dofs, want), self._dofs.size - 1)
-        ok = self._dofs[pos] == want
-        return pos[ok], np.flatnonzero(ok)
 
     def prepare(self, nodes) -> None:
         """Solve the step-compliance columns of the nodes that will be loaded (3 solves each)."""
@@ -184,10 +189,10 @@ class NewmarkSimulator(DirectSimulator):
         node = self._node(node)
         if node not in self._cols:
             rows, dirs = self._node_rows(node)
-            E = np.zeros((self._dofs.size, rows.size))
+            E = np.zeros((self._solved.size, rows.size))
             E[rows, np.arange(rows.size)] = 1.0
             cols = self._fac.solve(E) if rows.size else E
-            self._cols[node] = (rows, dirs, cols.reshape(self._dofs.size, rows.size))
+            self._cols[node] = (rows, dirs, cols.reshape(self._solved.size, rows.size))
         rows, dirs, cols = self._cols[node]
         W = np.zeros((3, 3))
         W[np.ix_(dirs, dirs)] = cols[rows]
@@ -217,16 +222,13 @@ class NewmarkSimulator(DirectSimulator):
         un = self._superposed(forces)
         if un is None:
             F = self.model.force_vector(self._as_array(forces), warn=False)
-            un = self._fac.solve(F[self._dofs] + self._rhs_free())
+            un = self._fac.solve(F[self._solved] + self._rhs_free())
         self._free = None
         an = c0 * (un - u) - c2 * v - c3 * a
         self._v = newmark_velocity(v, a, an, self.dt)
         self._u, self._a = un, an
         self.steps += 1
         self.time = self.steps * self.dt
-
-    def displacements(self) -> np.ndarray:
-        return self.model.nodal_translations(self._u, self._dofs)
 
     def _state_changed(self) -> None:
         self._free = None
@@ -249,7 +251,7 @@ class CentralDifferenceSimulator(DirectSimulator):
             raise ModelError("the central-difference method needs fixes by elimination (penalty dofs are far too stiff)")
         c = model.condensation()
         self._Kc = c.apply
-        self._t = c.t
+        self._solved = c.t
         self._mt = model.mass_diagonal[c.t]
         if np.any(self._mt <= 0):
             raise ModelError("the central-difference method needs mass on every free translation")
@@ -265,8 +267,8 @@ class CentralDifferenceSimulator(DirectSimulator):
         self._gain = dt * dt / (self._mt * (1 + 0.5 * dt * al))  # u_{k+1} per unit force at step k
         self._keep = 2.0 / (1 + 0.5 * dt * al)
         self._back = (1 - 0.5 * dt * al) / (1 + 0.5 * dt * al)
-        self._u = np.zeros(self._t.size)
-        self._u_old = np.zeros(self._t.size)
+        self._u = np.zeros(self._solved.size)
+        self._u_old = np.zeros(self._solved.size)
 
     def _stability_limit(self) -> tuple[float, float]:
         """dt_crit = 2 / w_max = T_n / pi, with w_max from Lanczos on M^-1/2 K_c M^-1/2."""
@@ -278,12 +280,6 @@ class CentralDifferenceSimulator(DirectSimulator):
 
     def _free_update(self) -> np.ndarray:
         return self._keep * self._u - self._back * self._u_old - self._gain * self._Kc(self._u)
-
-    def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
-        want = self.model.translation_dofs(node)
-        pos = np.minimum(np.searchsorted(self._t, want), self._t.size - 1)
-        ok = self._t[pos] == want
-        return pos[ok], np.flatnonzero(ok)
 
     def predict(self, node: int) -> np.ndarray:
         """Displacement (3,) of ``node`` after one more step with no load (one K_c product)."""
@@ -303,13 +299,10 @@ class CentralDifferenceSimulator(DirectSimulator):
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` act at the start of the step."""
         F = self.model.force_vector(self._as_array(forces), warn=False)
-        un = self._free_update() + self._gain * F[self._t]
+        un = self._free_update() + self._gain * F[self._solved]
         self._u_old, self._u = self._u, un
         self.steps += 1
         self.time = self.steps * self.dt
-
-    def displacements(self) -> np.ndarray:
-        return self.model.nodal_translations(self._u, self._t)
 
 
 _METHOD_CLASS = {"newmark": NewmarkSimulator, "central": CentralDifferenceSimulator}

@@ -111,11 +111,7 @@ class Probe:
         return self.driver.displacements()
 
     def _compliance(self, node: int) -> np.ndarray:
-        W = self._W.get(node)
-        if W is None:
-            prepare(self.driver, [node])
-            W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
-        return W
+        return _cached_compliance(self.driver, self._W, node)
 
     def _deformed(self, nodes: np.ndarray) -> np.ndarray:
         return self.X[nodes] + displacements_at(self.driver, nodes)
@@ -183,11 +179,7 @@ class Grasp:
 
     def compliance(self, node: int) -> np.ndarray:
         """The 3x3 step compliance W at ``node`` (the driver prepares the node the first time)."""
-        W = self._W.get(node)
-        if W is None:
-            prepare(self.driver, [node])
-            W = self._W[node] = np.asarray(self.driver.step_compliance(node), dtype=float)
-        return W
+        return _cached_compliance(self.driver, self._W, node)
 
     def grab(self, node: int) -> None:
         node = validate.node(node, self.X.shape[0])
@@ -457,6 +449,16 @@ class HapticLoop:
 
 _OWNERS: dict[int, HapticLoop] = {}  # id(probe) -> the loop driving it
 _OWNERS_LOCK = threading.Lock()
+
+
+def _cached_compliance(driver, cache: dict, node: int) -> np.ndarray:
+    """The driver's 3x3 step compliance at ``node``, kept in ``cache``; the first time the driver
+    prepares the node (static-correction or compliance columns, an impedance map)."""
+    W = cache.get(node)
+    if W is None:
+        prepare(driver, [node])
+        W = cache[node] = np.asarray(driver.step_compliance(node), dtype=float)
+    return W
 
 
 def check_driver_mesh(mesh, driver, what: str) -> None:

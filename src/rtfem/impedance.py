@@ -255,18 +255,23 @@ class ImpedanceMap:
                 node, f, onset = ld[0], ld[1], ld[2] if len(ld) > 2 else 0.0
             else:
                 raise ModelError(f"load {validate.show(ld)} must be a Load or a (node, (fx, fy, fz), onset) tuple")
-            s = self._slot_of(node, "load node")
+            self._slot_of(node, "load node")
             f = validate.vector(f, f"force on node {node}", 3)
             onset = validate.instant(onset, "onset")
-            parsed.append((s, f, onset))
+            parsed.append((int(node), f, onset))
         u = np.zeros((self.n_nodes, 3))
-        for s, f, onset in parsed:
-            R = self.responses[self.offsets[s] : self.offsets[s + 1]]
-            Rt = self._sample(R, t - onset)
-            if Rt is None:
-                continue
-            u[self.neighbours[self.offsets[s] : self.offsets[s + 1]]] += Rt @ f
+        for node, f, onset in parsed:
+            self._superpose(u, node, f, t - onset)
         return u
+
+    def _superpose(self, u: np.ndarray, node: int, f: np.ndarray, delay: float) -> None:
+        """u += the field of a step load f switched on at a loaded node ``delay`` seconds ago
+        (inf: its static limit); checked arguments (the run-time path)."""
+        s = int(self._slot[node])
+        lo, hi = self.offsets[s], self.offsets[s + 1]
+        Rt = self._sample(self.responses[lo:hi], delay)
+        if Rt is not None:
+            u[self.neighbours[lo:hi]] += Rt @ f
 
     def compliance_at(self, loaded: int, nodes: np.ndarray, t: float | None = None) -> np.ndarray:
         """(k, 3, 3) responses at ``nodes`` per unit force at ``loaded`` (static when t is None).
@@ -585,8 +590,7 @@ class ImpedanceDriver:
         if forces is None:
             return loads
         if type(forces) is dict and len(forces) == 1:  # the haptic loop's one contact: checked inline
-            for node, f in forces.items():
-                pass
+            ((node, f),) = forces.items()
             if type(node) is int and node in self._owner and type(f) is tuple and len(f) == 3 \
                     and all(type(v) is float and math.isfinite(v) for v in f):
                 return {node: np.array(f)} if any(f) else loads
@@ -650,19 +654,19 @@ class ImpedanceDriver:
 
     # ---------------------------------------------------------------- the field
     def _entries(self):
-        """(node, force, delay or None for static) of what is superposed now."""
+        """(node, force, delay since its onset; inf for a static or settled load) of what is
+        superposed now."""
         if not self.dynamic:
-            return [(p, f, None) for p, f in self._loads.items()]
-        return [(p, f, None if onset == -np.inf else self.time - onset) for p, f, onset in self._history]
+            return [(p, f, np.inf) for p, f in self._loads.items()]
+        return [(p, f, self.time - onset) for p, f, onset in self._history]  # onset -inf: settled
 
     def displacements_at(self, nodes) -> np.ndarray:
         if not (type(nodes) is np.ndarray and nodes.dtype == np.int64 and nodes.ndim == 1 and nodes.size
                 and 0 <= nodes.min() and nodes.max() < self.n_nodes):
             nodes = validate.nodes(nodes, self.n_nodes)
         u = np.zeros((nodes.size, 3))
-        for p, f, tau in self._entries():
-            if tau is None or tau > 0:
-                u += self._owner[p]._columns(p, nodes, None if tau is None or tau > self._settle else tau) @ f
+        for p, f, delay in self._entries():
+            u += self._owner[p]._columns(p, nodes, delay) @ f
         return u
 
     def displacement(self, node) -> np.ndarray:
@@ -670,14 +674,8 @@ class ImpedanceDriver:
 
     def displacements(self) -> np.ndarray:
         u = np.zeros((self.n_nodes, 3))
-        for p, f, tau in self._entries():
-            m = self._owner[p]
-            s = int(m._slot[p])
-            lo, hi = m.offsets[s], m.offsets[s + 1]
-            R = m.responses[lo:hi]
-            Rt = R[:, -1] if tau is None else m._sample(R, tau)
-            if Rt is not None:
-                u[m.neighbours[lo:hi]] += Rt @ f
+        for p, f, delay in self._entries():
+            self._owner[p]._superpose(u, p, f, delay)
         return u
 
     # ---------------------------------------------------------------- state
@@ -702,15 +700,11 @@ class ImpedanceDriver:
             self._map(i)
             loads[i] = validate.vector(f, f"load on node {i}", 3)
         history = []
-        entries = state.get("history", [])
-        if isinstance(entries, (str, bytes)) or not hasattr(entries, "__iter__"):
-            raise ModelError("state['history'] must be a list of (node, force change, onset)")
-        for h in entries:
-            if not isinstance(h, (tuple, list)) or len(h) != 3:
-                raise ModelError(f"history entry {validate.show(h)} must be (node, force change, onset)")
+        for h in validate.entries(state.get("history", []), "state['history']", "history entry", 3,
+                                  "(node, force change, onset)"):
             i = validate.node(h[0], self.n_nodes, "history node")
             self._map(i)
-            onset = -np.inf if isinstance(h[2], float) and h[2] == -np.inf else validate.instant(h[2], "onset")
+            onset = validate.instant(h[2], "onset")  # -inf: a settled load
             history.append((i, validate.vector(h[1], f"force change on node {i}", 3), onset))
         steps = validate.count(state["steps"], "state['steps']", 0)
         self._loads, self._history, self.steps, self.time = loads, history, steps, steps * self.dt

@@ -69,12 +69,8 @@ def point_field(values, n: int, name: str) -> np.ndarray:
 def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.PathLike]]) -> Path:
     """Write a ParaView collection (.pvd) that lists (time, vtu file) frames."""
     path = Path(validate.path_like(path, "path"))
-    if isinstance(frames, (str, bytes)) or not isinstance(frames, Iterable):
-        raise ModelError(f"frames={validate.show(frames)} must be a list of (time, vtu file) pairs")
     rows = []
-    for item in frames:
-        if not isinstance(item, (tuple, list)) or len(item) != 2:
-            raise ModelError(f"frame {validate.show(item)} must be a (time, vtu file) pair")
+    for item in validate.entries(frames, "frames", "frame", 2, "a (time, vtu file) pair"):
         t = validate.number(item[0], "frame time", "a time in seconds")
         rows.append((t, Path(validate.path_like(item[1], "frame file"))))
     lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', "  <Collection>"]

@@ -33,12 +33,8 @@ class LoadSchedule:
 
     def __init__(self, rows, n_nodes: int) -> None:
         self.n_nodes = validate.count(n_nodes, "n_nodes", 1)
-        if isinstance(rows, (str, bytes)) or not hasattr(rows, "__iter__"):
-            raise ModelError(f"rows={validate.show(rows)} must be a list of (t, node, (fx, fy, fz))")
         parsed = []
-        for r in rows:
-            if not isinstance(r, (tuple, list)) or len(r) != 3:
-                raise ModelError(f"load row {validate.show(r)} must be (t, node, (fx, fy, fz))")
+        for r in validate.entries(rows, "rows", "load row", 3, "(t, node, (fx, fy, fz))"):
             t = validate.nonnegative(r[0], "load time", "a time in s")
             parsed.append((t, validate.node(r[1], self.n_nodes, "load node"), validate.vector(r[2], "load force", 3)))
         if not parsed:

@@ -31,7 +31,6 @@ from .oscillator import transition
 __all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "prepare", "ModalSimulator", "newmark_coefficients",
            "newmark_constants"]
 
-_REAL = (float, np.float64)  # what the compiled step takes as a force component without conversion
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
 
@@ -217,13 +216,12 @@ class ModalSimulator(ForceInput):
             Phi, G0, G1 = newmark_coefficients(lam, self.modal_alpha, self.dt)
         else:
             raise ModelError(f"integrator={integrator!r}; choose 'exact' or 'newmark'")
-        # [x; v]_new = C1 * [x; v] + C2 * [v; x] + G1 * f_new (+ G0 * f_old)
-        self._C1 = np.ascontiguousarray(np.stack([Phi[:, 0, 0], Phi[:, 1, 1]]))
-        self._C2 = np.ascontiguousarray(np.stack([Phi[:, 0, 1], Phi[:, 1, 0]]))
-        self._G1 = np.ascontiguousarray(G1.T)
-        self._G0 = None if G0 is None else np.ascontiguousarray(G0.T)
-        G0_rows = self._G0 if self._G0 is not None else np.zeros((2, r))
-        self._coef = np.ascontiguousarray(np.vstack([self._C1, self._C2, self._G1, G0_rows]))  # the kernel's rows
+        # [x; v]_new = C1 * [x; v] + C2 * [v; x] + G1 * f_new (+ G0 * f_old): one (8, r) array whose
+        # row pairs the numpy path views and the compiled kernel takes whole
+        self._coef = np.ascontiguousarray(np.vstack([Phi[:, 0, 0], Phi[:, 1, 1], Phi[:, 0, 1], Phi[:, 1, 0], G1.T,
+                                                     np.zeros((2, r)) if G0 is None else G0.T]))
+        self._C1, self._C2, self._G1 = self._coef[0:2], self._coef[2:4], self._coef[4:6]
+        self._G0 = None if G0 is None else self._coef[6:8]
         self.compiled = kernels.HAVE_NUMBA  # the compiled point step (set False for the numpy path)
         self._phi = np.ascontiguousarray(modes.shapes)  # (n, 3, r)
         self._P = self._phi.reshape(-1, r)  # (3n, r) view
@@ -263,17 +261,9 @@ class ModalSimulator(ForceInput):
         if forces is None:
             pass
         elif type(forces) is dict or isinstance(forces, Mapping):
-            fn, fv, n = self._fn, self._fv, self.n_nodes
+            fn, fv = self._fn, self._fv
             for node, f in forces.items():
-                # fast path for the haptic loop: plain ints and 3-sequences of floats
-                i = node if type(node) is int and 0 <= node < n else self._node(node)
-                try:
-                    fx, fy, fz = f
-                    fx, fy, fz = float(fx), float(fy), float(fz)
-                except (TypeError, ValueError):
-                    fx, fy, fz = self._vec(node, f)
-                if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-                    self._vec(node, f)  # raises with the message
+                i, fx, fy, fz = self._point(node, f)
                 fv[0], fv[1], fv[2] = fx, fy, fz
                 np.dot(fv, self._phi[i], out=fn)
                 out += fn
@@ -310,23 +300,27 @@ class ModalSimulator(ForceInput):
         self.steps += 1
         self.time = self.steps * self.dt
 
+    def _point(self, node, f) -> tuple[int, float, float, float]:
+        """One load entry, checked: the node index and three finite components (inline for plain
+        ints and 3-sequences of numbers, the haptic loop's case; a refusal names the entry)."""
+        i = node if type(node) is int and 0 <= node < self.n_nodes else self._node(node)
+        try:
+            fx, fy, fz = f
+            fx, fy, fz = float(fx), float(fy), float(fz)
+        except (TypeError, ValueError):
+            fx, fy, fz = self._vec(node, f)
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+            self._vec(node, f)  # raises with the message
+        return i, fx, fy, fz
+
     def _compiled_step(self, forces) -> bool:
-        """The step of the haptic loop in one compiled call: no load, or one plain int node with a
-        3-sequence of finite floats. False (nothing changed) for anything else."""
+        """The step of the haptic loop in one compiled call: no load, or a dict with one load.
+        False (nothing changed) for anything else; a bad load is refused before any change."""
         if forces is None:
             node, fx, fy, fz = -1, 0.0, 0.0, 0.0
         elif type(forces) is dict and len(forces) == 1:
-            for node, f in forces.items():
-                pass
-            if type(node) is not int or not 0 <= node < self.n_nodes:
-                return False
-            try:
-                fx, fy, fz = f
-            except (TypeError, ValueError):
-                return False
-            if not (type(fx) in _REAL and type(fy) in _REAL and type(fz) in _REAL
-                    and math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-                return False
+            ((node, f),) = forces.items()
+            node, fx, fy, fz = self._point(node, f)
         else:
             return False
         kernels.point_step(self._coef, self._S, self._f_old, self._phi, node, fx, fy, fz, self._G0 is not None)
@@ -372,9 +366,8 @@ class ModalSimulator(ForceInput):
         key = F.tobytes()
         hit = self._D_array.get(key)
         if hit is None:
-            r = self._phi.shape[2]
             Kinv_f = self.modes.model.solve_static(F, warn=False)
-            modal = self._phi @ ((self._phi.reshape(-1, r).T @ F.reshape(-1)) / self.modes.omega**2)
+            modal = self._phi @ ((self._P.T @ F.reshape(-1)) / self.modes.omega**2)
             if len(self._D_array) >= 8:
                 self._D_array.pop(next(iter(self._D_array)))
             hit = self._D_array[key] = Kinv_f - modal

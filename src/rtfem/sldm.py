@@ -305,15 +305,10 @@ class SLDM:
         tol = self.tol if tol is None else self._check_tol(tol)
         if isinstance(forces_of_time, LoadSchedule):
             forces_of_time = forces_of_time.piecewise()
-        if isinstance(forces_of_time, (str, bytes)) or not hasattr(forces_of_time, "__iter__"):
-            raise ModelError(f"forces_of_time={validate.show(forces_of_time)} must be a LoadSchedule or a sequence of "
-                             "(t_k, forces_k)")
-        events = list(forces_of_time)
+        events = validate.entries(forces_of_time, "forces_of_time", "entry of forces_of_time", 2,
+                                  "a (t_k, forces_k) pair (or give a LoadSchedule)")
         if not events:
             raise ModelError("forces_of_time is empty: give a sequence of (t_k, forces_k)")
-        for e in events:
-            if not isinstance(e, (tuple, list)) or len(e) != 2:
-                raise ModelError(f"each entry of forces_of_time must be a (t_k, forces_k) pair, got {validate.show(e)}")
         t_k = np.array([validate.number(e[0], "switch time t_k", "a time in seconds") for e in events])
         if not np.all(np.isfinite(t_k)) or np.any(np.diff(t_k) <= 0):
             raise ModelError("the switch times t_k of forces_of_time must be finite and strictly increasing")

@@ -262,6 +262,19 @@ def _all_finite(a: np.ndarray, chunk: int = 1 << 22) -> bool:
     return all(bool(np.isfinite(flat[i:i + chunk]).all()) for i in range(0, flat.size, chunk))
 
 
+def entries(value: Any, name: str, item: str, length: int, form: str, *, error: type = ModelError) -> list:
+    """The items of a list of fixed-length records (tuples or lists of ``length`` values), such as
+    (time, file) frames or (t, node, force) load rows; ``form`` writes one out for the messages
+    and ``item`` names one. May be empty (the caller says whether that is allowed)."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+        raise error(f"{_label(name, value)} must be a list of {form}")
+    out = list(value)
+    for x in out:
+        if not isinstance(x, (tuple, list)) or len(x) != length:
+            raise error(f"{item} {show(x)} must be {form}")
+    return out
+
+
 def progress(value: Any, name: str = "progress", *, error: type = ModelError):
     """A progress callback ``progress(done, total, message)`` or None (the one signature of
     modal_analysis, SLDM and ImpedanceMap.build)."""

@@ -32,7 +32,7 @@ from ..material import Damping, Material
 from ..mesh import TriMesh
 from ..modal import ModalBasis, modal_analysis
 from ..model import make_model
-from ..simulate import ModalSimulator, as_driver, prepare
+from ..simulate import ModalSimulator, as_driver
 
 METHODS = ("modal", "impedance", "direct")
 #: response samples of the maps the impedance method builds per grabbed vertex (s)
@@ -166,8 +166,7 @@ class Session:
         node = self.model.nearest_free_node(point, displacements)
         with self._lock:
             grasp = self.grasp
-        prepare(grasp.driver, [node])
-        grasp.compliance(node)
+        grasp.compliance(node)  # the driver prepares the node here
         with self._lock:
             if grasp is not self.grasp:  # rebuilt meanwhile
                 return node
