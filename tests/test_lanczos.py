@@ -60,3 +60,38 @@ def test_bad_start_vectors():
         Lanczos(lambda x: x, np.array([1.0, np.nan]))
     with pytest.raises(rt.SolverError, match="reorth"):
         Lanczos(lambda x: x, np.ones(3), "mgs")
+
+
+# ---------------------------------------------------------------- block eigensolver
+from rtfem.lanczos import BlockLanczosFailed, block_eigs  # noqa: E402
+
+
+def test_block_eigs_on_a_known_spectrum():
+    # C = U diag(d) U^T with a random orthogonal U: the 15 largest eigenpairs are known exactly
+    n, k = 600, 15
+    rng = np.random.default_rng(3)
+    U = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    d = 1.0 / np.linspace(1.0, 400.0, n) ** 2  # clustered towards zero like 1/w^2
+    C = (U * d) @ U.T
+    calls = []
+    theta, Y, info = block_eigs(lambda B: C @ B, n, k, block=4, report=lambda dim, est: calls.append(dim))
+    assert np.abs(theta - d[:k]).max() < 1e-14 * d[0]
+    assert np.abs(Y.T @ Y - np.eye(k)).max() < 1e-12
+    for i in range(k):  # the Ritz vectors are the eigenvectors up to sign
+        assert abs(abs(Y[:, i] @ U[:, i]) - 1.0) < 1e-9
+    assert info["max_residual"] <= 1e-10 and info["krylov_dim"] == calls[-1] and info["block_solves"] == len(calls)
+    assert calls == list(range(4, 4 * len(calls) + 1, 4))
+
+
+def test_block_eigs_stops_short_instead_of_giving_wrong_pairs():
+    n = 40
+    C = np.diag(np.arange(1.0, n + 1))
+    with pytest.raises(BlockLanczosFailed, match="more than"):
+        block_eigs(lambda B: C @ B, n, 38, block=8)
+    # an invariant start block (C has rank 5): the block loses rank
+    low = np.zeros((n, n))
+    low[:5, :5] = np.diag([5.0, 4, 3, 2, 1])
+    with pytest.raises(BlockLanczosFailed):
+        block_eigs(lambda B: low @ B, n, 6, block=4, max_dim=40)
+    with pytest.raises(rt.SolverError, match="NaN"):
+        block_eigs(lambda B: B * np.nan, n, 4, block=4)

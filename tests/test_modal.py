@@ -58,14 +58,48 @@ def test_truncated_and_progress(liver3):
     assert np.array_equal(basis.truncated(5).omega, basis.omega[:5])
     with pytest.raises(rt.ModelError):
         basis.truncated(0)
-    calls = []
-    rt.modal_analysis(model, 4, progress=lambda done, total, message: calls.append((done, total, message)))
-    assert any("Lanczos" in m for _, _, m in calls) and "modes in" in calls[-1][2]
-    assert all(0 <= d <= t for d, t, _ in calls) and calls[-1][0] == calls[-1][1]  # ends at 100 %
-    solves = [d for d, _, m in calls if m.startswith("Lanczos:")]
-    assert solves == list(range(1, len(solves) + 1))  # one call per solve, counted
+    for solver, prefix, step in (("arpack", "Lanczos:", 1), ("block", "block Lanczos:", 8)):
+        calls = []
+        rt.modal_analysis(model, 4, solver=solver, progress=lambda done, total, message: calls.append((done, total, message)))
+        assert any("Lanczos" in m for _, _, m in calls) and "modes in" in calls[-1][2]
+        assert all(0 <= d <= t for d, t, _ in calls) and calls[-1][0] == calls[-1][1]  # ends at 100 %
+        counts = [d for d, _, m in calls if m.startswith(prefix)]
+        assert len(counts) > 1 and counts == list(range(step, step * len(counts) + 1, step))  # one call per solve
 
 
+def test_block_and_arpack_give_the_same_modes():
+    """The block shift-invert Lanczos against ARPACK on the same factorization (issue 12:
+    modes equal to 1e-8), restrained and free (shifted below the rigid-body modes)."""
+    restrained = liver_model(3)
+    free = rt.ShellModel(rt.meshes.liver(3), rt.Material())
+    for model, r in ((restrained, 40), (free, 16)):
+        a = rt.modal_analysis(model, r, solver="block")
+        b = rt.modal_analysis(model, r, solver="arpack")
+        assert a.info["method"].startswith("block") and b.info["method"].startswith("shift-invert")
+        assert a.info["block_solves"] > 1 and a.info["krylov_dim"] >= r
+        assert np.abs(a.eigenvalues - b.eigenvalues).max() <= 1e-10 * b.eigenvalues.max()
+        elastic = slice(6, None) if model is free else slice(None)  # rigid modes: any basis of the null space
+        assert np.abs(a.shapes[..., elastic] - b.shapes[..., elastic]).max() <= 1e-8 * np.abs(b.shapes).max()
+    assert np.abs(a.eigenvalues[:6]).max() < 1e-6 * a.eigenvalues[6]  # the free model's rigid-body modes
+
+
+def test_block_solver_choice(liver3, monkeypatch):
+    model, basis = liver3
+    with pytest.raises(rt.ModelError, match="positive definite"):
+        rt.modal_analysis(model, 4, solver="block", sigma=10.0)
+    with pytest.raises(rt.ModelError, match="solver"):
+        rt.modal_analysis(model, 4, solver="lobpcg")
+    import rtfem.modal
+
+    def stops_short(*args, **kwargs):
+        raise rtfem.modal.BlockLanczosFailed("the Krylov block lost rank")
+
+    monkeypatch.setattr(rtfem.modal, "block_eigs", stops_short)
+    auto = rt.modal_analysis(model, 12)  # the block method stops short: ARPACK, and says why
+    assert auto.info["method"].startswith("shift-invert") and "lost rank" in auto.info["fallback"]
+    assert np.abs(auto.eigenvalues - basis.eigenvalues).max() <= 1e-10 * basis.eigenvalues.max()
+    with pytest.raises(rt.SolverError, match="solver='arpack'"):
+        rt.modal_analysis(model, 12, solver="block")
 def test_bad_requests(liver3):
     model, _ = liver3
     with pytest.raises(rt.ModelError, match="n_modes"):
