@@ -8,7 +8,7 @@ from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .linalg import available_backends
 from .modal import ModalBasis, modal_analysis
-from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice
+from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
 from .impedance import ImpedanceDriver, ImpedanceMap, Load
 from .model import Model, ShellModel, make_model
 from .selection import select_nodes
@@ -21,6 +21,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Damping",
     "CallbackDevice",
+    "SharedDevice",
     "CentralDifferenceSimulator",
     "DirectSimulator",
     "Driver",

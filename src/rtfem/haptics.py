@@ -43,7 +43,7 @@ from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, prepare
 
-__all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "LoopStats"]
+__all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "LoopStats"]
 
 
 class Probe:
@@ -112,6 +112,50 @@ class Probe:
 
     def _compliance(self, node: int) -> np.ndarray:
         return _cached_compliance(self.driver, self._W, node)
+
+    def replay(self, positions, *, compiled: bool | None = None) -> np.ndarray:
+        """Run :meth:`update` at each of ``positions`` (k, 3) back to back, offline (no clock):
+        a recorded or scripted trajectory's forces (k, 3), and the state where it ends. With a
+        ModalSimulator and numba the ticks run in the haptic loop's compiled code (``compiled``:
+        None = when available), which gives the same forces as the Python ticks to round-off."""
+        P = validate.real_array(positions, "positions", 2)
+        if P.shape[1] != 3:
+            raise ModelError(f"positions must be a (k, 3) array of probe positions in m, got shape {P.shape}")
+        usable = _compiled_loop() is not None and _compiled_driver(self.driver)
+        if compiled is None:
+            compiled = usable
+        elif validate.flag(compiled, "compiled") and not usable:
+            raise ModelError("compiled=True needs numba (rtfem[fast]) and a ModalSimulator with its compiled step")
+        if not compiled:
+            return np.array([self.update(c).copy() for c in P]).reshape(-1, 3)
+        out = []
+        run = _CompiledProbe(self, _compiled_loop()[0])
+        run.ticks(np.array([0.0, 0.0, np.inf, 0.0]), np.ascontiguousarray(P, dtype=float), np.zeros(6),
+                  np.zeros(1, dtype=np.int64), max(len(P), 1), None, lambda late, comp, f, slots: out.append(f.copy()))
+        return np.concatenate(out).reshape(-1, 3)
+
+    # ---------------------------------------------------------------- compiled loop support
+    def _grid(self) -> tuple:
+        """A uniform grid over the vertices for the compiled nearest-vertex search: lower corner,
+        cell size, cells per axis, CSR-like cell starts and the vertices sorted by cell."""
+        if getattr(self, "_grid_cache", None) is None:
+            lo, hi = self.X.min(axis=0), self.X.max(axis=0)
+            h = max(8.0 * self._requery, float((hi - lo).max()) / 64.0, 1e-12)  # about 2 edges, at most 64^3 cells
+            dims = np.maximum(np.ceil((hi - lo) / h).astype(np.int64), 1)
+            idx = np.minimum(((self.X - lo) / h).astype(np.int64), dims - 1)
+            cell = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+            order = np.argsort(cell, kind="stable").astype(np.int64)
+            start = np.searchsorted(cell[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
+            self._grid_cache = (lo.astype(float), float(h), dims, start, order)
+        return self._grid_cache
+
+    def _compliance_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cached step compliances as (slot per node, -1 when absent; (m, 3, 3) table)."""
+        slot = np.full(self.X.shape[0], -1, dtype=np.int64)
+        table = np.zeros((max(len(self._W), 1), 3, 3))
+        for i, (node, W) in enumerate(self._W.items()):
+            slot[node], table[i] = i, W
+        return slot, table
 
     def _deformed(self, nodes: np.ndarray) -> np.ndarray:
         return self.X[nodes] + displacements_at(self.driver, nodes)
@@ -222,6 +266,22 @@ class LoopStats:
     lateness: list[float] = field(default_factory=list)  # start time minus scheduled time (s)
     peak_force: float = 0.0
     missed: int = 0  # ticks skipped because the loop was more than a period behind its schedule
+    slots: list[int] = field(default_factory=list)  # the schedule slot of each step (k: due at start + k / rate)
+    compiled: bool = False  # True when the ticks ran in compiled code without the GIL
+
+    def period_errors(self) -> np.ndarray:
+        """|interval between consecutive ticks - period| (s), over pairs of adjacent slots: the
+        jitter a device sees (the lateness difference of neighbouring ticks)."""
+        late, slot = np.asarray(self.lateness), np.asarray(self.slots)
+        if late.size < 2 or slot.size != late.size:
+            return np.zeros(0)
+        adjacent = np.diff(slot) == 1
+        return np.abs(np.diff(late))[adjacent]
+
+    def period_error(self, q: float) -> float:
+        """The q-th percentile of :meth:`period_errors` (s)."""
+        e = self.period_errors()
+        return float(np.percentile(e, q)) if e.size else float("nan")
 
     @property
     def behind(self) -> bool:
@@ -243,7 +303,8 @@ class LoopStats:
     def __str__(self) -> str:
         text = (f"{self.steps} steps in {self.seconds:.2f} s: {self.rate:.0f} Hz achieved; compute median "
                 f"{self.percentile(50) * 1e6:.1f} us, 99th percentile {self.percentile(99) * 1e6:.1f} us; "
-                f"jitter {self.jitter * 1e6:.1f} us; peak force {self.peak_force:.3f} N")
+                f"jitter {self.jitter * 1e6:.1f} us; period error 99th percentile {self.period_error(99) * 1e6:.1f} us; "
+                f"peak force {self.peak_force:.3f} N" + (" (compiled loop)" if self.compiled else ""))
         if self.missed:
             share = 100.0 * self.missed / (self.missed + self.steps)
             text += f"; FELL BEHIND: {self.missed} ticks skipped ({share:.1f} % of the schedule)"
@@ -322,6 +383,30 @@ class CallbackDevice:
         self._set(force)
 
 
+class SharedDevice:
+    """A device whose position any thread writes (:meth:`move_to`: a device driver's thread, the
+    viewer's mouse) and whose force any thread reads (:attr:`force`), through one shared array,
+    so a compiled HapticLoop reads and writes it without the GIL."""
+
+    def __init__(self, position=(0.0, 0.0, 0.0)) -> None:
+        self.mailbox = np.zeros(6)  # position (3), force on the probe (3)
+        self.move_to(position)
+
+    def move_to(self, position) -> None:
+        self.mailbox[:3] = validate.point(position, "device position")
+
+    @property
+    def force(self) -> np.ndarray:
+        """The last force handed to the device (N): what the hand feels."""
+        return self.mailbox[3:6].copy()
+
+    def position(self, t: float) -> np.ndarray:
+        return self.mailbox[:3].copy()
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self.mailbox[3:6] = force
+
+
 class HapticLoop:
     """Runs ``probe.update`` on its own thread at a fixed rate (default 1 kHz).
 
@@ -336,7 +421,8 @@ class HapticLoop:
 
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
 
-    def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4) -> None:
+    def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4, *,
+                 compiled: bool | None = None) -> None:
         if not callable(getattr(probe, "update", None)) or not hasattr(probe, "driver"):
             raise ModelError(f"probe={validate.show(probe)} must be an rt.Probe (or an rt.Grasp): an object with "
                              "update(position) and a driver")
@@ -354,8 +440,30 @@ class HapticLoop:
         self.spin = spin
         self.stats = LoopStats()
         self._stop = threading.Event()
+        self._ctl = np.zeros(1, dtype=np.int64)  # the compiled loop's stop flag
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
+        self._kernels = None
+        why = self._compiled_refusal()
+        if compiled is None:
+            compiled = why is None
+        elif validate.flag(compiled, "compiled") and why is not None:
+            raise ModelError(f"compiled=True: {why}")
+        self.compiled = bool(compiled)
+        if self.compiled:
+            self._kernels = _compiled_loop()
+
+    def _compiled_refusal(self) -> str | None:
+        """Why the ticks cannot run in compiled code here (None: they can)."""
+        if _compiled_loop() is None:
+            return "the compiled loop needs numba (rtfem[fast]) and a monotonic clock (Linux, macOS)"
+        if type(self.probe) is not Probe:
+            return "only an rt.Probe runs in the compiled loop (a Grasp or another object runs in Python)"
+        if not _compiled_driver(self.probe.driver):
+            return "only a ModalSimulator with its compiled step drives the compiled loop"
+        if type(self.device) not in (ScriptedDevice, SharedDevice):
+            return "the compiled loop reads an rt.ScriptedDevice (sampled in advance) or an rt.SharedDevice"
+        return None
 
     def _run(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
         st = stats
@@ -386,6 +494,7 @@ class HapticLoop:
                 f = self.probe.update(self.device.position(t))
                 self.device.set_force(t, f)
                 st.lateness.append(start - target)
+                st.slots.append(k)
                 st.compute.append(time.perf_counter() - start)
                 st.peak_force = max(st.peak_force, float(np.linalg.norm(f)))
                 k += 1
@@ -398,6 +507,52 @@ class HapticLoop:
             with _OWNERS_LOCK:
                 if _OWNERS.get(id(self.probe)) is self:
                     del _OWNERS[id(self.probe)]
+
+    def _run_compiled(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
+        """The loop with every tick in compiled code (kernels.loop_kernels): the GIL is released
+        for whole runs of ticks, taken back only to prepare a newly touched vertex (its static
+        correction: sparse solves), to empty a full record, and at the end."""
+        dev = self.device
+        t0 = time.perf_counter()
+        try:
+            scripted = type(dev) is ScriptedDevice
+            n_slots = int(np.ceil(seconds * self.rate)) if seconds is not None else 0
+            if scripted:
+                positions = np.array([dev.position(k * self.period) for k in range(n_slots)], dtype=float).reshape(-1, 3)
+                if not np.all(np.isfinite(positions)):
+                    raise ModelError("the scripted device's trajectory gave NaN or infinite positions")
+                mailbox = np.zeros(6)
+            else:
+                positions, mailbox = np.zeros((0, 3)), dev.mailbox
+            capacity = n_slots if seconds is not None else int(10 * self.rate)
+            if max_steps is not None:
+                capacity = min(capacity, max_steps) if capacity else max_steps
+            run = _CompiledProbe(self.probe, self._kernels[0])
+            t0 = time.perf_counter()
+            deadline = t0 + seconds if seconds is not None else np.inf
+            run.ticks(np.array([t0, self.period, deadline, self.spin]), positions, mailbox, self._ctl, capacity,
+                      max_steps, lambda *rec: self._keep(stats, *rec, dev if scripted else None))
+            stats.missed = run.missed
+            stats.steps = len(stats.compute)
+            stats.seconds = run.ended - t0
+        except BaseException as exc:  # surfaced by stop()/join()
+            self.error = exc
+        finally:
+            stats.seconds = stats.seconds or time.perf_counter() - t0
+            with _OWNERS_LOCK:
+                if _OWNERS.get(id(self.probe)) is self:
+                    del _OWNERS[id(self.probe)]
+
+    def _keep(self, stats: LoopStats, late, comp, forces, slots, scripted) -> None:
+        """Move compiled-loop records into the statistics (and a scripted device's force log)."""
+        stats.lateness.extend(late.tolist())
+        stats.compute.extend(comp.tolist())
+        stats.slots.extend(slots.tolist())
+        if len(forces):
+            stats.peak_force = max(stats.peak_force, float(np.linalg.norm(forces, axis=1).max()))
+        if scripted is not None:
+            scripted.times.extend((slots * self.period).tolist())
+            scripted.forces.extend(forces.copy())
 
     def start(self, max_steps: int | None = None, *, seconds: float | None = None) -> "HapticLoop":
         """Start the loop on its own thread (fresh statistics); stop with :meth:`stop`.
@@ -416,16 +571,21 @@ class HapticLoop:
             if owner is not None and owner is not self:
                 raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
             _OWNERS[id(self.probe)] = self
+        if self.compiled and type(self.device) is ScriptedDevice and seconds is None:
+            raise ModelError("a compiled loop samples a ScriptedDevice in advance: give seconds= (or compiled=False)")
         self._stop.clear()
+        self._ctl[0] = 0
         self.error = None
-        self.stats = LoopStats()
-        self._thread = threading.Thread(target=self._run, args=(self.stats, max_steps, seconds),
+        self.stats = LoopStats(compiled=self.compiled)
+        run = self._run_compiled if self.compiled else self._run
+        self._thread = threading.Thread(target=run, args=(self.stats, max_steps, seconds),
                                         name="rtfem-haptic-loop", daemon=True)
         self._thread.start()
         return self
 
     def stop(self) -> LoopStats:
         self._stop.set()
+        self._ctl[0] = 1
         if self._thread is not None:
             self._thread.join()
         if self.error is not None:
@@ -447,7 +607,86 @@ class HapticLoop:
         return self.stop()
 
 
+class _CompiledProbe:
+    """A Probe and its ModalSimulator packed into the arrays of the compiled loop
+    (kernels.probe_chunk), and unpacked back into them when the ticks end."""
+
+    def __init__(self, probe: Probe, chunk) -> None:
+        self.probe, self.sim, self.chunk = probe, probe.driver, chunk
+        self.grid = probe._grid()
+        self.X, self.normals = np.array(probe.X, dtype=float), np.array(probe.normals, dtype=float)  # writable, C order
+        self.slot, self.table = probe._compliance_table()
+        inv_k = 1.0 / probe.stiffness if probe.coupling == "spring" else 0.0
+        self.fpar = np.array([probe.radius, inv_k, probe._requery])
+        self.ist = np.array([-1 if probe.contact_node is None else probe.contact_node, 0, -1], dtype=np.int64)
+        self.cand = np.zeros(probe._k, dtype=np.int64)
+        self.fst = np.zeros(7)
+        if probe._cand is not None and probe._cand.size == probe._k:
+            self.cand[:], self.ist[1], self.fst[:3] = probe._cand, probe._k, probe._cand_at
+        self.fst[3:6], self.fst[6] = probe.force, probe.penetration
+        self.missed = 0
+
+    def ticks(self, sched, positions, mailbox, ctl, capacity: int, max_steps, keep) -> None:
+        """Run the compiled ticks; ``keep(lateness, compute, forces, slots)`` receives the records
+        each time the record of ``capacity`` ticks fills and at the end."""
+        sim = self.sim
+        late, comp = np.zeros(capacity), np.zeros(capacity)
+        forces, slots = np.zeros((capacity, 3)), np.zeros(capacity, dtype=np.int64)
+        counters = np.array([0, 0, 0, -1 if max_steps is None else max_steps, 0], dtype=np.int64)
+        clock = np.zeros(2, dtype=np.int64)
+        lo, h, dims, cell_start, cell_order = self.grid
+        steps0 = sim.steps
+        try:
+            while True:
+                status = self.chunk(sim._coef, sim._S, sim._f_old, sim._phi, sim._G0 is not None, self.X, self.normals,
+                                    lo, h, dims, cell_start, cell_order, self.fpar, self.ist, self.cand, self.fst,
+                                    self.slot, self.table, sched, positions, mailbox, ctl, late, comp, forces, slots,
+                                    counters, clock)
+                if status == 1:  # a vertex touched for the first time: its compliance, then on
+                    self.probe._compliance(int(self.ist[2]))
+                    self.slot, self.table = self.probe._compliance_table()
+                    continue
+                n = int(counters[4])
+                if status == 0 and n == capacity and (max_steps is None or counters[1] < max_steps):
+                    keep(late[:n], comp[:n], forces[:n], slots[:n])  # the record is full: empty it and go on
+                    counters[4] = 0
+                    continue
+                break
+        finally:
+            self.ended = time.perf_counter()
+            n = int(counters[4])
+            keep(late[:n], comp[:n], forces[:n], slots[:n])
+            self.missed = int(counters[2])
+            self._unpack(steps0 + int(counters[1]))
+
+    def _unpack(self, steps: int) -> None:
+        probe, sim, ist, fst = self.probe, self.sim, self.ist, self.fst
+        sim.steps = steps
+        sim.time = steps * sim.dt
+        p = int(ist[0])
+        probe.contact_node = p if p >= 0 else None
+        probe.force = fst[3:6].copy()
+        probe.penetration = float(fst[6])
+        if ist[1]:
+            probe._cand, probe._cand_at = self.cand[: ist[1]].copy(), fst[:3].copy()
+        if sim.static_correction:
+            sim._loads = {p: -fst[3:6].copy()} if p >= 0 else {}
+            sim._load_array = None
+
+
 _OWNERS: dict[int, HapticLoop] = {}  # id(probe) -> the loop driving it
+
+
+def _compiled_loop():
+    from .kernels import loop_kernels
+
+    return loop_kernels()
+
+
+def _compiled_driver(driver) -> bool:
+    from .simulate import ModalSimulator
+
+    return type(driver) is ModalSimulator and bool(driver.compiled)
 _OWNERS_LOCK = threading.Lock()
 
 

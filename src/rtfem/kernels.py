@@ -81,3 +81,272 @@ if os.environ.get("RTFEM_NUMBA", "1") != "0":
 def reference_step(coef: np.ndarray, S: np.ndarray, f_old: np.ndarray, phi: np.ndarray, node: int, force, newmark: bool):
     """The kernel's arithmetic in plain Python (for tests; slow)."""
     _point_step(coef, S, f_old, phi, int(node), float(force[0]), float(force[1]), float(force[2]), bool(newmark))
+
+
+# ---------------------------------------------------------------------------------------------
+# The haptic loop: whole probe ticks in compiled code, timed by the loop thread's own clock.
+
+def _monotonic_clock():
+    """libc's clock_gettime (the clock of time.perf_counter on Linux), callable from nopython
+    code, or None where there is none (Windows)."""
+    import ctypes
+    import time
+
+    if not hasattr(time, "CLOCK_MONOTONIC"):
+        return None, None, None
+    try:
+        libc = ctypes.CDLL(None)
+        gettime, usleep = libc.clock_gettime, libc.usleep
+    except (OSError, AttributeError):
+        return None, None, None
+    gettime.argtypes, gettime.restype = [ctypes.c_int, ctypes.c_void_p], ctypes.c_int
+    usleep.argtypes, usleep.restype = [ctypes.c_uint], ctypes.c_int
+    return gettime, usleep, int(time.CLOCK_MONOTONIC)
+
+
+def _knn(c, X, grid_lo, grid_h, dims, cell_start, cell_order, k, out, d2):
+    """The k vertices of X nearest to c (ascending distance in d2, indices in out) by rings of
+    a uniform grid, exact: a ring stops the search once the k-th distance is within the radius
+    the rings so far cover. Returns how many were found (k unless X has fewer vertices)."""
+    found = 0
+    ci = np.empty(3, np.int64)
+    for a in range(3):
+        v = int(np.floor((c[a] - grid_lo[a]) / grid_h))
+        ci[a] = min(max(v, 0), dims[a] - 1)
+    top = max(dims[0], max(dims[1], dims[2]))
+    for ring in range(top + 1):
+        for i in range(ci[0] - ring, ci[0] + ring + 1):
+            if i < 0 or i >= dims[0]:
+                continue
+            for j in range(ci[1] - ring, ci[1] + ring + 1):
+                if j < 0 or j >= dims[1]:
+                    continue
+                for l in range(ci[2] - ring, ci[2] + ring + 1):
+                    if l < 0 or l >= dims[2]:
+                        continue
+                    if max(abs(i - ci[0]), max(abs(j - ci[1]), abs(l - ci[2]))) != ring:
+                        continue
+                    cell = (i * dims[1] + j) * dims[2] + l
+                    for s in range(cell_start[cell], cell_start[cell + 1]):
+                        v = cell_order[s]
+                        dx = X[v, 0] - c[0]
+                        dy = X[v, 1] - c[1]
+                        dz = X[v, 2] - c[2]
+                        d = dx * dx + dy * dy + dz * dz
+                        if found < k:
+                            pos = found
+                            found += 1
+                        elif d < d2[k - 1]:
+                            pos = k - 1
+                        else:
+                            continue
+                        while pos > 0 and (d2[pos - 1] > d or (d2[pos - 1] == d and out[pos - 1] > v)):
+                            d2[pos] = d2[pos - 1]
+                            out[pos] = out[pos - 1]
+                            pos -= 1
+                        d2[pos] = d
+                        out[pos] = v
+        reach = ring * grid_h
+        if found == k and d2[k - 1] <= reach * reach:
+            break
+    return found
+
+
+def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
+                fpar, ist, cand, fst, wslot, wtab, d2):
+    """One Probe.update (haptics.Probe, same formulas and order) at probe position c.
+
+    fpar: radius, 1/stiffness (0 for the constraint coupling), requery distance; ist: contact
+    node (-1 none), candidates held, node to prepare (set on return -1); fst: candidate query
+    point (3), force on the probe (3), penetration. Returns 0 after a step, or -1 without
+    touching anything when the contact node's compliance is not in wtab yet (ist[2] names it).
+    """
+    r = S.shape[1]
+    k = cand.shape[0]
+    p = ist[0]
+    if p < 0:
+        dx = c[0] - fst[0]
+        dy = c[1] - fst[1]
+        dz = c[2] - fst[2]
+        if ist[1] == 0 or np.sqrt(dx * dx + dy * dy + dz * dz) > fpar[2]:
+            ist[1] = _knn(c, X, grid_lo, grid_h, dims, cell_start, cell_order, k, cand, d2)
+            fst[0] = c[0]
+            fst[1] = c[1]
+            fst[2] = c[2]
+        best = np.inf
+        for s in range(ist[1]):
+            v = cand[s]
+            ux = 0.0
+            uy = 0.0
+            uz = 0.0
+            for j in range(r):
+                q = S[0, j]
+                ux += phi[v, 0, j] * q
+                uy += phi[v, 1, j] * q
+                uz += phi[v, 2, j] * q
+            ex = X[v, 0] + ux - c[0]
+            ey = X[v, 1] + uy - c[1]
+            ez = X[v, 2] + uz - c[2]
+            d = ex * ex + ey * ey + ez * ez
+            if d < best:
+                best = d
+                p = v
+    nx = normals[p, 0]
+    ny = normals[p, 1]
+    nz = normals[p, 2]
+    g = nx * (c[0] - X[p, 0]) + ny * (c[1] - X[p, 1]) + nz * (c[2] - X[p, 2]) - fpar[0]
+    # u_free = predict(p): phi_p (C1 x + C2 v (+ G0 f_old))
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    for j in range(r):
+        x = coef[0, j] * S[0, j] + coef[2, j] * S[1, j]
+        if newmark:
+            x = x + coef[6, j] * f_old[j]
+        ux += phi[p, 0, j] * x
+        uy += phi[p, 1, j] * x
+        uz += phi[p, 2, j] * x
+    un = nx * ux + ny * uy + nz * uz
+    lam = 0.0
+    if un > g:
+        slot = wslot[p]
+        if slot < 0:
+            ist[2] = p
+            return -1
+        W = wtab[slot]
+        wn = (nx * (W[0, 0] * nx + W[0, 1] * ny + W[0, 2] * nz) + ny * (W[1, 0] * nx + W[1, 1] * ny + W[1, 2] * nz)
+              + nz * (W[2, 0] * nx + W[2, 1] * ny + W[2, 2] * nz))
+        lam = (un - g) / (wn + fpar[1])
+    if lam > 0:
+        _point_step(coef, S, f_old, phi, p, -lam * nx, -lam * ny, -lam * nz, newmark)
+        ist[0] = p
+        fst[6] = max(0.0, un - g)
+    else:
+        _point_step(coef, S, f_old, phi, -1, 0.0, 0.0, 0.0, newmark)
+        ist[0] = -1
+        fst[6] = 0.0
+        lam = 0.0
+    fst[3] = lam * nx
+    fst[4] = lam * ny
+    fst[5] = lam * nz
+    return 0
+
+
+def _make_probe_chunk(gettime, usleep, clock_id, tick):
+    def probe_chunk(coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
+                    fpar, ist, cand, fst, wslot, wtab, sched, positions, mailbox, ctl, lateness, compute, forces,
+                    slots, counters, clock):
+        """Ticks of a probe loop until the deadline, max steps, a stop request or a node to
+        prepare. sched: t0, period, deadline (clock seconds), spin; positions (N, 3) by slot
+        (scripted) or mailbox (3,) read each tick (len(positions) == 0); ctl[0] != 0 stops;
+        counters: next slot k, steps, missed, max steps (-1 none), records written.
+        Returns 0 (deadline/steps), 1 (a node to prepare: ist[2]) or 2 (stopped)."""
+        d2 = np.empty(cand.shape[0])
+        c = np.empty(3)
+        t0 = sched[0]
+        period = sched[1]
+        deadline = sched[2]
+        spin = sched[3]
+        scripted = positions.shape[0] > 0
+        while True:
+            if ctl[0] != 0:
+                return 2
+            if counters[3] >= 0 and counters[1] >= counters[3]:
+                return 0
+            k = counters[0]
+            target = t0 + k * period
+            if target >= deadline:
+                return 0
+            gettime(clock_id, clock.ctypes)
+            now = clock[0] + 1e-9 * clock[1]
+            if period <= 0.0:  # back to back (an offline replay): no schedule to keep
+                target = now
+            while now < target:
+                if target - now > spin:
+                    usleep(int((target - now - spin) * 1e6))
+                gettime(clock_id, clock.ctypes)
+                now = clock[0] + 1e-9 * clock[1]
+            start = now
+            if start >= deadline:
+                return 0
+            if period > 0.0 and start - target > period:  # behind by whole ticks: skip them
+                skip = int((start - target) / period)
+                if scripted and k + skip >= positions.shape[0]:
+                    return 0
+                k += skip
+                counters[2] += skip
+                counters[0] = k
+                target = t0 + k * period
+            if scripted:
+                if k >= positions.shape[0]:
+                    return 0
+                c[0] = positions[k, 0]
+                c[1] = positions[k, 1]
+                c[2] = positions[k, 2]
+            else:
+                c[0] = mailbox[0]
+                c[1] = mailbox[1]
+                c[2] = mailbox[2]
+            if tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
+                    fpar, ist, cand, fst, wslot, wtab, d2) < 0:
+                return 1
+            if not scripted:
+                mailbox[3] = fst[3]
+                mailbox[4] = fst[4]
+                mailbox[5] = fst[5]
+            gettime(clock_id, clock.ctypes)
+            end = clock[0] + 1e-9 * clock[1]
+            i = counters[4]
+            if i < lateness.shape[0]:
+                lateness[i] = start - target
+                compute[i] = end - start
+                forces[i, 0] = fst[3]
+                forces[i, 1] = fst[4]
+                forces[i, 2] = fst[5]
+                slots[i] = k
+                counters[4] = i + 1
+            counters[0] = k + 1
+            counters[1] += 1
+            if i + 1 >= lateness.shape[0]:
+                return 0  # the record is full: the caller makes room
+    return probe_chunk
+
+
+def loop_kernels():
+    """The compiled probe loop ``(probe_chunk, probe_tick)``, compiled on first use (cached on
+    disk), or None without numba or a monotonic clock numba can call."""
+    global _LOOP
+    if _LOOP is None:
+        _LOOP = False
+        gettime, usleep, clock_id = _monotonic_clock()
+        if HAVE_NUMBA and gettime is not None:
+            try:
+                import numba
+
+                opts = dict(nogil=True, fastmath=False, error_model="numpy")
+                step = numba.njit(**opts, cache=True)(_point_step)
+                knn = numba.njit(**opts, cache=True)(_knn)
+                g = dict(_probe_tick.__globals__, _point_step=step, _knn=knn)
+                tick = numba.njit(**opts)(type(_probe_tick)(_probe_tick.__code__, g, "_probe_tick"))
+                chunk = numba.njit(**opts)(_make_probe_chunk(gettime, usleep, clock_id, tick))
+                _warm(chunk)
+                chunk.disable_compile()  # a call with other types fails loudly instead of compiling in a tick
+                _LOOP = (chunk, tick)
+            except Exception:  # pragma: no cover - a numba that cannot compile this
+                _LOOP = False
+    return _LOOP or None
+
+
+_LOOP = None
+
+
+def _warm(chunk) -> None:
+    """Compile the loop for the argument types HapticLoop passes, on a schedule already over
+    (nothing runs): compilation happens here, not inside the first tick."""
+    r, n = 2, 1
+    f, i = np.float64, np.int64
+    chunk(np.zeros((8, r)), np.zeros((2, r)), np.zeros(r), np.zeros((n, 3, r)), False, np.zeros((n, 3)),
+          np.zeros((n, 3)), np.zeros(3), 1.0, np.ones(3, i), np.zeros(2, i), np.zeros(n, i), np.zeros(3),
+          np.zeros(3, i), np.zeros(1, i), np.zeros(7), np.zeros(n, i), np.zeros((1, 3, 3)),
+          np.array([0.0, 1.0, -np.inf, 0.0]), np.zeros((0, 3)), np.zeros(6), np.zeros(1, i), np.zeros(1, f),
+          np.zeros(1, f), np.zeros((1, 3)), np.zeros(1, i), np.zeros(5, i), np.zeros(2, i))

@@ -1,0 +1,150 @@
+"""The compiled haptic loop (issue 12): every probe tick in compiled code without the GIL.
+
+Its ticks are checked against the Python Probe.update tick by tick (same forces and states to
+round-off), on the positions the loop actually ran; the schedule bookkeeping (slots, skipped
+ticks, period errors) against hand-made records. No assertion here is about speed: the rates
+and percentiles are measured by benchmarks/haptic_loop.py."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.haptics import _compiled_loop
+
+needs_loop = pytest.mark.skipif(_compiled_loop() is None, reason="the compiled loop needs numba (rtfem[fast])")
+
+
+@pytest.fixture(scope="module")
+def organ(liver3_modes):
+    model, basis = liver3_modes
+    mesh = model.mesh
+    node = int(mesh.groups["probe"][0])
+    return mesh, basis, node, np.asarray(mesh.vertices), mesh.vertex_normals()
+
+
+def press_and_slide(X, N, node, steps=1500, depth=0.004):
+    """Press at the probe vertex, slide 1 cm sideways, back out and come down elsewhere."""
+    t = np.arange(steps) / steps
+    tang = np.cross(N[node], [0.0, 0.0, 1.0])
+    tang /= np.linalg.norm(tang)
+    d = depth * np.clip(np.minimum(t / 0.1, (0.8 - t) / 0.1), -0.5, 1.0)
+    slide = 0.01 * np.clip((t - 0.2) / 0.5, 0.0, 1.0)
+    return X[node] - d[:, None] * N[node] + slide[:, None] * tang
+
+
+def sim_for(basis, **kw):
+    return rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=8.0), static_correction=True, **kw)
+
+
+@needs_loop
+@pytest.mark.parametrize("integrator", ["exact", "newmark"])
+@pytest.mark.parametrize("coupling", ["spring", "constraint"])
+def test_compiled_ticks_are_the_python_ticks(organ, integrator, coupling):
+    mesh, basis, node, X, N = organ
+    P = press_and_slide(X, N, node)
+    runs = {}
+    for compiled in (True, False):
+        sim = sim_for(basis, integrator=integrator)
+        probe = rt.Probe(mesh, sim, coupling=coupling, radius=0.0005)
+        F = probe.replay(P, compiled=compiled)
+        runs[compiled] = (F, sim.get_state(), sim.displacements(), probe.contact_node, sim.steps, sorted(probe._W))
+    (Fc, Sc, Uc, pc, kc, Wc), (Fp, Sp, Up, pp, kp, Wp) = runs[True], runs[False]
+    assert np.abs(Fp).max() > 0.05  # the press made contact
+    assert np.abs(Fc - Fp).max() <= 1e-12 * np.abs(Fp).max()
+    for key in Sp:
+        assert np.allclose(Sc[key], Sp[key], rtol=0, atol=1e-12 * max(np.abs(Sp[key]).max(), 1e-300))
+    assert np.abs(Uc - Up).max() <= 1e-12 * np.abs(Up).max() + 1e-300
+    assert pc == pp and kc == kp == len(P)
+    assert Wc == Wp and len(Wc) >= 1  # vertices first touched were prepared on the way (no prepare call)
+
+
+@needs_loop
+def test_the_compiled_loop_runs_what_it_records(organ):
+    """A compiled 1 kHz loop: the forces it handed the device are those of Python ticks at the
+    slots it ran (whatever the machine skipped), and slots + skipped cover the schedule."""
+    mesh, basis, node, X, N = organ
+    P = press_and_slide(X, N, node, steps=300)
+    device = rt.ScriptedDevice(lambda t: P[min(int(round(t * 1000)), len(P) - 1)])
+    sim = sim_for(basis)
+    probe = rt.Probe(mesh, sim)
+    probe.prepare(around=X[node], radius=0.01)
+    loop = rt.HapticLoop(probe, device, rate=1000.0)
+    assert loop.compiled
+    stats = loop.run(0.3)
+    assert stats.compiled and "compiled loop" in str(stats)
+    assert stats.steps == len(stats.compute) == len(stats.lateness) == len(stats.slots) == len(device.forces)
+    assert stats.steps + stats.missed == 300 and np.all(np.diff(stats.slots) >= 1)
+    assert np.allclose(device.times, np.array(stats.slots) * 1e-3, rtol=0, atol=1e-15)
+    assert sim.steps == stats.steps
+    twin = rt.Probe(mesh, sim_for(basis))
+    expected = twin.replay(P[np.array(stats.slots)], compiled=False)
+    assert np.abs(np.array(device.forces) - expected).max() <= 1e-12 * np.abs(expected).max()
+    assert stats.peak_force == pytest.approx(np.linalg.norm(expected, axis=1).max(), rel=1e-12)
+    np.testing.assert_allclose(probe.force, expected[-1], rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+@needs_loop
+def test_a_shared_device_is_read_without_the_gil(organ):
+    """Another Python thread moves a SharedDevice while the compiled loop runs and a third
+    keeps the GIL busy: the loop still sees the moves (it reads the shared array each tick)
+    and hands back the contact force through it."""
+    mesh, basis, node, X, N = organ
+    device = rt.SharedDevice(X[node] + 0.002 * N[node])
+    probe = rt.Probe(mesh, sim_for(basis))
+    probe.prepare([node])
+    loop = rt.HapticLoop(probe, device, rate=2000.0).start()
+    stop = threading.Event()
+
+    def hog():  # pure-Python work: holds the GIL between switch intervals
+        x = 0
+        while not stop.is_set():
+            x += 1
+
+    hogger = threading.Thread(target=hog)
+    hogger.start()
+    try:
+        time.sleep(0.05)
+        assert np.all(device.force == 0)
+        device.move_to(X[node] - 0.003 * N[node])
+        time.sleep(0.2)
+        pressed = device.force
+    finally:
+        stop.set()
+        hogger.join()
+        stats = loop.stop()
+    assert pressed @ N[node] > 0.01  # pushed back out along the normal
+    assert stats.compiled and stats.steps > 100 and probe.contact_node == node
+    with pytest.raises(rt.ModelError, match="device position"):
+        device.move_to([np.nan, 0, 0])
+
+
+def test_compiled_refusals_say_why(organ):
+    mesh, basis, node, X, N = organ
+    sim = sim_for(basis)
+    grasp = rt.Grasp(mesh, sim)
+    with pytest.raises(rt.ModelError, match="compiled=True"):
+        rt.HapticLoop(grasp, rt.SharedDevice(), compiled=True)
+    assert not rt.HapticLoop(grasp, rt.SharedDevice()).compiled  # auto: the Python loop
+    slow = rt.ModalSimulator(basis, 1e-3)
+    slow.compiled = False
+    assert not rt.HapticLoop(rt.Probe(mesh, slow), rt.SharedDevice()).compiled
+    if _compiled_loop() is not None:
+        loop = rt.HapticLoop(rt.Probe(mesh, sim), rt.ScriptedDevice(lambda t: X[node]))
+        with pytest.raises(rt.ModelError, match="seconds="):
+            loop.start(max_steps=10)
+    with pytest.raises(rt.ModelError, match=r"\(k, 3\)"):
+        rt.Probe(mesh, sim).replay(np.zeros((4, 2)))
+
+
+def test_period_errors_use_adjacent_slots_only():
+    from rtfem.haptics import LoopStats
+
+    st = LoopStats(lateness=[0.0, 2e-6, 1e-6, 9e-6, 5e-6], slots=[0, 1, 2, 5, 6], compute=[1e-6] * 5, steps=5)
+    assert np.allclose(st.period_errors(), [2e-6, 1e-6, 4e-6], rtol=0, atol=1e-18)  # 2 -> 5 is a gap
+    assert st.period_error(100) == pytest.approx(4e-6)
+    assert np.isnan(LoopStats().period_error(99))
