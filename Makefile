@@ -47,6 +47,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/sldm.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/haptic_step.py
+	$(BIN)/python benchmarks/haptic_loop.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache test-artifacts

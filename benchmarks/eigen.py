@@ -5,7 +5,9 @@ Meshes: the liver at the given levels and, when ``../shared/data`` is present, t
 OpenHELP liver (sofa_env_Liver.stl, scale 1e-3, E 3e4, nu 0.45, t 3 mm, rho 1060, the top 15 %
 of its height fixed: the issue's reference case). Columns: factorize, the solves, the rest of
 the Lanczos iteration (ARPACK's orthogonalization), the whole modal_analysis, eigsh, and the
-ratio eigsh / rtfem; the last column checks the eigenvalues against eigsh's.
+ratio eigsh / rtfem; the eigenvalues against eigsh's; the process's peak resident memory so far
+(run one mesh per process, e.g. ``--levels 7 --no-openhelp --no-eigsh --backends pardiso``, for
+that mesh's own peak). ``--solver`` picks rtfem's eigensolver (default: the block method).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import resource
 import sys
 import time
 from pathlib import Path
@@ -28,10 +31,12 @@ import rtfem as rt  # noqa: E402
 OPENHELP = Path(__file__).resolve().parents[2] / "shared" / "data" / "organs" / "sofa_env_Liver.stl"
 
 
-def models(levels):
+def models(levels, openhelp=True):
     for level in levels:
         model = rt.ShellModel(rt.meshes.liver(level), rt.Material())
         yield f"liver level {level}", lambda m=model: m.fix("attachment")
+    if not openhelp:
+        return
     if OPENHELP.exists():
         mesh = rt.load_mesh(OPENHELP, scale=1e-3)
         model = rt.ShellModel(mesh, rt.Material(E=3e4, nu=0.45, thickness=3e-3, density=1060.0))
@@ -41,40 +46,52 @@ def models(levels):
         print(f"(skipped the OpenHELP liver: {OPENHELP} is absent)", file=sys.stderr)
 
 
+def peak_gb() -> float:
+    """The process's peak resident memory (GB; Linux reports KiB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2**30 if platform.system() == "Darwin" else 2**20)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--levels", type=int, nargs="*", default=[5])
     ap.add_argument("--modes", type=int, default=100)
     ap.add_argument("--no-eigsh", action="store_true", help="skip the plain eigsh baseline")
+    ap.add_argument("--eigsh-max-dof", type=int, default=300_000, help="skip eigsh above this many dofs")
+    ap.add_argument("--no-openhelp", action="store_true", help="only the embedded livers")
+    ap.add_argument("--backends", nargs="+", default=None, help="factorization backends (default: all installed)")
+    ap.add_argument("--solver", default="auto", choices=["auto", "block", "arpack"])
     args = ap.parse_args()
     print(f"# rtfem {rt.__version__}, python {platform.python_version()}, {platform.machine()}, "
-          f"{os.cpu_count()} cores, backends: {', '.join(rt.available_backends())}; r = {args.modes}")
+          f"{os.cpu_count()} cores, backends: {', '.join(rt.available_backends())}; r = {args.modes}; "
+          f"solver {args.solver}")
     rows = []
-    for name, make in models(args.levels):
+    for name, make in models(args.levels, not args.no_openhelp):
         model = make()
         K, dofs = model.constrained_stiffness()
         M, _ = model.constrained_mass()
         t_eigsh = lam_ref = None
-        if not args.no_eigsh:
+        if not args.no_eigsh and K.shape[0] <= args.eigsh_max_dof:
             t0 = time.perf_counter()
             lam_ref = np.sort(spla.eigsh(K, args.modes, M, sigma=0, return_eigenvectors=False))
             t_eigsh = time.perf_counter() - t0
-        for backend in rt.available_backends():
+        for backend in args.backends or rt.available_backends():
             os.environ["RTFEM_BACKEND"] = backend
             model.release()
             make()  # the same fixes again: a fresh factorization
             t0 = time.perf_counter()
-            basis = rt.modal_analysis(model, args.modes)
+            basis = rt.modal_analysis(model, args.modes, solver=args.solver)
             total = time.perf_counter() - t0
             i = basis.info
             diff = "-" if lam_ref is None else f"{np.abs(basis.omega**2 - lam_ref).max() / lam_ref.max():.1e}"
             rows.append([name, f"{model.n_nodes:,}", f"{K.shape[0]:,}", backend, fmt_s(i["factorize_seconds"]),
                          f"{fmt_s(i['solve_seconds'])} ({i['solves']})", fmt_s(i["lanczos_other_seconds"]), fmt_s(total),
-                         fmt_s(t_eigsh), "-" if t_eigsh is None else f"{t_eigsh / total:.1f}x", diff])
+                         fmt_s(t_eigsh), "-" if t_eigsh is None else f"{t_eigsh / total:.1f}x", diff,
+                         i["method"].split(" (")[0].replace("shift-invert ", ""), f"{peak_gb():.1f} GB"])
             print(f"  {name}, {backend}: {total:.1f} s", file=sys.stderr, flush=True)
         os.environ.pop("RTFEM_BACKEND", None)
-    print_table(["mesh", "vertices", "dof", "backend", "factorize", "solves (count)", "Lanczos other", "modal_analysis",
-                 "plain eigsh", "eigsh / rtfem", "max |dw^2|/w_r^2"], rows)
+    print_table(["mesh", "vertices", "dof", "backend", "factorize", "solves (right-hand sides)", "Lanczos other", "modal_analysis",
+                 "plain eigsh", "eigsh / rtfem", "max |dw^2|/w_r^2", "eigensolver", "peak RSS so far"], rows)
 
 
 if __name__ == "__main__":

@@ -148,3 +148,18 @@ def test_period_errors_use_adjacent_slots_only():
     assert np.allclose(st.period_errors(), [2e-6, 1e-6, 4e-6], rtol=0, atol=1e-18)  # 2 -> 5 is a gap
     assert st.period_error(100) == pytest.approx(4e-6)
     assert np.isnan(LoopStats().period_error(99))
+
+
+def test_a_compiled_loop_leaves_blas_a_core_fewer():
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import os
+
+    from rtfem.haptics import _spare_core
+
+    np.ones((64, 64)) @ np.ones((64, 64))  # numpy's BLAS is loaded
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    before = {p["filepath"]: p["num_threads"] for p in threadpoolctl.threadpool_info()}
+    with _spare_core():
+        inside = threadpoolctl.threadpool_info()
+        assert inside and all(p["num_threads"] <= max(1, cores - 1) for p in inside)
+    assert {p["filepath"]: p["num_threads"] for p in threadpoolctl.threadpool_info()} == before  # restored

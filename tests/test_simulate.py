@@ -114,3 +114,23 @@ def test_central_difference_refuses_unstable_dt_and_agrees_below(setup):
     assert np.abs(nm.displacements() - ref).max() < 2e-3 * np.abs(ref).max()
     with pytest.raises(rt.ModelError, match="diagonal damping"):
         rt.DirectSimulator(model, dt, rt.Damping(alpha=1.0, beta=1e-3), method="central")
+
+
+def test_single_precision_field_for_drawing():
+    """displacements(dtype=float32) (the viewer's): the float64 field to single precision, with
+    the static correction of point and array loads, into a given out array too."""
+    model = rt.ShellModel(rt.meshes.liver(3), rt.Material()).fix("attachment")
+    basis = rt.modal_analysis(model, 12)
+    sim = rt.ModalSimulator(basis, 1e-3, rt.Damping(alpha=8.0), static_correction=True)
+    node = int(model.mesh.groups["probe"][0])
+    for load in ({node: (0.0, 0.0, -0.2)}, np.full((model.mesh.n_vertices, 3), 1e-3)):
+        for _ in range(5):
+            sim.step(load)
+        u64, u32 = sim.displacements(), sim.displacements(dtype=np.float32)
+        assert u32.dtype == np.float32 and u32.shape == u64.shape
+        assert np.abs(u32 - u64).max() <= 1e-6 * np.abs(u64).max()
+        out = np.empty(u64.shape, np.float32)
+        got = sim.displacements(out, dtype=np.float32)
+        assert np.shares_memory(got, out) and np.array_equal(out, u32)
+    with pytest.raises(rt.ModelError, match="float64 or float32"):
+        sim.displacements(dtype=np.int32)

@@ -528,10 +528,11 @@ class HapticLoop:
             if max_steps is not None:
                 capacity = min(capacity, max_steps) if capacity else max_steps
             run = _CompiledProbe(self.probe, self._kernels[0])
-            t0 = time.perf_counter()
-            deadline = t0 + seconds if seconds is not None else np.inf
-            run.ticks(np.array([t0, self.period, deadline, self.spin]), positions, mailbox, self._ctl, capacity,
-                      max_steps, lambda *rec: self._keep(stats, *rec, dev if scripted else None))
+            with _spare_core():
+                t0 = time.perf_counter()
+                deadline = t0 + seconds if seconds is not None else np.inf
+                run.ticks(np.array([t0, self.period, deadline, self.spin]), positions, mailbox, self._ctl, capacity,
+                          max_steps, lambda *rec: self._keep(stats, *rec, dev if scripted else None))
             stats.missed = run.missed
             stats.steps = len(stats.compute)
             stats.seconds = run.ended - t0
@@ -681,6 +682,16 @@ def _compiled_loop():
     from .kernels import loop_kernels
 
     return loop_kernels()
+
+
+def _spare_core():
+    """While a compiled loop runs, BLAS (numpy's and MKL's thread pools) gets one core fewer than
+    the machine has, so that a drawing thread's field product cannot take the loop's core: on 2
+    cores a two-thread product pre-empted the loop for 5 ms at a time (benchmarks/haptic_loop.py,
+    "busy viewer"). Needs threadpoolctl (rtfem[fast]); without it, nothing is limited."""
+    from .threads import blas_limits, usable_cores
+
+    return blas_limits(max(1, usable_cores() - 1))
 
 
 def _compiled_driver(driver) -> bool:

@@ -12,6 +12,7 @@ rigid-body modes come first.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import time
@@ -27,6 +28,7 @@ from .errors import ModelError, SolverError
 from .io import load_versioned, save_versioned
 from .lanczos import BlockLanczosFailed, block_eigs
 from .linalg import factorize
+from .threads import blas_limits
 from .model import check_model
 from .mesh import TriMesh
 
@@ -350,6 +352,15 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
     (or when it stops short) ARPACK. ``timing`` receives the split: factorize, solves, and the
     rest of the iteration (orthogonalization, Ritz values, restarts), in seconds, and the backend."""
     fac = _shifted_factorization(model, K, M, dofs, sigma, report, timing)
+    quiet = blas_limits(1, "openblas") if fac.backend == "pardiso" else contextlib.nullcontext()
+    with quiet:  # MKL's threads do the solves; OpenBLAS's spinning workers would take their cores
+        lam, vec, method = _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing)
+    vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
+    return np.sqrt(np.clip(lam, 0.0, None)), vec, method
+
+
+def _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing):
+    """The block method where it applies (falling back to ARPACK when it stops short), else ARPACK."""
     lam = vec = None
     if solver != "arpack" and (sigma < 0 or (sigma == 0.0 and model.fixed.any())):
         try:
@@ -362,8 +373,7 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
         raise ModelError(f"solver='block' needs K - sigma M positive definite (sigma <= 0); got sigma = {sigma:g}")
     if lam is None:
         lam, vec, method = _arpack_modes(K, M, fac, n_modes, sigma, tol, report, timing)
-    vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
-    return np.sqrt(np.clip(lam, 0.0, None)), vec, method
+    return lam, vec, method
 
 
 def _nodal_shapes(model, phi: np.ndarray, dofs: np.ndarray) -> np.ndarray:

@@ -407,8 +407,23 @@ class ModalSimulator(ForceInput):
             W = W + self._correction_column(node)[node]
         return W
 
-    def displacements(self, out: np.ndarray | None = None) -> np.ndarray:
-        """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction."""
+    def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64) -> np.ndarray:
+        """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction.
+
+        ``dtype=np.float32`` is for drawing: the product runs on a single-precision copy of the
+        shapes (made on first use), which halves the memory read per frame, the limit of this
+        O(n r) product (benchmarks/haptic_loop.py: 1.8 -> 0.9 ms at 40,962 vertices, r = 100, on
+        2 cores); relative error ~1e-7. ``out`` (n, 3) of that dtype is filled when given."""
+        if np.dtype(dtype) == np.float32:
+            if getattr(self, "_P32", None) is None:
+                self._P32 = self._P.astype(np.float32)
+            u = np.dot(self._P32, self._S[0].astype(np.float32), out=None if out is None else out.reshape(-1))
+            u = u.reshape(-1, 3)
+            if self.static_correction and (self._loads or self._load_array is not None):
+                u += self._correction(u.shape).astype(np.float32)
+            return u
+        if np.dtype(dtype) != np.float64:
+            raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
         u = np.dot(self._P, self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
         if self.static_correction:
             if self._load_array is not None:
@@ -416,6 +431,14 @@ class ModalSimulator(ForceInput):
             for node, f in self._loads.items():
                 u += self._correction_column(node) @ f
         return u
+
+    def _correction(self, shape) -> np.ndarray:
+        """The static correction of the current loads, (n, 3) (the float32 field's; the float64
+        field adds the same terms in place)."""
+        c = self._array_correction(self._load_array) if self._load_array is not None else np.zeros(shape)
+        for node, f in self._loads.items():
+            c = c + self._correction_column(node) @ f
+        return c
 
     def displacement(self, node: int) -> np.ndarray:
         """Displacement (3,) of one node, O(r)."""

@@ -1,0 +1,140 @@
+"""The real-time probe loop at 1, 5 and 10 kHz, compiled (every tick in numba without the GIL)
+against the Python loop, in one run; and the full-field reconstruction for drawing in float64
+and float32.
+
+Scene: the liver at ``--level`` (default 6: 40,962 vertices), fixed at its attachment, r modes
+(default 100), static correction on, a point probe (virtual coupling 200 N/m) pressing 4 mm
+into the "probe" vertex and backing out once a second, for ``--seconds`` of wall time per row.
+"busy viewer" rows run a second thread meanwhile that draws like a viewer: each 1/60 s frame the
+float32 field, then 5 ms of pure-Python work (holding the GIL, as a frame's scene update does),
+then it sleeps until the next frame. The static-correction columns (they depend on the basis
+only) are computed for the first row and shared by the others.
+
+Columns: steps run, achieved rate, ticks skipped (a loop that falls behind skips, it does not
+burst), compute time per tick (p50 / p99 / max), period error |interval - period| between
+adjacent ticks (p50 / p99 / max), ticks whose compute took over 100 us, and the peak force.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import threading
+import time
+
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import print_table  # noqa: E402
+
+import rtfem as rt  # noqa: E402
+from rtfem.haptics import _compiled_loop  # noqa: E402
+
+
+def us(x: float) -> str:
+    return f"{x * 1e6:.1f}"
+
+
+class BusyViewer:
+    """A thread that draws like the viewer: the float32 field at 60 Hz, Python work between."""
+
+    def __init__(self, sim) -> None:
+        self.sim, self.stop, self.frames = sim, threading.Event(), 0
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            t0 = time.perf_counter()
+            self.sim.displacements(dtype=np.float32)
+            self.frames += 1
+            while time.perf_counter() - t0 < 0.005:
+                sum(i * i for i in range(200))  # pure Python: holds the GIL
+            time.sleep(max(0.0, 1 / 60 - (time.perf_counter() - t0)))
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join()
+
+
+_COLUMNS: dict = {}  # static-correction columns by node, shared by the rows (same basis)
+
+
+def loop_row(model, basis, node, rate, seconds, compiled, busy):
+    X, N = np.asarray(model.mesh.vertices), model.mesh.vertex_normals()
+    sim = rt.ModalSimulator(basis, 1.0 / rate, rt.Damping(alpha=8.0), static_correction=True)
+    sim._D = _COLUMNS
+    probe = rt.Probe(model.mesh, sim)
+    probe.prepare(around=X[node], radius=0.01)
+    device = rt.ScriptedDevice.press(X[node], N[node], 0.004, 1.0, repeat=True)
+    loop = rt.HapticLoop(probe, device, rate=rate, compiled=compiled)
+    if busy:
+        with BusyViewer(sim) as viewer:
+            st = loop.run(seconds)
+        frames = viewer.frames
+    else:
+        st = loop.run(seconds)
+        frames = None
+    c, e = np.asarray(st.compute), st.period_errors()
+    return ["compiled" if compiled else "python", "busy viewer" if busy else "-", f"{rate / 1000:g} kHz", st.steps,
+            f"{st.rate:.0f} Hz", st.missed, us(np.median(c)), us(np.percentile(c, 99)), us(c.max()),
+            us(np.median(e)), us(np.percentile(e, 99)), us(e.max()), int((c > 1e-4).sum()),
+            f"{st.peak_force:.3f} N", "-" if frames is None else f"{frames / seconds:.0f}/s"]
+
+
+def field_rows(basis, calls=300):
+    sim = rt.ModalSimulator(basis, 1e-3)
+    sim.step({0: (0.0, 0.0, -0.1)})
+    rows = []
+    for dtype in (np.float64, np.float32):
+        sim.displacements(dtype=dtype)
+        ts = []
+        for _ in range(calls):
+            t0 = time.perf_counter()
+            sim.displacements(dtype=dtype)
+            ts.append(time.perf_counter() - t0)
+        rows.append([basis.n_nodes, basis.n_modes, np.dtype(dtype).name, f"{np.median(ts) * 1e3:.2f} ms",
+                     f"{np.percentile(ts, 99) * 1e3:.2f} ms"])
+    u64, u32 = sim.displacements(), sim.displacements(dtype=np.float32)
+    rows[1].append(f"{np.abs(u32 - u64).max() / np.abs(u64).max():.1e}")
+    rows[0].append("-")
+    rows[1].insert(5, f"{float(rows[0][3].split()[0]) / float(rows[1][3].split()[0]):.2f}x")
+    rows[0].insert(5, "1.00x")
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--level", type=int, default=6)
+    ap.add_argument("--modes", type=int, default=100)
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--rates", type=float, nargs="+", default=[1000.0, 5000.0, 10000.0])
+    args = ap.parse_args()
+    model = rt.ShellModel(rt.meshes.liver(args.level), rt.Material()).fix("attachment")
+    node = int(model.mesh.groups["probe"][0])
+    basis = rt.modal_analysis(model, args.modes)
+    print(f"# rtfem {rt.__version__}, python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} cores; "
+          f"liver level {args.level}: {model.n_nodes:,} vertices, r = {args.modes}, {args.seconds:g} s per row; "
+          f"compiled loop available: {_compiled_loop() is not None}")
+    rows = []
+    for rate in args.rates:
+        for compiled in ([True, False] if _compiled_loop() is not None else [False]):
+            rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False))
+            print(f"  {rows[-1][0]} {rows[-1][2]}: {rows[-1][4]}", file=sys.stderr, flush=True)
+    if _compiled_loop() is not None:
+        for compiled in (True, False):
+            rows.append(loop_row(model, basis, node, max(args.rates), args.seconds, compiled, True))
+    print("\nProbe loop (period error = |tick interval - period| between adjacent ticks; times in us):")
+    print_table(["loop", "other thread", "rate", "steps", "achieved", "skipped", "compute p50", "p99", "max",
+                 "period err p50", "p99", "max", "ticks > 100 us", "peak force", "viewer frames"], rows)
+    print("\nFull-field reconstruction U = Phi q (+ static correction), the viewer's per-frame product:")
+    print_table(["vertices", "modes", "dtype", "median", "p99", "speed-up", "max rel. diff"], field_rows(basis))
+
+
+if __name__ == "__main__":
+    main()
