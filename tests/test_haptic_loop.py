@@ -134,9 +134,13 @@ def test_compiled_refusals_say_why(organ):
     slow.compiled = False
     assert not rt.HapticLoop(rt.Probe(mesh, slow), rt.SharedDevice()).compiled
     if _compiled_loop() is not None:
-        loop = rt.HapticLoop(rt.Probe(mesh, sim), rt.ScriptedDevice(lambda t: X[node]))
+        scripted = rt.ScriptedDevice(lambda t: X[node] + 0.01 * N[node])
         with pytest.raises(rt.ModelError, match="seconds="):
-            loop.start(max_steps=10)
+            rt.HapticLoop(rt.Probe(mesh, sim), scripted, compiled=True).start(max_steps=10)
+        auto = rt.HapticLoop(rt.Probe(mesh, sim), scripted)  # open-ended and scripted: Python ticks
+        assert auto.compiled
+        stats = auto.start(max_steps=5).stop()
+        assert not stats.compiled
     with pytest.raises(rt.ModelError, match=r"\(k, 3\)"):
         rt.Probe(mesh, sim).replay(np.zeros((4, 2)))
 

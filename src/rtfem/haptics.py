@@ -445,11 +445,12 @@ class HapticLoop:
         self.error: BaseException | None = None
         self._kernels = None
         why = self._compiled_refusal()
+        self._required = compiled is not None and validate.flag(compiled, "compiled")
         if compiled is None:
             compiled = why is None
-        elif validate.flag(compiled, "compiled") and why is not None:
+        elif self._required and why is not None:
             raise ModelError(f"compiled=True: {why}")
-        self.compiled = bool(compiled)
+        self.compiled = bool(compiled)  # ticks in compiled code where the run allows it (see start)
         if self.compiled:
             self._kernels = _compiled_loop()
 
@@ -572,13 +573,16 @@ class HapticLoop:
             if owner is not None and owner is not self:
                 raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
             _OWNERS[id(self.probe)] = self
-        if self.compiled and type(self.device) is ScriptedDevice and seconds is None:
-            raise ModelError("a compiled loop samples a ScriptedDevice in advance: give seconds= (or compiled=False)")
+        compiled = self.compiled
+        if compiled and type(self.device) is ScriptedDevice and seconds is None:
+            if self._required:
+                raise ModelError("a compiled loop samples a ScriptedDevice in advance: give seconds= (or compiled=False)")
+            compiled = False  # an open-ended scripted run: the Python ticks (stats.compiled says so)
         self._stop.clear()
         self._ctl[0] = 0
         self.error = None
-        self.stats = LoopStats(compiled=self.compiled)
-        run = self._run_compiled if self.compiled else self._run
+        self.stats = LoopStats(compiled=compiled)
+        run = self._run_compiled if compiled else self._run
         self._thread = threading.Thread(target=run, args=(self.stats, max_steps, seconds),
                                         name="rtfem-haptic-loop", daemon=True)
         self._thread.start()
