@@ -153,13 +153,14 @@ def _knn(c, X, grid_lo, grid_h, dims, cell_start, cell_order, k, out, d2):
 
 
 def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
-                fpar, ist, cand, fst, wslot, wtab, d2):
+                fpar, ist, cand, fst, wslot, wtab, d2, u):
     """One Probe.update (haptics.Probe, same formulas and order) at probe position c.
 
     fpar: radius, 1/stiffness (0 for the constraint coupling), requery distance; ist: contact
     node (-1 none), candidates held, node to prepare (set on return -1); fst: candidate query
-    point (3), force on the probe (3), penetration. Returns 0 after a step, or -1 without
-    touching anything when the contact node's compliance is not in wtab yet (ist[2] names it).
+    point (3), force on the probe (3), penetration; d2 (k,) and u (3,) scratch. Returns 0 after a
+    step, or -1 without touching anything when the contact node's compliance is not in wtab yet
+    (ist[2] names it).
     """
     r = S.shape[1]
     k = cand.shape[0]
@@ -176,17 +177,10 @@ def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, di
         best = np.inf
         for s in range(ist[1]):
             v = cand[s]
-            ux = 0.0
-            uy = 0.0
-            uz = 0.0
-            for j in range(r):
-                q = S[0, j]
-                ux += phi[v, 0, j] * q
-                uy += phi[v, 1, j] * q
-                uz += phi[v, 2, j] * q
-            ex = X[v, 0] + ux - c[0]
-            ey = X[v, 1] + uy - c[1]
-            ez = X[v, 2] + uz - c[2]
+            _point_displacement(phi, S, v, u)
+            ex = X[v, 0] + u[0] - c[0]
+            ey = X[v, 1] + u[1] - c[1]
+            ez = X[v, 2] + u[2] - c[2]
             d = ex * ex + ey * ey + ez * ez
             if d < best:
                 best = d
@@ -242,6 +236,7 @@ def _make_probe_chunk(gettime, usleep, clock_id, tick):
         counters: next slot k, steps, missed, max steps (-1 none), records written.
         Returns 0 (deadline/steps), 1 (a node to prepare: ist[2]) or 2 (stopped)."""
         d2 = np.empty(cand.shape[0])
+        u = np.empty(3)
         c = np.empty(3)
         t0 = sched[0]
         period = sched[1]
@@ -288,7 +283,7 @@ def _make_probe_chunk(gettime, usleep, clock_id, tick):
                 c[1] = mailbox[1]
                 c[2] = mailbox[2]
             if tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
-                    fpar, ist, cand, fst, wslot, wtab, d2) < 0:
+                    fpar, ist, cand, fst, wslot, wtab, d2, u) < 0:
                 return 1
             if not scripted:
                 mailbox[3] = fst[3]
@@ -324,9 +319,10 @@ def loop_kernels():
                 import numba
 
                 opts = dict(nogil=True, fastmath=False, error_model="numpy")
-                step = numba.njit(**opts, cache=True)(_point_step)
                 knn = numba.njit(**opts, cache=True)(_knn)
-                g = dict(_probe_tick.__globals__, _point_step=step, _knn=knn)
+                # the tick calls the compiled point step and read-back the simulator uses
+                g = dict(_probe_tick.__globals__, _point_step=point_step, _point_displacement=point_displacement,
+                         _knn=knn)
                 tick = numba.njit(**opts)(type(_probe_tick)(_probe_tick.__code__, g, "_probe_tick"))
                 chunk = numba.njit(**opts)(_make_probe_chunk(gettime, usleep, clock_id, tick))
                 _warm(chunk)

@@ -16,9 +16,11 @@ ends the iteration early instead of dividing by zero.
 
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 import numpy as np
+import scipy.linalg as sla
 
 from .errors import SolverError
 
@@ -221,10 +223,6 @@ def block_eigs(
     seconds (``solve_seconds``, ``other_seconds``, ``block_solves``, ``krylov_dim``).
     Raises :class:`BlockLanczosFailed` when a block loses rank or the basis reaches max_dim.
     """
-    import time
-
-    import scipy.linalg as sla
-
     b = int(block)
     max_dim = int(max_dim if max_dim is not None else min(n, max(4 * k, k + 256)))
     max_dim = max(b, min(max_dim, n) // b * b)

@@ -419,26 +419,23 @@ class ModalSimulator(ForceInput):
                 self._P32 = self._P.astype(np.float32)
             u = np.dot(self._P32, self._S[0].astype(np.float32), out=None if out is None else out.reshape(-1))
             u = u.reshape(-1, 3)
-            if self.static_correction and (self._loads or self._load_array is not None):
-                u += self._correction(u.shape).astype(np.float32)
+            if self.static_correction:
+                self._add_correction(u)
             return u
         if np.dtype(dtype) != np.float64:
             raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
         u = np.dot(self._P, self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
         if self.static_correction:
-            if self._load_array is not None:
-                u += self._array_correction(self._load_array)
-            for node, f in self._loads.items():
-                u += self._correction_column(node) @ f
+            self._add_correction(u)
         return u
 
-    def _correction(self, shape) -> np.ndarray:
-        """The static correction of the current loads, (n, 3) (the float32 field's; the float64
-        field adds the same terms in place)."""
-        c = self._array_correction(self._load_array) if self._load_array is not None else np.zeros(shape)
+    def _add_correction(self, u: np.ndarray) -> None:
+        """Add the static correction of the current loads to the field u (n, 3), in place (a
+        float32 field takes each float64 term rounded)."""
+        if self._load_array is not None:
+            u += self._array_correction(self._load_array)
         for node, f in self._loads.items():
-            c = c + self._correction_column(node) @ f
-        return c
+            u += self._correction_column(node) @ f
 
     def displacement(self, node: int) -> np.ndarray:
         """Displacement (3,) of one node, O(r)."""
