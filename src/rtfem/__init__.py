@@ -1,9 +1,10 @@
-"""rtfem: real-time simulation of dynamically deformable shell finite-element models."""
+"""rtfem: real-time simulation of dynamically deformable finite-element models (shells and solids)."""
 
 from . import meshes
 from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .material import Damping, Material
 from .mesh import MeshReport, TriMesh
+from .tetmesh import TetMesh
 from .meshfile import load_mesh, save_mesh
 from . import linalg
 from .linalg import available_backends
@@ -11,6 +12,8 @@ from .modal import ModalBasis, modal_analysis
 from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
 from .impedance import ImpedanceDriver, ImpedanceMap, Load
 from .model import Model, ShellModel, make_model
+from .solidmodel import SolidModel
+from .meshing import tetrahedralize
 from .selection import select_nodes
 from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator
 from .simulate import Driver, ModalSimulator
@@ -47,6 +50,9 @@ __all__ = [
     "RtfemError",
     "RtfemWarning",
     "ShellModel",
+    "SolidModel",
+    "TetMesh",
+    "tetrahedralize",
     "SLDM",
     "SolverError",
     "TriMesh",

@@ -75,8 +75,9 @@ class Probe:
         self.stiffness = float(stiffness)
         self.X = np.asarray(mesh.vertices)
         self.normals = mesh.vertex_normals()
-        self._tree = cKDTree(self.X)
-        self._k = int(min(candidates, mesh.n_vertices))
+        self._touchable = mesh.used_vertices()  # the surface (a solid's interior nodes are never touched)
+        self._tree = cKDTree(self.X[self._touchable])
+        self._k = int(min(candidates, self._touchable.size))
         self._W: dict[int, np.ndarray] = {}
         self._cand: np.ndarray | None = None
         self._cand_at = np.zeros(3)
@@ -99,7 +100,7 @@ class Probe:
                 raise ModelError("give nodes, or a point around which to prepare the contact compliances")
             centre = validate.point(around, "around")
             radius = validate.positive(radius, "radius", "a distance in m")
-            nodes = np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)
+            nodes = self._touchable[np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)]
         else:
             nodes = validate.nodes(nodes, self.mesh.n_vertices)
         for v in nodes.tolist():
@@ -139,14 +140,15 @@ class Probe:
         """A uniform grid over the vertices for the compiled nearest-vertex search: lower corner,
         cell size, cells per axis, CSR-like cell starts and the vertices sorted by cell."""
         if getattr(self, "_grid_cache", None) is None:
-            lo, hi = self.X.min(axis=0), self.X.max(axis=0)
+            X = self.X[self._touchable]
+            lo, hi = X.min(axis=0), X.max(axis=0)
             h = max(8.0 * self._requery, float((hi - lo).max()) / 64.0, 1e-12)  # about 2 edges, at most 64^3 cells
             dims = np.maximum(np.ceil((hi - lo) / h).astype(np.int64), 1)
-            idx = np.minimum(((self.X - lo) / h).astype(np.int64), dims - 1)
+            idx = np.minimum(((X - lo) / h).astype(np.int64), dims - 1)
             cell = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
             order = np.argsort(cell, kind="stable").astype(np.int64)
             start = np.searchsorted(cell[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
-            self._grid_cache = (lo.astype(float), float(h), dims, start, order)
+            self._grid_cache = (lo.astype(float), float(h), dims, start, self._touchable[order].astype(np.int64))
         return self._grid_cache
 
     def _compliance_table(self) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +172,7 @@ class Probe:
         else:
             if self._cand is None or np.linalg.norm(c - self._cand_at) > self._requery:
                 _, cand = self._tree.query(c, k=self._k)
-                self._cand, self._cand_at = np.atleast_1d(cand), c.copy()
+                self._cand, self._cand_at = self._touchable[np.atleast_1d(cand)], c.copy()
             xd = self._deformed(self._cand)
             p = int(self._cand[np.argmin(np.einsum("ij,ij->i", xd - c, xd - c))])
         n = self.normals[p]

@@ -128,7 +128,7 @@ class ImpedanceMap:
         ----------
         model : a restrained ShellModel.
         damping : the damping of the responses.
-        nodes : loaded nodes (indices, mask or group name); default every free node.
+        nodes : loaded nodes (indices, mask or group name); default every free node of the surface.
         radius : radius of influence in metres (None: no radius).
         metric : "euclidean" or "geodesic" (shortest path along mesh edges).
         threshold : keep only nodes whose response exceeds ``threshold`` times the largest
@@ -358,9 +358,13 @@ class ImpedanceMap:
 
 
 def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
-    """The nodes to load (default every free node) and those given that are held (skipped: a
+    """The nodes to load (default every free surface node) and those given that are held (skipped: a
     load on a fixed node moves nothing)."""
-    loaded = np.flatnonzero(~model.held_nodes) if nodes is None else np.unique(model.select_nodes(nodes))
+    if nodes is None:  # the surface's free nodes (all of them on a shell; a solid is touched on its surface)
+        surface = model.mesh.used_vertices()
+        loaded = surface[~model.held_nodes[surface]]
+    else:
+        loaded = np.unique(model.select_nodes(nodes))
     held = loaded[model.held_nodes[loaded]]
     loaded = np.setdiff1d(loaded, held)
     if loaded.size == 0:

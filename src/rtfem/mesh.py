@@ -229,6 +229,15 @@ class TriMesh:
         self.edges()
         return self._cache["edges"][self._cache["edge_count"] == 1]  # type: ignore[index]
 
+    def used_vertices(self) -> np.ndarray:
+        """Indices of the vertices some triangle uses: all of them for a surface mesh; for the
+        boundary of a solid (:attr:`TetMesh.surface`), the surface nodes, not the interior ones."""
+        if "used" not in self._cache:
+            used = np.zeros(self.n_vertices, bool)
+            used[self._triangles.ravel()] = True
+            self._cache["used"] = np.flatnonzero(used)
+        return self._cache["used"]  # type: ignore[return-value]
+
     def boundary_vertices(self) -> np.ndarray:
         return np.unique(self.boundary_edges())
 
@@ -250,10 +259,11 @@ class TriMesh:
         return connected_components(self.adjacency(), directed=False)
 
     def nearest_vertex(self, point: np.ndarray) -> int:
-        """Index of the vertex closest to ``point``."""
+        """Index of the vertex closest to ``point`` among those a triangle uses (:meth:`used_vertices`)."""
         if "kdtree" not in self._cache:
-            self._cache["kdtree"] = cKDTree(self._vertices)
-        return int(self._cache["kdtree"].query(np.asarray(point, dtype=float))[1])  # type: ignore[union-attr]
+            self._cache["kdtree"] = cKDTree(self._vertices[self.used_vertices()])
+        local = int(self._cache["kdtree"].query(np.asarray(point, dtype=float))[1])  # type: ignore[union-attr]
+        return int(self.used_vertices()[local])
 
     # -------------------------------------------------------------- derived
     def scaled(self, factor: float) -> "TriMesh":

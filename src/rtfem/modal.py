@@ -362,7 +362,16 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
 def _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing):
     """The block method where it applies (falling back to ARPACK when it stops short), else ARPACK."""
     lam = vec = None
-    if solver != "arpack" and (sigma < 0 or (sigma == 0.0 and model.fixed.any())):
+    Mc = M.tocoo()
+    diagonal = bool(np.all((Mc.row == Mc.col) | (Mc.data == 0)))
+    if not diagonal:
+        # the block method works on M^1/2 of a diagonal (lumped) mass; ARPACK's generalized
+        # shift-invert mode takes a consistent M as it is
+        if solver == "block":
+            raise ModelError("solver='block' needs a diagonal (lumped) mass; this model's is consistent: use "
+                             "solver='arpack' or 'auto'")
+        timing["fallback"] = "consistent mass: ARPACK's generalized shift-invert mode"
+    elif solver != "arpack" and (sigma < 0 or (sigma == 0.0 and model.fixed.any())):
         try:
             lam, vec, method = _block_modes(model, K, M, fac, n_modes, sigma, tol, report, timing)
         except BlockLanczosFailed as exc:
@@ -400,7 +409,7 @@ def _dense_modes(model, K, M, dofs, n_modes):
     if z.size:
         Kc = Kc - Kd[np.ix_(a, z)] @ np.linalg.solve(Kd[np.ix_(z, z)], Kd[np.ix_(z, a)])
     Kc = 0.5 * (Kc + Kc.T)
-    lam, v = sla.eigh(Kc, np.diag(m[a]), subset_by_index=[0, n_modes - 1])
+    lam, v = sla.eigh(Kc, M[a][:, a].toarray(), subset_by_index=[0, n_modes - 1])  # lumped or consistent
     vec = np.zeros((K.shape[0], n_modes))
     vec[a] = v
     if z.size:

@@ -26,7 +26,7 @@ from .material import Material
 from .mesh import TriMesh
 from .selection import select_nodes
 
-__all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "ShellModel", "DOF_NAMES", "parse_dofs"]
+__all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "FEModel", "ShellModel", "DOF_NAMES", "parse_dofs"]
 
 DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
@@ -142,59 +142,41 @@ def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
     return mask
 
 
-class ShellModel:
-    """Linear shell finite-element model of a triangulated surface (6 dof per node).
+class FEModel:
+    """What the assembled models share: fixes, loads, the constrained systems, the cached
+    factorization, static solves and the condensation of rotations (Eq. 4-5).
 
-    Parameters
-    ----------
-    mesh : the surface.
-    material : :class:`~rtfem.Material`.
-    membrane : "opt" (Felippa's optimal drilling triangle, default) or "cst" (constant strain +
-        fictitious drilling spring; for comparison only, it locks in in-plane bending).
-    rotary_inertia : give the rotations mass rho t^3/12 * A/3 (default: massless rotations,
-        as the paper's condensation assumes).
-    constraints : "elimination" (fixed dofs removed, default) or "penalty" (the paper's method:
-        diagonal of K and rows of F at fixed dofs multiplied by ``penalty``).
-    penalty : the penalty factor. It multiplies each fixed dof's own diagonal stiffness, so it
-        is relative and scales with the organ's stiffness by construction: the default 1e8
-        leaves ~1e-8 relative motion at the supports on any mesh, and 1e4 .. 1e16 agree with
-        elimination to that order.
+    A subclass sets ``dofs_per_node`` (the first three are the translations), calls
+    :meth:`_setup` from its constructor and implements ``_assemble`` (sets ``_K``, the sparse
+    unconstrained stiffness, and ``_M``, the lumped mass per dof), ``_node_graph`` (node adjacency
+    for the fill-reducing order), ``_pieces`` (connected pieces: label per node) and
+    ``metadata``. ``mesh`` is the surface that is drawn and touched (a TriMesh over the model's
+    node numbering).
     """
 
-    def __init__(
-        self,
-        mesh: TriMesh,
-        material: Material,
-        *,
-        membrane: str = "opt",
-        rotary_inertia: bool = False,
-        constraints: str = "elimination",
-        penalty: float = 1e8,
-    ) -> None:
-        if not isinstance(mesh, TriMesh):
-            raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
-        if not isinstance(material, Material):
-            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
-        validate.choice(membrane, "membrane", shell.MEMBRANES)
-        validate.choice(constraints, "constraints", ("elimination", "penalty"))
-        penalty = validate.number(penalty, "penalty", "a large factor such as 1e8")
-        if penalty <= 1.0:
-            raise ModelError(f"penalty={validate.show(penalty)} must be a large factor (> 1, e.g. 1e8): it multiplies "
-                             "the stiffness diagonal at fixed dofs")
-        rotary_inertia = validate.flag(rotary_inertia, "rotary_inertia")
+    dofs_per_node = 6
+
+    def _setup(self, mesh: TriMesh, material: Material, constraints: str, penalty: float) -> None:
         self.mesh = mesh
         self.material = material
-        self.membrane = membrane
-        self.rotary_inertia = bool(rotary_inertia)
         self.constraints = constraints
         self.penalty = float(penalty)
-        self.fixed = np.zeros((mesh.n_vertices, 6), bool)
+        self.fixed = np.zeros((self.n_nodes, self.dofs_per_node), bool)
         self._K: sp.csr_matrix | None = None
         self._M: np.ndarray | None = None
         self._factor: Factorization | None = None
         self._condensation: Condensation | None = None
         self._cache: dict[str, np.ndarray] = {}
         self.timings: dict[str, float] = {}
+
+    @staticmethod
+    def _check_constraints(constraints: str, penalty) -> float:
+        validate.choice(constraints, "constraints", ("elimination", "penalty"))
+        penalty = validate.number(penalty, "penalty", "a large factor such as 1e8")
+        if penalty <= 1.0:
+            raise ModelError(f"penalty={validate.show(penalty)} must be a large factor (> 1, e.g. 1e8): it multiplies "
+                             "the stiffness diagonal at fixed dofs")
+        return penalty
 
     # ------------------------------------------------------------ sizes
     @property
@@ -203,64 +185,38 @@ class ShellModel:
 
     @property
     def n_dofs(self) -> int:
-        return 6 * self.mesh.n_vertices
+        return self.dofs_per_node * self.mesh.n_vertices
 
-    dofs_per_node = 6  # x, y, z, rx, ry, rz
+    def _dof_mask(self, dofs) -> np.ndarray:
+        """``parse_dofs`` restricted to this model's dofs; naming a dof it lacks is an error."""
+        mask = parse_dofs(dofs)
+        if self.dofs_per_node < 6 and mask[self.dofs_per_node:].any() and not mask.all():
+            raise ModelError(f"dofs={validate.show(dofs)}: this model has only {', '.join(DOF_NAMES[:self.dofs_per_node])} "
+                             "per node (a solid has no rotations); fix 'xyz' or 'all'")
+        return mask[:self.dofs_per_node]
 
-    @property
-    def metadata(self) -> dict:
-        """What a saved basis or map records about the model."""
-        return {"model": "shell", "membrane": self.membrane, "constraints": self.constraints}
-
-    def __repr__(self) -> str:
-        nf = int(self.fixed.any(axis=1).sum())
-        return (
-            f"ShellModel({self.n_nodes} nodes, {self.mesh.n_triangles} triangles, {self.n_dofs} dof, "
-            f"{nf} nodes fixed, membrane={self.membrane!r}, constraints={self.constraints!r})"
-        )
-
-    # ------------------------------------------------------------ assembly (Eq. 3)
+    # ------------------------------------------------------------ assembly
     @property
     def K(self) -> sp.csr_matrix:
-        """Global stiffness (6n x 6n, sparse, unconstrained), Eq. 3."""
+        """Global stiffness (sparse, unconstrained), Eq. 3."""
         if self._K is None:
             self._assemble()
         return self._K  # type: ignore[return-value]
 
     @property
     def mass_diagonal(self) -> np.ndarray:
-        """Lumped mass per dof (6n,): rho t A/3 per translation; rotations massless by default."""
+        """Lumped mass per dof (n_dofs,)."""
         if self._M is None:
             self._assemble()
         return self._M  # type: ignore[return-value]
 
     @property
     def M(self) -> sp.dia_matrix:
-        """Lumped (diagonal) global mass matrix (6n x 6n)."""
+        """Lumped (diagonal) global mass matrix."""
         return sp.diags(self.mass_diagonal, format="csr")
 
     def _assemble(self) -> None:
-        t0 = time.perf_counter()
-        T = np.asarray(self.mesh.triangles)
-        X = np.asarray(self.mesh.vertices)
-        ne = T.shape[0]
-        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18).astype(np.int32)
-        data, mass = [], np.zeros(self.n_dofs)
-        for s in range(0, ne, _CHUNK):
-            c = slice(s, min(s + _CHUNK, ne))
-            R, xy, area = shell.local_frames(X[T[c]])
-            ke = shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R)
-            data.append(ke.reshape(-1))
-            me = shell.element_mass(area, self.material, self.rotary_inertia)
-            np.add.at(mass, dofs[c].ravel(), np.tile(me, (1, 3)).ravel())
-        rows = np.repeat(dofs, 18, axis=1).ravel()
-        cols = np.tile(dofs, (1, 18)).ravel()
-        K = sp.coo_matrix((np.concatenate(data), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
-        K.sum_duplicates()
-        # exact symmetry (assembly round-off otherwise leaves ~1e-16 asymmetry)
-        self._K = ((K + K.T) * 0.5).tocsr()
-        self._M = mass
-        self.timings["assemble"] = time.perf_counter() - t0
+        raise NotImplementedError
 
     # ------------------------------------------------------------ fixes
     def select_nodes(self, nodes) -> np.ndarray:
@@ -268,7 +224,7 @@ class ShellModel:
         ``"nodes:i,j"`` (:func:`rtfem.select_nodes`)."""
         return select_nodes(self.mesh, nodes)
 
-    def fix(self, nodes, dofs: str | Sequence = "all") -> "ShellModel":
+    def fix(self, nodes, dofs: str | Sequence = "all") -> "FEModel":
         """Fix (zero displacement) the given dofs of the given nodes. Calls accumulate.
 
         ``nodes``: indices, a boolean mask, or the name of a mesh vertex group (e.g. "attachment").
@@ -277,16 +233,16 @@ class ShellModel:
         idx = self.select_nodes(nodes)
         if idx.size == 0:
             raise ModelError("fix() was given no nodes")
-        mask = parse_dofs(dofs)
+        mask = self._dof_mask(dofs)
         self.fixed[np.ix_(idx, np.flatnonzero(mask))] = True
         self._factor = None
         self._condensation = None
         return self
 
-    def release(self, nodes=None, dofs: str | Sequence = "all") -> "ShellModel":
+    def release(self, nodes=None, dofs: str | Sequence = "all") -> "FEModel":
         """Undo fixes (all nodes when ``nodes`` is None)."""
         idx = np.arange(self.n_nodes) if nodes is None else self.select_nodes(nodes)
-        mask = parse_dofs(dofs)
+        mask = self._dof_mask(dofs)
         self.fixed[np.ix_(idx, np.flatnonzero(mask))] = False
         self._factor = None
         self._condensation = None
@@ -308,8 +264,12 @@ class ShellModel:
                 raise ModelError(f"displacements must have shape {X.shape}, got {u.shape}")
             X = X + u
         self.check_not_all_fixed()
-        d = np.linalg.norm(X - p, axis=1)
+        d = np.full(X.shape[0], np.inf)
+        touchable = self.mesh.used_vertices()  # the surface: a solid's interior nodes cannot be touched
+        d[touchable] = np.linalg.norm(X[touchable] - p, axis=1)
         d[self.held_nodes] = np.inf
+        if not np.isfinite(d).any():
+            raise ModelError("every node of the surface is fixed: nothing on it can be moved; fix a smaller region")
         return int(np.argmin(d))
 
     @property
@@ -336,8 +296,9 @@ class ShellModel:
         3 rotations about its centroid) restricted to the fixed dofs must have rank 6.
         """
         self.check_not_all_fixed()
-        n_comp, label = self.mesh.components()
+        n_comp, label = self._pieces()
         X = np.asarray(self.mesh.vertices)
+        dpn = self.dofs_per_node
         for c in range(n_comp):
             nodes = np.flatnonzero(label == c)
             where = f" (piece {c + 1} of {n_comp}, {nodes.size} nodes, e.g. node {nodes[0]})" if n_comp > 1 else ""
@@ -352,14 +313,14 @@ class ShellModel:
             P = X[nodes] - centre
             scale = max(np.abs(P).max(), 1e-300)
             P = P / scale
-            Rb = np.zeros((nodes.size, 6, 6))
+            Rb = np.zeros((nodes.size, 6, 6))  # rigid motion (t, theta) -> each node's dofs
             Rb[:, [0, 1, 2], [0, 1, 2]] = 1.0
             for k in range(3):
                 e = np.zeros(3)
                 e[k] = 1.0
                 Rb[:, :3, 3 + k] = np.cross(e, P)
                 Rb[:, 3 + k, 3 + k] = 1.0
-            rows = Rb[fx]  # (n_fixed_dofs, 6)
+            rows = Rb[:, :dpn][fx]  # (n_fixed_dofs, 6)
             # thin SVD: vt is 6 x 6 whenever there are >= 6 fixed dofs (the full one would form a
             # dense square of the fixed-dof count: 16 s for the 15,365-vertex OpenHELP liver)
             s, vt = np.linalg.svd(rows, full_matrices=rows.shape[0] < 6)[1:]
@@ -376,12 +337,12 @@ class ShellModel:
     def force_vector(self, forces, *, warn: bool = True) -> np.ndarray:
         """Validate forces and return the global load vector (6n,).
 
-        ``forces``: (n, 3) nodal forces, (n, 6) forces and moments, or a mapping
-        ``{node: (fx, fy, fz)}`` (or 6 components) whose keys are integer node indices
+        ``forces``: (n, 3) nodal forces, (n, 6) forces and moments on a model with rotations, or a
+        mapping ``{node: (fx, fy, fz)}`` (or 6 components) whose keys are integer node indices
         (Python or numpy integers; a float, a bool or a string is refused). Nothing is
         changed anywhere when the forces are refused. ``warn``: name loads on fixed dofs.
         """
-        F = validate.forces(forces, self.n_nodes, (3, 6))
+        F = validate.forces(forces, self.n_nodes, tuple(sorted({3, self.dofs_per_node})))
         if warn:
             on_fixed = np.flatnonzero((self.fixed & (F != 0)).any(axis=1))
             if on_fixed.size:
@@ -477,13 +438,14 @@ class ShellModel:
     def dof_order(self, dofs: np.ndarray) -> np.ndarray:
         """Fill-reducing order of the given dofs (nested dissection of the mesh nodes)."""
         if "nd" not in self._cache:
-            self._cache["nd"] = nested_dissection(self.mesh.adjacency(), np.asarray(self.mesh.vertices))
-        return expand_node_order(self._cache["nd"], 6, dofs)
+            self._cache["nd"] = nested_dissection(self._node_graph(), np.asarray(self.mesh.vertices))
+        return expand_node_order(self._cache["nd"], self.dofs_per_node, dofs)
 
     def solve_static(self, forces, *, return_rotations: bool = False, warn: bool = True) -> np.ndarray:
         """Static displacements under nodal loads: K U = F with the fixes applied.
 
-        Returns (n, 3) translations, or (n, 6) with rotations when ``return_rotations``.
+        Returns (n, 3) translations, or all dofs (n, dofs_per_node: rotations too on a shell) when
+        ``return_rotations``.
         ``warn=False`` silences the warning about loads on fixed dofs (for loads rtfem applies
         itself, such as the static correction's).
         Solving the full system with zero moments is exactly the condensed problem of Eq. 5
@@ -514,18 +476,19 @@ class ShellModel:
             Fp[self.fixed_dofs] *= self.penalty
             U = fac.solve(Fp)
         self.timings["solve"] = time.perf_counter() - t0
-        U = U.reshape(-1, 6)
+        U = U.reshape(-1, self.dofs_per_node)
         return U if return_rotations else U[:, :3].copy()
 
     # ------------------------------------------------------------ condensation (Eq. 4-5)
     def _partition(self) -> tuple[np.ndarray, np.ndarray]:
         """Free translational and free rotational dofs (global indices)."""
         free = ~self.fixed.ravel()
-        kind = np.tile(np.r_[np.zeros(3, bool), np.ones(3, bool)], self.n_nodes)
+        kind = np.tile(np.arange(self.dofs_per_node) >= 3, self.n_nodes)
         return np.flatnonzero(free & ~kind), np.flatnonzero(free & kind)
 
     def condensation(self) -> "Condensation":
-        """The blocks of Eq. 4 on the free dofs and a factorization of K_rr (Eq. 5, sparse route).
+        """The blocks of Eq. 4 on the free dofs and a factorization of K_rr (Eq. 5, sparse route; a
+        model without rotations has K_c = K_tt and no K_rr).
 
         Cached until the fixes change; shared by :meth:`condensed_stiffness`,
         :meth:`condensed_operator` and SLDM.
@@ -568,6 +531,93 @@ class ShellModel:
     def translational_free_dofs(self) -> np.ndarray:
         """Global indices of the free translational dofs (the rows of the condensed matrices)."""
         return self._partition()[0]
+
+
+
+class ShellModel(FEModel):
+    """Linear shell finite-element model of a triangulated surface (6 dof per node).
+
+    Parameters
+    ----------
+    mesh : the surface.
+    material : :class:`~rtfem.Material`.
+    membrane : "opt" (Felippa's optimal drilling triangle, default) or "cst" (constant strain +
+        fictitious drilling spring; for comparison only, it locks in in-plane bending).
+    rotary_inertia : give the rotations mass rho t^3/12 * A/3 (default: massless rotations,
+        as the paper's condensation assumes).
+    constraints : "elimination" (fixed dofs removed, default) or "penalty" (the paper's method:
+        diagonal of K and rows of F at fixed dofs multiplied by ``penalty``).
+    penalty : the penalty factor. It multiplies each fixed dof's own diagonal stiffness, so it
+        is relative and scales with the organ's stiffness by construction: the default 1e8
+        leaves ~1e-8 relative motion at the supports on any mesh, and 1e4 .. 1e16 agree with
+        elimination to that order.
+    """
+
+    def __init__(
+        self,
+        mesh: TriMesh,
+        material: Material,
+        *,
+        membrane: str = "opt",
+        rotary_inertia: bool = False,
+        constraints: str = "elimination",
+        penalty: float = 1e8,
+    ) -> None:
+        if not isinstance(mesh, TriMesh):
+            raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
+        if not isinstance(material, Material):
+            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
+        validate.choice(membrane, "membrane", shell.MEMBRANES)
+        penalty = self._check_constraints(constraints, penalty)
+        rotary_inertia = validate.flag(rotary_inertia, "rotary_inertia")
+        self.membrane = membrane
+        self.rotary_inertia = bool(rotary_inertia)
+        self._setup(mesh, material, constraints, penalty)
+
+    # ------------------------------------------------------------ sizes
+    dofs_per_node = 6  # x, y, z, rx, ry, rz
+
+    @property
+    def metadata(self) -> dict:
+        """What a saved basis or map records about the model."""
+        return {"model": "shell", "membrane": self.membrane, "constraints": self.constraints}
+
+    def __repr__(self) -> str:
+        nf = int(self.fixed.any(axis=1).sum())
+        return (
+            f"ShellModel({self.n_nodes} nodes, {self.mesh.n_triangles} triangles, {self.n_dofs} dof, "
+            f"{nf} nodes fixed, membrane={self.membrane!r}, constraints={self.constraints!r})"
+        )
+
+    # ------------------------------------------------------------ assembly (Eq. 3)
+    def _assemble(self) -> None:
+        t0 = time.perf_counter()
+        T = np.asarray(self.mesh.triangles)
+        X = np.asarray(self.mesh.vertices)
+        ne = T.shape[0]
+        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18).astype(np.int32)
+        data, mass = [], np.zeros(self.n_dofs)
+        for s in range(0, ne, _CHUNK):
+            c = slice(s, min(s + _CHUNK, ne))
+            R, xy, area = shell.local_frames(X[T[c]])
+            ke = shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R)
+            data.append(ke.reshape(-1))
+            me = shell.element_mass(area, self.material, self.rotary_inertia)
+            np.add.at(mass, dofs[c].ravel(), np.tile(me, (1, 3)).ravel())
+        rows = np.repeat(dofs, 18, axis=1).ravel()
+        cols = np.tile(dofs, (1, 18)).ravel()
+        K = sp.coo_matrix((np.concatenate(data), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
+        K.sum_duplicates()
+        # exact symmetry (assembly round-off otherwise leaves ~1e-16 asymmetry)
+        self._K = ((K + K.T) * 0.5).tocsr()
+        self._M = mass
+        self.timings["assemble"] = time.perf_counter() - t0
+
+    def _node_graph(self) -> sp.csr_matrix:
+        return self.mesh.adjacency()
+
+    def _pieces(self) -> tuple[int, np.ndarray]:
+        return self.mesh.components()
 
 
 @dataclass(frozen=True)

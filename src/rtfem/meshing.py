@@ -1,0 +1,169 @@
+"""Meshing a closed surface into tetrahedra with fTetWild (Hu et al., "Fast Tetrahedral Meshing
+in the Wild", SIGGRAPH 2020; MPL-2.0) through the ``pytetwild`` wheel (the ``mesh`` extra).
+
+fTetWild was chosen over TetGen (AGPL) and Gmsh (GPL) for its licence and its robustness: it
+meshes the organ files with self-intersecting faces and slivers that constrained Delaunay
+meshers refuse (measured in benchmarks/results/tetmesh.txt). Its output is an envelope
+approximation of the input (within ``epsilon`` of the diagonal), so the surface nodes are new;
+vertex groups are carried over to the nearest new surface nodes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import validate
+from .errors import MeshError
+from .mesh import TriMesh
+from .tetmesh import TetMesh
+
+__all__ = ["tetrahedralize", "mesher_available", "cached_tetrahedralize", "cache_dir"]
+
+_EXTRA = "pip install 'rtfem[mesh]' (make installs it)"
+
+
+@lru_cache(maxsize=1)
+def _wrapper():
+    """fTetWild's compiled entry point, or None. pytetwild's package __init__ imports pyvista (a
+    hard import of an optional dependency in 0.3-0.4); the extension module itself needs only
+    numpy, so it is loaded directly when that import fails."""
+    try:
+        from pytetwild import PyfTetWildWrapper  # noqa: PLC0415
+
+        return PyfTetWildWrapper
+    except ImportError:
+        pass
+    spec = importlib.util.find_spec("pytetwild")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for f in Path(list(spec.submodule_search_locations)[0]).glob("PyfTetWildWrapper*"):
+        if f.suffix in (".so", ".pyd"):
+            s = importlib.util.spec_from_file_location("pytetwild.PyfTetWildWrapper", f)
+            module = importlib.util.module_from_spec(s)
+            s.loader.exec_module(module)  # type: ignore[union-attr]
+            return module
+    return None
+
+
+def mesher_available() -> bool:
+    """Whether :func:`tetrahedralize` can run (the ``mesh`` extra is installed)."""
+    return _wrapper() is not None
+
+
+def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilon: float = 1e-3,
+                   optimize: bool = True, threads: int = 1) -> TetMesh:
+    """Tetrahedra filling the closed ``surface``.
+
+    Parameters
+    ----------
+    surface : a closed :class:`TriMesh` (every edge shared by two triangles).
+    edge_length : target edge length in metres (default: 5 % of the bounding-box diagonal).
+    epsilon : how far the result's boundary may stray from the input surface, as a fraction of
+        the diagonal (fTetWild's envelope; 1e-3 by default).
+    optimize : improve the tets' quality (fTetWild's AMIPS optimization); False is faster.
+    threads : fTetWild's threads; 0 for all cores. With more than one the result differs from run
+        to run (the default, 1, gives the same mesh for the same input).
+
+    Returns a :class:`TetMesh` whose vertex groups are the input's carried to the nearest new
+    surface nodes. Raises MeshError for an open surface or when the mesher is missing or fails.
+    """
+    if not isinstance(surface, TriMesh):
+        raise MeshError(f"tetrahedralize needs a TriMesh surface, got {type(surface).__name__}")
+    diag = surface.diagonal()
+    if edge_length is None:
+        fac = 0.05
+    else:
+        edge_length = validate.positive(edge_length, "edge_length", "a target edge length in m", error=MeshError)
+        fac = edge_length / diag
+        if not 1e-3 <= fac <= 0.5:
+            raise MeshError(f"edge_length={edge_length:.3g} m is {fac:.2g} of the organ's diagonal ({diag:.3g} m); "
+                            "give 0.001 .. 0.5 of it")
+    epsilon = validate.in_range(epsilon, "epsilon", 1e-5, 0.1, what="a fraction of the diagonal", error=MeshError)
+    threads = int(validate.count(threads, "threads", 0, 1024))
+    if not surface.report.closed:
+        raise MeshError(f"the surface has {surface.report.n_boundary_edges} boundary edges (holes): a volume needs a "
+                        "closed surface. Close the holes (e.g. MeshLab's 'Close Holes', Blender's 'Fill') and try again")
+    if surface.report.n_components > 1:
+        raise MeshError(f"the surface has {surface.report.n_components} separate pieces; mesh one organ at a time "
+                        "(or they would be meshed as one body)")
+    wrapper = _wrapper()
+    if wrapper is None:
+        raise MeshError(f"rt.tetrahedralize needs the fTetWild mesher: {_EXTRA}")
+    V = np.array(surface.vertices, dtype=np.float64, order="C")
+    F = np.array(surface.triangles, dtype=np.uint32, order="C")
+    try:
+        X, T = wrapper.tetrahedralize_mesh(V, F, bool(optimize), False, float(fac), 0.0, float(epsilon), 10.0, False,
+                                           threads, 80, 6, True, False, False, np.zeros((0, 3)),
+                                           np.zeros((0, 4), np.int32), np.zeros(0))
+    except Exception as exc:  # the mesher's own failures come as RuntimeError or its own types
+        raise MeshError(f"fTetWild could not mesh the surface: {exc}") from None
+    if T is None or len(T) == 0:
+        raise MeshError("fTetWild produced no tets: the surface encloses no volume the mesher could find "
+                        "(is it flat, or made of sheets?)")
+    mesh = TetMesh(np.asarray(X, dtype=float), np.asarray(T, dtype=np.int64))
+    return _carry_groups(surface, mesh)
+
+
+def _carry_groups(surface: TriMesh, mesh: TetMesh) -> TetMesh:
+    """``mesh`` with the surface's groups: each new surface node joins the groups of its nearest
+    old vertex; a single-vertex group (a probe point) becomes the nearest new surface node."""
+    if not surface.groups:
+        return mesh
+    new = mesh.surface_nodes()
+    old = np.asarray(surface.vertices)
+    _, nearest = cKDTree(old).query(np.asarray(mesh.vertices)[new])
+    groups = {}
+    for name, idx in surface.groups.items():
+        idx = np.asarray(idx)
+        if idx.size == 1:
+            d = np.linalg.norm(np.asarray(mesh.vertices)[new] - old[idx[0]], axis=1)
+            groups[name] = new[[int(np.argmin(d))]]
+        else:
+            groups[name] = new[np.isin(nearest, idx)]
+    return TetMesh(mesh.vertices, mesh.tets, repair=False, groups=groups)
+
+
+def cache_dir() -> Path:
+    """Where generated tet meshes are kept: $RTFEM_CACHE, else $XDG_CACHE_HOME/rtfem, else ~/.cache/rtfem."""
+    if os.environ.get("RTFEM_CACHE"):
+        return Path(os.environ["RTFEM_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rtfem"
+
+
+def cached_tetrahedralize(surface: TriMesh, edge_length: float | None = None) -> TetMesh:
+    """:func:`tetrahedralize`, kept on disk (:func:`cache_dir`) under a hash of the surface and
+    the edge length. fTetWild's result differs from run to run, so a generated organ (the solid
+    default liver) would otherwise get a new mesh, and saved results a new fingerprint, in every
+    process; with the cache it is made once per machine. A cache file that does not read back
+    as a valid mesh is replaced."""
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(surface.vertices).tobytes())
+    h.update(np.ascontiguousarray(surface.triangles, dtype=np.int64).tobytes())
+    h.update(repr(edge_length).encode())
+    path = cache_dir() / f"tets-{h.hexdigest()[:20]}.npz"
+    if path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                groups = {k[6:]: z[k] for k in z.files if k.startswith("group:")}
+                return TetMesh(z["vertices"], z["tets"], repair=False, groups=groups)
+        except Exception:  # noqa: BLE001 - a broken cache file is regenerated, whatever broke it
+            pass
+    mesh = tetrahedralize(surface, edge_length)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, vertices=mesh.vertices, tets=mesh.tets,
+                                **{f"group:{k}": v for k, v in mesh.groups.items()})
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only home: the mesh is still returned, only not kept
+    return mesh
