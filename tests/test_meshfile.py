@@ -66,7 +66,7 @@ def test_save_mesh_and_quads_split(tmp_path):
     assert rt.load_mesh(out).n_triangles == 4
 
 
-def test_tet_volume_mesh_gives_its_surface(tmp_path):
+def test_tet_volume_mesh_loads_as_a_volume_with_its_surface(tmp_path):
     import meshio
 
     pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
@@ -74,7 +74,9 @@ def test_tet_volume_mesh_gives_its_surface(tmp_path):
     path = tmp_path / "tets.vtu"
     meshio.write_points_cells(str(path), pts, [("tetra", tets)])
     mesh = rt.load_mesh(path)
-    assert mesh.n_triangles == 6 and mesh.is_closed() and mesh.volume() > 0
+    assert isinstance(mesh, rt.TetMesh) and mesh.n_tets == 2
+    surface = mesh.surface
+    assert surface.n_triangles == 6 and surface.is_closed() and surface.volume() == pytest.approx(mesh.volume())
 
 
 def test_broken_files_raise_mesh_error(tmp_path):

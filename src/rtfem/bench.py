@@ -31,14 +31,15 @@ def per_step(fn, batch: int, batches: int = 5) -> float:
 
 
 def probe_vertex(model) -> int:
-    """The free vertex farthest from the supports: where a load moves the organ most."""
+    """The free surface vertex farthest from the supports: where a load moves the organ most."""
     from scipy.spatial import cKDTree
 
     held = model.held_nodes
     X = np.asarray(model.mesh.vertices)
     d = cKDTree(X[held]).query(X)[0] if held.any() else np.ones(X.shape[0])
     d[held] = -1.0
-    return int(np.argmax(d))
+    surface = model.mesh.used_vertices()  # a solid's interior nodes cannot be touched
+    return int(surface[np.argmax(d[surface])])
 
 
 def dynamics_table(model, modes_list, *, dt: float = 1e-3, damping: Damping | None = None,

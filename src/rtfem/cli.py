@@ -145,14 +145,25 @@ def _vector(text: str, what: str) -> np.ndarray:
     return v
 
 
-def load_mesh_arg(path: str | None, scale: float = 1.0):
+def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool = False, edge_length: float | None = None):
+    """The mesh of a command: the file (a TetMesh for a volume file), or the embedded liver; with
+    ``solid`` a surface is meshed into tets first (kept on disk, so a second run reuses them)."""
     from . import meshes
     from .meshfile import load_mesh
+    from .meshing import cached_tetrahedralize
+    from .tetmesh import TetMesh
 
     if path is None:
-        mesh = meshes.liver()
+        if solid:
+            mesh = meshes.liver(solid=True, spacing=None if edge_length is None else edge_length / scale)
+        else:
+            mesh = meshes.liver()
         return mesh if scale == 1.0 else mesh.scaled(scale)
-    return load_mesh(path, scale=scale)
+    mesh = load_mesh(path, scale=scale)
+    if solid and not isinstance(mesh, TetMesh):
+        print(f"meshing     {path} into tets (fTetWild) ...", flush=True)
+        mesh = cached_tetrahedralize(mesh, edge_length)
+    return mesh
 
 
 def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
@@ -175,6 +186,14 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
     m = Material()
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
     p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    g = p.add_argument_group("solid (tetrahedral) models: a volume file (VTU/VTK/MSH/MESH/INP with tets) is one already")
+    g.add_argument("--solid", action="store_true",
+                   help="mesh a surface into tets (fTetWild, the mesh extra) and model the volume instead of a shell")
+    g.add_argument("--edge-length", type=positive, default=None, metavar="M",
+                   help="target tet edge length in m for --solid (default 5 %% of the organ's diagonal)")
+    g.add_argument("--element", choices=("tet4", "tet10"), default="tet4",
+                   help="tet4 (linear, fast; too stiff for nearly incompressible tissue) or tet10 (quadratic)")
+    g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
     g = p.add_argument_group("material and supports")
     g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
     g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
@@ -190,19 +209,35 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
         g.add_argument("--dt", type=positive, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
 
 
+def mesh_of_args(args):
+    return load_mesh_arg(args.mesh, args.scale, args.solid, args.edge_length)
+
+
+def model_options(args, mesh) -> dict:
+    """The model options the arguments give for this mesh (a solid's element and mass)."""
+    from .tetmesh import TetMesh
+
+    return {"element": args.element, "mass": args.mass} if isinstance(mesh, TetMesh) else {}
+
+
 def build_model(args, *, quiet: bool = False):
     from .material import Material
-    from .model import ShellModel
+    from .model import make_model
 
-    mesh = load_mesh_arg(args.mesh, args.scale)
+    mesh = mesh_of_args(args)
     material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
     nodes, how = fixed_nodes(mesh, args.fix)
-    model = ShellModel(mesh, material)
+    model = make_model(mesh, material, **model_options(args, mesh))
     model.fix(nodes)
     model.check_restrained()
     if not quiet:
-        print(f"model       {args.mesh or 'embedded default liver'}: {mesh.n_vertices:,} vertices, "
-              f"{mesh.n_triangles:,} triangles, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
+        name = args.mesh or ("embedded default liver" + (", solid" if args.solid else ""))
+        if hasattr(mesh, "tets"):
+            size = (f"{model.n_nodes:,} nodes, {mesh.n_tets:,} {args.element} tets, "
+                    f"{model.mesh.n_triangles:,} surface triangles")
+        else:
+            size = f"{mesh.n_vertices:,} vertices, {mesh.n_triangles:,} triangles"
+        print(f"model       {name}: {size}, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
     return model
 
 
@@ -230,10 +265,17 @@ def _modes(model, args, *, quiet=False):
 
 # ---------------------------------------------------------------- commands
 def cmd_info(args: argparse.Namespace) -> int:
-    mesh = load_mesh_arg(args.mesh, args.scale)
-    lo, hi = mesh.bounds()
+    mesh = mesh_of_args(args)
     print(f"mesh        {args.mesh or 'embedded default liver'}")
-    print(f"size        {mesh.n_vertices} vertices, {mesh.n_triangles} triangles, {mesh.edges().shape[0]} edges")
+    if hasattr(mesh, "tets"):
+        print(f"volume mesh {mesh.n_vertices} nodes, {mesh.n_tets} tets of {mesh.tets.shape[1]} nodes, "
+              f"volume {mesh.volume():.4g}")
+        print("check       " + str(mesh.report).replace("\n", "\n            "))
+        print(f"quality     {mesh.quality()}")
+        mesh = mesh.surface
+        print("surface     (the boundary, drawn and touched)")
+    lo, hi = mesh.bounds()
+    print(f"size        {mesh.used_vertices().size} vertices, {mesh.n_triangles} triangles, {mesh.edges().shape[0]} edges")
     print(f"extent      {np.array2string(hi - lo, precision=4)} (x, y, z), surface area {mesh.areas().sum():.4g}")
     if mesh.is_closed():
         print(f"volume      {mesh.volume():.4g}")
@@ -297,6 +339,11 @@ def _check_simulate(args: argparse.Namespace) -> tuple[int, int]:
     return n_steps, frame_every
 
 
+def _drawn(model):
+    """What a run's frames hold: a solid's volume (tets, for ParaView's clips and slices), a shell's surface."""
+    return getattr(model, "tetmesh", model.mesh)
+
+
 def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tuple[RunWriter, str]:
     """A scripted point probe presses the organ: one CSV row per step, frames at --fps."""
     from .haptics import Probe, ScriptedDevice
@@ -307,7 +354,7 @@ def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tu
     X, nrm = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
     device = ScriptedDevice.press(X, nrm, args.depth, args.duration, approach=0.001)
     probe = Probe(mesh, sim, stiffness=args.stiffness)
-    out = RunWriter(args.out, mesh, ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force",
+    out = RunWriter(args.out, _drawn(model), ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force",
                                      "contact_node", "u_x", "u_y", "u_z"], frame_every)
     for k in range(n_steps):
         t = k * args.dt
@@ -328,7 +375,7 @@ def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: in
 
     nodes = schedule.nodes
     header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
-    out = RunWriter(args.out, model.mesh, header, frame_every)
+    out = RunWriter(args.out, _drawn(model), header, frame_every)
     zero = np.zeros(3)
     times = (np.arange(n_steps) + 1) * args.dt
     if sim is None:
@@ -446,7 +493,10 @@ def cmd_view(args: argparse.Namespace) -> int:
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness).check()
     print("precomputing ...", flush=True)
-    serve(model.mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host, port=args.port)
+    volume = getattr(model, "tetmesh", None)  # a solid: the viewer builds the same model of the volume
+    serve(model.mesh if volume is None else volume, material=model.material, fixed=np.flatnonzero(model.held_nodes),
+          settings=settings, host=args.host, port=args.port,
+          model_options={} if volume is None else {"element": args.element, "mass": args.mass})
     return 0
 
 
@@ -479,7 +529,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable shell finite-element "
+    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
                                  "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
                                  epilog="Every command runs on the embedded default liver when no MESH is given.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -487,6 +537,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="check a mesh file (or the embedded liver) and report repairs")
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
     p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    p.add_argument("--solid", action="store_true", help="mesh a surface into tets (fTetWild) and report the volume mesh")
+    p.add_argument("--edge-length", type=positive, default=None, metavar="M", help="target tet edge length in m for --solid")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("modes", help="precompute the r lowest modes and save them (.npz)")

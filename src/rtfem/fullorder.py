@@ -20,7 +20,7 @@ from . import validate
 from .errors import ModelError
 from .linalg import factorize
 from .material import Damping
-from .model import check_model
+from .model import check_model, require_lumped_mass
 from .simulate import ForceInput, check_damping, check_dt, newmark_constants, newmark_velocity
 
 __all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator"]
@@ -249,6 +249,7 @@ class CentralDifferenceSimulator(DirectSimulator):
             raise ModelError("the central-difference method needs diagonal damping: use Damping(alpha=...) only")
         if model.constraints != "elimination":
             raise ModelError("the central-difference method needs fixes by elimination (penalty dofs are far too stiff)")
+        require_lumped_mass(model, "the central-difference method")
         c = model.condensation()
         self._Kc = c.apply
         self._solved = c.t

@@ -621,7 +621,7 @@ class _CompiledProbe:
     def __init__(self, probe: Probe, chunk) -> None:
         self.probe, self.sim, self.chunk = probe, probe.driver, chunk
         self.grid = probe._grid()
-        self.X, self.normals = np.array(probe.X, dtype=float), np.array(probe.normals, dtype=float)  # writable, C order
+        self.X, self.normals = np.array(probe.X, dtype=float, order="C"), np.array(probe.normals, dtype=float, order="C")  # writable, C order
         self.slot, self.table = probe._compliance_table()
         inv_k = 1.0 / probe.stiffness if probe.coupling == "spring" else 0.0
         self.fpar = np.array([probe.radius, inv_k, probe._requery])

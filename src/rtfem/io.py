@@ -22,13 +22,14 @@ __all__ = ["write_vtu", "write_pvd", "save_versioned", "load_versioned", "atomic
 
 def write_vtu(
     path: str | os.PathLike,
-    mesh: TriMesh,
+    mesh,
     displacements: np.ndarray | None = None,
     *,
     deformed: bool = True,
     point_data: dict[str, np.ndarray] | None = None,
 ) -> Path:
-    """Write a mesh and a displacement field (n, 3) as a VTU file.
+    """Write a mesh (a TriMesh, or a TetMesh: the volume with its tets) and a displacement
+    field (n, 3) as a VTU file.
 
     With ``deformed`` the points are written at their displaced positions, so the file shows
     the deformed organ as it is; the field is stored as point data ``displacement`` and
@@ -37,8 +38,7 @@ def write_vtu(
     import meshio
 
     path = Path(validate.path_like(path, "path"))
-    if not isinstance(mesh, TriMesh):
-        raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
+    cells = _cells(mesh)
     X = np.asarray(mesh.vertices, dtype=float)
     data = {}
     for name, values in (point_data or {}).items():
@@ -53,9 +53,19 @@ def write_vtu(
         if deformed:
             X = X + u
     with atomic_target(path, "VTU file") as tmp:
-        meshio.write_points_cells(str(tmp), X, [("triangle", np.asarray(mesh.triangles))], point_data=data,
-                                  binary=True, file_format="vtu")
+        meshio.write_points_cells(str(tmp), X, cells, point_data=data, binary=True, file_format="vtu")
     return path
+
+
+def _cells(mesh) -> list[tuple[str, np.ndarray]]:
+    """meshio cells of a TriMesh (triangles) or a TetMesh (tetra or tetra10, VTK order)."""
+    from .tetmesh import TetMesh
+
+    if isinstance(mesh, TetMesh):
+        return [("tetra" if mesh.order == 1 else "tetra10", np.asarray(mesh.tets))]
+    if isinstance(mesh, TriMesh):
+        return [("triangle", np.asarray(mesh.triangles))]
+    raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh or TetMesh")
 
 
 def point_field(values, n: int, name: str) -> np.ndarray:

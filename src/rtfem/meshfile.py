@@ -1,8 +1,8 @@
-"""Reading and writing surface meshes: OBJ, STL, PLY, OFF, VTK/VTU, Gmsh and more via meshio.
+"""Reading and writing meshes: OBJ, STL, PLY, OFF, VTK/VTU, Gmsh, MEDIT, Abaqus and more via meshio.
 
 Legacy ASCII VTK files (``# vtk DataFile Version 1.0 .. 3.0``, POLYDATA or
 UNSTRUCTURED_GRID) that meshio cannot read are parsed here. Quads and polygons are split
-into triangles; a tetrahedral volume mesh is reduced to its boundary surface.
+into triangles; a file with tetrahedra (4 or 10 nodes) is a volume and loads as a TetMesh.
 """
 
 from __future__ import annotations
@@ -18,14 +18,18 @@ import numpy as np
 from . import validate
 from .errors import MeshError
 from .mesh import TriMesh
+from .tetmesh import TetMesh
 
 __all__ = ["load_mesh", "save_mesh"]
 
 _SURFACE_FORMATS = ".obj .stl .ply .off .vtk .vtu .msh .mesh .xdmf .med .inp"
 
 
-def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = True, merge_tol: float = 1e-10) -> TriMesh:
-    """Load a triangle surface mesh from a file.
+def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = True,
+              merge_tol: float = 1e-10) -> TriMesh | TetMesh:
+    """Load a mesh from a file: a :class:`TetMesh` when the file holds tetrahedra (4- or
+    10-node; VTU/VTK, Gmsh .msh, MEDIT .mesh, Abaqus .inp), otherwise a :class:`TriMesh` of its
+    surface cells (its ``.surface`` is the boundary of a volume).
 
     Parameters
     ----------
@@ -42,14 +46,17 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
         raise MeshError(f"mesh file {str(p)!r} does not exist")
     if p.is_dir():
         raise MeshError(f"{str(p)!r} is a directory, not a mesh file")
-    points, triangles, groups = _read(p)
-    mesh = TriMesh(points * s, triangles, repair=repair, merge_tol=merge_tol, groups=groups)
+    points, triangles, tets, groups = _read(p)
+    if tets is not None:
+        mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups)
+    else:
+        mesh = TriMesh(points * s, triangles, repair=repair, merge_tol=merge_tol, groups=groups)
     if s != 1.0:
         mesh.report.notes.append(f"coordinates scaled by {s:g}")
     return mesh
 
 
-def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = None) -> None:
+def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict | None = None) -> None:
     """Write a mesh (optionally with per-vertex data) in the format the file suffix names.
 
     The file is written beside the target and renamed over it: an interrupted save leaves
@@ -57,19 +64,21 @@ def save_mesh(mesh: TriMesh, path: str | os.PathLike, point_data: dict | None = 
     """
     import meshio
 
-    from .io import atomic_target, point_field
+    from .io import _cells, atomic_target, point_field
 
-    if not isinstance(mesh, TriMesh):
-        raise MeshError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
+    if not isinstance(mesh, (TriMesh, TetMesh)):
+        raise MeshError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh or TetMesh")
     p = Path(validate.path_like(path, "path", error=MeshError))
     fmt = getattr(meshio, "extension_to_filetypes", {}).get(p.suffix.lower())
+    if fmt and "gmsh" in fmt:
+        fmt = ["gmsh"]  # .msh is Gmsh's (meshio lists ANSYS first)
     if not fmt:
         raise MeshError(f"{str(p)!r}: the suffix {p.suffix!r} names no mesh format; use one of {_SURFACE_FORMATS}")
     data = {str(k): point_field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
     with atomic_target(p, "mesh file") as tmp:
         try:
-            meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), [("triangle", np.asarray(mesh.triangles))],
-                                      point_data=data, file_format=fmt[0])
+            meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), _cells(mesh), point_data=data,
+                                      file_format=fmt[0])
         except (ValueError, KeyError, TypeError) as exc:
             raise MeshError(f"could not write {str(p)!r}: {_clean(exc)}") from None
 
@@ -78,13 +87,14 @@ def _clean(exc: BaseException) -> str:
     return validate.one_line(f"{type(exc).__name__}: {exc}", 200)
 
 
-def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+def _read(p: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
+    """Points, triangles (None for a volume), tets (None for a surface) and point groups."""
     import meshio
 
     err: Exception | None = None
     suffix = p.suffix.lower()
     if suffix == ".obj":
-        return _read_obj(p)
+        return _with_no_tets(_read_obj(p))
     if suffix == ".stl":
         _check_binary_stl(p)
     if suffix == ".vtk" and _is_legacy_ascii_vtk(p):
@@ -104,9 +114,27 @@ def _read(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
             f"could not read {str(p)!r} as a mesh{known}: {_clean(err)}. "
             f"Readable formats include {_SURFACE_FORMATS}"
         )
-    tris = _triangles_from_cells([(c.type, np.asarray(c.data)) for c in m.cells], p)
+    cells = [(c.type, np.asarray(c.data)) for c in m.cells]
     groups = {k: np.asarray(v).ravel() for k, v in (m.point_sets or {}).items()}
-    return np.asarray(m.points, dtype=float), tris, groups
+    tets = _tets_from_cells(cells, p)
+    tris = None if tets is not None else _triangles_from_cells(cells, p)
+    return np.asarray(m.points, dtype=float), tris, tets, groups
+
+
+def _with_no_tets(read: tuple) -> tuple:
+    points, tris, groups = read
+    return points, tris, None, groups
+
+
+def _tets_from_cells(cells: list[tuple[str, np.ndarray]], p: Path) -> np.ndarray | None:
+    """The tets of a volume file (4- or 10-node, not mixed), or None when it has none."""
+    linear = [d for c, d in cells if c == "tetra"]
+    quadratic = [d for c, d in cells if c == "tetra10"]
+    if linear and quadratic:
+        raise MeshError(f"{str(p)!r} mixes 4-node and 10-node tets; rtfem needs one kind (convert the file, e.g. "
+                        "in Gmsh with SetOrder 1 or 2)")
+    found = linear or quadratic
+    return np.concatenate(found).astype(np.int64) if found else None
 
 
 def _read_obj(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -193,16 +221,8 @@ def _split_polygons(cells: np.ndarray) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def _tet_boundary(tets: np.ndarray) -> np.ndarray:
-    faces = np.concatenate([tets[:, [0, 2, 1]], tets[:, [0, 1, 3]], tets[:, [1, 2, 3]], tets[:, [0, 3, 2]]])
-    key = np.sort(faces, axis=1)
-    _, idx, cnt = np.unique(key, axis=0, return_index=True, return_counts=True)
-    return faces[idx[cnt == 1]]
-
-
 def _triangles_from_cells(cells: list[tuple[str, np.ndarray]], p: Path) -> np.ndarray:
     out: list[np.ndarray] = []
-    tets: list[np.ndarray] = []
     for ctype, data in cells:
         if ctype in ("triangle", "triangle6", "triangle7"):
             out.append(data[:, :3])
@@ -210,13 +230,10 @@ def _triangles_from_cells(cells: list[tuple[str, np.ndarray]], p: Path) -> np.nd
             out.append(_split_polygons(data[:, :4]))
         elif ctype.startswith("polygon"):
             out.append(_split_polygons(data))
-        elif ctype in ("tetra", "tetra10"):
-            tets.append(data[:, :4])
-    if not out and tets:
-        out.append(_tet_boundary(np.concatenate(tets)))
     if not out:
         found = ", ".join(sorted({c for c, _ in cells})) or "no cells"
-        raise MeshError(f"{str(p)!r} holds no surface cells (found: {found}); rtfem needs triangles, quads or polygons")
+        raise MeshError(f"{str(p)!r} holds no surface cells (found: {found}); rtfem needs triangles, quads or "
+                        "polygons, or tetrahedra for a volume")
     return np.concatenate(out).astype(np.int64)
 
 
@@ -286,21 +303,25 @@ def _vtk_strips(rows: list[np.ndarray]) -> list[np.ndarray]:
     return [(r[[j, j + 1, j + 2]] if j % 2 == 0 else r[[j + 1, j, j + 2]])[None, :] for r in rows for j in range(len(r) - 2)]
 
 
-def _vtk_typed_cells(p: Path, cells_conn, types: np.ndarray) -> list[np.ndarray]:
-    """UNSTRUCTURED_GRID cells by VTK type (triangle 5, quad 9, polygon 7, tetra 10) as triangles."""
+def _vtk_typed_cells(p: Path, cells_conn, types: np.ndarray) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """UNSTRUCTURED_GRID cells by VTK type: (triangle 5, quad 9, polygon 7) as triangles, and
+    the tets (tetra 10, quadratic tetra 24) when there are any."""
     if cells_conn is None or len(cells_conn) != types.size:
         raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
     cells = []
-    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra"}.items():
+    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra", 24: "tetra10"}.items():
         sel = [np.asarray(cells_conn[i]) for i in np.flatnonzero(types == t)]
         if sel and name != "polygon":
             cells.append((name, np.array(sel)))
         elif sel:
             cells += [("polygon", s[None, :]) for s in sel]
-    return [_triangles_from_cells(cells, p)] if cells else []
+    tets = _tets_from_cells(cells, p)
+    if tets is not None:
+        return [], tets
+    return ([_triangles_from_cells(cells, p)] if cells else []), None
 
 
-def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
     """Parse a legacy ASCII VTK file (POLYDATA polygons/strips or UNSTRUCTURED_GRID)."""
     try:
         text = p.read_text(encoding="latin-1")
@@ -312,7 +333,7 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     if lines[2].strip().upper() != "ASCII":
         raise MeshError(f"{str(p)!r}: binary legacy VTK that meshio could not read either; convert it to .vtu or .vtk ASCII")
     tok = _VtkTokens(p, " ".join(lines[3:]).split())
-    points, tris, cells_conn = None, [], None
+    points, tris, cells_conn, tets = None, [], None, None
     while tok.more():
         key = tok.take(1, "a section name")[0].upper()
         if key == "DATASET":
@@ -332,11 +353,14 @@ def _read_legacy_vtk(p: Path) -> tuple[np.ndarray, np.ndarray, dict]:
             elif key == "CELLS":
                 cells_conn = rows
         elif key == "CELL_TYPES":
-            tris += _vtk_typed_cells(p, cells_conn, tok.numbers(tok.count("CELL_TYPES"), "CELL_TYPES", np.int64))
+            typed, tets = _vtk_typed_cells(p, cells_conn, tok.numbers(tok.count("CELL_TYPES"), "CELL_TYPES", np.int64))
+            tris += typed
         elif key in ("POINT_DATA", "CELL_DATA", "FIELD", "METADATA"):
             break  # attributes follow; the geometry is complete
     if points is None:
         raise MeshError(f"{str(p)!r}: no POINTS section found")
+    if tets is not None:
+        return points, None, tets, {}
     if not tris:
         raise MeshError(f"{str(p)!r}: no POLYGONS, TRIANGLE_STRIPS or surface CELLS found")
-    return points, np.concatenate(tris).astype(np.int64), {}
+    return points, np.concatenate(tris).astype(np.int64), None, {}

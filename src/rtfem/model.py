@@ -26,7 +26,8 @@ from .material import Material
 from .mesh import TriMesh
 from .selection import select_nodes
 
-__all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "FEModel", "ShellModel", "DOF_NAMES", "parse_dofs"]
+__all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "FEModel", "ShellModel", "DOF_NAMES", "parse_dofs",
+           "require_lumped_mass"]
 
 DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
@@ -94,10 +95,25 @@ def check_model(model, what: str = "model"):
     return model
 
 
-def make_model(mesh, material: Material, **options) -> "ShellModel":
-    """The model of ``mesh``: a :class:`ShellModel` for a triangle surface (the one kind today;
-    where the CLI and the viewer build models, so that a new kind is added in one place)."""
+def make_model(mesh, material: Material, **options):
+    """The model of ``mesh``: a :class:`ShellModel` for a triangle surface, a
+    :class:`~rtfem.SolidModel` for a :class:`~rtfem.TetMesh` (``element``, ``mass`` among the
+    options). Where the CLI and the viewer build models, so that a new kind is added in one place."""
+    from .solidmodel import SolidModel
+    from .tetmesh import TetMesh
+
+    if isinstance(mesh, TetMesh):
+        return SolidModel(mesh, material, **options)
     return ShellModel(mesh, material, **options)
+
+
+def require_lumped_mass(model, what: str) -> None:
+    """Refuse a model whose constrained mass is not diagonal: ``what`` works with M^-1/2 or M^-1
+    of the diagonal (lumped) mass."""
+    M = model.constrained_mass()[0].tocoo()
+    if np.any((M.row != M.col) & (M.data != 0)):
+        raise ModelError(f"{what} needs a diagonal (lumped) mass; this model's is consistent: build it with "
+                         "mass='lumped', or use the modal route (modal_analysis takes a consistent mass)")
 
 
 def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
@@ -355,17 +371,36 @@ class FEModel:
                 )
         return F.ravel()
 
-    def pressure_forces(self, pressure: float) -> np.ndarray:
-        """Nodal forces (n, 3) of a uniform pressure on the surface, along the face normals.
-
-        Each triangle's resultant p A n is lumped equally to its corners (positive pressure
-        pushes against the normal, i.e. inward on an outward-oriented closed surface).
-        """
+    def pressure_forces(self, pressure: float, nodes=None) -> np.ndarray:
+        """Nodal forces (n, 3) of a uniform pressure on the surface (or on the triangles whose
+        corners are all in ``nodes``, a selection), along the face normals: positive pressure
+        pushes against the normal, i.e. inward on an outward-oriented closed surface."""
         pressure = validate.number(pressure, "pressure", "a pressure in Pa")
-        fn = self.mesh.face_normals(unit=False) * (-0.5 * pressure / 3.0)
+        return self._surface_load(self.mesh.face_normals(unit=False) * (-0.5 * pressure), nodes)
+
+    def traction_forces(self, traction, nodes=None) -> np.ndarray:
+        """Nodal forces (n, 3) of a uniform traction vector (Pa) on the surface, or on the
+        triangles whose corners are all in ``nodes`` (e.g. the free end of a cantilever)."""
+        t = validate.point(traction, "traction")
+        return self._surface_load(self.mesh.areas()[:, None] * t[None, :], nodes)
+
+    def _surface_load(self, per_face: np.ndarray, nodes) -> np.ndarray:
+        """Nodal forces of per-triangle resultants (f, 3), the triangles limited to ``nodes``."""
+        T = np.asarray(self.mesh.triangles)
+        if nodes is not None:
+            inside = np.zeros(self.n_nodes, bool)
+            inside[self.select_nodes(nodes)] = True
+            keep = inside[T].all(axis=1)
+            if not keep.any():
+                raise ModelError(f"nodes={validate.show(nodes)} hold no whole surface triangle to load")
+            T, per_face = T[keep], per_face[keep]
+        return self._distribute(T, per_face)
+
+    def _distribute(self, T: np.ndarray, per_face: np.ndarray) -> np.ndarray:
+        """A uniform load's consistent nodal forces on linear triangles: a third to each corner."""
         out = np.zeros((self.n_nodes, 3))
         for k in range(3):
-            np.add.at(out, self.mesh.triangles[:, k], fn)
+            np.add.at(out, T[:, k], per_face / 3.0)
         return out
 
     # ------------------------------------------------------------ constrained systems

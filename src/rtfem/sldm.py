@@ -41,7 +41,7 @@ from . import validate
 from .errors import ModelError, RtfemWarning, SolverError
 from .lanczos import REORTHOGONALIZATIONS, Lanczos
 from .material import Damping
-from .model import check_model
+from .model import check_model, require_lumped_mass
 from .oscillator import step_response as _step_fn
 from .scenario import LoadSchedule
 
@@ -129,6 +129,7 @@ class SLDM:
         self.progress = validate.progress(progress)
         self.restrained = bool(model.fixed.any())
         t0 = time.perf_counter()
+        require_lumped_mass(model, "SLDM")  # M^-1/2 of the lumped mass (Eq. 12); a Cholesky of M is not built
         self._c = model.condensation()
         self._t = self._c.t
         mt = model.mass_diagonal[self._t]

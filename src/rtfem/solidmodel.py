@@ -16,7 +16,7 @@ from . import solid, validate
 from .errors import ModelError
 from .material import Material
 from .model import FEModel
-from .tetmesh import TetMesh
+from .tetmesh import TET10_EDGES, TetMesh
 
 __all__ = ["SolidModel"]
 
@@ -117,6 +117,27 @@ class SolidModel(FEModel):
         """The mass (lumped or consistent, as built) on the dofs of :meth:`constrained_stiffness`."""
         dofs = self.free_dofs if self.constraints == "elimination" else np.arange(self.n_dofs)
         return self.M[dofs][:, dofs].tocsr(), dofs
+
+    def _distribute(self, T: np.ndarray, per_face: np.ndarray) -> np.ndarray:
+        """Consistent nodal forces of a uniform load: a third to each corner of a linear face; on a
+        6-node face (tet10) nothing to the corners and a third to each mid-edge node."""
+        if self.element == "tet4":
+            return super()._distribute(T, per_face)
+        out = np.zeros((self.n_nodes, 3))
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            np.add.at(out, self._mid_node(T[:, a], T[:, b]), per_face / 3.0)
+        return out
+
+    def _mid_node(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """The mid-edge nodes (tet10) of the corner edges (i, j)."""
+        if "mid" not in self._cache:
+            T = np.asarray(self.tetmesh.tets)
+            e = np.sort(T[:, TET10_EDGES].reshape(-1, 2), axis=1)
+            keys, first = np.unique(e[:, 0] * self.n_nodes + e[:, 1], return_index=True)
+            self._cache["mid"] = (keys, T[:, 4:].ravel()[first])
+        keys, mids = self._cache["mid"]
+        want = np.minimum(i, j) * self.n_nodes + np.maximum(i, j)
+        return mids[np.searchsorted(keys, want)]
 
     def _node_graph(self) -> sp.csr_matrix:
         return self.tetmesh.adjacency()

@@ -263,7 +263,8 @@ class TetMesh:
 
     def quadratic(self) -> "TetMesh":
         """The 10-node version: a node added at the middle of each corner edge (straight edges).
-        A 10-node mesh is returned as it is."""
+        A group gains the mid-edge nodes of the edges whose both ends are in it (a clamped face
+        stays clamped). A 10-node mesh is returned as it is."""
         if self.order == 2:
             return self
         c = self.corner_tets
@@ -271,7 +272,13 @@ class TetMesh:
         edges, inverse = np.unique(e, axis=0, return_inverse=True)
         mid = 0.5 * (self._vertices[edges[:, 0]] + self._vertices[edges[:, 1]])
         T = np.column_stack([c, self.n_vertices + inverse.reshape(-1, 6)])
-        return TetMesh(np.vstack([self._vertices, mid]), T, repair=False, groups=self.groups)
+        groups = {}
+        for name, idx in self.groups.items():
+            inside = np.zeros(self.n_vertices, bool)
+            inside[idx] = True
+            both = np.flatnonzero(inside[edges[:, 0]] & inside[edges[:, 1]])
+            groups[name] = np.concatenate([np.asarray(idx, dtype=np.int64), self.n_vertices + both])
+        return TetMesh(np.vstack([self._vertices, mid]), T, repair=False, groups=groups)
 
     def linear(self) -> "TetMesh":
         """The 4-node mesh of the corners (mid-edge nodes dropped and the nodes renumbered;
@@ -306,7 +313,7 @@ def _circumradius(c: np.ndarray) -> np.ndarray:
 
 def _check_arrays(vertices, tets) -> tuple[np.ndarray, np.ndarray]:
     try:
-        V = np.array(vertices, dtype=np.float64)
+        V = np.array(vertices, dtype=np.float64, order="C")
     except (TypeError, ValueError) as exc:
         raise MeshError(f"vertices are not a numeric (n, 3) array: {exc}") from None
     try:
@@ -323,7 +330,7 @@ def _check_arrays(vertices, tets) -> tuple[np.ndarray, np.ndarray]:
     if not np.issubdtype(T_raw.dtype, np.integer):
         if not np.issubdtype(T_raw.dtype, np.floating) or np.any(T_raw != np.round(T_raw)):
             raise MeshError(f"tet node indices must be integers, got dtype {T_raw.dtype}")
-    T = T_raw.astype(np.int64)
+    T = np.ascontiguousarray(T_raw, dtype=np.int64)
     bad_v = np.flatnonzero(~np.isfinite(V).all(axis=1))
     if bad_v.size:
         raise MeshError(f"non-finite (NaN or infinite) coordinates at node {_listing(bad_v)}: first one is "

@@ -359,15 +359,17 @@ class Viewer:
         }
 
 
-def serve(mesh: TriMesh | None = None, *, material: Material | None = None, fixed="attachment",
+def serve(mesh=None, *, material: Material | None = None, fixed="attachment",
           settings: Settings | None = None, host: str = "127.0.0.1", port: int = 8080,
-          block: bool = True) -> Viewer:
-    """Precompute, serve the viewer and (``block``) run until Ctrl-C."""
+          block: bool = True, model_options: dict | None = None) -> Viewer:
+    """Precompute, serve the viewer and (``block``) run until Ctrl-C. ``mesh``: a TriMesh (a shell)
+    or a TetMesh (a solid, drawn and touched on its boundary); ``model_options`` go to the model
+    (``element``, ``mass`` of a solid)."""
     from .. import meshes
 
     _need_viser()
     mesh = meshes.liver() if mesh is None else mesh
-    session = Session(mesh, material, fixed, settings)
+    session = Session(mesh, material, fixed, settings, model_options)
     viewer = Viewer(session, host=host, port=port).start()
     if block:
         print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)

@@ -30,6 +30,7 @@ from ..fullorder import DirectSimulator
 from ..impedance import ImpedanceDriver
 from ..material import Damping, Material
 from ..mesh import TriMesh
+from ..tetmesh import TetMesh
 from ..modal import ModalBasis, modal_analysis
 from ..model import make_model
 from ..simulate import ModalSimulator, as_driver
@@ -77,21 +78,26 @@ class Stats:
 class Session:
     """The organ, its precomputed dynamics and a thread stepping it in real time."""
 
-    def __init__(self, mesh: TriMesh, material: Material | None = None, fixed="attachment",
-                 settings: Settings | None = None) -> None:
-        if not isinstance(mesh, TriMesh):
-            raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh")
+    def __init__(self, mesh: TriMesh | TetMesh, material: Material | None = None, fixed="attachment",
+                 settings: Settings | None = None, model_options: dict | None = None) -> None:
+        if not isinstance(mesh, (TriMesh, TetMesh)):
+            raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (a shell) or TetMesh (a solid)")
         if material is not None and not isinstance(material, Material):
             raise ModelError(f"material={validate.show(material)} must be an rt.Material (or None)")
         if settings is not None and not isinstance(settings, Settings):
             raise ModelError(f"settings={validate.show(settings)} must be a viewer Settings (or None)")
-        self.mesh = mesh
+        # a solid is drawn and touched on its boundary, over the same node numbering
+        self._model_options = dict(model_options or {})
+        if isinstance(mesh, TetMesh) and self._model_options.get("element") == "tet10":
+            mesh = mesh.quadratic()  # the model's own nodes: its corner surface is drawn
+        self.volume = mesh if isinstance(mesh, TetMesh) else None
+        self.mesh = mesh.surface if isinstance(mesh, TetMesh) else mesh
         self.material = material if material is not None else Material()
         self.settings = (settings or Settings()).check()
         if self.settings.E is None:
             self.settings.E = self.material.E
         self._fixed = fixed
-        self.X = np.asarray(mesh.vertices)
+        self.X = np.asarray(self.mesh.vertices)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -102,7 +108,7 @@ class Session:
 
     # ---------------------------------------------------------------- building
     def _model(self, E: float):
-        model = make_model(self.mesh, replace(self.material, E=E))
+        model = make_model(self.volume or self.mesh, replace(self.material, E=E), **self._model_options)
         model.fix(self._fixed)
         model.check_restrained()
         return model

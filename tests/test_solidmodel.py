@@ -1,0 +1,201 @@
+"""SolidModel through the Model protocol: masses, fixes, and every consumer unchanged
+(modal, SLDM, the full-order simulators, static correction, impedance map, probe, haptic loop,
+viewer session, exports); meshing surfaces into tets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+import rtfem as rt
+from rtfem.model import MODEL_MEMBERS, check_model
+from rtfem.oscillator import step_response
+from conftest import organ
+
+MAT = rt.Material(E=2e4, nu=0.45, density=1000.0)
+
+
+@pytest.fixture(scope="module")
+def beam():
+    """A small clamped solid bar (tet4, lumped): small enough for dense references."""
+    model = rt.SolidModel(rt.meshes.box(0.12, 0.03, 0.03, 6, 2, 2), MAT).fix("x0")
+    return model, int(np.flatnonzero(np.all(np.isclose(model.mesh.vertices, [0.12, 0.03, 0.03]), axis=1))[0])
+
+
+def test_protocol_and_repr(beam):
+    model, _ = beam
+    assert check_model(model) is model and all(hasattr(model, m) for m in MODEL_MEMBERS)
+    assert isinstance(model, rt.Model)
+    assert model.dofs_per_node == 3 and model.n_dofs == 3 * model.n_nodes
+    assert model.metadata == {"model": "solid", "element": "tet4", "mass": "lumped", "constraints": "elimination"}
+    assert "tet4 tets" in repr(model)
+    with pytest.raises(rt.ModelError, match="no rotations"):
+        model.fix([0], "rx")
+    with pytest.raises(rt.ModelError, match="TetMesh"):
+        rt.SolidModel(rt.meshes.icosphere(0.1, 1), MAT)
+    with pytest.raises(rt.ModelError, match="element='tet10'"):
+        rt.SolidModel(rt.meshes.box(0.1, 0.1, 0.1, 1, 1, 1).quadratic(), MAT)
+    with pytest.raises(rt.ModelError, match="element"):
+        rt.SolidModel(rt.meshes.box(), MAT, element="hex8")
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+@pytest.mark.parametrize("mass", ["lumped", "consistent"])
+def test_mass_totals_and_definiteness(element, mass):
+    mesh = rt.meshes.box(0.2, 0.1, 0.05, 2, 2, 1)
+    model = rt.SolidModel(mesh, MAT, element=element, mass=mass)
+    M = model.M
+    total = MAT.density * mesh.volume()
+    # each translation carries the body's mass: 1^T M 1 per direction
+    e = np.zeros(model.n_dofs)
+    e[0::3] = 1.0
+    assert e @ (M @ e) == pytest.approx(total, rel=1e-12)
+    assert model.mass_diagonal.sum() == pytest.approx(3 * total, rel=1e-12)
+    assert np.all(model.mass_diagonal > 0)  # HRZ: no negative corner masses for tet10
+    assert np.linalg.eigvalsh(M.toarray()).min() > 0
+    assert abs(M - M.T).max() < 1e-15 * abs(M).max()
+
+
+def test_consistent_mass_modes_equal_the_dense_generalized_problem():
+    model = rt.SolidModel(rt.meshes.box(0.12, 0.03, 0.03, 6, 2, 2), MAT, mass="consistent").fix("x0")
+    K, dofs = model.constrained_stiffness()
+    M, _ = model.constrained_mass()
+    lam = sla.eigh(K.toarray(), M.toarray(), eigvals_only=True, subset_by_index=[0, 11])
+    basis = rt.modal_analysis(model, 12, solver="auto")
+    np.testing.assert_allclose(basis.omega**2, lam, rtol=1e-8)
+    assert "consistent" in basis.info.get("fallback", "")
+    P = basis.matrix
+    np.testing.assert_allclose(P.T @ (model.M @ P), np.eye(12), atol=1e-9)
+    with pytest.raises(rt.ModelError, match="lumped"):
+        rt.SLDM(model, rt.Damping(alpha=4.0))
+    with pytest.raises(rt.ModelError, match="lumped"):
+        rt.CentralDifferenceSimulator(model, 1e-5, rt.Damping(alpha=4.0))
+    with pytest.raises(rt.ModelError, match="diagonal"):
+        rt.modal_analysis(model, 12, solver="block")
+
+
+def test_sldm_and_direct_newmark_agree_with_the_full_modal_solution(beam):
+    model, node = beam
+    damping = rt.Damping(alpha=20.0)
+    basis = rt.modal_analysis(model, "all")
+    forces = {node: (0.0, 0.02, -0.05)}
+    times = np.linspace(0.0, 0.1, 11)
+    P = basis.matrix
+    F = model.force_vector(forces).reshape(-1, 3).ravel()
+    coef = step_response(basis.omega[:, None] ** 2, damping.modal_alpha(basis.omega)[:, None], times[None, :])
+    ref = (P @ (coef * (P.T @ F)[:, None])).T.reshape(times.size, -1, 3)
+    U = rt.SLDM(model, damping).step_response(forces, times, tol=1e-10)
+    assert np.abs(U - ref).max() < 1e-7 * np.abs(ref).max()
+    # full-order Newmark and the modal Newmark integrator on all modes: the same recursion
+    dt = 1e-3
+    direct = rt.DirectSimulator(model, dt, damping)
+    modal = rt.ModalSimulator(basis, dt, damping, integrator="newmark")
+    for _ in range(60):
+        direct.step(forces)
+        modal.step(forces)
+    np.testing.assert_allclose(modal.displacements(), direct.displacements(), rtol=0,
+                               atol=1e-9 * np.abs(direct.displacements()).max())
+
+
+def test_static_correction_and_impedance_map_settle_at_the_static_solution(beam):
+    model, node = beam
+    f = (0.0, 0.0, -0.05)
+    u_static = model.solve_static({node: f})
+    sim = rt.ModalSimulator(rt.modal_analysis(model, 10), 1e-3, rt.Damping(alpha=20.0), static_correction=True)
+    for _ in range(3000):
+        sim.step({node: f})
+    np.testing.assert_allclose(sim.displacements(), u_static, atol=1e-9 * np.abs(u_static).max())
+    imap = rt.ImpedanceMap.build(model, rt.Damping(alpha=4.0), nodes=[node], n_modes=10)
+    np.testing.assert_allclose(imap.point_compliance(node) @ f, u_static[node], rtol=1e-10)
+    # the default loaded nodes are the free surface nodes, not the interior ones
+    X = np.asarray(model.mesh.vertices)
+    interior = np.flatnonzero(((X > 1e-9) & (X < np.array([0.12, 0.03, 0.03]) - 1e-9)).all(axis=1))
+    assert interior.size and not np.isin(interior, model.mesh.used_vertices()).any()
+
+
+def test_probe_and_loop_touch_the_surface_only(beam):
+    model, node = beam
+    sim = rt.ModalSimulator(rt.modal_analysis(model, 12), 1e-3, rt.Damping(alpha=20.0), static_correction=True)
+    probe = rt.Probe(model.mesh, sim, stiffness=200.0)
+    surface = set(model.mesh.used_vertices().tolist())
+    X = np.asarray(model.mesh.vertices)
+    top = X[node] + np.array([0.0, 0.0, 0.002])
+    path = np.array([top - np.array([0.0, 0.0, 0.004 * k / 50]) for k in range(50)])
+    forces = probe.replay(path, compiled=False)
+    assert probe.contact_node in surface and forces[-1, 2] > 0  # the organ pushes the probe back up
+    # the centre of the bar is an interior node: the nearest *touchable* vertex is chosen there
+    centre = np.array([0.06, 0.015, 0.015])
+    assert model.nearest_free_node(centre) in surface
+    assert model.mesh.nearest_vertex(centre) in surface
+    stats = rt.HapticLoop(rt.Probe(model.mesh, sim), rt.ScriptedDevice(lambda t: top - [0, 0, 0.004 * t]),
+                          rate=1000).run(0.05)
+    assert stats.steps > 0
+
+
+def test_viewer_session_grabs_and_pulls_a_solid():
+    from rtfem.viewer.session import Session, Settings
+
+    mesh = rt.meshes.box(0.12, 0.03, 0.03, 6, 2, 2)
+    s = Session(mesh, MAT, fixed="x0", settings=Settings(n_modes=12, alpha=60.0, grasp_stiffness=50.0),
+                model_options={"element": "tet10"})
+    assert s.model.metadata["element"] == "tet10" and s.mesh is s.model.mesh
+    tip = np.array([0.12, 0.015, 0.03])
+    node = s.grab(tip)
+    assert node in set(s.mesh.used_vertices().tolist())
+    s.drag(tip + [0.0, 0.0, 0.003])
+    for _ in range(400):
+        s.step()
+    u = s.displacements()
+    assert u.shape == (s.model.n_nodes, 3) and u[node, 2] > 0.0005
+
+
+def test_volume_vtu_carries_the_displacements(tmp_path, beam):
+    import meshio
+
+    model, node = beam
+    u = model.solve_static({node: (0.0, 0.0, -0.05)})
+    path = rt.io.write_vtu(tmp_path / "bar.vtu", model.tetmesh, u)
+    m = meshio.read(path)
+    assert m.cells[0].type == "tetra" and len(m.cells[0].data) == model.tetmesh.n_tets
+    np.testing.assert_allclose(m.point_data["displacement"], u)
+    np.testing.assert_allclose(m.points, model.tetmesh.vertices + u)
+
+
+needs_mesher = pytest.mark.skipif(not rt.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
+
+
+@needs_mesher
+def test_tetrahedralize_a_sphere_and_refusals():
+    sphere = rt.meshes.icosphere(0.05, 2)
+    tets = rt.tetrahedralize(sphere, 0.01)
+    assert tets.volume() == pytest.approx(sphere.volume(), rel=0.01)
+    assert tets.surface.is_closed() and tets.quality().radius_ratio.min() > 0.05
+    with pytest.raises(rt.MeshError, match="boundary edges"):
+        rt.tetrahedralize(rt.meshes.hemisphere(0.05, 6))
+    two = rt.TriMesh(np.vstack([sphere.vertices, sphere.vertices + 1.0]),
+                     np.vstack([sphere.triangles, sphere.triangles + sphere.n_vertices]))
+    with pytest.raises(rt.MeshError, match="separate pieces"):
+        rt.tetrahedralize(two)
+    with pytest.raises(rt.MeshError, match="edge_length"):
+        rt.tetrahedralize(sphere, 1e-9)
+
+
+@needs_mesher
+def test_solid_default_liver_keeps_its_groups_and_its_mesh():
+    a = rt.meshes.liver(solid=True)
+    b = rt.meshes.liver(solid=True)
+    assert a.fingerprint() == b.fingerprint()  # kept on disk: the same mesh in every process
+    surface = set(a.surface_nodes().tolist())
+    assert len(a.groups["probe"]) == 1 and int(a.groups["probe"][0]) in surface
+    assert a.groups["attachment"].size >= 10 and set(a.groups["attachment"].tolist()) <= surface
+    assert a.volume() == pytest.approx(rt.meshes.liver(3).volume(), rel=0.02)
+
+
+@needs_mesher
+def test_small_organ_file_meshes():
+    surface = rt.load_mesh(organ("sofa_env_gallbladder_collision.stl"), scale=1e-3)
+    tets = rt.tetrahedralize(surface)
+    assert tets.volume() == pytest.approx(surface.volume(), rel=0.02)
+    model = rt.SolidModel(tets, MAT).fix("bottom:0.2")
+    assert rt.modal_analysis(model, 6).frequencies[0] > 0
