@@ -48,6 +48,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/haptics.py --levels $(BENCH_LEVELS)
 	$(BIN)/python benchmarks/haptic_step.py
 	$(BIN)/python benchmarks/haptic_loop.py
+	$(BIN)/python benchmarks/solid.py --organs
 
 clean:
 	rm -rf $(VENV) out .pytest_cache test-artifacts

@@ -162,3 +162,50 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=30)
     assert p.returncode == 130 and "stopped" in out and "Traceback" not in err
+
+
+needs_mesher = pytest.mark.skipif(not rt.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
+
+
+@pytest.fixture(scope="module")
+def tet_file(tmp_path_factory):
+    """A tetrahedral organ file: the solid liver, written as VTU (no groups: --fix is given)."""
+    if not rt.meshing.mesher_available():
+        pytest.skip("the mesh extra (pytetwild) is not installed")
+    path = tmp_path_factory.mktemp("tets") / "liver.vtu"
+    rt.save_mesh(rt.meshes.liver(solid=True), path)
+    return str(path)
+
+
+TET_FIX = ["--fix", "y<-0.045"]
+
+
+@needs_mesher
+def test_info_modes_simulate_impedance_bench_on_a_tet_file(tet_file, tmp_path, capsys):
+    rc, out, _ = run(capsys, "info", tet_file)
+    assert rc == 0 and "volume mesh" in out and "radius ratio" in out
+    rc, out, _ = run(capsys, "modes", tet_file, *TET_FIX, "-n", 10, "-o", tmp_path / "m.npz")
+    assert rc == 0 and "tet4 tets" in out
+    mesh = rt.load_mesh(tet_file)
+    model = rt.SolidModel(mesh, rt.Material()).fix("y<-0.045")
+    basis = rt.ModalBasis.load(tmp_path / "m.npz", model=model)
+    np.testing.assert_allclose(basis.omega, rt.modal_analysis(model, 10).omega, rtol=1e-8)
+    rc, out, _ = run(capsys, "simulate", tet_file, *TET_FIX, "--element", "tet10", "--duration", 0.05,
+                     "--out", tmp_path / "run")
+    assert rc == 0 and "tet10 tets" in out
+    import meshio
+
+    frame = meshio.read(sorted((tmp_path / "run").glob("frame_*.vtu"))[-1])
+    assert frame.cells[0].type == "tetra10"
+    rc, out, _ = run(capsys, "impedance", tet_file, *TET_FIX, "--nodes", "nodes:3", "-n", 10, "-o", tmp_path / "i.npz")
+    assert rc == 0
+    rc, out, _ = run(capsys, "bench", tet_file, *TET_FIX, "--modes-list", 10, "--direct-steps", 5)
+    assert rc == 0 and "direct / haptic" in out
+
+
+@needs_mesher
+def test_solid_option_meshes_a_surface_file(tmp_path, capsys):
+    rc, out, _ = run(capsys, "simulate", gallbladder(), *GB, "--solid", "--duration", 0.02, "--out", tmp_path)
+    assert rc == 0 and "tets" in out and "peak" in out
+    rc, out, err = run(capsys, "info", gallbladder(), "--scale", "1e-3", "--solid", "--edge-length", "1e-9")
+    assert rc == 2 and "edge_length" in err and "Traceback" not in err

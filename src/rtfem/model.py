@@ -46,7 +46,7 @@ class Model(Protocol):
     ``solve_static`` and ``unit_load_response`` go through the cached ``factorization()``; the
     latter is the one copy of the unit-load loop (static correction, impedance map).
     ``condensation()`` gives K_c = K_tt - K_tr K_rr^-1 K_rt on the free translations t (for a
-    model without rotations, K_tt). Satisfied by :class:`ShellModel`.
+    model without rotations, K_tt). Satisfied by :class:`ShellModel` and :class:`~rtfem.SolidModel`.
     """
 
     mesh: object  # the surface that is drawn and touched: triangles over model nodes
@@ -89,7 +89,7 @@ def check_model(model, what: str = "model"):
     """``model`` if it satisfies the Model protocol; otherwise a ModelError naming what it lacks."""
     missing = [m for m in MODEL_MEMBERS if not hasattr(type(model), m) and not hasattr(model, m)]
     if missing:
-        raise ModelError(f"{what}={validate.show(model)} is not a model: rtfem needs a ShellModel or any class with "
+        raise ModelError(f"{what}={validate.show(model)} is not a model: rtfem needs a ShellModel, a SolidModel or any class with "
                          f"the Model protocol's members; it lacks {', '.join(missing[:6])}"
                          f"{' ...' if len(missing) > 6 else ''}")
     return model
