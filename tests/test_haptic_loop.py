@@ -98,6 +98,9 @@ def test_a_shared_device_is_read_without_the_gil(organ):
     probe = rt.Probe(mesh, sim_for(basis))
     probe.prepare([node])
     loop = rt.HapticLoop(probe, device, rate=2000.0).start()
+    # the loop thread prepares in Python (and compiles in a fresh process) before its first tick:
+    # let it get there before another thread takes the GIL (under the hog a cold start took 0.2 s)
+    time.sleep(0.5)
     stop = threading.Event()
 
     def hog():  # pure-Python work: holds the GIL between switch intervals
