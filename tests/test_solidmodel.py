@@ -166,9 +166,15 @@ needs_mesher = pytest.mark.skipif(not rt.meshing.mesher_available(), reason="the
 
 
 @needs_mesher
-def test_tetrahedralize_a_sphere_and_refusals():
+def test_tetrahedralize_a_sphere_and_refusals(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "__tracked_surface.stl").write_text("the user's own file")
     sphere = rt.meshes.icosphere(0.05, 2)
     tets = rt.tetrahedralize(sphere, 0.01)
+    # fTetWild writes a debug surface into the working directory: it runs in a scratch one
+    assert [p.name for p in tmp_path.iterdir()] == ["__tracked_surface.stl"]
+    assert (tmp_path / "__tracked_surface.stl").read_text() == "the user's own file"
+    assert tmp_path.samefile(".")
     assert tets.volume() == pytest.approx(sphere.volume(), rel=0.01)
     assert tets.surface.is_closed() and tets.quality().radius_ratio.min() > 0.05
     with pytest.raises(rt.MeshError, match="boundary edges"):

@@ -10,10 +10,12 @@ vertex groups are carried over to the nearest new surface nodes.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import os
 import tempfile
+import threading
 from functools import lru_cache
 from pathlib import Path
 
@@ -51,6 +53,24 @@ def _wrapper():
             s.loader.exec_module(module)  # type: ignore[union-attr]
             return module
     return None
+
+
+_CWD_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _scratch_directory():
+    """Run in a temporary working directory: fTetWild writes ``__tracked_surface.stl`` (a debug
+    copy of its envelope) into the current directory, which would litter, or overwrite a file of
+    that name in, the user's folder. The working directory is process-wide: meshing calls are
+    serialized, and another thread's relative paths would see the scratch folder meanwhile."""
+    with _CWD_LOCK, tempfile.TemporaryDirectory(prefix="rtfem-tetwild-") as scratch:
+        old = os.getcwd()
+        os.chdir(scratch)
+        try:
+            yield
+        finally:
+            os.chdir(old)
 
 
 def mesher_available() -> bool:
@@ -100,9 +120,10 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
     V = np.array(surface.vertices, dtype=np.float64, order="C")
     F = np.array(surface.triangles, dtype=np.uint32, order="C")
     try:
-        X, T = wrapper.tetrahedralize_mesh(V, F, bool(optimize), False, float(fac), 0.0, float(epsilon), 10.0, False,
-                                           threads, 80, 6, True, False, False, np.zeros((0, 3)),
-                                           np.zeros((0, 4), np.int32), np.zeros(0))
+        with _scratch_directory():
+            X, T = wrapper.tetrahedralize_mesh(V, F, bool(optimize), False, float(fac), 0.0, float(epsilon), 10.0,
+                                               False, threads, 80, 6, True, False, False, np.zeros((0, 3)),
+                                               np.zeros((0, 4), np.int32), np.zeros(0))
     except Exception as exc:  # the mesher's own failures come as RuntimeError or its own types
         raise MeshError(f"fTetWild could not mesh the surface: {exc}") from None
     if T is None or len(T) == 0:
