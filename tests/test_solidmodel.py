@@ -30,8 +30,16 @@ def test_protocol_and_repr(beam):
     assert model.dofs_per_node == 3 and model.n_dofs == 3 * model.n_nodes
     assert model.metadata == {"model": "solid", "element": "tet4", "mass": "lumped", "constraints": "elimination"}
     assert "tet4 tets" in repr(model)
+    before = model.fixed.copy()
     with pytest.raises(rt.ModelError, match="no rotations"):
         model.fix([0], "rx")
+    assert np.array_equal(model.fixed, before)  # a refused fix changes nothing
+    with pytest.raises(rt.ModelError, match="no whole surface triangle"):
+        model.pressure_forces(100.0, nodes=[0])
+    with pytest.raises(rt.ModelError, match="traction"):
+        model.traction_forces((0.0, np.nan, 0.0), "x1")
+    with pytest.raises(rt.ModelError, match="TriMesh or TetMesh"):
+        rt.io.write_vtu("never.vtu", model)
     with pytest.raises(rt.ModelError, match="TetMesh"):
         rt.SolidModel(rt.meshes.icosphere(0.1, 1), MAT)
     with pytest.raises(rt.ModelError, match="element='tet10'"):

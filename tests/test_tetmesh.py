@@ -131,3 +131,29 @@ def test_box_and_hollow_sphere_generators():
     r = np.linalg.norm(s.vertices, axis=1)
     np.testing.assert_allclose(r[s.groups["inner"]], 0.05)
     np.testing.assert_allclose(r[s.groups["outer"]], 0.1)
+
+
+@pytest.mark.parametrize("call,match", [
+    (lambda: rt.meshes.box(-1.0), "lx"),
+    (lambda: rt.meshes.box(nx=0), "nx"),
+    (lambda: rt.meshes.hollow_sphere(0.1, 0.05), "inner_radius"),
+    (lambda: rt.meshes.hollow_sphere(layers=0), "layers"),
+    (lambda: rt.meshes.liver(solid=True, spacing=-0.01), "spacing"),
+    (lambda: rt.meshes.liver(solid="yes"), "solid"),
+    (lambda: rt.meshes.box().scaled(0.0), "scale"),
+    (lambda: rt.TetMesh(*_two_tets(), merge_tol=2.0), "merge_tol"),
+    (lambda: rt.tetrahedralize(rt.meshes.box()), "TriMesh"),
+])
+def test_generators_and_meshing_refuse_nonsense(call, match):
+    with pytest.raises(rt.RtfemError, match=match):
+        call()
+
+
+def test_a_file_mixing_linear_and_quadratic_tets_is_refused(tmp_path):
+    import meshio
+
+    q = rt.meshes.box(1.0, 1.0, 1.0, 1, 1, 1).quadratic()
+    path = tmp_path / "mixed.vtu"
+    meshio.write_points_cells(str(path), q.vertices, [("tetra", q.tets[:2, :4]), ("tetra10", q.tets[2:])])
+    with pytest.raises(rt.MeshError, match="mixes 4-node and 10-node"):
+        rt.load_mesh(path)

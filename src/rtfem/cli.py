@@ -223,6 +223,7 @@ def model_options(args, mesh) -> dict:
 def build_model(args, *, quiet: bool = False):
     from .material import Material
     from .model import make_model
+    from .tetmesh import TetMesh
 
     mesh = mesh_of_args(args)
     material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
@@ -232,7 +233,7 @@ def build_model(args, *, quiet: bool = False):
     model.check_restrained()
     if not quiet:
         name = args.mesh or ("embedded default liver" + (", solid" if args.solid else ""))
-        if hasattr(mesh, "tets"):
+        if isinstance(mesh, TetMesh):
             size = (f"{model.n_nodes:,} nodes, {mesh.n_tets:,} {args.element} tets, "
                     f"{model.mesh.n_triangles:,} surface triangles")
         else:
@@ -265,9 +266,11 @@ def _modes(model, args, *, quiet=False):
 
 # ---------------------------------------------------------------- commands
 def cmd_info(args: argparse.Namespace) -> int:
+    from .tetmesh import TetMesh
+
     mesh = mesh_of_args(args)
     print(f"mesh        {args.mesh or 'embedded default liver'}")
-    if hasattr(mesh, "tets"):
+    if isinstance(mesh, TetMesh):
         print(f"volume mesh {mesh.n_vertices} nodes, {mesh.n_tets} tets of {mesh.tets.shape[1]} nodes, "
               f"volume {mesh.volume():.4g}")
         print("check       " + str(mesh.report).replace("\n", "\n            "))
@@ -493,10 +496,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness).check()
     print("precomputing ...", flush=True)
-    volume = getattr(model, "tetmesh", None)  # a solid: the viewer builds the same model of the volume
-    serve(model.mesh if volume is None else volume, material=model.material, fixed=np.flatnonzero(model.held_nodes),
-          settings=settings, host=args.host, port=args.port,
-          model_options={} if volume is None else {"element": args.element, "mass": args.mass})
+    mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
+    serve(mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host,
+          port=args.port, model_options=model_options(args, mesh))
     return 0
 
 

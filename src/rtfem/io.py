@@ -38,7 +38,7 @@ def write_vtu(
     import meshio
 
     path = Path(validate.path_like(path, "path"))
-    cells = _cells(mesh)
+    cells = mesh_cells(mesh)
     X = np.asarray(mesh.vertices, dtype=float)
     data = {}
     for name, values in (point_data or {}).items():
@@ -57,7 +57,7 @@ def write_vtu(
     return path
 
 
-def _cells(mesh) -> list[tuple[str, np.ndarray]]:
+def mesh_cells(mesh) -> list[tuple[str, np.ndarray]]:
     """meshio cells of a TriMesh (triangles) or a TetMesh (tetra or tetra10, VTK order)."""
     from .tetmesh import TetMesh
 

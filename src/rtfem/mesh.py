@@ -337,23 +337,34 @@ def _check_arrays(vertices, triangles) -> tuple[np.ndarray, np.ndarray]:
             f"triangles must be an (m, 3) array of vertex indices, got shape {T_raw.shape}"
             + ("; split quads or polygons first (load_mesh does)" if T_raw.ndim == 2 else "")
         )
+    T = _integer_cells(T_raw, "triangle indices")
+    _check_finite_and_in_range(V, T, ("vertex", "vertices"), "triangle")
+    return V, T
+
+
+def _integer_cells(T_raw: np.ndarray, what: str) -> np.ndarray:
+    """Cell indices as C-ordered int64: integers, or floats holding whole numbers."""
     if not np.issubdtype(T_raw.dtype, np.integer):
         if not np.issubdtype(T_raw.dtype, np.floating) or np.any(T_raw != np.round(T_raw)):
-            raise MeshError(f"triangle indices must be integers, got dtype {T_raw.dtype}")
-    T = T_raw.astype(np.int64)
+            raise MeshError(f"{what} must be integers, got dtype {T_raw.dtype}")
+    return np.ascontiguousarray(T_raw, dtype=np.int64)
+
+
+def _check_finite_and_in_range(V: np.ndarray, T: np.ndarray, node: tuple[str, str], cell: str) -> None:
+    """MeshError naming the first non-finite point and the first cell with an index out of range
+    (``node``: the word for a point, singular and plural; ``cell``: for a cell)."""
     bad_v = np.flatnonzero(~np.isfinite(V).all(axis=1))
     if bad_v.size:
         raise MeshError(
-            f"non-finite (NaN or infinite) coordinates at vertex {_listing(bad_v)}: "
-            f"first one is {V[bad_v[0]].tolist()}; fix or remove these vertices"
+            f"non-finite (NaN or infinite) coordinates at {node[0]} {_listing(bad_v)}: "
+            f"first one is {V[bad_v[0]].tolist()}; fix or remove these {node[1]}"
         )
     bad_t = np.flatnonzero(((T < 0) | (T >= V.shape[0])).any(axis=1))
     if bad_t.size:
         raise MeshError(
-            f"triangle {_listing(bad_t)} refers to a vertex index outside 0..{V.shape[0] - 1} "
+            f"{cell} {_listing(bad_t)} refers to a {node[0]} index outside 0..{V.shape[0] - 1} "
             f"(first one: {T[bad_t[0]].tolist()})"
         )
-    return V, T
 
 
 def _edge_index(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

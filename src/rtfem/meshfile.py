@@ -64,7 +64,7 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
     """
     import meshio
 
-    from .io import _cells, atomic_target, point_field
+    from .io import atomic_target, mesh_cells, point_field
 
     if not isinstance(mesh, (TriMesh, TetMesh)):
         raise MeshError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh or TetMesh")
@@ -77,7 +77,7 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
     data = {str(k): point_field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
     with atomic_target(p, "mesh file") as tmp:
         try:
-            meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), _cells(mesh), point_data=data,
+            meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), mesh_cells(mesh), point_data=data,
                                       file_format=fmt[0])
         except (ValueError, KeyError, TypeError) as exc:
             raise MeshError(f"could not write {str(p)!r}: {_clean(exc)}") from None

@@ -29,7 +29,7 @@ from .io import load_versioned, save_versioned
 from .lanczos import BlockLanczosFailed, block_eigs
 from .linalg import factorize
 from .threads import blas_limits
-from .model import check_model
+from .model import check_model, is_diagonal
 from .mesh import TriMesh
 
 __all__ = ["ModalBasis", "modal_analysis", "mesh_fingerprint"]
@@ -362,9 +362,7 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
 def _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing):
     """The block method where it applies (falling back to ARPACK when it stops short), else ARPACK."""
     lam = vec = None
-    Mc = M.tocoo()
-    diagonal = bool(np.all((Mc.row == Mc.col) | (Mc.data == 0)))
-    if not diagonal:
+    if not is_diagonal(M):
         # the block method works on M^1/2 of a diagonal (lumped) mass; ARPACK's generalized
         # shift-invert mode takes a consistent M as it is
         if solver == "block":

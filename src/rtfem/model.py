@@ -27,7 +27,7 @@ from .mesh import TriMesh
 from .selection import select_nodes
 
 __all__ = ["Model", "MODEL_MEMBERS", "check_model", "make_model", "FEModel", "ShellModel", "DOF_NAMES", "parse_dofs",
-           "require_lumped_mass"]
+           "require_lumped_mass", "is_diagonal"]
 
 DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
@@ -107,11 +107,16 @@ def make_model(mesh, material: Material, **options):
     return ShellModel(mesh, material, **options)
 
 
+def is_diagonal(M: sp.spmatrix) -> bool:
+    """Whether the sparse matrix has no nonzero entry off its diagonal (a lumped mass)."""
+    C = M.tocoo()
+    return bool(np.all((C.row == C.col) | (C.data == 0)))
+
+
 def require_lumped_mass(model, what: str) -> None:
     """Refuse a model whose constrained mass is not diagonal: ``what`` works with M^-1/2 or M^-1
     of the diagonal (lumped) mass."""
-    M = model.constrained_mass()[0].tocoo()
-    if np.any((M.row != M.col) & (M.data != 0)):
+    if not is_diagonal(model.constrained_mass()[0]):
         raise ModelError(f"{what} needs a diagonal (lumped) mass; this model's is consistent: build it with "
                          "mass='lumped', or use the modal route (modal_analysis takes a consistent mass)")
 

@@ -22,14 +22,10 @@ from scipy.special import roots_jacobi
 from .errors import MeshError
 from .material import Material
 
-__all__ = ["ELEMENTS", "MASSES", "nodes_per_element", "shape_functions", "tet_rule", "element_matrices"]
+__all__ = ["ELEMENTS", "MASSES", "shape_functions", "tet_rule", "element_matrices"]
 
 ELEMENTS = ("tet4", "tet10")
 MASSES = ("lumped", "consistent")
-
-
-def nodes_per_element(element: str) -> int:
-    return 4 if element == "tet4" else 10
 
 
 @lru_cache(maxsize=None)

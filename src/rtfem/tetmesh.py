@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 
 from . import validate
 from .errors import MeshError
-from .mesh import TriMesh, _check_groups, _listing, _merge_classes
+from .mesh import TriMesh, _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes
 
 __all__ = ["TetMesh", "TetReport", "TetQuality", "TET10_EDGES", "TET_FACES"]
 
@@ -327,18 +327,8 @@ def _check_arrays(vertices, tets) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"vertices must be an (n, 3) array, got shape {V.shape}")
     if T_raw.ndim != 2 or T_raw.shape[1] not in (4, 10):
         raise MeshError(f"tets must be an (m, 4) or (m, 10) array of node indices, got shape {T_raw.shape}")
-    if not np.issubdtype(T_raw.dtype, np.integer):
-        if not np.issubdtype(T_raw.dtype, np.floating) or np.any(T_raw != np.round(T_raw)):
-            raise MeshError(f"tet node indices must be integers, got dtype {T_raw.dtype}")
-    T = np.ascontiguousarray(T_raw, dtype=np.int64)
-    bad_v = np.flatnonzero(~np.isfinite(V).all(axis=1))
-    if bad_v.size:
-        raise MeshError(f"non-finite (NaN or infinite) coordinates at node {_listing(bad_v)}: first one is "
-                        f"{V[bad_v[0]].tolist()}; fix or remove these nodes")
-    bad_t = np.flatnonzero(((T < 0) | (T >= V.shape[0])).any(axis=1))
-    if bad_t.size:
-        raise MeshError(f"tet {_listing(bad_t)} refers to a node index outside 0..{V.shape[0] - 1} "
-                        f"(first one: {T[bad_t[0]].tolist()})")
+    T = _integer_cells(T_raw, "tet node indices")
+    _check_finite_and_in_range(V, T, ("node", "nodes"), "tet")
     return V, T
 
 
