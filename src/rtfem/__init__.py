@@ -15,9 +15,10 @@ from .model import Model, ShellModel, make_model
 from .solidmodel import SolidModel
 from .meshing import tetrahedralize
 from .selection import select_nodes
-from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator
+from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator, NonlinearNewmarkSimulator
 from .simulate import Driver, ModalSimulator
 from .sldm import SLDM
+from . import nonlinear
 
 __version__ = "0.1.0"
 
@@ -31,6 +32,7 @@ __all__ = [
     "ImpedanceDriver",
     "Model",
     "NewmarkSimulator",
+    "NonlinearNewmarkSimulator",
     "available_backends",
     "make_model",
     "select_nodes",

@@ -17,13 +17,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from . import validate
-from .errors import ModelError
+from .errors import ModelError, SolverError
 from .linalg import factorize
 from .material import Damping
 from .model import check_model, require_lumped_mass
 from .simulate import ForceInput, check_damping, check_dt, newmark_constants, newmark_velocity
 
-__all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator"]
+__all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator", "NonlinearNewmarkSimulator"]
 
 METHODS = ("newmark", "central")
 
@@ -46,14 +46,29 @@ class DirectSimulator(ForceInput):
     method = ""
     _state: tuple[str, ...] = ()  # names of the state vectors
 
-    def __new__(cls, model=None, dt=None, damping=None, *, method: str = "newmark"):
+    large_deformation = False
+
+    def __new__(cls, model=None, dt=None, damping=None, *, method: str = "newmark", large_deformation: bool = False,
+                **options):
+        if options and not (cls is NonlinearNewmarkSimulator or (cls is DirectSimulator and large_deformation is True)):
+            raise ModelError(f"DirectSimulator got {', '.join(sorted(options))}: those options are for "
+                             "large_deformation=True")
         if cls is DirectSimulator:
             cls = _METHOD_CLASS[validate.choice(method, "method", METHODS)]
+            if validate.flag(large_deformation, "large_deformation"):
+                if cls is not NewmarkSimulator:
+                    raise ModelError("large_deformation=True runs Newton inside implicit Newmark: use method='newmark' "
+                                     "(a shell's massless rotations have no explicit update)")
+                cls = NonlinearNewmarkSimulator
         return super().__new__(cls)
 
-    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
+                 large_deformation: bool | None = None) -> None:
         if method is not None and method != self.method:
             raise ModelError(f"method={validate.show(method)} given to {type(self).__name__}, which is {self.method!r}")
+        if large_deformation is not None and bool(large_deformation) != self.large_deformation:
+            raise ModelError(f"large_deformation={validate.show(large_deformation)} given to {type(self).__name__}; "
+                             "build it with rt.DirectSimulator(model, dt, damping, large_deformation=...)")
         self.model = check_model(model)
         self.dt = check_dt(dt)
         self.damping = check_damping(damping)
@@ -138,8 +153,9 @@ class NewmarkSimulator(DirectSimulator):
     method = "newmark"
     _state = ("_u", "_v", "_a")
 
-    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
-        super().__init__(model, dt, damping, method=method)
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
+                 large_deformation: bool | None = None) -> None:
+        super().__init__(model, dt, damping, method=method, large_deformation=large_deformation)
         model = self.model
         K, dofs = model.constrained_stiffness()
         M, _ = model.constrained_mass()
@@ -242,8 +258,9 @@ class CentralDifferenceSimulator(DirectSimulator):
     method = "central"
     _state = ("_u", "_u_old")
 
-    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None) -> None:
-        super().__init__(model, dt, damping, method=method)
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
+                 large_deformation: bool | None = None) -> None:
+        super().__init__(model, dt, damping, method=method, large_deformation=large_deformation)
         model, dt = self.model, self.dt
         if self.damping.beta != 0 or self.damping.is_modal_only:
             raise ModelError("the central-difference method needs diagonal damping: use Damping(alpha=...) only")
@@ -304,6 +321,176 @@ class CentralDifferenceSimulator(DirectSimulator):
         self._u_old, self._u = self._u, un
         self.steps += 1
         self.time = self.steps * self.dt
+
+
+class NonlinearNewmarkSimulator(DirectSimulator):
+    """Geometrically nonlinear (corotational) full-order dynamics: Newton's method inside an
+    implicit Newmark step on the model's consistent tangent (:meth:`model.nonlinear`). The
+    large-deformation reference; a Driver like the others.
+
+    The step is Hilber-Hughes-Taylor's alpha method (Hilber, Hughes & Taylor 1977):
+    M a_{n+1} + (1 + a)(f(u_{n+1}) + B v_{n+1} - F_{n+1}) - a (f(u_n) + B v_n - F_n) = 0 with
+    a = -``numerical_damping``, beta = (1 - a)^2 / 4, gamma = 1/2 - a. With
+    ``numerical_damping=0`` it is the average-acceleration rule of the linear simulators, which
+    conserves energy for linear models but can gain energy without bound on a nonlinear one
+    when the step leaves the stiff high modes unresolved (Simo & Tarnow 1992; measured here: a
+    cantilever swung by P L^2/EI = 6 gains 14 % in 3 s at dt = 0.01, 0.1 % at 0.0025). The default
+    0.05 damps the unresolved modes and leaves the resolved ones (second-order accurate).
+
+    Rotations (a shell's) are rotation matrices for the elastic forces; their velocities and
+    accelerations (which matter only with rotary inertia or stiffness-proportional damping) are
+    those of the accumulated spins. Damping B = alpha M + beta K0 with K0 the initial stiffness.
+    ``tol``: Newton stops when the residual is below ``tol`` times the force scale.
+    """
+
+    method = "newmark"
+    large_deformation = True
+    _state = ("_u", "_v", "_a", "_g")
+
+    def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
+                 large_deformation: bool | None = None, numerical_damping: float = 0.05, tol: float = 1e-8,
+                 max_iterations: int = 25) -> None:
+        super().__init__(model, dt, damping, method=method, large_deformation=large_deformation)
+        from .nonlinear import Configuration
+
+        model = self.model
+        nd_ = validate.number(numerical_damping, "numerical_damping", "a number in [0, 1/3]")
+        if not 0.0 <= nd_ <= 1.0 / 3.0:
+            raise ModelError(f"numerical_damping={validate.show(numerical_damping)} must be in [0, 1/3] (HHT's -alpha; "
+                             "0 is the average-acceleration rule)")
+        self.numerical_damping = nd_
+        self._hht = -nd_
+        beta, gamma = (1 + nd_) ** 2 / 4, 0.5 + nd_
+        self._gamma = gamma
+        self.system = model.nonlinear()
+        free = self._solved = self.system.free
+        M = sp.csr_matrix(model.M)[free][:, free]
+        B = self.damping.matrix(M, model.K[free][:, free])
+        self._c = newmark_constants(self.dt, beta, gamma)
+        self._M, self._B = M.tocsr(), sp.csr_matrix(B)
+        self._dyn = (self._c[0] * self._M + (1 - nd_) * self._c[1] * self._B).tocsr()
+        self.tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-8")
+        self.max_iterations = validate.count(max_iterations, "max_iterations", 1, 1000)
+        nd = free.size
+        self._u, self._v, self._a, self._g = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
+        self.configuration = Configuration.rest(model.n_nodes, model.dofs_per_node == 6)
+        self._free = None  # (step, configuration, u, g, factorization) of the no-new-load step
+        self.iterations = 0  # Newton iterations of the last step
+
+    def _state_changed(self) -> None:
+        from .nonlinear import Configuration
+
+        conf = Configuration.rest(self.model.n_nodes, self.model.dofs_per_node == 6)
+        full = np.zeros(self.model.n_dofs)
+        full[self._solved] = self._u
+        conf.update(full.reshape(self.model.n_nodes, -1))
+        self.configuration = conf
+        self._free = None
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """A copy of the state; on a shell also the nodal rotations (n, 3) as rotation vectors."""
+        out = super().get_state()
+        if self.configuration.Q is not None:
+            out["rotations"] = self.configuration.rotation_vectors()
+        return out
+
+    def set_state(self, state) -> None:
+        """Restore a state from :meth:`get_state` (checked whole before anything changes)."""
+        from .nonlinear import rotation_matrices
+
+        rot = None
+        if isinstance(state, Mapping) and self.configuration.Q is not None:
+            if "rotations" not in state:
+                raise ModelError("state needs 'rotations' (n, 3) on a shell, as get_state() returns")
+            rot = validate.real_array(state["rotations"], "state['rotations']", 2)
+            if rot.shape != (self.n_nodes, 3):
+                raise ModelError(f"state['rotations'] must have shape ({self.n_nodes}, 3), got {rot.shape}")
+            state = {k: v for k, v in state.items() if k != "rotations"}
+        super().set_state(state)
+        if rot is not None:
+            self.configuration.Q = rotation_matrices(rot)
+
+    def _kinematics(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c0, c2, c3 = self._c[0], self._c[2], self._c[3]
+        a = c0 * (u - self._u) - c2 * self._v - c3 * self._a
+        return a, self._v + self.dt * ((1 - self._gamma) * self._a + self._gamma * a)
+
+    def _solve_step(self, F: np.ndarray):
+        """Newton on the HHT residual from the current state; returns (configuration, u, g,
+        last factorization) without changing the state."""
+        al = self._hht
+        conf = self.configuration.copy()
+        u = self._u.copy()
+        n, dpn = self.model.n_nodes, self.model.dofs_per_node
+        Ff = F[self._solved]
+        fac = None
+        for it in range(self.max_iterations):
+            f, K, _ = self.system.evaluate(conf)
+            a, v = self._kinematics(u)
+            g = f[self._solved] + self._B @ v - Ff
+            r = self._M @ a + (1 + al) * g - al * self._g
+            ref = np.linalg.norm(Ff) + np.linalg.norm(f) + np.linalg.norm(self._M @ a) + 1e-300
+            if np.linalg.norm(r) <= self.tol * ref and it > 0:
+                self.iterations = it
+                return conf, u, g, fac
+            fac = self.system.solver((self._dyn + (1 + al) * K).tocsr(), "the Newmark tangent")
+            delta = -fac.solve(r)
+            u = u + delta
+            full = np.zeros(n * dpn)
+            full[self._solved] = delta
+            conf.update(full.reshape(n, dpn))
+        raise SolverError(f"Newton did not converge in {self.max_iterations} iterations at step {self.steps + 1} "
+                          f"(residual {np.linalg.norm(r):.3g}): the step is too large for this motion; use a "
+                          "smaller dt (the state is unchanged)")
+
+    def _commit(self, conf, u: np.ndarray, g: np.ndarray) -> None:
+        self._a, self._v = self._kinematics(u)
+        self._u, self._g = u, g
+        self.configuration = conf
+        self._free = None
+        self.steps += 1
+        self.time = self.steps * self.dt
+
+    def _free_step(self):
+        if self._free is None or self._free[0] != self.steps:
+            self._free = (self.steps, *self._solve_step(np.zeros(self.model.n_dofs)))
+        return self._free
+
+    def predict(self, node: int) -> np.ndarray:
+        """Displacement (3,) of ``node`` after one more step with no new load (a Newton solve,
+        kept for the step that follows)."""
+        node = self._node(node)
+        return self._free_step()[1].u[node].copy()
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """W (3x3): the node's displacement per unit force after one step, linearized at the
+        no-load step (the inverse Newmark tangent's block)."""
+        node = self._node(node)
+        fac = self._free_step()[4]
+        rows, dirs = self._node_rows(node)
+        W = np.zeros((3, 3))
+        if rows.size and fac is not None:
+            E = np.zeros((self._solved.size, rows.size))
+            E[rows, np.arange(rows.size)] = 1.0
+            # the load enters HHT's residual weighted by 1 + alpha
+            W[np.ix_(dirs, dirs)] = (1 + self._hht) * fac.solve(E).reshape(self._solved.size, rows.size)[rows]
+        return W
+
+    def step(self, forces=None) -> None:
+        """Advance one step; ``forces`` (dead loads) act at the end of the step."""
+        F = self.model.force_vector(self._as_array(forces), warn=False)
+        if not F.any():
+            _, conf, u, g, _ = self._free_step()
+        else:
+            conf, u, g, _ = self._solve_step(F)
+        self._commit(conf, u, g)
+
+    def displacements(self) -> np.ndarray:
+        return self.configuration.u.copy()
+
+    def energy(self) -> float:
+        """Kinetic plus strain energy (the undamped, unloaded motion keeps it)."""
+        return float(0.5 * self._v @ (self._M @ self._v)) + self.system.energy(self.configuration)
 
 
 _METHOD_CLASS = {"newmark": NewmarkSimulator, "central": CentralDifferenceSimulator}

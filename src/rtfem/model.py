@@ -481,7 +481,8 @@ class FEModel:
             self._cache["nd"] = nested_dissection(self._node_graph(), np.asarray(self.mesh.vertices))
         return expand_node_order(self._cache["nd"], self.dofs_per_node, dofs)
 
-    def solve_static(self, forces, *, return_rotations: bool = False, warn: bool = True) -> np.ndarray:
+    def solve_static(self, forces, *, return_rotations: bool = False, warn: bool = True,
+                     large_deformation: bool = False, **options) -> np.ndarray:
         """Static displacements under nodal loads: K U = F with the fixes applied.
 
         Returns (n, 3) translations, or all dofs (n, dofs_per_node: rotations too on a shell) when
@@ -490,9 +491,36 @@ class FEModel:
         itself, such as the static correction's).
         Solving the full system with zero moments is exactly the condensed problem of Eq. 5
         (K_condensed U_t = F_t), without forming the condensed matrix.
+
+        ``large_deformation=True``: the geometrically nonlinear (corotational) equilibrium under
+        dead loads, by Newton with load steps (:func:`rtfem.nonlinear.solve_static`, which takes
+        ``options`` such as ``steps``, ``tol``, ``prescribed`` and returns the whole result);
+        rotations come as rotation vectors.
         """
+        large_deformation = validate.flag(large_deformation, "large_deformation")
+        if large_deformation:
+            from .nonlinear import solve_static
+
+            res = solve_static(self, forces, **options)
+            if return_rotations and res.rotations is not None:
+                return np.hstack([res.displacements, res.rotations])
+            return res.displacements
+        if options:
+            raise ModelError(f"solve_static got {', '.join(sorted(options))}: those options are for "
+                             "large_deformation=True")
         F = self.force_vector(forces, warn=warn)
         return self._solve(F, return_rotations)
+
+    def nonlinear(self):
+        """The geometrically nonlinear (corotational) system of this model with its current fixes
+        (:class:`rtfem.nonlinear.NonlinearSystem`), cached until the fixes change."""
+        from .nonlinear import NonlinearSystem
+
+        key = self.fixed.tobytes()
+        hit = self._cache.get("nonlinear")
+        if hit is None or hit[0] != key:
+            hit = self._cache["nonlinear"] = (key, NonlinearSystem(self))
+        return hit[1]
 
     def unit_load_response(self, node: int, direction: int) -> np.ndarray:
         """Static (n, 3) displacements under a unit force at ``node`` along axis ``direction``.
@@ -655,6 +683,11 @@ class ShellModel(FEModel):
 
     def _node_graph(self) -> sp.csr_matrix:
         return self.mesh.adjacency()
+
+    def _corotational(self) -> tuple[shell.CorotationalTriangles, np.ndarray]:
+        """The corotational element kernel and the cells (triangles) it acts on."""
+        T = np.asarray(self.mesh.triangles)
+        return shell.CorotationalTriangles(np.asarray(self.mesh.vertices)[T], self.material, self.membrane), T
 
     def _pieces(self) -> tuple[int, np.ndarray]:
         return self.mesh.components()

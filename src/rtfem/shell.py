@@ -300,3 +300,206 @@ def element_mass(area: np.ndarray, material: Material, rotary_inertia: bool = Fa
     if rotary_inertia:
         out[:, 3:] = (m * material.thickness**2 / 12.0)[:, None]
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# corotational (geometrically nonlinear) triangle
+#
+# The element frame follows the deformed nodes (e1 along side 1-2, e3 the normal: the same
+# side-aligned frame as :func:`local_frames`); the linear 18x18 local stiffness acts on the
+# deformational dofs measured in it (Rankin & Brogan 1986; Felippa & Haugen, CMAME 194 (2005)
+# 2285-2335): local translations of corners 2 and 3 relative to corner 1, and corner rotations
+# axial(skew(R_e Q_i R0^T)) (the nodal rotation Q_i relative to the rotation of the element
+# frame from R0 to R_e; equal to the rotation vector up to O(theta^3), small by construction).
+# The energy is 1/2 d^T k d; its gradient and exact Hessian come from second-order forward
+# differentiation of d (:class:`_Jet`), with the nodal rotations varied by spins w_i
+# (Q_i <- exp([w_i]x) Q_i): the consistent tangent, so Newton converges quadratically.
+
+
+class _Jet:
+    """Batched scalars with their gradient and Hessian over n variables (value (E,), g (E, n),
+    h (E, n, n)): second-order forward differentiation of + - * / and sqrt."""
+
+    __slots__ = ("v", "g", "h")
+
+    def __init__(self, v, g, h):
+        self.v, self.g, self.h = v, g, h
+
+    @classmethod
+    def variable(cls, v: np.ndarray, index: int, n: int) -> "_Jet":
+        g = np.zeros((v.shape[0], n))
+        g[:, index] = 1.0
+        return cls(v, g, np.zeros((v.shape[0], n, n)))
+
+    def __add__(self, o):
+        if isinstance(o, _Jet):
+            return _Jet(self.v + o.v, self.g + o.g, self.h + o.h)
+        return _Jet(self.v + o, self.g, self.h)
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        return _Jet(-self.v, -self.g, -self.h)
+
+    def __sub__(self, o):
+        return self + (-o)
+
+    def __rsub__(self, o):
+        return (-self) + o
+
+    def __mul__(self, o):
+        if isinstance(o, _Jet):
+            ga, gb = self.g, o.g
+            outer = ga[:, :, None] * gb[:, None, :]
+            h = self.v[:, None, None] * o.h + o.v[:, None, None] * self.h + outer + outer.transpose(0, 2, 1)
+            return _Jet(self.v * o.v, self.v[:, None] * gb + o.v[:, None] * ga, h)
+        o = np.asarray(o)
+        return _Jet(self.v * o, self.g * o[..., None], self.h * o[..., None, None])
+
+    __rmul__ = __mul__
+
+    def _chain(self, f, d1, d2) -> "_Jet":
+        g = d1[:, None] * self.g
+        h = d1[:, None, None] * self.h + d2[:, None, None] * self.g[:, :, None] * self.g[:, None, :]
+        return _Jet(f, g, h)
+
+    def sqrt(self) -> "_Jet":
+        f = np.sqrt(self.v)
+        return self._chain(f, 0.5 / f, -0.25 / f**3)
+
+    def reciprocal(self) -> "_Jet":
+        f = 1.0 / self.v
+        return self._chain(f, -f * f, 2 * f**3)
+
+    def __truediv__(self, o):
+        return self * (o.reciprocal() if isinstance(o, _Jet) else 1.0 / np.asarray(o))
+
+
+def _jdot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _jcross(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _spin(k: int) -> np.ndarray:
+    """[e_k]x, the cross-product matrix of a unit axis."""
+    S = np.zeros((3, 3))
+    i, j = (k + 1) % 3, (k + 2) % 3
+    S[j, i], S[i, j] = 1.0, -1.0
+    return S
+
+
+_SPIN = np.stack([_spin(k) for k in range(3)])  # (3, 3, 3)
+_SPIN2 = 0.5 * (np.einsum("lpq,mqs->lmps", _SPIN, _SPIN) + np.einsum("mpq,lqs->lmps", _SPIN, _SPIN))
+_AXIAL = ((2, 1), (0, 2), (1, 0))  # axial(skew(A))_c = (A[p, q] - A[q, p]) / 2
+
+# the 15 differentiation variables z = (a, b, w_1, w_2, w_3) (a = x2 - x1, b = x3 - x1, w_i the
+# corner spins) -> the 18 element dofs (x_i, w_i per corner): d/d(dofs) = d/dz @ _P
+_P = np.zeros((15, 18))
+for _j in range(3):
+    _P[_j, [_j, 6 + _j]] = (-1.0, 1.0)
+    _P[3 + _j, [_j, 12 + _j]] = (-1.0, 1.0)
+    for _i in range(3):
+        _P[6 + 3 * _i + _j, 6 * _i + 3 + _j] = 1.0
+
+
+class CorotationalTriangles:
+    """The corotational shell triangles of one mesh: the undeformed frames, local corner
+    coordinates and linear local stiffnesses, kept once; :meth:`evaluate` gives the element
+    forces, consistent tangents and energies of a deformed configuration."""
+
+    def __init__(self, coords: np.ndarray, material: Material, membrane: str = "opt") -> None:
+        self.R0, xy, area = local_frames(coords)
+        self.x2, self.x3, self.y3 = xy[:, 1, 0], xy[:, 2, 0], xy[:, 2, 1]
+        self.k = local_stiffness(xy, area, material, membrane)
+
+    def deformational(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """The local deformational dofs d (E, 18) of corners x (E, 3, 3) with rotations Q (E, 3, 3, 3)."""
+        R, _, _ = local_frames(x)
+        d = np.zeros((x.shape[0], 18))
+        a, b = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+        d[:, 6] = np.linalg.norm(a, axis=1) - self.x2
+        d[:, 12] = np.einsum("ej,ej->e", R[:, 0], b) - self.x3
+        d[:, 13] = np.einsum("ej,ej->e", R[:, 1], b) - self.y3
+        for i in range(3):
+            A = R @ Q[:, i] @ self.R0.transpose(0, 2, 1)
+            for c, (p, q) in enumerate(_AXIAL):
+                d[:, 6 * i + 3 + c] = 0.5 * (A[:, p, q] - A[:, q, p])
+        return d
+
+    def energy(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """Strain energy per element (E,)."""
+        d = self.deformational(x, Q)
+        return 0.5 * np.einsum("ei,eij,ej->e", d, self.k, d)
+
+    def evaluate(self, x: np.ndarray, Q: np.ndarray, tangent: bool = True):
+        """Element forces (E, 18) (node-major: force, then moment about the spin axes), the
+        consistent tangents (E, 18, 18) (None unless ``tangent``) and energies (E,), for deformed
+        corner positions x (E, 3, 3) and corner rotations Q (E, 3, 3, 3)."""
+        E = x.shape[0]
+        a0, b0 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+        a = [_Jet.variable(a0[:, j], j, 6) for j in range(3)]
+        b = [_Jet.variable(b0[:, j], 3 + j, 6) for j in range(3)]
+        la = _jdot(a, a).sqrt()
+        e1 = [c / la for c in a]
+        n = _jcross(a, b)
+        ln = _jdot(n, n).sqrt()
+        e3 = [c / ln for c in n]
+        e2 = _jcross(e3, e1)
+        rows = (e1, e2, e3)
+        Rv = np.stack([np.stack([c.v for c in r], 1) for r in rows], 1)  # (E, 3, 3)
+        Rg = np.stack([np.stack([c.g for c in r], 1) for r in rows], 1)  # (E, 3, 3, 6)
+        Rh = np.stack([np.stack([c.h for c in r], 1) for r in rows], 1)  # (E, 3, 3, 6, 6)
+        trans = {6: la - self.x2, 12: _jdot(e1, b) - self.x3, 13: _jdot(e2, b) - self.y3}
+
+        d = np.zeros((E, 18))
+        Jz = np.zeros((E, 18, 15))
+        for row, jet in trans.items():
+            d[:, row] = jet.v
+            Jz[:, row, :6] = jet.g
+        rot = []
+        for i in range(3):
+            C = Q[:, i] @ self.R0.transpose(0, 2, 1)
+            A = Rv @ C
+            dA_ab = np.einsum("epqk,eqs->epsk", Rg, C)
+            RX = np.einsum("epq,lqr->eprl", Rv, _SPIN)  # R [e_l]x
+            dA_w = np.einsum("eprl,ers->epsl", RX, C)
+            w = slice(6 + 3 * i, 9 + 3 * i)
+            for c, (p, q) in enumerate(_AXIAL):
+                r = 6 * i + 3 + c
+                d[:, r] = 0.5 * (A[:, p, q] - A[:, q, p])
+                Jz[:, r, :6] = 0.5 * (dA_ab[:, p, q] - dA_ab[:, q, p])
+                Jz[:, r, w] = 0.5 * (dA_w[:, p, q] - dA_w[:, q, p])
+            rot.append((C, RX, w))
+        g = np.einsum("eij,ej->ei", self.k, d)  # local forces k d
+        energy = 0.5 * np.einsum("ei,ei->e", g, d)
+        J = Jz @ _P
+        forces = np.einsum("eim,ei->em", J, g)
+        if not tangent:
+            return forces, None, energy
+
+        Hz = np.zeros((E, 15, 15))
+        Hz[:, :6, :6] = sum(g[:, row, None, None] * jet.h for row, jet in trans.items())
+        for i, (C, RX, w) in enumerate(rot):
+            gi = g[:, 6 * i + 3:6 * i + 6]  # (E, 3)
+            # sum_c g_c d^2 axial_c(A): the contraction of A's Hessian with the skew weights
+            Wt = np.zeros((E, 3, 3))
+            for c, (p, q) in enumerate(_AXIAL):
+                Wt[:, p, q] += 0.5 * gi[:, c]
+                Wt[:, q, p] -= 0.5 * gi[:, c]
+            RC = np.einsum("eps,eqs->epq", Wt, C)  # sum_ps Wt_ps (R M C)_ps = sum_pqr RC_pr R_pq M_qr
+            Hz[:, :6, :6] += np.einsum("epq,epqkl->ekl", RC, Rh)
+            mixed = np.einsum("epr,epqk,lqr->ekl", RC, Rg, _SPIN, optimize=True)  # sum Wt (R_k [e_l]x C)
+            Hz[:, :6, w] += mixed
+            Hz[:, w, :6] += mixed.transpose(0, 2, 1)
+            Hz[:, w, w] += np.einsum("epr,epq,lmqr->elm", RC, Rv, _SPIN2, optimize=True)
+        K = J.transpose(0, 2, 1) @ (self.k @ J) + _P.T @ Hz @ _P
+        # the spins are multiplicative (Q <- exp([w]x) Q): the derivative of the moment residual
+        # after the update differs from the Hessian by -1/2 [m]x on each corner's spin block
+        for i in range(3):
+            m = forces[:, 6 * i + 3:6 * i + 6]
+            s = slice(6 * i + 3, 6 * i + 6)
+            K[:, s, s] -= 0.5 * np.einsum("ek,kpq->epq", m, _SPIN)
+        return forces, K, energy

@@ -124,3 +124,89 @@ def _stiffness_point(G: np.ndarray, wdet: np.ndarray, lam: float, mu: float) -> 
     K = lam * np.einsum("mia,mjb->miajb", G, G) + mu * np.einsum("mib,mja->miajb", G, G)
     K += mu * gg[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
     return (wdet[:, None, None, None, None] * K).reshape(m, 3 * k, 3 * k)
+
+
+# ---------------------------------------------------------------------------------------------
+# corotational (geometrically nonlinear) tets: the corotated linear material at each
+# quadrature point. With the polar decomposition F = R S, the first Piola stress
+# P = 2 mu (F - R) + lambda tr(S - I) R is exactly R times the linear stress of the strain
+# S - I (the warped-stiffness force R k (R^T x - X) of Mueller et al. 2002 and SOFA's
+# corotational tets, for the linear tet); it is the gradient of the energy density
+# mu |F - R|^2 + lambda/2 tr(S - I)^2 (McAdams et al., SIGGRAPH 2011), whose exact
+# derivative dP/dF gives the consistent (symmetric) tangent: rotation invariant, and the
+# linear element at small strain.
+
+def polar(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and symmetric stretch S of F = R S for a batch (m, 3, 3); an inverted F
+    (det < 0) keeps a proper rotation with the smallest principal stretch negative."""
+    U, s, Vt = np.linalg.svd(F)
+    flip = np.linalg.det(U @ Vt) < 0
+    if flip.any():
+        U[flip, :, 2] *= -1.0
+        s[flip, 2] *= -1.0
+    R = U @ Vt
+    S = np.einsum("mki,mk,mkj->mij", Vt, s, Vt)
+    return R, S
+
+
+def corotated_stress(F: np.ndarray, lam: float, mu: float, tangent: bool = True):
+    """First Piola stress P (m, 3, 3), energy density (m,) and, if ``tangent``, dP/dF
+    (m, 3, 3, 3, 3) (dP_ab / dF_cd) of the corotated linear material."""
+    R, S = polar(F)
+    I = np.eye(3)
+    trE = np.einsum("mii->m", S) - 3.0
+    P = 2 * mu * (F - R) + (lam * trE)[:, None, None] * R
+    psi = mu * np.einsum("mij,mij->m", F - R, F - R) + 0.5 * lam * trE**2
+    if not tangent:
+        return P, psi, None
+    m = F.shape[0]
+    # unit perturbations dF = e_c e_d^T: R^T dF - dF^T R is skew with axial vector y, and
+    # (tr S I - S) w = y gives dR = R [w]x (from F = R S, dS symmetric)
+    B = np.zeros((m, 3, 3, 3, 3))  # [c, d] -> R^T e_c e_d^T
+    for c in range(3):
+        for d in range(3):
+            B[:, c, d, :, d] = R[:, c, :]
+    A = B - B.swapaxes(-1, -2)
+    y = np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], axis=-1)  # (m, 3, 3, 3)
+    Tm = (trE + 3.0)[:, None, None] * I - S
+    w = np.linalg.solve(Tm[:, None, None], y[..., None])[..., 0]
+    W = np.zeros((m, 3, 3, 3, 3))
+    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    dR = np.einsum("mab,mcdbe->mcdae", R, W)
+    dP = (2 * mu * np.eye(9).reshape(3, 3, 3, 3)[None].transpose(0, 3, 4, 1, 2)
+          + (lam * trE - 2 * mu)[:, None, None, None, None] * dR
+          + lam * R[:, :, :, None, None] * R[:, None, None])  # tr(R^T e_c e_d^T) = R_cd
+    return P, psi, dP.transpose(0, 3, 4, 1, 2)  # -> [a, b, c, d]
+
+
+class CorotationalTets:
+    """The corotational tets of one mesh: reference shape gradients and weights per
+    quadrature point, kept once; :meth:`evaluate` gives element forces, tangents, energies."""
+
+    def __init__(self, X: np.ndarray, material: Material, element: str) -> None:
+        self.lam, self.mu = _lame(material)
+        pts = np.zeros((1, 3)) if element == "tet4" else tet_rule(2)[0]
+        wts = np.full(1, 1.0 / 6.0) if element == "tet4" else tet_rule(2)[1]
+        _, dN = shape_functions(element, pts)
+        self.G, self.wdet = [], []
+        for q in range(pts.shape[0]):
+            G, det = _gradients(X, dN[q])
+            self.G.append(G)
+            self.wdet.append(wts[q] * det)
+
+    def evaluate(self, x: np.ndarray, tangent: bool = True):
+        """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies
+        (m,) for deformed nodes x (m, k, 3)."""
+        m, k = x.shape[:2]
+        f = np.zeros((m, k, 3))
+        K = np.zeros((m, k, 3, k, 3)) if tangent else None
+        energy = np.zeros(m)
+        for G, wdet in zip(self.G, self.wdet):
+            F = np.einsum("mka,mkb->mab", x, G)
+            P, psi, dP = corotated_stress(F, self.lam, self.mu, tangent)
+            f += wdet[:, None, None] * np.einsum("mab,mib->mia", P, G)
+            energy += wdet * psi
+            if tangent:
+                K += wdet[:, None, None, None, None] * np.einsum("mib,mabcd,mjd->miajc", G, dP, G)
+        return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy

@@ -142,6 +142,11 @@ class SolidModel(FEModel):
     def _node_graph(self) -> sp.csr_matrix:
         return self.tetmesh.adjacency()
 
+    def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
+        """The corotational element kernel and the cells (tets) it acts on."""
+        T = np.asarray(self.tetmesh.tets)
+        return solid.CorotationalTets(np.asarray(self.tetmesh.vertices)[T], self.material, self.element), T
+
     def _pieces(self) -> tuple[int, np.ndarray]:
         return self.tetmesh.components()
 

@@ -1,0 +1,311 @@
+"""Geometrically nonlinear (corotational) full-order statics: the accuracy reference for large
+deformations (issue 14).
+
+:class:`NonlinearSystem` assembles a model's corotational internal forces and consistent
+tangent (shell triangles: :class:`rtfem.shell.CorotationalTriangles`; tets:
+:class:`rtfem.solid.CorotationalTets`) over a :class:`Configuration` (nodal translations and, on a
+shell, nodal rotation matrices updated by spins). :func:`solve_static` is Newton's method with
+adaptive load stepping (Crisfield, Non-linear Finite Element Analysis of Solids and Structures,
+vol. 1, ch. 9): dead loads, supports held or moved to prescribed positions. The dynamic reference
+(Newton inside implicit Newmark) is :class:`rtfem.fullorder.NonlinearNewmarkSimulator`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from . import validate
+from .errors import ModelError, SolverError
+from .linalg import factorize
+
+__all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static", "rotation_matrices"]
+
+
+def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
+    """exp([psi]x) for rotation vectors (k, 3): rotation matrices (k, 3, 3)."""
+    return Rotation.from_rotvec(np.asarray(rotvec, float).reshape(-1, 3)).as_matrix().reshape(-1, 3, 3)
+
+
+@dataclass
+class Configuration:
+    """A deformed state: translations u (n, 3) and, on a model with rotations, the nodal
+    rotation matrices Q (n, 3, 3) (None on a solid)."""
+
+    u: np.ndarray
+    Q: np.ndarray | None
+
+    @classmethod
+    def rest(cls, n_nodes: int, rotations: bool) -> "Configuration":
+        return cls(np.zeros((n_nodes, 3)), np.tile(np.eye(3), (n_nodes, 1, 1)) if rotations else None)
+
+    def copy(self) -> "Configuration":
+        return Configuration(self.u.copy(), None if self.Q is None else self.Q.copy())
+
+    def update(self, delta: np.ndarray) -> None:
+        """Add an increment of all dofs (n, dofs_per_node): translations add, rotations compose
+        (Q <- exp([w]x) Q with the spins w)."""
+        self.u += delta[:, :3]
+        if self.Q is not None:
+            moved = np.flatnonzero(np.any(delta[:, 3:] != 0, axis=1))
+            if moved.size:
+                self.Q[moved] = rotation_matrices(delta[moved, 3:]) @ self.Q[moved]
+
+    def rotation_vectors(self) -> np.ndarray | None:
+        """The nodal rotations as rotation vectors (n, 3) (None on a solid)."""
+        return None if self.Q is None else Rotation.from_matrix(self.Q).as_rotvec()
+
+    def dofs(self) -> np.ndarray:
+        """(n, dofs_per_node): translations, then rotation vectors on a shell."""
+        return self.u if self.Q is None else np.hstack([self.u, self.rotation_vectors()])
+
+
+class NonlinearSystem:
+    """The assembled corotational internal forces and consistent tangent of a model on its
+    free dofs (fixed dofs are eliminated; prescribed motions of them enter through the
+    configuration). Built by ``model.nonlinear()``; the element kernel and connectivity come
+    from the model's ``_corotational()``."""
+
+    def __init__(self, model) -> None:
+        model.check_restrained()
+        self.model = model
+        self.kernel, self.cells = model._corotational()
+        self.dpn = model.dofs_per_node
+        self.rotations = self.dpn == 6
+        n_dofs = model.n_dofs
+        ne, k = self.cells.shape
+        nd = k * self.dpn
+        self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
+        self.free = model.free_dofs
+        pos = np.full(n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        pe = pos[self.dofs]
+        rows = np.repeat(pe, nd, axis=1).ravel()
+        cols = np.tile(pe, (1, nd)).ravel()
+        self._keep = np.flatnonzero((rows >= 0) & (cols >= 0))
+        nf = self.free.size
+        keys = rows[self._keep].astype(np.int64) * nf + cols[self._keep]
+        uniq, self._slot = np.unique(keys, return_inverse=True)
+        indices = (uniq % nf).astype(np.int32)
+        indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
+        self._pattern = (indices, indptr, nf)
+        self.n_evaluations = 0
+
+    def evaluate(self, conf: Configuration, tangent: bool = True):
+        """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
+        unless ``tangent``) and the strain energy."""
+        X = np.asarray(self.model.mesh.vertices)
+        x = (X + conf.u)[self.cells]
+        if self.rotations:
+            fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
+        else:
+            fe, Ke, energy = self.kernel.evaluate(x, tangent)
+        self.n_evaluations += 1
+        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
+        K = None
+        if tangent:
+            indices, indptr, nf = self._pattern
+            data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
+            K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
+        return f, K, float(energy.sum())
+
+    def energy(self, conf: Configuration) -> float:
+        """The strain energy of a configuration."""
+        return self.evaluate(conf, tangent=False)[2]
+
+    def solver(self, K: sp.csr_matrix, what: str):
+        """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
+        rest), LU otherwise (a shell's spin tangent off equilibrium)."""
+        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
+        order = lambda: self.model.dof_order(self.free)  # noqa: E731
+        if sym:
+            try:
+                return factorize(K, spd=True, what=what, order=order)
+            except SolverError:
+                pass  # indefinite (past a limit point, or compressed): LU below
+        return factorize(K, spd=False, what=what, order=order)
+
+
+@dataclass
+class NonlinearResult:
+    """What :func:`solve_static` found.
+
+    ``displacements`` (n, 3); ``rotations`` (n, 3) rotation vectors on a shell (None on a solid);
+    ``reactions`` (n, 3): the internal forces at the held dofs (the supports' forces on the
+    model, with sign: minus the load they carry); ``load_factors``: the converged load steps;
+    ``residuals``: per load step, the free-dof residual norm before each Newton iteration and
+    after the last; ``converged``; ``energy``: the strain energy; ``seconds``.
+    """
+
+    displacements: np.ndarray
+    rotations: np.ndarray | None
+    reactions: np.ndarray
+    load_factors: list[float] = field(default_factory=list)
+    residuals: list[list[float]] = field(default_factory=list)
+    converged: bool = True
+    energy: float = 0.0
+    seconds: float = 0.0
+    configuration: Configuration | None = None
+
+    @property
+    def iterations(self) -> int:
+        return sum(len(r) - 1 for r in self.residuals)
+
+
+def _prescribed(model, prescribed) -> np.ndarray:
+    """Prescribed values (n, dofs_per_node) on fixed dofs (zeros elsewhere), checked."""
+    n, dpn = model.n_nodes, model.dofs_per_node
+    P = np.zeros((n, dpn))
+    if prescribed is None:
+        return P
+    A = validate.forces(prescribed, n, tuple(sorted({3, dpn})))
+    P[:, :A.shape[1]] = A
+    loose = np.flatnonzero((~model.fixed & (P != 0)).any(axis=1))
+    if loose.size:
+        raise ModelError(f"prescribed motion on dofs that are not fixed (first: node {loose[0]}): a support moves only "
+                         "where model.fix(...) holds it; fix those dofs or drop them from prescribed")
+    if dpn == 6:
+        partial = np.flatnonzero((P[:, 3:] != 0).any(axis=1) & ~model.fixed[:, 3:].all(axis=1))
+        if partial.size:
+            raise ModelError(f"node {partial[0]}: a prescribed rotation needs all three rotations of the node fixed")
+    return P
+
+
+def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: float = 1e-9,
+                 max_iterations: int = 30, max_cuts: int = 12, progress=None) -> NonlinearResult:
+    """Geometrically nonlinear static equilibrium f_int(x) = F by Newton's method with load steps.
+
+    Parameters
+    ----------
+    model : a model with ``nonlinear()`` (ShellModel, SolidModel).
+    forces : dead nodal loads ((n, 3) array or {node: (fx, fy, fz)}; moments (n, 6) on a shell).
+    prescribed : motions of fixed dofs ((n, 3) translations, or (n, 6) with rotation vectors on a
+        shell whose rotations are all fixed there), applied with the load factor. A rigid
+        motion of all the supports moves the model without straining it.
+    steps : initial number of equal load steps; a step whose Newton iterations do not converge
+        is halved (at most ``max_cuts`` times in a row) and retried from the last equilibrium.
+    tol : convergence: free-dof residual <= tol * (|lambda F| + |f_int|) (or a correction below
+        1e-12 of the model's size, for a motion with no force to measure against).
+    progress : callback(done, total, message) per converged load step.
+
+    Raises SolverError when a load step cannot be halved further; the error's ``result`` holds
+    the last equilibrium reached (nothing computed is lost).
+    """
+    t0 = time.perf_counter()
+    system = model.nonlinear()
+    F = model.force_vector(forces if forces is not None else np.zeros((model.n_nodes, 3)))
+    P = _prescribed(model, prescribed)
+    steps = validate.count(steps, "steps", 1, 10**6)
+    tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
+    n, dpn = model.n_nodes, model.dofs_per_node
+    free = system.free
+    fixed_mask = model.fixed
+    conf = Configuration.rest(n, dpn == 6)
+    applied = 0.0  # load factor of the last equilibrium
+    result = NonlinearResult(np.zeros((n, 3)), None, np.zeros((n, 3)))
+    step = 1.0 / steps
+    cuts = 0
+    size = float(np.ptp(model.mesh.vertices, axis=0).max())
+    previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
+    while applied < 1.0 - 1e-12:
+        target = min(1.0, applied + step)
+        trial = conf.copy()
+        if previous is not None:  # secant predictor: continue the last step's motion
+            _extrapolate(trial, previous[0], (target - applied) / previous[1])
+        _move_supports(trial, P, fixed_mask, applied, target)
+        history, ok = _newton(system, trial, target * F, free, tol, max_iterations, size)
+        if ok:
+            previous = (conf, target - applied)
+            conf, applied = trial, target
+            result.load_factors.append(target)
+            result.residuals.append(history)
+            if cuts == 0 and len(history) <= 6:
+                step *= 2.0  # easy going: longer steps
+            cuts = 0
+            if progress is not None:
+                progress(applied, 1.0, f"load factor {applied:.3g}")
+            continue
+        cuts += 1
+        if cuts > max_cuts:
+            _fill(result, system, conf, applied, t0, converged=False)
+            exc = SolverError(
+                f"Newton did not converge past load factor {applied:.4g} (step halved {max_cuts} times; residual "
+                f"{history[-1]:.3g} after {len(history) - 1} iterations): the structure may buckle or snap there, or "
+                "the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
+            exc.result = result
+            raise exc
+        step *= 0.5
+    _fill(result, system, conf, 1.0, t0, converged=True)
+    return result
+
+
+def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
+    """Move ``conf`` on by ``ratio`` times its change since ``before`` (rotations by the
+    relative rotation's vector)."""
+    conf.u += ratio * (conf.u - before.u)
+    if conf.Q is not None:
+        rel = Rotation.from_matrix(conf.Q @ before.Q.transpose(0, 2, 1)).as_rotvec()
+        conf.Q = rotation_matrices(ratio * rel) @ conf.Q
+
+
+def _move_supports(conf: Configuration, P: np.ndarray, fixed: np.ndarray, start: float, end: float) -> None:
+    """Set the fixed dofs to the prescribed motion at load factor ``end`` (from ``start``)."""
+    if not P.any():
+        return
+    held = fixed[:, :3]
+    conf.u[held] = end * P[:, :3][held]
+    if conf.Q is not None:
+        rot = np.flatnonzero(fixed[:, 3:].all(axis=1) & (P[:, 3:] != 0).any(axis=1))
+        if rot.size:
+            conf.Q[rot] = rotation_matrices(end * P[rot, 3:])
+
+
+def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, free: np.ndarray, tol: float,
+            max_iterations: int, size: float) -> tuple[list[float], bool]:
+    """Newton iterations on the free dofs from ``conf`` (changed in place). Converged when the
+    residual is below ``tol`` times the force scale (|F| + |f_int|), or when a correction moves no
+    translation by more than 1e-12 of the model's ``size`` (a state with no force to measure
+    against, such as a rigid motion of the supports). Returns the residual norms (before each
+    iteration, and the last) and whether it converged."""
+    n, dpn = system.model.n_nodes, system.dpn
+    history: list[float] = []
+    for _ in range(max_iterations):
+        f, K, _ = system.evaluate(conf)
+        r = f[free] - F[free]
+        rn = float(np.linalg.norm(r))
+        history.append(rn)
+        if not np.isfinite(rn) or (len(history) > 3 and rn > 1e3 * history[0]):
+            return history, False
+        if rn <= tol * (float(np.linalg.norm(F)) + float(np.linalg.norm(f))):
+            return history, True
+        try:
+            delta = -system.solver(K, "the tangent stiffness").solve(r)
+        except SolverError:
+            return history, False
+        full = np.zeros(n * dpn)
+        full[free] = delta
+        full = full.reshape(n, dpn)
+        conf.update(full)
+        if np.abs(full[:, :3]).max() <= 1e-12 * size:
+            f, _, _ = system.evaluate(conf, tangent=False)
+            history.append(float(np.linalg.norm(f[free] - F[free])))
+            return history, True
+    return history, False
+
+
+def _fill(result: NonlinearResult, system: NonlinearSystem, conf: Configuration, applied: float, t0: float,
+          converged: bool) -> None:
+    f, _, energy = system.evaluate(conf, tangent=False)
+    model = system.model
+    reactions = f.reshape(model.n_nodes, system.dpn)[:, :3] * model.fixed[:, :3]
+    result.displacements = conf.u.copy()
+    result.rotations = conf.rotation_vectors()
+    result.reactions = reactions
+    result.energy = energy
+    result.converged = converged
+    result.seconds = time.perf_counter() - t0
+    result.configuration = conf

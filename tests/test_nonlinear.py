@@ -1,0 +1,156 @@
+"""The corotational element kernels and the nonlinear static solver's interface.
+
+The forces and tangents are checked against central differences of the energy and of the
+forces (an independent route: no derivative code involved), the undeformed tangent against the
+linear element, and the energy against rotation invariance. The solver's refusals are checked
+to name what to do and to change nothing.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import rtfem as rt
+from rtfem import shell, solid
+from rtfem.tetmesh import TET10_EDGES
+
+RNG = np.random.default_rng(7)
+SHELL_MAT = rt.Material(E=1e5, nu=0.3, thickness=0.01)
+
+
+def _triangle():
+    return np.array([[[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.3, 0.8, 0.1]]])
+
+
+def _perturbed(x, Q, j, h):
+    """Move element dof j (node-major: x, y, z, then a spin about x, y, z) by h."""
+    x, Q = x.copy(), None if Q is None else Q.copy()
+    i, c = divmod(j, 6 if Q is not None else 3)
+    if c < 3:
+        x[0, i, c] += h
+    else:
+        w = np.zeros(3)
+        w[c - 3] = h
+        Q[0, i] = Rotation.from_rotvec(w).as_matrix() @ Q[0, i]
+    return x, Q
+
+
+def test_shell_kernel_at_rest_is_the_linear_element():
+    X = _triangle()
+    el = shell.CorotationalTriangles(X, SHELL_MAT)
+    f, K, e = el.evaluate(X, np.tile(np.eye(3), (1, 3, 1, 1)))
+    Klin = shell.element_stiffness(X, SHELL_MAT)
+    assert np.abs(f).max() < 1e-12 * np.abs(Klin).max() and abs(e[0]) < 1e-25
+    np.testing.assert_allclose(K, Klin, rtol=0, atol=1e-12 * np.abs(Klin).max())
+
+
+def test_shell_kernel_forces_and_tangent_against_differences():
+    X = _triangle()
+    el = shell.CorotationalTriangles(X, SHELL_MAT)
+    x = X + 0.2 * RNG.standard_normal(X.shape)
+    Q = Rotation.from_rotvec(0.7 * RNG.standard_normal((3, 3))).as_matrix()[None]
+    f, K, _ = el.evaluate(x, Q)
+    h = 1e-6
+    grad = [(el.energy(*_perturbed(x, Q, j, h)) - el.energy(*_perturbed(x, Q, j, -h)))[0] / (2 * h) for j in range(18)]
+    np.testing.assert_allclose(grad, f[0], rtol=0, atol=1e-8 * np.abs(f).max())
+    # the tangent is the derivative of the force after a multiplicative spin update (not symmetric
+    # off equilibrium): columns by central differences of the forces
+    cols = [(el.evaluate(*_perturbed(x, Q, j, h), tangent=False)[0] - el.evaluate(*_perturbed(x, Q, j, -h),
+                                                                                    tangent=False)[0])[0] / (2 * h)
+            for j in range(18)]
+    np.testing.assert_allclose(np.array(cols).T, K[0], rtol=0, atol=1e-8 * np.abs(K).max())
+    assert np.abs(K[0] - K[0].T).max() > 1e-6 * np.abs(K).max()  # the spin term is really there
+
+
+def test_shell_kernel_energy_is_rotation_invariant():
+    X = _triangle()
+    el = shell.CorotationalTriangles(X, SHELL_MAT)
+    x = X + 0.05 * RNG.standard_normal(X.shape)
+    Q = Rotation.from_rotvec(0.1 * RNG.standard_normal((3, 3))).as_matrix()[None]
+    R = Rotation.from_rotvec([0.4, -1.3, 2.0]).as_matrix()
+    e0 = el.energy(x, Q)[0]
+    e1 = el.energy(x @ R.T + 3.0, R @ Q)[0]
+    assert e0 > 0 and abs(e1 - e0) < 1e-12 * e0
+    f0, _, _ = el.evaluate(x, Q, tangent=False)
+    f1, _, _ = el.evaluate(x @ R.T, R @ Q, tangent=False)
+    np.testing.assert_allclose(f1[0].reshape(6, 3), f0[0].reshape(6, 3) @ R.T, atol=1e-10 * np.abs(f0).max())
+
+
+def _tet(element):
+    X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    if element == "tet10":
+        X = np.vstack([X, [(X[i] + X[j]) / 2 for i, j in TET10_EDGES]])
+    return X[None]
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_tet_kernel_against_differences_and_linear(element):
+    mat = rt.Material(E=1e5, nu=0.3)
+    X = _tet(element)
+    el = solid.CorotationalTets(X, mat, element)
+    f, K, e = el.evaluate(X)
+    Klin, _ = solid.element_matrices(X, mat, element, "lumped")
+    np.testing.assert_allclose(K, Klin, rtol=0, atol=1e-12 * np.abs(Klin).max())
+    assert np.abs(f).max() < 1e-9 and abs(e[0]) < 1e-20
+    R = Rotation.from_rotvec([0.5, 1.0, -0.3]).as_matrix()
+    x = (X + 0.15 * RNG.standard_normal(X.shape)) @ R.T
+    f, K, _ = el.evaluate(x)
+    n, h = x.shape[1] * 3, 1e-6
+    grad = [(el.evaluate(_perturbed(x, None, j, h)[0], False)[2] - el.evaluate(_perturbed(x, None, j, -h)[0], False)[2])[0]
+            / (2 * h) for j in range(n)]
+    np.testing.assert_allclose(grad, f[0], rtol=0, atol=1e-8 * np.abs(f).max())
+    cols = [(el.evaluate(_perturbed(x, None, j, h)[0], False)[0] - el.evaluate(_perturbed(x, None, j, -h)[0], False)[0])[0]
+            / (2 * h) for j in range(n)]
+    np.testing.assert_allclose(np.array(cols).T, K[0], rtol=0, atol=1e-8 * np.abs(K).max())
+    np.testing.assert_allclose(K[0], K[0].T, atol=1e-12 * np.abs(K).max())  # a hyperelastic energy's Hessian
+    f_rigid, _, e_rigid = el.evaluate(X @ R.T + 1.0)
+    assert np.abs(f_rigid).max() < 1e-10 and abs(e_rigid[0]) < 1e-20
+
+
+def test_polar_decomposition_of_an_inverted_element():
+    F = np.diag([1.0, 1.0, -0.5])[None]
+    R, S = solid.polar(F)
+    assert np.linalg.det(R[0]) == pytest.approx(1.0)
+    np.testing.assert_allclose(R @ S, F, atol=1e-14)
+
+
+def _strip():
+    m = rt.meshes.plate(1.0, 0.2, nx=6, ny=1)
+    model = rt.ShellModel(m, rt.Material(E=1e5, nu=0.3, thickness=0.01))
+    return model.fix("x0")
+
+
+def test_solve_static_refusals_change_nothing():
+    model = _strip()
+    with pytest.raises(rt.ModelError, match="large_deformation=True"):
+        model.solve_static(np.zeros((model.n_nodes, 3)), steps=3)
+    P = np.zeros((model.n_nodes, 3))
+    P[model.select_nodes("x1")[0], 2] = 0.1
+    with pytest.raises(rt.ModelError, match="not fixed"):
+        model.solve_static(None, large_deformation=True, prescribed=P)
+    with pytest.raises(rt.ModelError, match="non-finite"):
+        model.solve_static({3: (np.nan, 0, 0)}, large_deformation=True)
+    with pytest.raises(rt.ModelError, match="steps"):
+        model.solve_static(None, large_deformation=True, steps=0)
+    with pytest.raises(rt.ModelError, match="method='newmark'"):
+        rt.DirectSimulator(model, 1e-3, method="central", large_deformation=True)
+    assert not model.fixed[model.select_nodes("x1")].any()
+
+
+def test_a_failed_solve_keeps_the_last_equilibrium():
+    model = _strip()
+    F = np.zeros((model.n_nodes, 3))
+    F[model.select_nodes("x1"), 0] = -1e5  # far past buckling in compression
+    with pytest.raises(rt.SolverError) as info:
+        rt.nonlinear.solve_static(model, F, max_iterations=4, max_cuts=2)
+    res = info.value.result
+    assert not res.converged and res.displacements.shape == (model.n_nodes, 3)
+    assert "load factor" in str(info.value)
+
+
+def test_the_system_follows_the_fixes():
+    model = _strip()
+    s1 = model.nonlinear()
+    assert model.nonlinear() is s1
+    model.fix("y0", dofs="z")
+    assert model.nonlinear() is not s1
