@@ -345,6 +345,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
 
     method = "newmark"
     large_deformation = True
+    compliance_changes = True  # the tangent follows the motion (consumers must not cache W)
     _state = ("_u", "_v", "_a", "_g")
 
     def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,

@@ -714,6 +714,8 @@ def _cached_compliance(driver, cache: dict, node: int) -> np.ndarray:
     if W is None:
         prepare(driver, [node])
         W = cache[node] = np.asarray(driver.step_compliance(node), dtype=float)
+    elif getattr(driver, "compliance_changes", False):  # warped or nonlinear: it follows the motion
+        W = np.asarray(driver.step_compliance(node), dtype=float)
     return W
 
 

@@ -684,6 +684,19 @@ class ShellModel(FEModel):
     def _node_graph(self) -> sp.csr_matrix:
         return self.mesh.adjacency()
 
+    def rotation_field(self, U: np.ndarray) -> np.ndarray:
+        """The nodal rotations (n, 3, k) that go with translation fields U (n, 3, k) (mode shapes)
+        when the moments are zero: the rotations the condensation eliminates (Eq. 4),
+        -K_rr^-1 K_rt U_t. Fixed rotations read zero."""
+        c = self.condensation()
+        U = np.asarray(U, float)
+        out = np.zeros_like(U)
+        if c.Krr is None:
+            return out
+        Ut = U[c.t // 6, c.t % 6]
+        out[c.r // 6, c.r % 6 - 3] = -c.Krr.solve(c.Krt @ Ut)
+        return out
+
     def _corotational(self) -> tuple[shell.CorotationalTriangles, np.ndarray]:
         """The corotational element kernel and the cells (triangles) it acts on."""
         T = np.asarray(self.mesh.triangles)

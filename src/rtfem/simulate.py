@@ -186,7 +186,21 @@ class ModalSimulator(ForceInput):
     static_correction : add the static contribution of the truncated modes (mode-acceleration
         method, D = K^-1 - Phi_r Lambda_r^-1 Phi_r^T applied to the current loads), so that a
         few modes still give the right static deflection. Needs ``modes.model``.
+    warping : rotation-aware (modal warping, Choi & Ko 2005): gives a
+        :class:`~rtfem.warping.WarpedModalSimulator`, whose displacements follow each node's
+        rotation and whose loads act in each node's frame. Needs ``modes.model``.
     """
+
+    def __new__(cls, modes=None, dt=None, damping=None, *, integrator: str = "exact", static_correction: bool = False,
+                warping: bool = False):
+        if cls is ModalSimulator and validate.flag(warping, "warping"):
+            from .warping import WarpedModalSimulator
+
+            cls = WarpedModalSimulator
+        return super().__new__(cls)
+
+    compliance_changes = False  # step_compliance is constant (consumers may cache it)
+    warping = False
 
     def __init__(
         self,
@@ -196,6 +210,7 @@ class ModalSimulator(ForceInput):
         *,
         integrator: str = "exact",
         static_correction: bool = False,
+        warping: bool = False,
     ) -> None:
         if not isinstance(modes, ModalBasis):
             raise ModelError(f"modes must be a ModalBasis (rt.modal_analysis), got {type(modes).__name__}")

@@ -142,6 +142,25 @@ class SolidModel(FEModel):
     def _node_graph(self) -> sp.csr_matrix:
         return self.tetmesh.adjacency()
 
+    def rotation_field(self, U: np.ndarray) -> np.ndarray:
+        """The infinitesimal rotations (n, 3, k) of translation fields U (n, 3, k): half the curl,
+        per tet at its centroid, averaged to the nodes by volume."""
+        U = np.asarray(U, float)
+        if "curl" not in self._cache:
+            T = np.asarray(self.tetmesh.tets)
+            X = np.asarray(self.tetmesh.vertices)[T]
+            dN = solid.shape_functions(self.element, np.full((1, 3), 0.25))[1][0]
+            G, det = solid._gradients(X, dN)
+            w = np.bincount(T.ravel(), weights=np.repeat(det, T.shape[1]), minlength=self.n_nodes)
+            self._cache["curl"] = (T, G, det, w)
+        T, G, det, w = self._cache["curl"]
+        H = np.einsum("miar,mib->mabr", U[T], G)  # du_a / dX_b per tet and field
+        curl = 0.5 * np.stack([H[:, 2, 1] - H[:, 1, 2], H[:, 0, 2] - H[:, 2, 0], H[:, 1, 0] - H[:, 0, 1]], axis=1)
+        out = np.zeros_like(U)
+        for i in range(T.shape[1]):
+            np.add.at(out, T[:, i], det[:, None, None] * curl)
+        return out / np.maximum(w, 1e-300)[:, None, None]
+
     def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
         """The corotational element kernel and the cells (tets) it acts on."""
         T = np.asarray(self.tetmesh.tets)
