@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/haptic_step.py
 	$(BIN)/python benchmarks/haptic_loop.py
 	$(BIN)/python benchmarks/solid.py --organs
+	$(BIN)/python benchmarks/large_deformation.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache test-artifacts

@@ -209,3 +209,23 @@ def test_solid_option_meshes_a_surface_file(tmp_path, capsys):
     assert rc == 0 and "tets" in out and "peak" in out
     rc, out, err = run(capsys, "info", gallbladder(), "--scale", "1e-3", "--solid", "--edge-length", "1e-9")
     assert rc == 2 and "edge_length" in err and "Traceback" not in err
+
+
+def test_simulate_large_deformation_modal_and_direct(tmp_path, capsys):
+    """--large: modal warping for modal, the corotational full order for direct; a 5 mm probe is
+    a small deformation, so both agree with the linear runs there (to a few per cent)."""
+    forces = {}
+    for extra in ([], ["--large"]):
+        rc, out, err = run(capsys, "simulate", "--duration", 0.3, "--alpha", 20, "--out", tmp_path / f"m{len(extra)}",
+                           "--fps", 2, *extra)
+        assert rc == 0, err
+        assert ("modal, warped" in out) == bool(extra)
+        rows = list(csv.DictReader(open(tmp_path / f"m{len(extra)}" / "response.csv")))
+        forces[bool(extra)] = float(rows[-1]["force"])
+    assert forces[True] == pytest.approx(forces[False], rel=0.05)
+    rc, out, err = run(capsys, "simulate", "--solid", "--method", "direct", "--large", "--duration", 0.005,
+                       "--out", tmp_path / "d")
+    assert rc == 0 and "direct, corotational" in out, err
+    (tmp_path / "loads.csv").write_text("t,node,fx,fy,fz\n0,885,0,0,-0.1\n")
+    rc, out, err = run(capsys, "simulate", "--method", "sldm", "--large", "--load", tmp_path / "loads.csv")
+    assert rc == 2 and "--large" in err

@@ -123,3 +123,30 @@ def test_session_rejects_nonsense_settings(cap):
         s.drag([0.0, np.inf, 0.0])
     with pytest.raises(rt.ModelError, match="no nodes"):
         Session(cap.mesh, cap.material, fixed=[])
+
+
+def test_session_large_deformation_switch(cap):
+    """large=True: the modal method warps and the direct method runs the corotational full order;
+    a small held pull gives nearly the linear force (to the pull's own small nonlinearity); the
+    impedance map, linear by construction, is refused with what to use."""
+    mesh = cap.mesh
+    node = int(mesh.groups["pole"][0])
+    X = np.asarray(mesh.vertices)[node]
+    s = Session(mesh, cap.material, fixed="rim", settings=Settings(n_modes=20, alpha=60.0, grasp_stiffness=50.0))
+    forces = {}
+    for method, large in (("modal", False), ("modal", True), ("direct", True)):
+        s.configure(method=method, large=large)
+        assert s.settings.label == {False: method, True: {"modal": "modal (warped)",
+                                                           "direct": "direct (corotational)"}[method]}[large]
+        assert s.driver.compliance_changes == large
+        s.grab(X)
+        s.drag(X + np.array([0.0, 0.0, 0.001]))
+        for _ in range(400 if method == "modal" else 150):
+            s.step()
+        forces[(method, large)] = np.linalg.norm(s.force)
+        s.release()
+    assert forces[("modal", True)] == pytest.approx(forces[("modal", False)], rel=0.02)
+    assert forces[("direct", True)] == pytest.approx(forces[("modal", False)], rel=0.1)
+    with pytest.raises(rt.ModelError, match="impedance map"):
+        s.configure(method="impedance", large=True)
+    assert s.settings.method == "direct"  # nothing lost

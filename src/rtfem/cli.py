@@ -207,6 +207,9 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
         g.add_argument("-n", "--modes", type=mode_count, default=40, help="number of modes r (default 40)")
         g.add_argument("--alpha", type=nonnegative, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
         g.add_argument("--dt", type=positive, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
+        g.add_argument("--large", action="store_true",
+                       help="large deformation: modal warping for the modal method, the corotational full order (Newton "
+                            "per step) for direct")
 
 
 def mesh_of_args(args):
@@ -407,10 +410,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     model = build_model(args)
     schedule = LoadSchedule.from_csv(args.load, model.n_nodes) if args.load else None
     damping = damping_of(args)
+    large = getattr(args, "large", False)
+    if large and args.method == "sldm":
+        raise RtfemError("--large: SLDM superposes linear responses; use --method modal (modal warping) or direct (the "
+                         "corotational full order)")
     if args.method == "modal":
-        sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True)
+        sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True, warping=large)
     elif args.method == "direct":
-        sim = DirectSimulator(model, args.dt, damping)
+        sim = DirectSimulator(model, args.dt, damping, large_deformation=large)
     else:
         sim = None
     t0 = time.perf_counter()
@@ -423,7 +430,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     csv_path, pvd = out.close()
     print(f"load        {what}")
-    print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({args.method}) in {elapsed:.2f} s "
+    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method) if large else args.method
+    print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({label}) in {elapsed:.2f} s "
           f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")
     if schedule is None:
         forces = np.array([r[7] for r in out.rows])
@@ -465,7 +473,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import dynamics_table
 
     model = build_model(args)
-    rows = dynamics_table(model, args.modes_list, dt=args.dt, damping=damping_of(args), direct_steps=args.direct_steps)
+    rows = dynamics_table(model, args.modes_list, dt=args.dt, damping=damping_of(args), direct_steps=args.direct_steps,
+                          large=args.large)
     from .bench import print_table
 
     print_table(rows)
@@ -494,7 +503,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     check_address(args.host, args.port)
     model = build_model(args)
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
-                        grasp_stiffness=args.stiffness).check()
+                        grasp_stiffness=args.stiffness, large=args.large).check()
     print("precomputing ...", flush=True)
     mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
     serve(mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host,

@@ -375,6 +375,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         nd = free.size
         self._u, self._v, self._a, self._g = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
         self.configuration = Configuration.rest(model.n_nodes, model.dofs_per_node == 6)
+        self._size = float(np.ptp(model.mesh.vertices, axis=0).max())
         self._free = None  # (step, configuration, u, g, factorization) of the no-new-load step
         self.iterations = 0  # Newton iterations of the last step
 
@@ -425,21 +426,41 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         n, dpn = self.model.n_nodes, self.model.dofs_per_node
         Ff = F[self._solved]
         fac = None
-        for it in range(self.max_iterations):
-            f, K, _ = self.system.evaluate(conf)
+        def residual(conf, u, tangent):
+            f, K, _ = self.system.evaluate(conf, tangent)
             a, v = self._kinematics(u)
             g = f[self._solved] + self._B @ v - Ff
-            r = self._M @ a + (1 + al) * g - al * self._g
             ref = np.linalg.norm(Ff) + np.linalg.norm(f) + np.linalg.norm(self._M @ a) + 1e-300
-            if np.linalg.norm(r) <= self.tol * ref and it > 0:
+            return self._M @ a + (1 + al) * g - al * self._g, g, K, ref
+
+        r, g, K, ref = residual(conf, u, True)
+        for it in range(self.max_iterations):
+            rn = np.linalg.norm(r)
+            if rn <= self.tol * ref and it > 0:
                 self.iterations = it
                 return conf, u, g, fac
             fac = self.system.solver((self._dyn + (1 + al) * K).tocsr(), "the Newmark tangent")
             delta = -fac.solve(r)
-            u = u + delta
             full = np.zeros(n * dpn)
             full[self._solved] = delta
-            conf.update(full.reshape(n, dpn))
+            full = full.reshape(n, dpn)
+            if np.abs(full[:, :3]).max() <= 1e-13 * self._size:  # nothing left to move (e.g. at rest)
+                conf.update(full)
+                u = u + delta
+                self.iterations = it + 1
+                return conf, u, residual(conf, u, False)[1], fac
+            # backtracking line search on the residual norm: a point load on a thin shell can
+            # make the full Newton correction overshoot and cycle
+            s = 1.0
+            for _ in range(6):
+                trial = conf.copy()
+                trial.update(s * full)
+                rt_, gt, _, reft = residual(trial, u + s * delta, False)
+                if np.linalg.norm(rt_) < rn or s < 0.05:
+                    break
+                s *= 0.5
+            conf, u = trial, u + s * delta
+            r, g, K, ref = residual(conf, u, True)
         raise SolverError(f"Newton did not converge in {self.max_iterations} iterations at step {self.steps + 1} "
                           f"(residual {np.linalg.norm(r):.3g}): the step is too large for this motion; use a "
                           "smaller dt (the state is unchanged)")

@@ -206,6 +206,9 @@ class Viewer:
             self.method = gui.add_dropdown("method", METHODS, initial_value=s.settings.method,
                                            hint="modal: r modes, 1 kHz; impedance: precomputed responses superposed; "
                                                 "direct: Newmark on the full model (the baseline)")
+            self.large = gui.add_checkbox("large deformation", initial_value=s.settings.large,
+                                          hint="modal: modal warping (rotation-aware); direct: the corotational "
+                                               "full order (Newton per step)")
             self.modes_slider = gui.add_slider("modes r", min=5, max=200, step=5, initial_value=s.settings.n_modes)
             self.dt_ms = gui.add_number("time step (ms)", initial_value=s.settings.dt * 1e3, min=0.05, max=20.0, step=0.05)
             self.alpha = gui.add_slider("damping alpha (1/s)", min=0.0, max=60.0, step=0.5, initial_value=s.settings.alpha)
@@ -227,6 +230,10 @@ class Viewer:
         def _(_) -> None:
             self._reconfigure()
 
+        @self.large.on_update
+        def _(_) -> None:
+            self._reconfigure()
+
         @reset.on_click
         def _(_) -> None:
             self._reconfigure(force=True)
@@ -240,7 +247,7 @@ class Viewer:
         s = self.session
         changes = dict(method=self.method.value, n_modes=int(self.modes_slider.value), dt=float(self.dt_ms.value) * 1e-3,
                        alpha=float(self.alpha.value), E=float(self.E_kpa.value) * 1e3,
-                       grasp_stiffness=float(self.k_grasp.value))
+                       grasp_stiffness=float(self.k_grasp.value), large=bool(self.large.value))
         if not force and all(getattr(s.settings, k) == v for k, v in changes.items()):
             return
         self.stats_md.content = "rebuilding ..."
@@ -315,7 +322,7 @@ class Viewer:
         self.plot.data = (hist[:, 0].copy(), hist[:, 1].copy())
         f = float(np.linalg.norm(s.force))
         lines = [
-            f"**{s.settings.method}**: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
+            f"**{s.settings.label}**: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
             f"dt = {s.settings.dt * 1e3:g} ms",
             f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
             f"{st.step_us:,.1f} us per step",

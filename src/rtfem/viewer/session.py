@@ -51,6 +51,7 @@ class Settings:
     E: float | None = None  # Young's modulus (Pa); None: the material's
     grasp_stiffness: float = 200.0  # N/m
     max_force: float = 2.0  # N
+    large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
 
     def check(self) -> "Settings":
         """Validate every field; returns a checked copy (numbers as floats, n_modes as an int)."""
@@ -62,7 +63,23 @@ class Settings:
             E=None if self.E is None else validate.positive(self.E, "E", "Young's modulus in Pa"),
             grasp_stiffness=validate.positive(self.grasp_stiffness, "grasp_stiffness", "the grasp spring in N/m"),
             max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
+            large=_large(self.method, self.large),
         )
+
+    @property
+    def label(self) -> str:
+        """The method in words, with the large-deformation variant when on."""
+        if not self.large:
+            return self.method
+        return {"modal": "modal (warped)", "direct": "direct (corotational)"}.get(self.method, self.method)
+
+
+def _large(method: str, large) -> bool:
+    large = validate.flag(large, "large")
+    if large and method == "impedance":
+        raise ModelError("large deformation: the impedance map superposes linear responses; use the modal method (modal "
+                         "warping) or direct (the corotational full order)")
+    return large
 
 
 @dataclass
@@ -116,9 +133,9 @@ class Session:
     def _driver(self, s: Settings, model, modes, damping):
         """The Driver of a method: the one place the methods differ."""
         if s.method == "direct":
-            return DirectSimulator(model, s.dt, damping)
+            return DirectSimulator(model, s.dt, damping, large_deformation=s.large)
         if s.method == "modal":
-            return ModalSimulator(modes, s.dt, damping, static_correction=True)
+            return ModalSimulator(modes, s.dt, damping, static_correction=True, warping=s.large)
         return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
@@ -154,7 +171,7 @@ class Session:
             self.stats.forces.clear()
 
     def configure(self, **changes) -> None:
-        """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, max_force) and rebuild."""
+        """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, max_force, large) and rebuild."""
         known = {f.name for f in fields(Settings)}
         unknown = sorted(set(changes) - known)
         if unknown:
