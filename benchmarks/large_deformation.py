@@ -70,7 +70,7 @@ def errors(U, ref, surface, scale):
 
 
 def run(n_modes: int, loop_seconds: float) -> None:
-    rows = []
+    rows, rows_loop = [], []
     for name, model, fresh in organs():
         X = np.asarray(model.mesh.vertices)
         surface = model.mesh.used_vertices()
@@ -131,9 +131,6 @@ def run(n_modes: int, loop_seconds: float) -> None:
     if rows_loop:
         print()
         print_table(["organ", f"1 kHz probe loop on the warped model (r = {n_modes})"], rows_loop)
-
-
-rows_loop: list[list] = []
 
 
 def loop_row(model, modes, node: int, seconds: float) -> str:

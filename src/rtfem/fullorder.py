@@ -375,7 +375,6 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         nd = free.size
         self._u, self._v, self._a, self._g = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
         self.configuration = Configuration.rest(model.n_nodes, model.dofs_per_node == 6)
-        self._size = float(np.ptp(model.mesh.vertices, axis=0).max())
         self._free = None  # (step, configuration, u, g, factorization) of the no-new-load step
         self.iterations = 0  # Newton iterations of the last step
 
@@ -383,9 +382,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         from .nonlinear import Configuration
 
         conf = Configuration.rest(self.model.n_nodes, self.model.dofs_per_node == 6)
-        full = np.zeros(self.model.n_dofs)
-        full[self._solved] = self._u
-        conf.update(full.reshape(self.model.n_nodes, -1))
+        conf.update(self.system.expand(self._u))
         self.configuration = conf
         self._free = None
 
@@ -398,7 +395,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
 
     def set_state(self, state) -> None:
         """Restore a state from :meth:`get_state` (checked whole before anything changes)."""
-        from .nonlinear import rotation_matrices
+        from .rotations import rotation
 
         rot = None
         if isinstance(state, Mapping) and self.configuration.Q is not None:
@@ -410,7 +407,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
             state = {k: v for k, v in state.items() if k != "rotations"}
         super().set_state(state)
         if rot is not None:
-            self.configuration.Q = rotation_matrices(rot)
+            self.configuration.Q = rotation(rot)
 
     def _kinematics(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         c0, c2, c3 = self._c[0], self._c[2], self._c[3]
@@ -423,9 +420,9 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         al = self._hht
         conf = self.configuration.copy()
         u = self._u.copy()
-        n, dpn = self.model.n_nodes, self.model.dofs_per_node
         Ff = F[self._solved]
         fac = None
+
         def residual(conf, u, tangent):
             f, K, _ = self.system.evaluate(conf, tangent)
             a, v = self._kinematics(u)
@@ -441,26 +438,26 @@ class NonlinearNewmarkSimulator(DirectSimulator):
                 return conf, u, g, fac
             fac = self.system.solver((self._dyn + (1 + al) * K).tocsr(), "the Newmark tangent")
             delta = -fac.solve(r)
-            full = np.zeros(n * dpn)
-            full[self._solved] = delta
-            full = full.reshape(n, dpn)
-            if np.abs(full[:, :3]).max() <= 1e-13 * self._size:  # nothing left to move (e.g. at rest)
+            full = self.system.expand(delta)
+            if np.abs(full[:, :3]).max() <= 1e-13 * self.system.size:  # nothing left to move (e.g. at rest)
                 conf.update(full)
                 u = u + delta
                 self.iterations = it + 1
                 return conf, u, residual(conf, u, False)[1], fac
             # backtracking line search on the residual norm: a point load on a thin shell can
-            # make the full Newton correction overshoot and cycle
+            # make the full Newton correction overshoot and cycle; each trial is evaluated with
+            # its tangent, which the accepted one (nearly always the first) passes to the next
+            # iteration
             s = 1.0
             for _ in range(6):
                 trial = conf.copy()
                 trial.update(s * full)
-                rt_, gt, _, reft = residual(trial, u + s * delta, False)
-                if np.linalg.norm(rt_) < rn or s < 0.05:
+                trial_state = residual(trial, u + s * delta, True)
+                if np.linalg.norm(trial_state[0]) < rn or s < 0.05:
                     break
                 s *= 0.5
             conf, u = trial, u + s * delta
-            r, g, K, ref = residual(conf, u, True)
+            r, g, K, ref = trial_state
         raise SolverError(f"Newton did not converge in {self.max_iterations} iterations at step {self.steps + 1} "
                           f"(residual {np.linalg.norm(r):.3g}): the step is too large for this motion; use a "
                           "smaller dt (the state is unchanged)")

@@ -22,13 +22,9 @@ from scipy.spatial.transform import Rotation
 from . import validate
 from .errors import ModelError, SolverError
 from .linalg import factorize
+from .rotations import rotation
 
-__all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static", "rotation_matrices"]
-
-
-def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
-    """exp([psi]x) for rotation vectors (k, 3): rotation matrices (k, 3, 3)."""
-    return Rotation.from_rotvec(np.asarray(rotvec, float).reshape(-1, 3)).as_matrix().reshape(-1, 3, 3)
+__all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static"]
 
 
 @dataclass
@@ -53,15 +49,11 @@ class Configuration:
         if self.Q is not None:
             moved = np.flatnonzero(np.any(delta[:, 3:] != 0, axis=1))
             if moved.size:
-                self.Q[moved] = rotation_matrices(delta[moved, 3:]) @ self.Q[moved]
+                self.Q[moved] = rotation(delta[moved, 3:]) @ self.Q[moved]
 
     def rotation_vectors(self) -> np.ndarray | None:
         """The nodal rotations as rotation vectors (n, 3) (None on a solid)."""
         return None if self.Q is None else Rotation.from_matrix(self.Q).as_rotvec()
-
-    def dofs(self) -> np.ndarray:
-        """(n, dofs_per_node): translations, then rotation vectors on a shell."""
-        return self.u if self.Q is None else np.hstack([self.u, self.rotation_vectors()])
 
 
 class NonlinearSystem:
@@ -93,7 +85,13 @@ class NonlinearSystem:
         indices = (uniq % nf).astype(np.int32)
         indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
         self._pattern = (indices, indptr, nf)
-        self.n_evaluations = 0
+        self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
+
+    def expand(self, values: np.ndarray) -> np.ndarray:
+        """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
+        full = np.zeros(self.model.n_dofs)
+        full[self.free] = values
+        return full.reshape(self.model.n_nodes, self.dpn)
 
     def evaluate(self, conf: Configuration, tangent: bool = True):
         """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
@@ -104,7 +102,6 @@ class NonlinearSystem:
             fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
         else:
             fe, Ke, energy = self.kernel.evaluate(x, tangent)
-        self.n_evaluations += 1
         f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
         K = None
         if tangent:
@@ -202,14 +199,12 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     steps = validate.count(steps, "steps", 1, 10**6)
     tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
     n, dpn = model.n_nodes, model.dofs_per_node
-    free = system.free
     fixed_mask = model.fixed
     conf = Configuration.rest(n, dpn == 6)
     applied = 0.0  # load factor of the last equilibrium
     result = NonlinearResult(np.zeros((n, 3)), None, np.zeros((n, 3)))
     step = 1.0 / steps
     cuts = 0
-    size = float(np.ptp(model.mesh.vertices, axis=0).max())
     previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
     while applied < 1.0 - 1e-12:
         target = min(1.0, applied + step)
@@ -217,7 +212,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         if previous is not None:  # secant predictor: continue the last step's motion
             _extrapolate(trial, previous[0], (target - applied) / previous[1])
         _move_supports(trial, P, fixed_mask, applied, target)
-        history, ok = _newton(system, trial, target * F, free, tol, max_iterations, size)
+        history, ok = _newton(system, trial, target * F, tol, max_iterations)
         if ok:
             previous = (conf, target - applied)
             conf, applied = trial, target
@@ -231,7 +226,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
             continue
         cuts += 1
         if cuts > max_cuts:
-            _fill(result, system, conf, applied, t0, converged=False)
+            _fill(result, system, conf, t0, converged=False)
             exc = SolverError(
                 f"Newton did not converge past load factor {applied:.4g} (step halved {max_cuts} times; residual "
                 f"{history[-1]:.3g} after {len(history) - 1} iterations): the structure may buckle or snap there, or "
@@ -239,7 +234,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
             exc.result = result
             raise exc
         step *= 0.5
-    _fill(result, system, conf, 1.0, t0, converged=True)
+    _fill(result, system, conf, t0, converged=True)
     return result
 
 
@@ -249,7 +244,7 @@ def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> No
     conf.u += ratio * (conf.u - before.u)
     if conf.Q is not None:
         rel = Rotation.from_matrix(conf.Q @ before.Q.transpose(0, 2, 1)).as_rotvec()
-        conf.Q = rotation_matrices(ratio * rel) @ conf.Q
+        conf.Q = rotation(ratio * rel) @ conf.Q
 
 
 def _move_supports(conf: Configuration, P: np.ndarray, fixed: np.ndarray, start: float, end: float) -> None:
@@ -261,17 +256,17 @@ def _move_supports(conf: Configuration, P: np.ndarray, fixed: np.ndarray, start:
     if conf.Q is not None:
         rot = np.flatnonzero(fixed[:, 3:].all(axis=1) & (P[:, 3:] != 0).any(axis=1))
         if rot.size:
-            conf.Q[rot] = rotation_matrices(end * P[rot, 3:])
+            conf.Q[rot] = rotation(end * P[rot, 3:])
 
 
-def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, free: np.ndarray, tol: float,
-            max_iterations: int, size: float) -> tuple[list[float], bool]:
+def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
+            max_iterations: int) -> tuple[list[float], bool]:
     """Newton iterations on the free dofs from ``conf`` (changed in place). Converged when the
     residual is below ``tol`` times the force scale (|F| + |f_int|), or when a correction moves no
-    translation by more than 1e-12 of the model's ``size`` (a state with no force to measure
+    translation by more than 1e-12 of the model's size (a state with no force to measure
     against, such as a rigid motion of the supports). Returns the residual norms (before each
     iteration, and the last) and whether it converged."""
-    n, dpn = system.model.n_nodes, system.dpn
+    free = system.free
     history: list[float] = []
     for _ in range(max_iterations):
         f, K, _ = system.evaluate(conf)
@@ -286,19 +281,16 @@ def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, free: n
             delta = -system.solver(K, "the tangent stiffness").solve(r)
         except SolverError:
             return history, False
-        full = np.zeros(n * dpn)
-        full[free] = delta
-        full = full.reshape(n, dpn)
+        full = system.expand(delta)
         conf.update(full)
-        if np.abs(full[:, :3]).max() <= 1e-12 * size:
+        if np.abs(full[:, :3]).max() <= 1e-12 * system.size:
             f, _, _ = system.evaluate(conf, tangent=False)
             history.append(float(np.linalg.norm(f[free] - F[free])))
             return history, True
     return history, False
 
 
-def _fill(result: NonlinearResult, system: NonlinearSystem, conf: Configuration, applied: float, t0: float,
-          converged: bool) -> None:
+def _fill(result: NonlinearResult, system: NonlinearSystem, conf: Configuration, t0: float, converged: bool) -> None:
     f, _, energy = system.evaluate(conf, tangent=False)
     model = system.model
     reactions = f.reshape(model.n_nodes, system.dpn)[:, :3] * model.fixed[:, :3]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .material import Material
+from .rotations import cross_matrices
 
 __all__ = [
     "local_frames",
@@ -383,15 +384,7 @@ def _jcross(a, b):
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
-def _spin(k: int) -> np.ndarray:
-    """[e_k]x, the cross-product matrix of a unit axis."""
-    S = np.zeros((3, 3))
-    i, j = (k + 1) % 3, (k + 2) % 3
-    S[j, i], S[i, j] = 1.0, -1.0
-    return S
-
-
-_SPIN = np.stack([_spin(k) for k in range(3)])  # (3, 3, 3)
+_SPIN = cross_matrices(np.eye(3))  # [e_k]x, (3, 3, 3)
 _SPIN2 = 0.5 * (np.einsum("lpq,mqs->lmps", _SPIN, _SPIN) + np.einsum("mpq,lqs->lmps", _SPIN, _SPIN))
 _AXIAL = ((2, 1), (0, 2), (1, 0))  # axial(skew(A))_c = (A[p, q] - A[q, p]) / 2
 
@@ -460,11 +453,11 @@ class CorotationalTriangles:
             d[:, row] = jet.v
             Jz[:, row, :6] = jet.g
         rot = []
+        RX = np.einsum("epq,lqr->eprl", Rv, _SPIN)  # R [e_l]x
         for i in range(3):
             C = Q[:, i] @ self.R0.transpose(0, 2, 1)
             A = Rv @ C
             dA_ab = np.einsum("epqk,eqs->epsk", Rg, C)
-            RX = np.einsum("epq,lqr->eprl", Rv, _SPIN)  # R [e_l]x
             dA_w = np.einsum("eprl,ers->epsl", RX, C)
             w = slice(6 + 3 * i, 9 + 3 * i)
             for c, (p, q) in enumerate(_AXIAL):
@@ -472,7 +465,7 @@ class CorotationalTriangles:
                 d[:, r] = 0.5 * (A[:, p, q] - A[:, q, p])
                 Jz[:, r, :6] = 0.5 * (dA_ab[:, p, q] - dA_ab[:, q, p])
                 Jz[:, r, w] = 0.5 * (dA_w[:, p, q] - dA_w[:, q, p])
-            rot.append((C, RX, w))
+            rot.append((C, w))
         g = np.einsum("eij,ej->ei", self.k, d)  # local forces k d
         energy = 0.5 * np.einsum("ei,ei->e", g, d)
         J = Jz @ _P
@@ -482,7 +475,7 @@ class CorotationalTriangles:
 
         Hz = np.zeros((E, 15, 15))
         Hz[:, :6, :6] = sum(g[:, row, None, None] * jet.h for row, jet in trans.items())
-        for i, (C, RX, w) in enumerate(rot):
+        for i, (C, w) in enumerate(rot):
             gi = g[:, 6 * i + 3:6 * i + 6]  # (E, 3)
             # sum_c g_c d^2 axial_c(A): the contraction of A's Hessian with the skew weights
             Wt = np.zeros((E, 3, 3))

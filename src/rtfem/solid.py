@@ -21,6 +21,7 @@ from scipy.special import roots_jacobi
 
 from .errors import MeshError
 from .material import Material
+from .rotations import cross_matrices
 
 __all__ = ["ELEMENTS", "MASSES", "shape_functions", "tet_rule", "element_matrices"]
 
@@ -170,10 +171,7 @@ def corotated_stress(F: np.ndarray, lam: float, mu: float, tangent: bool = True)
     y = np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], axis=-1)  # (m, 3, 3, 3)
     Tm = (trE + 3.0)[:, None, None] * I - S
     w = np.linalg.solve(Tm[:, None, None], y[..., None])[..., 0]
-    W = np.zeros((m, 3, 3, 3, 3))
-    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    dR = np.einsum("mab,mcdbe->mcdae", R, W)
+    dR = np.einsum("mab,mcdbe->mcdae", R, cross_matrices(w))
     dP = (2 * mu * np.eye(9).reshape(3, 3, 3, 3)[None].transpose(0, 3, 4, 1, 2)
           + (lam * trE - 2 * mu)[:, None, None, None, None] * dR
           + lam * R[:, :, :, None, None] * R[:, None, None])  # tr(R^T e_c e_d^T) = R_cd

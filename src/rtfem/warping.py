@@ -22,42 +22,10 @@ import numpy as np
 
 from . import validate
 from .errors import ModelError
+from .rotations import integrated_rotation, rotation
 from .simulate import ModalSimulator
 
 __all__ = ["WarpedModalSimulator", "rotation", "integrated_rotation"]
-
-
-def _cross_matrices(w: np.ndarray) -> np.ndarray:
-    W = np.zeros(w.shape[:-1] + (3, 3))
-    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    return W
-
-
-def rotation(w: np.ndarray) -> np.ndarray:
-    """exp([w]x) for rotation vectors (..., 3): Rodrigues' formula, batched."""
-    w = np.asarray(w, float)
-    t = np.linalg.norm(w, axis=-1)
-    big = t > 1e-4
-    ts = np.where(big, t, 1.0)
-    a = np.where(big, np.sin(ts) / ts, 1.0 - t * t / 6.0)
-    b = np.where(big, (1.0 - np.cos(ts)) / ts**2, 0.5 - t * t / 24.0)
-    W = _cross_matrices(w)
-    return np.eye(3) + a[..., None, None] * W + b[..., None, None] * (W @ W)
-
-
-def integrated_rotation(w: np.ndarray) -> np.ndarray:
-    """Rt(w) = int_0^1 exp(s [w]x) ds for rotation vectors (..., 3), batched: the map of a linear
-    displacement along a path whose rotation grows uniformly to w (Choi & Ko 2005, Eq. 9)."""
-    w = np.asarray(w, float)
-    t = np.linalg.norm(w, axis=-1)
-    big = t > 1e-3
-    ts = np.where(big, t, 1.0)
-    t2 = t * t
-    b = np.where(big, (1.0 - np.cos(ts)) / ts**2, 0.5 - t2 / 24.0)
-    c = np.where(big, (ts - np.sin(ts)) / ts**3, 1.0 / 6.0 - t2 / 120.0)
-    W = _cross_matrices(w)
-    return np.eye(3) + b[..., None, None] * W + c[..., None, None] * (W @ W)
 
 
 class WarpedModalSimulator(ModalSimulator):
@@ -112,12 +80,6 @@ class WarpedModalSimulator(ModalSimulator):
     def step(self, forces=None) -> None:
         """Advance one step; each load acts in its node's frame at the start of the step."""
         super().step(self._local_forces(forces))
-
-    def run(self, forces, n_steps: int) -> None:
-        n_steps = self._n_steps(n_steps)
-        self._as_array(forces)
-        for _ in range(n_steps):
-            self.step(forces)
 
     # ---------------------------------------------------------------- warped outputs
     def _warp(self, nodes: np.ndarray, q: np.ndarray, linear: np.ndarray, correction: np.ndarray | None):
