@@ -132,8 +132,27 @@ def test_solve_static_refusals_change_nothing():
         model.solve_static({3: (np.nan, 0, 0)}, large_deformation=True)
     with pytest.raises(rt.ModelError, match="steps"):
         model.solve_static(None, large_deformation=True, steps=0)
+    for bad, match in ((dict(max_iterations=0), "max_iterations"), (dict(max_cuts=-1), "max_cuts"),
+                       (dict(tol=-1.0), "tol")):
+        with pytest.raises(rt.ModelError, match=match):
+            model.solve_static(None, large_deformation=True, **bad)
     with pytest.raises(rt.ModelError, match="method='newmark'"):
         rt.DirectSimulator(model, 1e-3, method="central", large_deformation=True)
+    with pytest.raises(rt.ModelError, match="large_deformation=True"):
+        rt.DirectSimulator(model, 1e-3, tol=1e-6)
+    for bad, match in ((dict(numerical_damping=0.5), "numerical_damping"), (dict(tol=0.0), "tol"),
+                       (dict(max_iterations=0), "max_iterations")):
+        with pytest.raises(rt.ModelError, match=match):
+            rt.DirectSimulator(model, 1e-3, large_deformation=True, **bad)
+    sim = rt.DirectSimulator(model, 1e-3, large_deformation=True)
+    sim.step({int(model.select_nodes("x1")[0]): (0.0, 0.0, 0.1)})
+    before = sim.get_state()
+    with pytest.raises(rt.ModelError, match="non-finite"):
+        sim.step({3: (0.0, np.inf, 0.0)})
+    with pytest.raises(rt.ModelError, match="rotations"):
+        sim.set_state({k: v for k, v in before.items() if k != "rotations"})
+    after = sim.get_state()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
     assert not model.fixed[model.select_nodes("x1")].any()
 
 

@@ -198,6 +198,8 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     P = _prescribed(model, prescribed)
     steps = validate.count(steps, "steps", 1, 10**6)
     tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
+    max_iterations = validate.count(max_iterations, "max_iterations", 1, 1000)
+    max_cuts = validate.count(max_cuts, "max_cuts", 0, 60)
     n, dpn = model.n_nodes, model.dofs_per_node
     fixed_mask = model.fixed
     conf = Configuration.rest(n, dpn == 6)
