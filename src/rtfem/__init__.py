@@ -10,6 +10,8 @@ from . import linalg
 from .linalg import available_backends
 from .modal import ModalBasis, modal_analysis
 from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
+from .contact import Tool, ToolContact
+from . import contact
 from .impedance import ImpedanceDriver, ImpedanceMap, Load
 from .model import Model, ShellModel, make_model
 from .solidmodel import SolidModel
@@ -37,6 +39,8 @@ __all__ = [
     "make_model",
     "select_nodes",
     "Grasp",
+    "Tool",
+    "ToolContact",
     "HapticLoop",
     "Probe",
     "ScriptedDevice",

@@ -503,7 +503,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     check_address(args.host, args.port)
     model = build_model(args)
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
-                        grasp_stiffness=args.stiffness, large=args.large).check()
+                        grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large).check()
     print("precomputing ...", flush=True)
     mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
     serve(mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host,
@@ -609,6 +609,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_options(p)
     p.add_argument("--method", choices=("modal", "impedance", "direct"), default="modal", help="dynamics (default modal)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
+    p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
+                   "of the picked point, in mm (default 10; 0 grabs one vertex)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")

@@ -94,6 +94,32 @@ class DirectSimulator(ForceInput):
         ok = self._solved[pos] == want
         return pos[ok], np.flatnonzero(ok)
 
+    def _rows_of(self, nodes: np.ndarray) -> np.ndarray:
+        """(k, 3) positions of the nodes' translations in the state vector; -1 where held."""
+        want = np.stack([self.model.translation_dofs(int(i)) for i in nodes.tolist()]).reshape(-1, 3)
+        pos = np.minimum(np.searchsorted(self._solved, want), self._solved.size - 1)
+        return np.where(self._solved[pos] == want, pos, -1)
+
+    def _gather(self, vector: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """(k, 3) entries of a state vector at the nodes' translations (0 where held)."""
+        pos = self._rows_of(nodes)
+        return np.where(pos >= 0, vector[np.maximum(pos, 0)], 0.0)
+
+    def _block(self, nodes, loaded, columns) -> np.ndarray:
+        """(3k, 3l) compliance block from ``columns(j)``: the state-vector response (n_solved, 3)
+        to unit forces on node j's three directions (zero columns where held)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        W = np.zeros((3 * nodes.size, 3 * loaded.size))
+        for b, j in enumerate(loaded.tolist()):
+            W[:, 3 * b:3 * b + 3] = self._gather_columns(columns(j), nodes).reshape(-1, 3)
+        return W
+
+    def _gather_columns(self, cols: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """(k, 3, 3) rows of a column block (n_solved, 3) at the nodes' translations (0 where held)."""
+        pos = self._rows_of(nodes)
+        return np.where((pos >= 0)[:, :, None], cols[np.maximum(pos, 0)], 0.0)
+
     def displacements(self) -> np.ndarray:
         return self.model.nodal_translations(self._u, self._solved)
 
@@ -200,6 +226,24 @@ class NewmarkSimulator(DirectSimulator):
         out[dirs] = self._free[1][rows]
         return out
 
+    def predict_at(self, nodes) -> np.ndarray:
+        """(k, 3) :meth:`predict` of ``nodes`` (the same one solve)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        if self._free is None or self._free[0] != self.steps:
+            self._free = (self.steps, self._fac.solve(self._rhs_free()))
+        return self._gather(self._free[1], nodes)
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The cross compliances (3k, 3l) of a contact set: blocks of K_eff^-1 (three solves per
+        loaded node the first time)."""
+        def columns(j):
+            self.step_compliance(j)
+            rows, dirs, cols = self._cols[j]
+            out = np.zeros((self._solved.size, 3))
+            out[:, dirs] = cols
+            return out
+        return self._block(nodes, loaded, columns)
+
     def step_compliance(self, node: int) -> np.ndarray:
         """W (3x3): displacement of ``node`` after one step per unit force on it (K^-1 block)."""
         node = self._node(node)
@@ -305,6 +349,19 @@ class CentralDifferenceSimulator(DirectSimulator):
         out = np.zeros(3)
         out[dirs] = self._free_update()[rows]
         return out
+
+    def predict_at(self, nodes) -> np.ndarray:
+        """(k, 3) :meth:`predict` of ``nodes``."""
+        return self._gather(self._free_update(), validate.nodes(nodes, self.n_nodes))
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The cross compliances (3k, 3l): the explicit step moves only the loaded nodes."""
+        def columns(j):
+            out = np.zeros((self._solved.size, 3))
+            rows, dirs = self._node_rows(j)
+            out[rows, dirs] = self._gain[rows]
+            return out
+        return self._block(nodes, loaded, columns)
 
     def step_compliance(self, node: int) -> np.ndarray:
         """W (3x3) = dt^2 / (m (1 + dt a / 2)) on the node's free translations: the explicit step
@@ -481,19 +538,30 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         node = self._node(node)
         return self._free_step()[1].u[node].copy()
 
+    def predict_at(self, nodes) -> np.ndarray:
+        """(k, 3) :meth:`predict` of ``nodes`` (one Newton solve, kept for the step)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        return self._free_step()[1].u[nodes].copy()
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The cross compliances (3k, 3l) linearized at the no-load step (solves with the inverse
+        Newmark tangent, weighted 1 + alpha as the load enters HHT's residual)."""
+        fac = self._free_step()[4]
+
+        def columns(j):
+            out = np.zeros((self._solved.size, 3))
+            rows, dirs = self._node_rows(j)
+            if rows.size and fac is not None:
+                E = np.zeros((self._solved.size, rows.size))
+                E[rows, np.arange(rows.size)] = 1.0
+                out[:, dirs] = (1 + self._hht) * fac.solve(E).reshape(self._solved.size, rows.size)
+            return out
+        return self._block(nodes, loaded, columns)
+
     def step_compliance(self, node: int) -> np.ndarray:
         """W (3x3): the node's displacement per unit force after one step, linearized at the
         no-load step (the inverse Newmark tangent's block)."""
-        node = self._node(node)
-        fac = self._free_step()[4]
-        rows, dirs = self._node_rows(node)
-        W = np.zeros((3, 3))
-        if rows.size and fac is not None:
-            E = np.zeros((self._solved.size, rows.size))
-            E[rows, np.arange(rows.size)] = 1.0
-            # the load enters HHT's residual weighted by 1 + alpha
-            W[np.ix_(dirs, dirs)] = (1 + self._hht) * fac.solve(E).reshape(self._solved.size, rows.size)[rows]
-        return W
+        return self.step_compliances(np.array([self._node(node)]))
 
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` (dead loads) act at the end of the step."""

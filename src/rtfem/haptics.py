@@ -41,7 +41,8 @@ from scipy.spatial import cKDTree
 from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
-from .simulate import as_driver, displacements_at, prepare
+from .contact import hold_patch
+from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
 
 __all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "LoopStats"]
 
@@ -193,69 +194,119 @@ class Probe:
 
 
 class Grasp:
-    """A bilateral grab of one vertex by a virtual spring: the viewer's mouse push and pull.
+    """A grasp of the organ by a jaw held by the hand through a virtual spring: the viewer's drag.
 
-    The hand holds the point ``target``; the spring of stiffness k pulls the grabbed vertex
-    towards it with f = k (target - x(k+1)), x the vertex's deformed position at the end of
-    the step. With u(k+1) = u_free + W f (the driver's one-step compliance), the force is
-    found implicitly before stepping:
+    ``grab(node)`` closes the jaw on the vertex ``node`` and, with ``radius`` > 0, on every surface
+    vertex within ``radius`` of it (a patch; the pull lifts a region instead of a cone); ``release``
+    opens it. The jaw is rigid: each held vertex is tied to it by a stiff grip spring (``grip``
+    N/m per vertex, default 100 k), the jaw to the hand at ``target`` by the grasp spring k. With
+    the driver's one-step cross compliances W_SS of the held vertices (u_S(k+1) = u_free + W_SS f),
+    the forces f and the jaw's translation delta are found implicitly before stepping:
 
-        (I + k W) f = k (target - X - u_free),
+        (W_SS + I/grip) f - E delta = u_S(grab) - u_free,   E^T f + k delta = k (target - x_jaw(grab)),
 
-    so a stiff spring cannot make the coupled loop unstable. Drivers: a
-    :class:`ModalSimulator` (W from :meth:`~ModalSimulator.step_compliance`), a Newmark
-    :class:`DirectSimulator` (W = block of K_eff^-1; three solves when a vertex is first
-    grabbed), or an :class:`ImpedanceMap` (quasi-static: W = static point compliance,
-    u_free = 0). ``max_force`` caps |f| (N), for a mouse that can be dragged anywhere.
+    (E the stacked identities: :func:`rtfem.contact.hold_patch`), so a stiff spring cannot make the
+    coupled loop unstable. One vertex (radius 0) is the single-spring grab, (I + k W) f =
+    k (target - X - u_free). Drivers: a ModalSimulator (linear or warped), a DirectSimulator
+    (linear or large-deformation), an ImpedanceMap (quasi-static: W = static compliances,
+    u_free = 0) or any Driver. ``max_force`` caps the total force (N), for a mouse that can be
+    dragged anywhere.
     """
 
-    def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None) -> None:
+    def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None,
+                 radius: float = 0.0, grip: float | None = None) -> None:
         driver = as_driver(driver, "grasp")
         check_driver_mesh(mesh, driver, "grasp")
         stiffness = validate.positive(stiffness, "stiffness", "the grasp spring stiffness in N/m")
         if max_force is not None:
             max_force = validate.positive(max_force, "max_force", "a force cap in N, or None")
+        self.radius = validate.nonnegative(radius, "radius", "the jaw's grab radius in m (0: one vertex)")
+        self.grip = 100.0 * stiffness if grip is None else validate.positive(grip, "grip", "a stiffness in N/m")
         self.mesh, self.driver = mesh, driver
         self.stiffness = stiffness
         self.max_force = max_force
         self.X = np.asarray(mesh.vertices)
+        self._touchable = mesh.used_vertices()
+        self._tree = cKDTree(self.X[self._touchable])
         self.node: int | None = None
-        self.force = np.zeros(3)  # force on the organ at the grabbed vertex (N); the hand feels -force
+        self.nodes = np.zeros(0, dtype=np.int64)  # the held vertices
+        self.force = np.zeros(3)  # total force on the organ (N); the hand feels -force
+        self.forces = np.zeros((0, 3))  # the force on each held vertex (N)
         self._W: dict[int, np.ndarray] = {}
+        self._block = None
 
     def compliance(self, node: int) -> np.ndarray:
         """The 3x3 step compliance W at ``node`` (the driver prepares the node the first time)."""
         return _cached_compliance(self.driver, self._W, node)
 
-    def grab(self, node: int) -> None:
+    def patch(self, node: int, radius: float | None = None) -> np.ndarray:
+        """The vertices a jaw closed on ``node`` would hold: ``node`` and the surface vertices within
+        ``radius`` (default: the grasp's) of its deformed position (sorted)."""
         node = validate.node(node, self.X.shape[0])
-        self.compliance(node)
-        self.node = node
+        radius = self.radius if radius is None else validate.nonnegative(radius, "radius", "a grab radius in m")
+        nodes = np.array([node], dtype=np.int64)
+        if radius > 0:
+            x = self.X[node] + self.driver.displacement(node)
+            near = self._touchable[np.asarray(self._tree.query_ball_point(x, 1.05 * radius + 1e-12), dtype=np.int64)]
+            if near.size:
+                xs = self.X[near] + displacements_at(self.driver, near)
+                near = near[np.linalg.norm(xs - x, axis=1) <= radius]
+            nodes = np.union1d(nodes, near)
+        return nodes
+
+    def grab(self, node: int, radius: float | None = None) -> np.ndarray:
+        """Close the jaw on ``node`` and the surface vertices within ``radius`` (default: the
+        grasp's) of its deformed position (:meth:`patch`); returns the held vertices."""
+        nodes = self.patch(node, radius)
+        node = validate.node(node, self.X.shape[0])
+        x = self.X[node] + self.driver.displacement(node)
+        if nodes.size == 1:
+            self.compliance(node)
+            self._block = None
+        else:
+            prepare(self.driver, nodes)
+            self._block = None if getattr(self.driver, "compliance_changes", False) else \
+                step_compliances(self.driver, nodes)
+        self.node, self.nodes = node, nodes
+        self._hold = displacements_at(self.driver, nodes).reshape(-1)
+        self._jaw = x
+        return nodes
 
     def release(self) -> None:
+        """Open the jaw."""
         self.node = None
+        self.nodes = np.zeros(0, dtype=np.int64)
+        self._block = None
 
     def update(self, target=None) -> np.ndarray:
         """One step with the hand at ``target`` (None or no grab: the organ moves freely).
 
-        Returns the force on the organ (N). With an ImpedanceMap the step is quasi-static (the
-        map's driver holds the force; its field is the superposed static responses).
+        Returns the total force on the organ (N). With an ImpedanceMap the step is quasi-static
+        (the map's driver holds the force; its field is the superposed static responses).
         """
         d = self.driver
-        f = np.zeros(3)
         c = None if target is None else validate.point(target, "grasp target")
-        if self.node is not None and c is not None:
+        if self.node is None or c is None:
+            d.step(None)
+            self.force, self.forces = np.zeros(3), np.zeros((0, 3))
+            return self.force
+        k = self.stiffness
+        if self.nodes.size == 1:
             p = self.node
-            u_free = d.predict(p)
-            k = self.stiffness
-            f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - u_free))
-            if self.max_force is not None:
-                mag = float(np.linalg.norm(f))
-                if mag > self.max_force:
-                    f *= self.max_force / mag
-        d.step({self.node: (float(f[0]), float(f[1]), float(f[2]))} if self.node is not None and np.any(f) else None)
-        self.force = f
-        return f
+            f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - d.predict(p)))[None]
+        else:
+            W = self._block if self._block is not None else step_compliances(d, self.nodes)
+            h = self._hold - predictions(d, self.nodes).reshape(-1)
+            f, _ = hold_patch(W, h, k * (c - self._jaw), k, self.grip)
+        total = f.sum(axis=0)
+        if self.max_force is not None:
+            mag = float(np.linalg.norm(total))
+            if mag > self.max_force:
+                f = f * (self.max_force / mag)
+                total = f.sum(axis=0)
+        d.step({int(v): (float(g[0]), float(g[1]), float(g[2])) for v, g in zip(self.nodes.tolist(), f)})
+        self.force, self.forces = total, f
+        return total
 
 
 @dataclass

@@ -656,6 +656,22 @@ class ImpedanceDriver:
         i = validate.node(node, self.n_nodes)
         return self._map(i).point_compliance(i)
 
+    def predict_at(self, nodes) -> np.ndarray:
+        return np.zeros((validate.nodes(nodes, self.n_nodes).size, 3))
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The static cross compliances (3k, 3l) G_ab = [K^-1]_ab of a contact set, from the maps of
+        the loaded nodes (zero beyond a map's kept neighbourhood; the diagonal blocks exact)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        W = np.zeros((3 * nodes.size, 3 * loaded.size))
+        for b, j in enumerate(loaded.tolist()):
+            W[:, 3 * b:3 * b + 3] = self._map(j)._columns(j, nodes, None).reshape(-1, 3)
+            same = np.flatnonzero(nodes == j)
+            for a in same.tolist():
+                W[3 * a:3 * a + 3, 3 * b:3 * b + 3] = self._map(j).point_compliance(j)
+        return W
+
     # ---------------------------------------------------------------- the field
     def _entries(self):
         """(node, force, delay since its onset; inf for a static or settled load) of what is

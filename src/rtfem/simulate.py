@@ -28,8 +28,8 @@ from .material import Damping
 from .modal import ModalBasis
 from .oscillator import transition
 
-__all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "prepare", "ModalSimulator", "newmark_coefficients",
-           "newmark_constants"]
+__all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "predictions", "step_compliances", "prepare",
+           "ModalSimulator", "newmark_coefficients", "newmark_constants"]
 
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
@@ -103,7 +103,9 @@ class Driver(Protocol):
     these members works with every consumer. Optional, with a fallback on the members:
     ``displacements_at(nodes)`` (a batched query), ``prepare(nodes)`` (precompute what loads on
     those nodes will need; see :func:`prepare`), ``fingerprint`` (the mesh hash, checked by the
-    consumers when present).
+    consumers when present), ``predict_at(nodes)`` ((k, 3) predictions, batched) and
+    ``step_compliances(nodes, loaded)`` (the cross compliances of a contact set: block (a, b) is
+    d u_a(k+1) / d f_b; see :func:`step_compliances`).
     """
 
     dt: float
@@ -149,6 +151,46 @@ def displacements_at(driver, nodes: np.ndarray) -> np.ndarray:
     """(k, 3) displacements of some nodes: the driver's batched query when it has one."""
     fn = getattr(driver, "displacements_at", None)
     return fn(nodes) if fn is not None else np.asarray(driver.displacements())[nodes]
+
+
+def predictions(driver, nodes: np.ndarray) -> np.ndarray:
+    """(k, 3) :meth:`Driver.predict` of some nodes: the driver's batched ``predict_at`` when it has one."""
+    fn = getattr(driver, "predict_at", None)
+    if fn is not None:
+        return fn(nodes)
+    return np.array([driver.predict(int(i)) for i in np.asarray(nodes).tolist()]).reshape(-1, 3)
+
+
+def step_compliances(driver, nodes, loaded=None) -> np.ndarray:
+    """The one-step cross compliances of a contact set, (3k, 3l): block (a, b) is the displacement
+    of ``nodes[a]`` after one step per unit force on ``loaded[b]`` (default: ``nodes``), so that
+    u_S(k+1) = predict_S + W_SS f_S (James & Pai's capacitance matrix).
+
+    The driver's own ``step_compliances`` when it has one; otherwise, for one node its
+    ``step_compliance``, and for a set the block is measured by stepping the driver from its
+    saved state under unit loads (3 l steps, state restored: a user's driver needs only the
+    protocol)."""
+    nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
+    loaded = nodes if loaded is None else np.asarray(loaded, dtype=np.int64).reshape(-1)
+    fn = getattr(driver, "step_compliances", None)
+    if fn is not None:
+        return fn(nodes, loaded)
+    if nodes.size == 1 and loaded.size == 1 and nodes[0] == loaded[0]:
+        return np.asarray(driver.step_compliance(int(nodes[0])), dtype=float)
+    state = driver.get_state()
+    base = predictions(driver, nodes).reshape(-1)
+    W = np.zeros((3 * nodes.size, 3 * loaded.size))
+    try:
+        for b, j in enumerate(loaded.tolist()):
+            for k in range(3):
+                f = [0.0, 0.0, 0.0]
+                f[k] = 1.0
+                driver.set_state(state)
+                driver.step({j: tuple(f)})
+                W[:, 3 * b + k] = displacements_at(driver, nodes).reshape(-1) - base
+    finally:
+        driver.set_state(state)
+    return W
 
 
 class ForceInput:
@@ -420,6 +462,28 @@ class ModalSimulator(ForceInput):
         W = (P * self._G1[0]) @ P.T
         if self.static_correction:
             W = W + self._correction_column(node)[node]
+        return W
+
+    def predict_at(self, nodes) -> np.ndarray:
+        """(k, 3) :meth:`predict` of ``nodes``, O(k r)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        S = self._S
+        x = self._C1[0] * S[0] + self._C2[0] * S[1]
+        if self._G0 is not None:
+            x = x + self._G0[0] * self._f_old
+        return self._phi[nodes] @ x
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The cross compliances (3k, 3l) of a contact set (see :func:`step_compliances`):
+        Phi_a diag(Gamma) Phi_b^T, plus D_ab with the static correction (its columns are
+        computed for the loaded nodes the first time, as :meth:`prepare` does)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        r = self._phi.shape[2]
+        Pa, Pb = self._phi[nodes].reshape(-1, r), self._phi[loaded].reshape(-1, r)
+        W = (Pa * self._G1[0]) @ Pb.T
+        if self.static_correction and loaded.size:
+            W += np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()], axis=1)
         return W
 
     def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64) -> np.ndarray:

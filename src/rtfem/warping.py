@@ -131,16 +131,18 @@ class WarpedModalSimulator(ModalSimulator):
 
     def predict(self, node: int) -> np.ndarray:
         """The warped displacement (3,) of ``node`` after one more step with no new load."""
-        i = self._node(node)
-        q = self._q_free()
-        return self._warp(np.array([i]), q, self._phi[i:i + 1] @ q, None)[0]
+        return self.predict_at(np.array([self._node(node)]))[0]
 
-    def step_compliance(self, node: int) -> np.ndarray:
-        """d u_i(k+1) / d f_i at the no-load step: the warp's Jacobian times the modal gain times
-        the force's turn into the node's frame (plus R D_ii R^T with the static correction)."""
-        i = self._node(node)
+    def predict_at(self, nodes) -> np.ndarray:
+        """(k, 3) :meth:`predict` of ``nodes``."""
+        nodes = validate.nodes(nodes, self.n_nodes)
         q = self._q_free()
-        P, Ps = self._phi[i], self._psi[i]
+        return self._warp(nodes, q, self._phi[nodes] @ q, None)
+
+    def _jacobians(self, nodes: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """d u_i / d q (k, 3, r) of the warped displacement at ``q``: Rt(w_i) Phi_i plus the warp's
+        derivative (central differences of Rt in w, which is smooth)."""
+        P, Ps = self._phi[nodes], self._psi[nodes]
         a, w = P @ q, Ps @ q
         J = integrated_rotation(w) @ P
         h = 1e-6
@@ -148,10 +150,29 @@ class WarpedModalSimulator(ModalSimulator):
             e = np.zeros(3)
             e[k] = h
             dR = (integrated_rotation(w + e) - integrated_rotation(w - e)) / (2 * h)
-            J += np.outer(dR @ a, Ps[k])
-        Rn = self._rotations(np.array([i]))[0]  # the frame the force is turned into (now)
-        W = (J * self._G1[0]) @ P.T @ Rn.T
-        if self.static_correction:
-            Rk = rotation(w)
-            W = W + Rk @ self._correction_column(i)[i] @ Rn.T
+            J += np.einsum("ki,kr->kir", np.einsum("kij,kj->ki", dR, a), Ps[:, k])
+        return J
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        """d u_i(k+1) / d f_i at the no-load step: the warp's Jacobian times the modal gain times
+        the force's turn into the node's frame (plus R D_ii R^T with the static correction)."""
+        i = self._node(node)
+        return self.step_compliances(np.array([i]))
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The cross compliances (3k, 3l) of a contact set at the no-load step: J_a diag(Gamma)
+        Phi_b^T R_b^T, plus R_a D_ab R_b^T with the static correction."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        q = self._q_free()
+        r = self._phi.shape[2]
+        J = self._jacobians(nodes, q).reshape(-1, r)
+        Rn = self._rotations(loaded)  # the frames the forces are turned into (now)
+        Pb = np.einsum("kij,kjr->kir", Rn, self._phi[loaded]).reshape(-1, r)  # R_b Phi_b
+        W = (J * self._G1[0]) @ Pb.T
+        if self.static_correction and loaded.size:
+            Ra = rotation(self._psi[nodes] @ q)
+            for b, j in enumerate(loaded.tolist()):
+                D = self._correction_column(j)[nodes]  # (k, 3, 3)
+                W[:, 3 * b:3 * b + 3] += np.einsum("kij,kjl,ml->kim", Ra, D, Rn[b]).reshape(-1, 3)
         return W

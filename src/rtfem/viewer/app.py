@@ -215,6 +215,10 @@ class Viewer:
             self.E_kpa = gui.add_number("Young's modulus (kPa)", initial_value=s.settings.E / 1e3, min=1.0, max=1e6, step=1.0)
             self.k_grasp = gui.add_slider("grasp spring (N/m)", min=10.0, max=2000.0, step=10.0,
                                           initial_value=s.settings.grasp_stiffness)
+            self.grab_mm = gui.add_slider("grab radius (mm)", min=0.0, max=40.0, step=1.0,
+                                          initial_value=s.settings.grab_radius * 1e3,
+                                          hint="the jaw holds the surface within this radius of the picked point "
+                                               "(0: one vertex, a point pull)")
             apply = gui.add_button("apply")
             reset = gui.add_button("reset (let go, zero state)")
         with gui.add_folder("Mode browser"):
@@ -247,7 +251,8 @@ class Viewer:
         s = self.session
         changes = dict(method=self.method.value, n_modes=int(self.modes_slider.value), dt=float(self.dt_ms.value) * 1e-3,
                        alpha=float(self.alpha.value), E=float(self.E_kpa.value) * 1e3,
-                       grasp_stiffness=float(self.k_grasp.value), large=bool(self.large.value))
+                       grasp_stiffness=float(self.k_grasp.value), grab_radius=float(self.grab_mm.value) * 1e-3,
+                       large=bool(self.large.value))
         if not force and all(getattr(s.settings, k) == v for k, v in changes.items()):
             return
         self.stats_md.content = "rebuilding ..."

@@ -33,7 +33,7 @@ from ..mesh import TriMesh
 from ..tetmesh import TetMesh
 from ..modal import ModalBasis, modal_analysis
 from ..model import make_model
-from ..simulate import ModalSimulator, as_driver
+from ..simulate import ModalSimulator, as_driver, prepare
 
 METHODS = ("modal", "impedance", "direct")
 #: response samples of the maps the impedance method builds per grabbed vertex (s)
@@ -50,6 +50,7 @@ class Settings:
     alpha: float = 8.0  # mass-proportional damping (1/s)
     E: float | None = None  # Young's modulus (Pa); None: the material's
     grasp_stiffness: float = 200.0  # N/m
+    grab_radius: float = 0.01  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
     max_force: float = 2.0  # N
     large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
 
@@ -62,6 +63,7 @@ class Settings:
             alpha=validate.nonnegative(self.alpha, "alpha", "mass-proportional damping in 1/s"),
             E=None if self.E is None else validate.positive(self.E, "E", "Young's modulus in Pa"),
             grasp_stiffness=validate.positive(self.grasp_stiffness, "grasp_stiffness", "the grasp spring in N/m"),
+            grab_radius=validate.in_range(self.grab_radius, "grab_radius", 0.0, 1.0, what="the grab radius in m"),
             max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
             large=_large(self.method, self.large),
         )
@@ -152,7 +154,8 @@ class Session:
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
             self.reduced = modes
             self.driver = driver
-            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force)
+            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
+                               radius=s.grab_radius)
             self.node: int | None = None
             self.target = None
             self._t0_sim = 0.0
@@ -163,7 +166,8 @@ class Session:
         """Drive the organ with any Driver of this mesh (a user's own class) until the next
         :meth:`configure`; the grasp, the clock and the panel work through the protocol only."""
         driver = as_driver(driver, "viewer")
-        grasp = Grasp(self.mesh, driver, stiffness=self.settings.grasp_stiffness, max_force=self.settings.max_force)
+        grasp = Grasp(self.mesh, driver, stiffness=self.settings.grasp_stiffness, max_force=self.settings.max_force,
+                      radius=self.settings.grab_radius)
         with self._lock:
             self.driver, self.grasp = driver, grasp
             self.node, self.target = None, None
@@ -171,7 +175,8 @@ class Session:
             self.stats.forces.clear()
 
     def configure(self, **changes) -> None:
-        """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, max_force, large) and rebuild."""
+        """Change settings (method, n_modes, dt, alpha, E, grasp_stiffness, grab_radius, max_force, large) and
+        rebuild."""
         known = {f.name for f in fields(Settings)}
         unknown = sorted(set(changes) - known)
         if unknown:
@@ -189,7 +194,7 @@ class Session:
         node = self.model.nearest_free_node(point, displacements)
         with self._lock:
             grasp = self.grasp
-        grasp.compliance(node)  # the driver prepares the node here
+        prepare(grasp.driver, grasp.patch(node))  # the driver prepares the held vertices here
         with self._lock:
             if grasp is not self.grasp:  # rebuilt meanwhile
                 return node

@@ -1,0 +1,550 @@
+"""Tool-tissue contact over patches: rigid tools against the deformed surface, with friction.
+
+A tool is a convex "core" (a point, a segment or a rectangle) swept by a radius: a sphere, a
+capsule (an instrument shaft) or a flat jaw. Its signed distance is d(x) = |x - core(x)| - R, with
+unit gradient n(x) = (x - core(x)) / |x - core(x)|, the direction the tool pushes the tissue.
+
+Contact points. Every surface vertex near the tool is a candidate, at its *predicted* position
+(where it would be after one more step with no new load, :func:`~rtfem.simulate.predictions`), and
+so is the one point of the deformed surface closest to the tool's core, on a triangle (barycentric
+weights b): with the vertices alone a small probe would pass between them and feel the vertex
+spacing. The gap of a contact point y = sum_k b_k x_k is d0 = d(y); its frame F = [n, t1, t2].
+
+The solve (James & Pai's capacitance matrix). With the driver's one-step cross compliances W_SS
+(:func:`~rtfem.simulate.step_compliances`) the contact points move as y(k+1) = y_free + B W_SS B^T f.
+The tool is coupled to the device by a virtual spring of stiffness k (``coupling="spring"``; a
+"constraint" is k = infinity): its proxy sits at x_t = x_d - (1/k) sum f. In each point's frame
+(r_c = F_c^T f_c) the gap and the tangential slip of the step are
+
+    w = b + A r,   A_cd = F_c^T (B W_SS B^T + 1/k)_cd F_d,
+    b_c = [d0_c;  T_c^T ((y_free,c - y_c(k)) - (x_d(k+1) - x_t(k)))],
+
+(the gaps d0 and frames are evaluated with the tool where it was, x_t(k), and its move to
+x_d(k+1) enters linearly, -n . (x_d(k+1) - x_t(k)): the tool moves little per step, while a soft
+coupling may leave it millimetres from the device), with the Signorini conditions w_n >= 0, r_n >= 0, w_n r_n = 0 and Coulomb's law |r_t| <= mu r_n
+(stick: w_t = 0; slip: r_t opposes w_t at |r_t| = mu r_n). This is solved by projected
+Gauss-Seidel over the 3x3 contact blocks (the normal by its row, the tangential pair by its 2x2
+block projected onto the friction disk), warm-started from the previous step's forces
+(:func:`pgs`, compiled when numba is present). The step is then taken with the vertex forces
+B^T F r; the hand feels -sum f.
+
+The contact set's compliance block is kept from step to step: when the set changes only the rows
+and columns of newly touched vertices are computed (for drivers whose W follows the motion,
+``compliance_changes``, the whole block each step).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import validate
+from .errors import ModelError
+from .mesh import TriMesh
+from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
+
+__all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch"]
+
+
+class Tool:
+    """A rigid tool: a convex core swept by a radius (sphere, capsule, flat jaw).
+
+    The core is the box [-a, a] x [-b, b] x {0} in the tool's frame (``orientation``: the 3x3
+    rotation whose columns are the frame's axes in the world): a = b = 0 a point (a sphere), b = 0 a
+    segment along the first axis (a capsule), both > 0 a rectangle (a jaw, whose face normal is the
+    third axis). Use the constructors :meth:`sphere`, :meth:`capsule` and :meth:`jaw`.
+    """
+
+    def __init__(self, radius: float, half_extents=(0.0, 0.0), orientation=None, *, kind: str = "tool") -> None:
+        self.radius = validate.nonnegative(radius, "radius", "the tool's radius in m")
+        a, b = (validate.nonnegative(v, n, "a half-length in m") for v, n in zip(half_extents, ("a", "b")))
+        self.half_extents = np.array([a, b, 0.0])
+        self.orientation = np.eye(3) if orientation is None else _rotation_matrix(orientation)
+        self.kind = kind
+
+    @classmethod
+    def sphere(cls, radius: float) -> "Tool":
+        """A sphere of ``radius`` (m); 0 is a point probe."""
+        return cls(radius, kind="sphere")
+
+    @classmethod
+    def capsule(cls, radius: float, length: float, axis=(1.0, 0.0, 0.0)) -> "Tool":
+        """A capsule (an instrument shaft): a segment of ``length`` along ``axis`` swept by ``radius``."""
+        length = validate.positive(length, "length", "the capsule's length in m")
+        return cls(radius, (0.5 * length, 0.0), _frame(axis), kind="capsule")
+
+    @classmethod
+    def jaw(cls, width: float, length: float, thickness: float, normal=(0.0, 0.0, 1.0), along=None) -> "Tool":
+        """A flat jaw: a ``length`` x ``width`` plate of ``thickness`` (rounded edges) whose faces
+        look along ``normal``; ``along`` the direction of its length (any direction across the normal
+        when not given)."""
+        width = validate.positive(width, "width", "the jaw's width in m")
+        length = validate.positive(length, "length", "the jaw's length in m")
+        thickness = validate.positive(thickness, "thickness", "the jaw's thickness in m")
+        n = _unit(normal, "normal")
+        t = _frame(n)[:, 1] if along is None else _unit(along, "along")
+        t = t - (t @ n) * n
+        if np.linalg.norm(t) < 1e-9:
+            raise ModelError("the jaw's length direction `along` must not be parallel to its normal")
+        t /= np.linalg.norm(t)
+        R = np.column_stack([t, np.cross(n, t), n])
+        return cls(0.5 * thickness, (0.5 * length, 0.5 * width), R, kind="jaw")
+
+    @property
+    def reach(self) -> float:
+        """The radius of a ball around the tool's position that contains the tool."""
+        return float(np.linalg.norm(self.half_extents) + self.radius)
+
+    def core(self, points: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """The closest core point (k, 3) to each of ``points`` with the tool at ``position``."""
+        R = self.orientation
+        local = (points - position) @ R
+        local = np.clip(local, -self.half_extents, self.half_extents)
+        return position + local @ R.T
+
+    def distance(self, points: np.ndarray, position: np.ndarray, fallback: np.ndarray):
+        """Signed distances (k,) of ``points`` to the tool's surface and the unit directions (k, 3)
+        the tool pushes them along; a point on the core itself takes ``fallback`` (k, 3)."""
+        v = points - self.core(points, position)
+        r = np.linalg.norm(v, axis=1)
+        on_core = r < 1e-12
+        n = np.where(on_core[:, None], fallback, v / np.where(on_core, 1.0, r)[:, None])
+        return r - self.radius, n
+
+    def __repr__(self) -> str:
+        a, b, _ = self.half_extents
+        return f"Tool.{self.kind}(radius={self.radius:g}, half_extents=({a:g}, {b:g}))"
+
+
+def _unit(v, name: str) -> np.ndarray:
+    v = validate.vector(v, name, 3)
+    n = float(np.linalg.norm(v))
+    if n < 1e-300:
+        raise ModelError(f"{name} must be a nonzero direction")
+    return v / n
+
+
+def _frame(axis) -> np.ndarray:
+    """A rotation whose first column is ``axis``."""
+    e = _unit(axis, "axis")
+    helper = np.eye(3)[int(np.argmin(np.abs(e)))]
+    t1 = np.cross(e, helper)
+    t1 /= np.linalg.norm(t1)
+    return np.column_stack([e, t1, np.cross(e, t1)])
+
+
+def _rotation_matrix(R) -> np.ndarray:
+    R = validate.real_array(R, "orientation", 2)
+    if R.shape != (3, 3) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise ModelError("orientation must be a 3x3 rotation matrix (orthonormal columns, determinant +1)")
+    return R
+
+
+def tangent_frames(n: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) frames whose columns are n, t1, t2 (right-handed, orthonormal)."""
+    helper = np.where((np.abs(n[:, 0]) < 0.6)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    return np.stack([n, t1, np.cross(n, t1)], axis=2)
+
+
+def closest_points_on_triangles(P: np.ndarray, A: np.ndarray, B: np.ndarray, C: np.ndarray):
+    """Closest points of triangles (A, B, C) (k, 3 each) to points P (k, 3): (points, barycentric
+    weights (k, 3)). The projection on the plane when it falls inside, else the nearest of the
+    three edges' closest points."""
+    e0, e1 = B - A, C - A
+    d = P - A
+    a00, a01, a11 = np.einsum("ij,ij->i", e0, e0), np.einsum("ij,ij->i", e0, e1), np.einsum("ij,ij->i", e1, e1)
+    b0, b1 = np.einsum("ij,ij->i", d, e0), np.einsum("ij,ij->i", d, e1)
+    det = np.maximum(a00 * a11 - a01 * a01, 1e-300)
+    s, t = (a11 * b0 - a01 * b1) / det, (a00 * b1 - a01 * b0) / det
+    bary = np.stack([1.0 - s - t, s, t], axis=1)
+    inside = (s >= 0) & (t >= 0) & (s + t <= 1)
+    best = np.full(P.shape[0], np.inf)
+    out_b = bary.copy()
+    corners = (A, B, C)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        Q0, Q1 = corners[i], corners[j]
+        e = Q1 - Q0
+        u = np.clip(np.einsum("ij,ij->i", P - Q0, e) / np.maximum(np.einsum("ij,ij->i", e, e), 1e-300), 0.0, 1.0)
+        dist = np.linalg.norm(Q0 + u[:, None] * e - P, axis=1)
+        better = ~inside & (dist < best)
+        best = np.where(better, dist, best)
+        wts = np.zeros_like(bary)
+        wts[:, i], wts[:, j] = 1.0 - u, u
+        out_b = np.where(better[:, None], wts, out_b)
+    points = out_b[:, :1] * A + out_b[:, 1:2] * B + out_b[:, 2:] * C
+    return points, out_b
+
+
+# ------------------------------------------------------------------------------ the contact solve
+def _pgs(A, b, mu, r, max_sweeps, tol):
+    """Projected Gauss-Seidel on w = b + A r over 3x3 contact blocks [n, t1, t2]: r_n >= 0,
+    w_n >= 0, complementary; |r_t| <= mu r_n (stick: w_t = 0). ``r`` (3m,) is the warm start,
+    updated in place. Returns the number of sweeps (max_sweeps + 1: not converged)."""
+    n3 = b.shape[0]
+    m = n3 // 3
+    w = b.copy()
+    for i in range(n3):
+        for j in range(n3):
+            w[i] += A[i, j] * r[j]
+    for sweep in range(max_sweeps):
+        change = 0.0
+        size = 0.0
+        for c in range(m):
+            i = 3 * c
+            r0, r1, r2 = r[i], r[i + 1], r[i + 2]
+            # the local problem with the other contacts' forces held
+            bn = w[i] - A[i, i] * r0 - A[i, i + 1] * r1 - A[i, i + 2] * r2
+            b1 = w[i + 1] - A[i + 1, i] * r0 - A[i + 1, i + 1] * r1 - A[i + 1, i + 2] * r2
+            b2 = w[i + 2] - A[i + 2, i] * r0 - A[i + 2, i + 1] * r1 - A[i + 2, i + 2] * r2
+            rn = -(bn + A[i, i + 1] * r1 + A[i, i + 2] * r2) / A[i, i]
+            if rn < 0.0:
+                rn = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            if mu[c] > 0.0 and rn > 0.0:
+                t1 = -(b1 + A[i + 1, i] * rn)
+                t2 = -(b2 + A[i + 2, i] * rn)
+                a11, a12, a21, a22 = A[i + 1, i + 1], A[i + 1, i + 2], A[i + 2, i + 1], A[i + 2, i + 2]
+                det = a11 * a22 - a12 * a21
+                s1 = (a22 * t1 - a12 * t2) / det
+                s2 = (a11 * t2 - a21 * t1) / det
+                norm = math.sqrt(s1 * s1 + s2 * s2)
+                lim = mu[c] * rn
+                if norm > lim:
+                    s1 *= lim / norm
+                    s2 *= lim / norm
+            d0, d1, d2 = rn - r0, s1 - r1, s2 - r2
+            if d0 != 0.0 or d1 != 0.0 or d2 != 0.0:
+                for k in range(n3):
+                    w[k] += A[k, i] * d0 + A[k, i + 1] * d1 + A[k, i + 2] * d2
+            r[i], r[i + 1], r[i + 2] = rn, s1, s2
+            change = max(change, abs(d0), abs(d1), abs(d2))
+            size = max(size, abs(rn))
+        if change <= tol * size or size == 0.0:
+            return sweep + 1
+    return max_sweeps + 1
+
+
+try:  # compiled when numba is present (the same code)
+    import numba as _numba
+
+    _pgs_compiled = _numba.njit("i8(f8[:, ::1], f8[::1], f8[::1], f8[::1], i8, f8)", cache=True, nogil=True)(_pgs)
+except Exception:  # pragma: no cover - numba absent
+    _pgs_compiled = None
+
+
+def pgs(A, b, mu, r=None, *, max_sweeps: int = 500, tol: float = 1e-10) -> tuple[np.ndarray, int]:
+    """Solve the frictional contact problem w = b + A r (see :mod:`rtfem.contact`) by projected
+    Gauss-Seidel; ``A`` (3m, 3m) with positive diagonal, ``b`` (3m,), ``mu`` (m,) friction
+    coefficients, ``r`` a warm start. Returns (r, sweeps); sweeps > max_sweeps: not converged."""
+    A = np.ascontiguousarray(A, dtype=float)
+    b = np.ascontiguousarray(b, dtype=float)
+    mu = np.array(np.broadcast_to(np.asarray(mu, dtype=float), (b.size // 3,)))
+    r = np.zeros_like(b) if r is None else np.array(r, dtype=float)
+    if A.shape != (b.size, b.size) or b.size % 3:
+        raise ModelError(f"pgs needs A (3m, 3m) and b (3m,), got {A.shape} and {b.shape}")
+    if b.size and not np.all(np.diag(A)[::3] > 0):
+        raise ModelError("the contact compliance has a zero or negative normal diagonal: a contact point on held nodes")
+    fn = _pgs_compiled if _pgs_compiled is not None else _pgs
+    sweeps = fn(A, b, mu, r, int(max_sweeps), float(tol)) if b.size else 0
+    return r, int(sweeps)
+
+
+class _ComplianceBlock:
+    """The driver's cross compliances W_SS of the current contact vertices, kept between steps:
+    rows and columns are computed only for newly touched vertices (all of it each step when the
+    driver's compliance follows the motion)."""
+
+    def __init__(self, driver) -> None:
+        self.driver = driver
+        self.nodes = np.zeros(0, dtype=np.int64)
+        self.W = np.zeros((0, 0))
+        self.new_rows = 0  # vertices whose rows were computed in the last call (for benchmarks)
+
+    def block(self, nodes: np.ndarray) -> np.ndarray:
+        d = self.driver
+        if getattr(d, "compliance_changes", False):
+            self.new_rows = nodes.size
+            return step_compliances(d, nodes)
+        if nodes.size == self.nodes.size and np.array_equal(nodes, self.nodes):
+            self.new_rows = 0
+            return self.W
+        pos = {int(v): i for i, v in enumerate(self.nodes.tolist())}
+        old = np.array([pos.get(int(v), -1) for v in nodes.tolist()], dtype=np.int64)
+        kept, fresh = np.flatnonzero(old >= 0), np.flatnonzero(old < 0)
+        W = np.empty((3 * nodes.size, 3 * nodes.size))
+        ik = (3 * kept[:, None] + np.arange(3)).reshape(-1)
+        io = (3 * old[kept][:, None] + np.arange(3)).reshape(-1)
+        W[np.ix_(ik, ik)] = self.W[np.ix_(io, io)]
+        if fresh.size:
+            prepare(d, nodes[fresh])
+            jf = (3 * fresh[:, None] + np.arange(3)).reshape(-1)
+            W[:, jf] = step_compliances(d, nodes, nodes[fresh])
+            if kept.size:
+                W[np.ix_(jf, ik)] = step_compliances(d, nodes[fresh], nodes[kept])
+        self.nodes, self.W, self.new_rows = nodes.copy(), W, int(fresh.size)
+        return W
+
+
+class ToolContact:
+    """A rigid :class:`Tool` in frictional contact with an organ through any Driver, coupled to a
+    haptic device by a virtual spring. ``update(position)`` is one haptic step (a HapticLoop drives
+    it like a Probe); it returns the force on the device (N).
+
+    Parameters
+    ----------
+    mesh : the organ surface (the driver's mesh).
+    driver : a ModalSimulator (linear or warped), a DirectSimulator (linear or large-deformation),
+        an ImpedanceMap or any Driver.
+    tool : a :class:`Tool` (default: a 5 mm sphere).
+    coupling : "spring" (virtual coupling of ``stiffness`` N/m, default) or "constraint" (the tool
+        sits at the device).
+    friction : Coulomb's coefficient mu (0: frictionless).
+    margin : candidates within this distance of the tool (m) enter the solve (default: a quarter of
+        the median edge), so that a point about to touch is in the set.
+    surface_point : also the surface point closest to the tool's core, on a triangle (default True;
+        False: vertices only, for a tool much larger than the edges).
+    """
+
+    def __init__(self, mesh: TriMesh, driver, tool: Tool | None = None, *, coupling: str = "spring",
+                 stiffness: float = 200.0, friction: float = 0.0, margin: float | None = None,
+                 surface_point: bool = True, max_sweeps: int = 500, tol: float = 1e-10) -> None:
+        from .haptics import check_driver_mesh
+
+        driver = as_driver(driver, "tool")
+        check_driver_mesh(mesh, driver, "tool")
+        self.tool = Tool.sphere(0.005) if tool is None else tool
+        if not isinstance(self.tool, Tool):
+            raise ModelError(f"tool={validate.show(tool)} must be an rt.Tool (Tool.sphere, Tool.capsule, Tool.jaw)")
+        self.coupling = validate.choice(coupling, "coupling", ("spring", "constraint"))
+        self.stiffness = validate.positive(stiffness, "stiffness", "the coupling stiffness in N/m")
+        self.friction = validate.nonnegative(friction, "friction", "Coulomb's friction coefficient")
+        self.surface_point = validate.flag(surface_point, "surface_point")
+        self.max_sweeps = validate.count(max_sweeps, "max_sweeps", 1, 10**6)
+        self.tol = validate.positive(tol, "tol", "a relative tolerance")
+        self.mesh, self.driver = mesh, driver
+        self.X = np.asarray(mesh.vertices, dtype=float)
+        self.normals = mesh.vertex_normals()
+        self._touchable = mesh.used_vertices()
+        self._tree = cKDTree(self.X[self._touchable])
+        T = np.asarray(mesh.triangles, dtype=np.int64)
+        self._tri = T  # vertex -> triangles (CSR): _vt_tris[_vt_start[v]:_vt_start[v + 1]]
+        order = np.argsort(T.reshape(-1), kind="stable")
+        self._vt_tris = order // 3
+        self._vt_start = np.searchsorted(T.reshape(-1)[order], np.arange(self.X.shape[0] + 1))
+        edges = mesh.edges()
+        self.edge = float(np.median(np.linalg.norm(self.X[edges[:, 0]] - self.X[edges[:, 1]], axis=1)))
+        self.margin = 0.25 * self.edge if margin is None else validate.nonnegative(margin, "margin", "a distance in m")
+        self._block = _ComplianceBlock(driver)
+        self._warm: dict[int, np.ndarray] = {}
+        self._offset = np.zeros(3)
+        self.proxy: np.ndarray | None = None  # the tool's position after the coupling (m)
+        self.force = np.zeros(3)  # force on the device (N); the organ gets -force in total
+        self.contacts = 0  # active contact points (positive normal force) in the last step
+        self.sweeps = 0  # PGS sweeps of the last step
+        self.points = np.zeros((0, 3))  # the active contact points after the last step (deformed, m)
+        self.contact_forces = np.zeros((0, 3))  # and the force on the organ at each (N)
+        self.contact_normals = np.zeros((0, 3))  # and the direction the tool pushes at each
+
+    # ---------------------------------------------------------------- preparation
+    def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
+        """Compute what contacts at these vertices will need (static-correction columns, compliance
+        columns, maps) before the force loop; as :meth:`Probe.prepare`. Returns how many."""
+        if nodes is None:
+            if around is None:
+                raise ModelError("give nodes, or a point around which to prepare the contact compliances")
+            centre = validate.point(around, "around")
+            radius = validate.positive(radius, "radius", "a distance in m")
+            nodes = self._touchable[np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)]
+        else:
+            nodes = validate.nodes(nodes, self.X.shape[0])
+        if nodes.size:
+            prepare(self.driver, nodes)
+        return int(nodes.size)
+
+    def displacements(self) -> np.ndarray:
+        return self.driver.displacements()
+
+    # ---------------------------------------------------------------- the contact set
+    def _contact_set(self, c: np.ndarray):
+        """Contact points near the tool at ``c``: (vertices S, weights B (m, s), frames (m, 3, 3),
+        gaps (m,), free positions (m, 3), current positions (m, 3), ids (m,))."""
+        reach = self.tool.reach + self.margin + self.edge
+        verts = self._touchable[np.asarray(self._tree.query_ball_point(c - self._offset, reach), dtype=np.int64)]
+        if verts.size == 0:
+            return None
+        verts.sort()
+        ring = self._ring(verts, c)  # the triangles around the vertex nearest the tool
+        extra = np.setdiff1d(self._tri[ring], verts)
+        if extra.size:
+            verts = np.union1d(verts, extra)
+        u_free = predictions(self.driver, verts)
+        u_now = displacements_at(self.driver, verts)
+        self._offset = u_now.mean(axis=0)
+        # the geometry of the surface now (continuous from step to step), its free motion linearly
+        Y, Yf = self.X[verts] + u_now, self.X[verts] + u_free
+        d, n = self._vertex_gaps(Y, c, self.normals[verts])
+        d += np.einsum("ij,ij->i", n, Yf - Y)
+        take = np.flatnonzero(d < self.margin)
+        if self.surface_point:
+            loc, bw, nf, df, fid = self._face_contacts(c, Y, ring, np.searchsorted(verts, self._tri[ring]))
+            df = df + np.einsum("fi,fi->f", nf, np.einsum("fk,fki->fi", bw, (Yf - Y)[loc]))
+            keep = df < self.margin
+            loc, bw, nf, df, fid = loc[keep], bw[keep], nf[keep], df[keep], fid[keep]
+        else:
+            loc, bw, nf, df, fid = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), \
+                np.zeros(0, dtype=np.int64)
+        if df.size:  # a face point within 1e-3 edge of a vertex contact or of another kept point: the same
+            P = np.einsum("fk,fki->fi", bw, Y[loc])  # contact twice (a probe sitting on a vertex), dropped
+            kept = list(Y[take])
+            fresh = []
+            for i in range(df.size):
+                if not kept or np.min(np.linalg.norm(np.asarray(kept) - P[i], axis=1)) > 1e-3 * self.edge:
+                    kept.append(P[i])
+                    fresh.append(i)
+            loc, bw, nf, df, fid = loc[fresh], bw[fresh], nf[fresh], df[fresh], fid[fresh]
+        nv, m = take.size, take.size + df.size
+        if m == 0:
+            return None
+        S = np.unique(np.concatenate([verts[take], verts[loc.reshape(-1)]]))
+        Bw = np.zeros((m, S.size))
+        Bw[np.arange(nv), np.searchsorted(S, verts[take])] = 1.0
+        rows = np.repeat(np.arange(nv, m), 3)
+        np.add.at(Bw, (rows, np.searchsorted(S, verts[loc.reshape(-1)])), bw.reshape(-1))
+        normals, gaps, ids = np.vstack([n[take], nf]), np.concatenate([d[take], df]), np.concatenate([verts[take], fid])
+        y_free = np.vstack([Yf[take], np.einsum("fk,fki->fi", bw, Yf[loc])])
+        y_now = np.vstack([Y[take], np.einsum("fk,fki->fi", bw, Y[loc])])
+        return S, Bw, tangent_frames(normals), gaps, y_free, y_now, ids
+
+    def _vertex_gaps(self, Y: np.ndarray, c: np.ndarray, outward: np.ndarray):
+        """Gaps and push directions of vertices at Y: away from the core, or, for a vertex the core
+        has passed (the core below the surface by the vertex normal), along the inward normal with
+        a negative gap, so that a tool pushed through a thin layer still pushes it down, not back."""
+        v = self.tool.core(Y, c) - Y
+        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        above = _outside(v, outward, self.tool.radius)
+        n = np.where((above & (dist > 1e-12))[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
+        return np.where(above, dist, -dist) - self.tool.radius, n
+
+    def _ring(self, verts: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """The triangles around the candidate nearest the tool (by its last known position)."""
+        d, _ = self._vertex_gaps(self.X[verts] + self._offset, c, self.normals[verts])
+        v = int(verts[np.argmin(d)])
+        return self._vt_tris[self._vt_start[v]:self._vt_start[v + 1]]
+
+    def _face_contacts(self, c: np.ndarray, Y: np.ndarray, tris: np.ndarray, local: np.ndarray):
+        """The points of the triangles ``tris`` (corners ``local``, indices into Y) closest to the
+        tool's core, those within margin + 2 edges (the caller linearizes and keeps those within the margin) and not at a vertex (a vertex contact already):
+        (corners (f, 3), barycentric weights (f, 3), push directions (f, 3), gaps (f,), ids (f,)).
+        Every face of the ring is a contact of its own: where the probe sits in its own dent (a
+        concave crease) the closest point would jump across the crease, while the set of faces'
+        points moves continuously."""
+        A, B, C = Y[local[:, 0]], Y[local[:, 1]], Y[local[:, 2]]
+        core = self.tool.core((A + B + C) / 3.0, c)
+        point_core = not self.tool.half_extents.any()
+        for _ in range(1 if point_core else 4):  # alternating projections (core and triangle are convex)
+            P, bary = closest_points_on_triangles(core, A, B, C)
+            if not point_core:
+                core = self.tool.core(P, c)
+        v = core - P
+        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        outward = np.cross(B - A, C - A)
+        outward /= np.maximum(np.sqrt(np.einsum("ij,ij->i", outward, outward)), 1e-300)[:, None]
+        above = _outside(v, outward, self.tool.radius)  # the core outside the tissue: push away from it
+        n = np.where(above[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
+        n = np.where((dist < 1e-12)[:, None], -outward, n)
+        gaps = np.where(above, dist, -dist) - self.tool.radius
+        # a face's point inside it, or on an edge once (the two faces of a crease give the same
+        # point); at a vertex it is that vertex's contact
+        on = bary > 1e-9
+        edge = on.sum(axis=1) == 2
+        keep = (gaps < self.margin + 2 * self.edge) & (on.sum(axis=1) >= 2)
+        if edge.any():
+            ends = np.sort(np.where(on, local, -1), axis=1)[:, 1:]  # the edge's two corners
+            key = ends[:, 0] * (Y.shape[0] + 1) + ends[:, 1]
+            first = np.zeros(keep.size, dtype=bool)
+            idx = np.flatnonzero(keep & edge)
+            _, pick = np.unique(key[idx], return_index=True)
+            first[idx[pick]] = True
+            keep &= ~edge | first
+        return local[keep], bary[keep], n[keep], gaps[keep], -1 - tris[keep]
+
+    # ---------------------------------------------------------------- the step
+    def update(self, position) -> np.ndarray:
+        """One step with the device at ``position``; returns the force on the device (N)."""
+        c = validate.point(position, "tool position")
+        proxy = c if self.proxy is None or self.coupling == "constraint" else self.proxy
+        found = self._contact_set(proxy)  # the geometry where the tool is; its move to c is linear below
+        inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
+        if found is None:
+            self.driver.step(None)
+            self.proxy, self.force, self.contacts, self.sweeps = c.copy(), np.zeros(3), 0, 0
+            self.points = self.contact_forces = self.contact_normals = np.zeros((0, 3))
+            self._warm = {}
+            return self.force
+        S, Bw, F, gaps, y_free, y_now, ids = found
+        m = gaps.size
+        W = self._block.block(S)
+        Bk = np.kron(Bw, np.eye(3))
+        G = Bk @ W @ Bk.T + inv_k * np.tile(np.eye(3), (m, m))
+        Fd = _block_diag(F)
+        A = Fd.T @ G @ Fd
+        b = np.zeros((m, 3))
+        b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
+        slip = (y_free - y_now) - (c - proxy)
+        b[:, 1:] = np.einsum("kia,ki->ka", F[:, :, 1:], slip)
+        mu = np.full(m, self.friction)
+        r0 = np.concatenate([self._warm.get(int(i), np.zeros(3)) for i in ids.tolist()])
+        r, sweeps = pgs(A, b.reshape(-1), mu, r0, max_sweeps=self.max_sweeps, tol=self.tol)
+        r = r.reshape(m, 3)
+        f_points = np.einsum("kij,kj->ki", F, r)  # force on the organ at each contact point
+        f_nodes = Bw.T @ f_points
+        loads = {int(v): (float(f[0]), float(f[1]), float(f[2])) for v, f in zip(S.tolist(), f_nodes) if np.any(f)}
+        self.driver.step(loads or None)
+        total = f_points.sum(axis=0)
+        self.proxy = c - inv_k * total
+        self.force = -total
+        self.sweeps = sweeps
+        self.contacts = int(np.count_nonzero(r[:, 0] > 0))
+        self._warm = {int(i): r[k] for k, i in enumerate(ids.tolist()) if r[k, 0] > 0}
+        active = r[:, 0] > 0
+        y_after = y_free + (Bk @ (W @ (Bk.T @ f_points.reshape(-1)))).reshape(m, 3)  # u = y_free + B W B^T f
+        self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
+        return self.force
+
+
+def _outside(v: np.ndarray, outward: np.ndarray, radius: float) -> np.ndarray:
+    """Whether the tool's core is outside the tissue, given v (k, 3) from a surface point to its
+    closest core point and the surface's outward normals: it has passed the surface only when it is
+    behind it and within the tool's radius of the normal line (a core merely beside the point, as a
+    shaft lying on the surface, is not through it)."""
+    vn = np.einsum("ij,ij->i", v, outward)
+    lateral = np.sqrt(np.maximum(np.einsum("ij,ij->i", v, v) - vn * vn, 0.0))
+    return (vn >= 0) | (lateral > radius + 1e-12)
+
+
+def _block_diag(F: np.ndarray) -> np.ndarray:
+    """(3m, 3m) block-diagonal matrix of the (m, 3, 3) frames."""
+    m = F.shape[0]
+    out = np.zeros((3 * m, 3 * m))
+    idx = np.arange(m)
+    out.reshape(m, 3, m, 3)[idx, :, idx, :] = F
+    return out
+
+
+def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: float) -> tuple[np.ndarray, np.ndarray]:
+    """The forces (m, 3) of a jaw holding m vertices and the jaw's translation delta (3,).
+
+    Each held vertex is tied to the jaw by a grip spring (stiffness ``grip``), the jaw to the hand
+    by the grasp spring k: (W + I/grip) f - E delta = h (h = displacements at the grab minus the
+    free prediction), E^T f + k delta = g (g = k (hand - jaw's grab position)), E the stacked 3x3
+    identities; one symmetric (3m + 3) solve."""
+    m = h.size // 3
+    E = np.tile(np.eye(3), (m, 1))
+    K = np.block([[W + np.eye(3 * m) / grip, -E], [E.T, k * np.eye(3)]])
+    sol = np.linalg.solve(K, np.concatenate([h, g]))
+    return sol[:-3].reshape(m, 3), sol[-3:]

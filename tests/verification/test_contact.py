@@ -1,0 +1,150 @@
+"""Tool-tissue contact over patches (rt.ToolContact, rt.Grasp with a radius) against independent
+references: a flat punch against the partitioned static solve with the contact displacements
+prescribed, the Coulomb threshold mu N, the force continuity of a probe sliding across vertices
+and edges, and the patch grasp against a static solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+import rtfem as rt
+
+A_PLATE = 0.2  # m
+SETTLE = 2500  # steps of 1 ms, critically damped: the static state to round-off
+
+
+@pytest.fixture(scope="module")
+def plate():
+    mesh = rt.meshes.plate(A_PLATE, A_PLATE, 16, 16)
+    model = rt.ShellModel(mesh, rt.Material(E=3e4, nu=0.3, thickness=4e-3))
+    model.fix(mesh.boundary_vertices(), dofs="xyz")  # simply supported
+    return model, rt.modal_analysis(model, 30)
+
+
+def settled(modes):
+    return rt.ModalSimulator(modes, 1e-3, rt.Damping(zeta=1.0), static_correction=True)
+
+
+def prescribed_reactions(model, nodes, uz):
+    """Total reaction of a static solve with the z translations of ``nodes`` prescribed to ``uz``:
+    the partitioned K u = f with K itself (not its inverse's columns, which the contact solve uses)."""
+    K, free = model.constrained_stiffness()
+    zdofs = np.array([model.translation_dofs(int(v))[2] for v in nodes])
+    P = np.searchsorted(free, zdofs)
+    F = np.setdiff1d(np.arange(free.size), P)
+    u = np.zeros(free.size)
+    u[P] = uz
+    u[F] = spla.spsolve(K[F][:, F].tocsc(), -K[F][:, P] @ uz)
+    return K[P] @ u, u
+
+
+def test_flat_punch_sits_on_the_punch_and_its_force_equals_the_prescribed_static_solve(plate):
+    model, modes = plate
+    mesh = model.mesh
+    sim = settled(modes)
+    depth, half = 0.003, 0.03
+    punch = rt.Tool.jaw(width=2 * half, length=2 * half, thickness=0.002, normal=(0, 0, 1))
+    tc = rt.ToolContact(mesh, sim, punch, coupling="constraint", surface_point=False)  # the held points: vertices
+    for k in range(SETTLE):  # lowered from 1 mm above the plate at 10 um per step, then held
+        force = tc.update([0.1, 0.1, 0.002 - min(k * 1e-5, depth + 0.001)])  # the punch face at z = -depth
+    U = sim.displacements()
+    Y = np.asarray(mesh.vertices) + U
+    under = np.flatnonzero((np.abs(Y[:, 0] - 0.1) <= half) & (np.abs(Y[:, 1] - 0.1) <= half))
+    assert under.size >= 16
+    # nothing passes the punch face (the plate under it is below it), and the held points sit on it
+    assert Y[under, 2].max() <= -depth + 1e-9
+    active = tc.contacts
+    assert active >= 4
+    on_face = np.abs(Y[under, 2] + depth) < 1e-9
+    assert on_face.sum() >= active
+    # contact forces push down only; the device feels the sum pushing up
+    assert np.all(tc.contact_forces[:, 2] < 0) and force[2] > 0
+    # the same displacements prescribed on the contact nodes: the same total force (K, not K^-1)
+    reactions, _ = prescribed_reactions(model, under[on_face], np.full(on_face.sum(), -depth))
+    assert abs(-reactions.sum() - force[2]) < 1e-6 * force[2]
+    # and the prescribed solve's own field passes nowhere through the punch
+    assert np.all(reactions <= 1e-6 * force[2])
+
+
+def test_coulomb_threshold_stick_then_slip_at_mu_times_the_normal_force(plate):
+    """A 2 mm sphere pressed into the plate's centre through a soft coupling, then dragged sideways:
+    it sticks first (the tissue point moves with the tool), every contact force stays inside the
+    cone |f_t| <= mu f_n, and once it slides the force on the hand is mu times the normal force."""
+    model, modes = plate
+    mesh = model.mesh
+    sim = settled(modes)
+    mu, R = 0.4, 0.002
+    tc = rt.ToolContact(mesh, sim, rt.Tool.sphere(R), friction=mu, stiffness=1.0)
+    start = np.array([0.1, 0.1, R - 0.006])
+    for k in range(SETTLE):  # lowered from 1 mm above at 10 um per step, then held
+        tc.update(start + [0.0, 0.0, max(0.007 - k * 1e-5, 0.0)])
+    cone, low, slips, device = [], [], [], []
+    x_prev, proxy_prev = tc.points.mean(axis=0), tc.proxy.copy()
+    for k in range(1, 1500):
+        f = tc.update(start + [1e-5 * k, 0.0, 0.0])  # the hand drags sideways at 1 cm/s
+        fc, nc = tc.contact_forces, tc.contact_normals
+        fn = np.einsum("ij,ij->i", fc, nc)
+        ratio = np.linalg.norm(fc - fn[:, None] * nc, axis=1) / fn
+        cone.append(ratio.max())
+        low.append(ratio.min())
+        x = tc.points.mean(axis=0)  # stuck points all move with the tool
+        slips.append(abs((x - x_prev)[0] - (tc.proxy - proxy_prev)[0]))
+        device.append(abs(f[0]) / f[2])
+        x_prev, proxy_prev = x, tc.proxy.copy()
+    cone, slips, device = np.array(cone), np.array(slips), np.array(device)
+    assert cone.max() <= mu * (1 + 1e-9)  # never beyond the cone
+    assert cone[:5].max() < mu and slips[:5].max() < 1e-9  # sticks first: the tissue moves with the tool
+    late = slice(-500, None)  # past the dent's rim, sliding
+    assert np.abs(np.array(low)[late] - mu).max() < 1e-9  # every contact on the cone's edge: sliding
+    # the hand feels about mu N: the tool rides up the dent's front wall, whose normal is tilted a few
+    # degrees from the hand's vertical, so sideways / vertical is (mu + tan t) / (1 - mu tan t) (7 % here)
+    assert np.abs(device[late] - mu).max() < 0.1 * mu
+
+
+def test_force_is_continuous_while_a_small_probe_slides_across_vertices_and_edges(plate):
+    """A 2 mm sphere slid at constant depth across two 12.5 mm edges (vertices, edges and faces) on
+    the quasi-static impedance map: the force is a continuous function of the position (the largest
+    change per step halves when the step halves: no jump), rippling by a few per cent; with vertices
+    alone the probe falls between them."""
+    model, modes = plate
+    mesh = model.mesh
+    imap = rt.ImpedanceMap.build(model, rt.Damping(alpha=5.0), modes=modes)
+    R, h = 0.002, A_PLATE / 16
+    start = np.array([0.1 - h, 0.1 - 0.3 * h, R - 0.002])
+
+    def slide(n, **options):
+        tc = rt.ToolContact(mesh, imap, rt.Tool.sphere(R), stiffness=200.0, **options)
+        return np.array([tc.update(start + [2 * h * k / n, 0.0, 0.0])[2] for k in range(n)])
+
+    F1, F2 = slide(600)[30:], slide(1200)[60:]  # past the first steps from the undeformed surface
+    j1, j2 = (np.abs(np.diff(F)).max() / F.mean() for F in (F1, F2))
+    assert F1.min() > 0  # never loses the surface between vertices
+    assert j1 < 5e-4  # no jump above 0.05 % of the force per 1/300 edge
+    assert j2 < 0.75 * j1  # and halving the step shrinks it (a jump would not; the quasi-static linearization at
+    # the current surface lags a step, so the ratio is 0.66 rather than 0.5)
+    assert np.ptp(F1) / F1.mean() < 0.05  # the vertex spacing is felt as a ripple of a few per cent
+    assert slide(600, surface_point=False).min() == 0.0  # vertices alone: it drops between them
+
+
+def test_patch_grasp_matches_a_static_solve_of_the_held_patch(plate):
+    """A jaw holding the vertices within 2 cm, pulled up and held: the settled total force equals
+    the partitioned static solve with those vertices displaced by the jaw's rigid lift (the grip
+    springs are 1e4 times stiffer than the plate there)."""
+    model, modes = plate
+    mesh = model.mesh
+    sim = settled(modes)
+    node = int(mesh.groups["center"][0])
+    g = rt.Grasp(mesh, sim, stiffness=50.0, radius=0.02, grip=1e6)
+    held = g.grab(node)
+    assert held.size >= 9
+    X = np.asarray(mesh.vertices)
+    for _ in range(SETTLE):
+        force = g.update(X[node] + [0, 0, 0.01])
+    U = sim.displacements()
+    lift = U[node, 2]
+    assert np.ptp(U[held, 2]) < 1e-5 * lift  # held together
+    reactions, _ = prescribed_reactions(model, held, np.full(held.size, lift))
+    assert abs(reactions.sum() - force[2]) < 1e-3 * force[2]
+    assert abs(force[2] - 50.0 * (0.01 - lift)) < 1e-4 * force[2]  # the hand spring (grip stretch 1e-9 m)
