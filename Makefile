@@ -50,6 +50,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/haptic_loop.py
 	$(BIN)/python benchmarks/solid.py --organs
 	$(BIN)/python benchmarks/large_deformation.py
+	$(BIN)/python benchmarks/contact.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache test-artifacts
