@@ -45,7 +45,7 @@ from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
 
-__all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch"]
+__all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch", "nodes_to_prepare"]
 
 
 class Tool:
@@ -104,14 +104,18 @@ class Tool:
         local = np.clip(local, -self.half_extents, self.half_extents)
         return position + local @ R.T
 
-    def distance(self, points: np.ndarray, position: np.ndarray, fallback: np.ndarray):
-        """Signed distances (k,) of ``points`` to the tool's surface and the unit directions (k, 3)
-        the tool pushes them along; a point on the core itself takes ``fallback`` (k, 3)."""
-        v = points - self.core(points, position)
-        r = np.linalg.norm(v, axis=1)
-        on_core = r < 1e-12
-        n = np.where(on_core[:, None], fallback, v / np.where(on_core, 1.0, r)[:, None])
-        return r - self.radius, n
+    def distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray):
+        """Signed gaps (k,) between surface ``points`` and the tool at ``position``, and the unit
+        directions (k, 3) the tool pushes them along; ``outward`` (k, 3) the surface's outward
+        normals there. Away from the core, |x - core(x)| - R; a point the core has passed (the core
+        behind the surface, within R of the normal line: a tool pushed through a thin layer) gets a
+        negative gap and the inward normal, so that it is pushed on, not back; so does a point on
+        the core itself."""
+        v = self.core(points, position) - points
+        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        above = _outside(v, outward, self.radius)
+        n = np.where((above & (dist > 1e-12))[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
+        return np.where(above, dist, -dist) - self.radius, n
 
     def __repr__(self) -> str:
         a, b, _ = self.half_extents
@@ -354,14 +358,7 @@ class ToolContact:
     def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
         """Compute what contacts at these vertices will need (static-correction columns, compliance
         columns, maps) before the force loop; as :meth:`Probe.prepare`. Returns how many."""
-        if nodes is None:
-            if around is None:
-                raise ModelError("give nodes, or a point around which to prepare the contact compliances")
-            centre = validate.point(around, "around")
-            radius = validate.positive(radius, "radius", "a distance in m")
-            nodes = self._touchable[np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)]
-        else:
-            nodes = validate.nodes(nodes, self.X.shape[0])
+        nodes = nodes_to_prepare(self._touchable, self._tree, self.X.shape[0], nodes, around, radius)
         if nodes.size:
             prepare(self.driver, nodes)
         return int(nodes.size)
@@ -387,7 +384,7 @@ class ToolContact:
         self._offset = u_now.mean(axis=0)
         # the geometry of the surface now (continuous from step to step), its free motion linearly
         Y, Yf = self.X[verts] + u_now, self.X[verts] + u_free
-        d, n = self._vertex_gaps(Y, c, self.normals[verts])
+        d, n = self.tool.distance(Y, c, self.normals[verts])
         d += np.einsum("ij,ij->i", n, Yf - Y)
         take = np.flatnonzero(d < self.margin)
         if self.surface_point:
@@ -420,19 +417,9 @@ class ToolContact:
         y_now = np.vstack([Y[take], np.einsum("fk,fki->fi", bw, Y[loc])])
         return S, Bw, tangent_frames(normals), gaps, y_free, y_now, ids
 
-    def _vertex_gaps(self, Y: np.ndarray, c: np.ndarray, outward: np.ndarray):
-        """Gaps and push directions of vertices at Y: away from the core, or, for a vertex the core
-        has passed (the core below the surface by the vertex normal), along the inward normal with
-        a negative gap, so that a tool pushed through a thin layer still pushes it down, not back."""
-        v = self.tool.core(Y, c) - Y
-        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
-        above = _outside(v, outward, self.tool.radius)
-        n = np.where((above & (dist > 1e-12))[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
-        return np.where(above, dist, -dist) - self.tool.radius, n
-
     def _ring(self, verts: np.ndarray, c: np.ndarray) -> np.ndarray:
         """The triangles around the candidate nearest the tool (by its last known position)."""
-        d, _ = self._vertex_gaps(self.X[verts] + self._offset, c, self.normals[verts])
+        d, _ = self.tool.distance(self.X[verts] + self._offset, c, self.normals[verts])
         v = int(verts[np.argmin(d)])
         return self._vt_tris[self._vt_start[v]:self._vt_start[v + 1]]
 
@@ -445,19 +432,12 @@ class ToolContact:
         points moves continuously."""
         A, B, C = Y[local[:, 0]], Y[local[:, 1]], Y[local[:, 2]]
         core = self.tool.core((A + B + C) / 3.0, c)
-        point_core = not self.tool.half_extents.any()
-        for _ in range(1 if point_core else 4):  # alternating projections (core and triangle are convex)
-            P, bary = closest_points_on_triangles(core, A, B, C)
-            if not point_core:
-                core = self.tool.core(P, c)
-        v = core - P
-        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        for _ in range(1 if not self.tool.half_extents.any() else 4):  # alternating projections (core and
+            P, bary = closest_points_on_triangles(core, A, B, C)  # triangle are convex; a point core: one)
+            core = self.tool.core(P, c)
         outward = np.cross(B - A, C - A)
         outward /= np.maximum(np.sqrt(np.einsum("ij,ij->i", outward, outward)), 1e-300)[:, None]
-        above = _outside(v, outward, self.tool.radius)  # the core outside the tissue: push away from it
-        n = np.where(above[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
-        n = np.where((dist < 1e-12)[:, None], -outward, n)
-        gaps = np.where(above, dist, -dist) - self.tool.radius
+        gaps, n = self.tool.distance(P, c, outward)
         # a face's point inside it, or on an edge once (the two faces of a crease give the same
         # point); at a vertex it is that vertex's contact
         on = bary > 1e-9
@@ -490,9 +470,9 @@ class ToolContact:
         m = gaps.size
         W = self._block.block(S)
         Bk = np.kron(Bw, np.eye(3))
-        G = Bk @ W @ Bk.T + inv_k * np.tile(np.eye(3), (m, m))
+        BWB = Bk @ W @ Bk.T  # the contact points' cross compliances
         Fd = _block_diag(F)
-        A = Fd.T @ G @ Fd
+        A = Fd.T @ (BWB + inv_k * np.tile(np.eye(3), (m, m))) @ Fd
         b = np.zeros((m, 3))
         b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
         slip = (y_free - y_now) - (c - proxy)
@@ -512,9 +492,22 @@ class ToolContact:
         self.contacts = int(np.count_nonzero(r[:, 0] > 0))
         self._warm = {int(i): r[k] for k, i in enumerate(ids.tolist()) if r[k, 0] > 0}
         active = r[:, 0] > 0
-        y_after = y_free + (Bk @ (W @ (Bk.T @ f_points.reshape(-1)))).reshape(m, 3)  # u = y_free + B W B^T f
+        y_after = y_free + (BWB @ f_points.reshape(-1)).reshape(m, 3)
         self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
         return self.force
+
+
+def nodes_to_prepare(touchable: np.ndarray, tree: cKDTree, n_nodes: int, nodes=None, around=None,
+                     radius: float = 0.01) -> np.ndarray:
+    """The vertices a tool's ``prepare`` names: ``nodes`` (checked indices), or the surface vertices
+    (``touchable``, indexed by ``tree`` at their rest positions) within ``radius`` of ``around``."""
+    if nodes is not None:
+        return validate.nodes(nodes, n_nodes)
+    if around is None:
+        raise ModelError("give nodes, or a point around which to prepare the contact compliances")
+    centre = validate.point(around, "around")
+    radius = validate.positive(radius, "radius", "a distance in m")
+    return touchable[np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64)]
 
 
 def _outside(v: np.ndarray, outward: np.ndarray, radius: float) -> np.ndarray:

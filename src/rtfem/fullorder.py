@@ -89,9 +89,8 @@ class DirectSimulator(ForceInput):
 
     def _node_rows(self, node: int) -> tuple[np.ndarray, np.ndarray]:
         """Positions of the node's free translations in the state vector, and their directions."""
-        want = self.model.translation_dofs(node)
-        pos = np.minimum(np.searchsorted(self._solved, want), self._solved.size - 1)
-        ok = self._solved[pos] == want
+        pos = self._rows_of(np.array([node]))[0]
+        ok = pos >= 0
         return pos[ok], np.flatnonzero(ok)
 
     def _rows_of(self, nodes: np.ndarray) -> np.ndarray:
@@ -100,25 +99,33 @@ class DirectSimulator(ForceInput):
         pos = np.minimum(np.searchsorted(self._solved, want), self._solved.size - 1)
         return np.where(self._solved[pos] == want, pos, -1)
 
-    def _gather(self, vector: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-        """(k, 3) entries of a state vector at the nodes' translations (0 where held)."""
-        pos = self._rows_of(nodes)
-        return np.where(pos >= 0, vector[np.maximum(pos, 0)], 0.0)
+    def _gather(self, values: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """Rows of a state vector (n_solved,) or column block (n_solved, 3) at the positions ``pos``
+        (:meth:`_rows_of`), zero where held: (k, 3) or (k, 3, 3)."""
+        held = (pos < 0).reshape(pos.shape + (1,) * (values.ndim - 1))
+        return np.where(held, 0.0, values[np.maximum(pos, 0)])
+
+    def _unit_response(self, solve, node: int) -> np.ndarray:
+        """(n_solved, 3) state-vector response ``solve(E)`` to unit forces on the node's three
+        directions (zero columns for held directions)."""
+        rows, dirs = self._node_rows(node)
+        out = np.zeros((self._solved.size, 3))
+        if rows.size:
+            E = np.zeros((self._solved.size, rows.size))
+            E[rows, np.arange(rows.size)] = 1.0
+            out[:, dirs] = solve(E).reshape(self._solved.size, rows.size)
+        return out
 
     def _block(self, nodes, loaded, columns) -> np.ndarray:
         """(3k, 3l) compliance block from ``columns(j)``: the state-vector response (n_solved, 3)
         to unit forces on node j's three directions (zero columns where held)."""
         nodes = validate.nodes(nodes, self.n_nodes)
         loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        pos = self._rows_of(nodes)
         W = np.zeros((3 * nodes.size, 3 * loaded.size))
         for b, j in enumerate(loaded.tolist()):
-            W[:, 3 * b:3 * b + 3] = self._gather_columns(columns(j), nodes).reshape(-1, 3)
+            W[:, 3 * b:3 * b + 3] = self._gather(columns(j), pos).reshape(-1, 3)
         return W
-
-    def _gather_columns(self, cols: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-        """(k, 3, 3) rows of a column block (n_solved, 3) at the nodes' translations (0 where held)."""
-        pos = self._rows_of(nodes)
-        return np.where((pos >= 0)[:, :, None], cols[np.maximum(pos, 0)], 0.0)
 
     def displacements(self) -> np.ndarray:
         return self.model.nodal_translations(self._u, self._solved)
@@ -195,7 +202,7 @@ class NewmarkSimulator(DirectSimulator):
         self._fac = factorize(Khat, spd=True, what="the Newmark effective stiffness", order=lambda: model.dof_order(dofs))
         nd = dofs.size
         self._u, self._v, self._a = np.zeros(nd), np.zeros(nd), np.zeros(nd)
-        self._cols: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # node -> (rows, dirs, K^-1 columns)
+        self._cols: dict[int, np.ndarray] = {}  # node -> K_eff^-1 columns (n_solved, 3), zero where held
         self._free: tuple[int, np.ndarray] | None = None  # (step, no-new-load solution) of predict()
 
     def _rhs_free(self) -> np.ndarray:
@@ -218,45 +225,35 @@ class NewmarkSimulator(DirectSimulator):
         u(k+1) = predict(node) + W f; the following :meth:`step` reuses this solve when its
         loads are on nodes whose compliance is known.
         """
-        node = self._node(node)
+        rows, dirs = self._node_rows(self._node(node))
+        out = np.zeros(3)
+        out[dirs] = self._free_solution()[rows]
+        return out
+
+    def _free_solution(self) -> np.ndarray:
+        """The next step's state with no new load (one solve per step, kept for the step)."""
         if self._free is None or self._free[0] != self.steps:
             self._free = (self.steps, self._fac.solve(self._rhs_free()))
-        rows, dirs = self._node_rows(node)
-        out = np.zeros(3)
-        out[dirs] = self._free[1][rows]
-        return out
+        return self._free[1]
 
     def predict_at(self, nodes) -> np.ndarray:
         """(k, 3) :meth:`predict` of ``nodes`` (the same one solve)."""
-        nodes = validate.nodes(nodes, self.n_nodes)
-        if self._free is None or self._free[0] != self.steps:
-            self._free = (self.steps, self._fac.solve(self._rhs_free()))
-        return self._gather(self._free[1], nodes)
+        return self._gather(self._free_solution(), self._rows_of(validate.nodes(nodes, self.n_nodes)))
 
     def step_compliances(self, nodes, loaded=None) -> np.ndarray:
         """The cross compliances (3k, 3l) of a contact set: blocks of K_eff^-1 (three solves per
         loaded node the first time)."""
         def columns(j):
             self.step_compliance(j)
-            rows, dirs, cols = self._cols[j]
-            out = np.zeros((self._solved.size, 3))
-            out[:, dirs] = cols
-            return out
+            return self._cols[j]
         return self._block(nodes, loaded, columns)
 
     def step_compliance(self, node: int) -> np.ndarray:
         """W (3x3): displacement of ``node`` after one step per unit force on it (K^-1 block)."""
         node = self._node(node)
         if node not in self._cols:
-            rows, dirs = self._node_rows(node)
-            E = np.zeros((self._solved.size, rows.size))
-            E[rows, np.arange(rows.size)] = 1.0
-            cols = self._fac.solve(E) if rows.size else E
-            self._cols[node] = (rows, dirs, cols.reshape(self._solved.size, rows.size))
-        rows, dirs, cols = self._cols[node]
-        W = np.zeros((3, 3))
-        W[np.ix_(dirs, dirs)] = cols[rows]
-        return W
+            self._cols[node] = self._unit_response(self._fac.solve, node)
+        return self._gather(self._cols[node], self._rows_of(np.array([node])))[0]
 
     def _superposed(self, forces) -> np.ndarray | None:
         """The next step by superposition on predict()'s solve, when every load has its columns."""
@@ -271,8 +268,7 @@ class NewmarkSimulator(DirectSimulator):
             i = self._node(node)
             if i not in self._cols:
                 return None
-            rows, dirs, cols = self._cols[i]
-            un += cols @ self._vec(node, f)[dirs]
+            un += self._cols[i] @ self._vec(node, f)
         return un
 
     def step(self, forces=None) -> None:
@@ -352,7 +348,7 @@ class CentralDifferenceSimulator(DirectSimulator):
 
     def predict_at(self, nodes) -> np.ndarray:
         """(k, 3) :meth:`predict` of ``nodes``."""
-        return self._gather(self._free_update(), validate.nodes(nodes, self.n_nodes))
+        return self._gather(self._free_update(), self._rows_of(validate.nodes(nodes, self.n_nodes)))
 
     def step_compliances(self, nodes, loaded=None) -> np.ndarray:
         """The cross compliances (3k, 3l): the explicit step moves only the loaded nodes."""
@@ -549,13 +545,9 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         fac = self._free_step()[4]
 
         def columns(j):
-            out = np.zeros((self._solved.size, 3))
-            rows, dirs = self._node_rows(j)
-            if rows.size and fac is not None:
-                E = np.zeros((self._solved.size, rows.size))
-                E[rows, np.arange(rows.size)] = 1.0
-                out[:, dirs] = (1 + self._hht) * fac.solve(E).reshape(self._solved.size, rows.size)
-            return out
+            if fac is None:
+                return np.zeros((self._solved.size, 3))
+            return (1 + self._hht) * self._unit_response(fac.solve, j)
         return self._block(nodes, loaded, columns)
 
     def step_compliance(self, node: int) -> np.ndarray:

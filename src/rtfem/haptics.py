@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
-from .contact import hold_patch
+from .contact import hold_patch, nodes_to_prepare
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
 
 __all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "LoopStats"]
@@ -96,14 +96,7 @@ class Probe:
         cannot absorb. Give vertex indices, or a point ``around`` which every vertex within
         ``radius`` is prepared. Returns the number of vertices prepared.
         """
-        if nodes is None:
-            if around is None:
-                raise ModelError("give nodes, or a point around which to prepare the contact compliances")
-            centre = validate.point(around, "around")
-            radius = validate.positive(radius, "radius", "a distance in m")
-            nodes = self._touchable[np.asarray(self._tree.query_ball_point(centre, radius), dtype=np.int64)]
-        else:
-            nodes = validate.nodes(nodes, self.mesh.n_vertices)
+        nodes = nodes_to_prepare(self._touchable, self._tree, self.mesh.n_vertices, nodes, around, radius)
         for v in nodes.tolist():
             self._compliance(int(v))
         return int(nodes.size)

@@ -170,8 +170,8 @@ def step_compliances(driver, nodes, loaded=None) -> np.ndarray:
     ``step_compliance``, and for a set the block is measured by stepping the driver from its
     saved state under unit loads (3 l steps, state restored: a user's driver needs only the
     protocol)."""
-    nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
-    loaded = nodes if loaded is None else np.asarray(loaded, dtype=np.int64).reshape(-1)
+    nodes = validate.nodes(nodes, driver.n_nodes)
+    loaded = nodes if loaded is None else validate.nodes(loaded, driver.n_nodes)
     fn = getattr(driver, "step_compliances", None)
     if fn is not None:
         return fn(nodes, loaded)
@@ -446,32 +446,26 @@ class ModalSimulator(ForceInput):
         """
         if type(node) is not int or not 0 <= node < self.n_nodes:
             node = self._node(node)
+        return self._phi[node] @ self._q_free()
+
+    def _q_free(self) -> np.ndarray:
+        """The modal coordinates (r,) after one more step with no new load."""
         S = self._S
         x = self._C1[0] * S[0] + self._C2[0] * S[1]
         if self._G0 is not None:
             x = x + self._G0[0] * self._f_old
-        return self._phi[node] @ x
+        return x
 
     def step_compliance(self, node: int) -> np.ndarray:
         """W (3x3): displacement of ``node`` after one step per unit force held on it.
 
         W = sum_i phi_i(p) phi_i(p)^T Gamma_i (+ D_pp with the static correction).
         """
-        node = self._node(node)
-        P = self._phi[node]
-        W = (P * self._G1[0]) @ P.T
-        if self.static_correction:
-            W = W + self._correction_column(node)[node]
-        return W
+        return self.step_compliances(np.array([self._node(node)]))
 
     def predict_at(self, nodes) -> np.ndarray:
         """(k, 3) :meth:`predict` of ``nodes``, O(k r)."""
-        nodes = validate.nodes(nodes, self.n_nodes)
-        S = self._S
-        x = self._C1[0] * S[0] + self._C2[0] * S[1]
-        if self._G0 is not None:
-            x = x + self._G0[0] * self._f_old
-        return self._phi[nodes] @ x
+        return self._phi[validate.nodes(nodes, self.n_nodes)] @ self._q_free()
 
     def step_compliances(self, nodes, loaded=None) -> np.ndarray:
         """The cross compliances (3k, 3l) of a contact set (see :func:`step_compliances`):

@@ -122,13 +122,6 @@ class WarpedModalSimulator(ModalSimulator):
         return np.einsum("kij,kj->ki", integrated_rotation(self._psi @ q), self._phi @ self._S[1])
 
     # ---------------------------------------------------------------- the one-step contract
-    def _q_free(self) -> np.ndarray:
-        S = self._S
-        x = self._C1[0] * S[0] + self._C2[0] * S[1]
-        if self._G0 is not None:
-            x = x + self._G0[0] * self._f_old
-        return x
-
     def predict(self, node: int) -> np.ndarray:
         """The warped displacement (3,) of ``node`` after one more step with no new load."""
         return self.predict_at(np.array([self._node(node)]))[0]
