@@ -3,8 +3,10 @@ contact points, and the worst step of a probe sliding over the organ.
 
 The default liver as a shell (r modes, static correction, modal driver); rt.ToolContact with a
 sphere pressed 4 mm into the lobe's probe point through the 200 N/m coupling spring, in an
-rt.HapticLoop (Python ticks) for ``--seconds``; the sphere's radius sets the number of contact
-points (a point probe: about 1; larger spheres: about 10 and 50). Then a 1 cm sphere slides 6 cm
+rt.HapticLoop (Python ticks) for ``--seconds``, with spheres of radius 0, 6 and 15 mm; the table
+gives the mean number of active contact points (on the soft, convex lobe all three touched at about
+one point in the session's run: the 10- and 50-point rows the issue asks for need a flat jaw or a
+deeper press, not done yet). Then a 1 cm sphere slides 6 cm
 over the surface at 2 cm/s with no preparation: the steps that meet new vertices compute their
 compliance rows (static-correction columns, sparse solves) inside the loop, and the table gives
 the worst step and how many such steps there were. The baseline, measured in the same run, is the

@@ -1,0 +1,179 @@
+"""rtfem.contact and the cross compliances: each driver's block against a second route (stepping the
+driver under unit loads from its saved state), the contact solver against closed forms, and the
+refusals of bad arguments (nothing changes on a refusal)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.cli import main
+from rtfem.contact import closest_points_on_triangles, hold_patch, pgs
+from rtfem.simulate import predictions, step_compliances
+from rtfem.viewer.session import Settings
+
+
+@pytest.fixture(scope="module")
+def plate():
+    mesh = rt.meshes.plate(0.2, 0.2, 8, 8)
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix(mesh.boundary_vertices())
+    return model, rt.modal_analysis(model, 12)
+
+
+class Stepped:
+    """A driver that hides its batched members: the consumers fall back on the protocol."""
+
+    def __init__(self, driver) -> None:
+        self.d = driver
+
+    def __getattr__(self, name):
+        if name in ("step_compliances", "predict_at"):
+            raise AttributeError(name)
+        return getattr(self.d, name)
+
+
+def drivers(model, modes):
+    return {
+        "modal": rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True),
+        "warped": rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True, warping=True),
+        "newmark": rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=5.0)),
+        "central": rt.DirectSimulator(model, 1e-5, rt.Damping(alpha=5.0), method="central"),
+        "corotational": rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=5.0), large_deformation=True),
+    }
+
+
+# the linear drivers to round-off; the warped and corotational ones are linearizations, and the
+# stepped route is a 1 N finite difference of them
+TOL = {"modal": 1e-12, "newmark": 1e-12, "central": 1e-12, "warped": 1e-3, "corotational": 1e-3}
+
+
+@pytest.mark.parametrize("name", list(TOL))
+def test_each_drivers_cross_compliances_equal_stepping_it_under_unit_loads(plate, name):
+    model, modes = plate
+    d = drivers(model, modes)[name]
+    nodes = np.array([30, 31, 40])
+    for _ in range(3):
+        d.step({30: (0.0, 0.0, 0.3)})
+    state = d.get_state()
+    W = step_compliances(d, nodes)
+    Wf = step_compliances(Stepped(d), nodes)
+    assert np.abs(W - Wf).max() < TOL[name] * np.abs(W).max()
+    np.testing.assert_allclose(predictions(d, nodes), predictions(Stepped(d), nodes), rtol=1e-12, atol=1e-20)
+    after = d.get_state()  # the stepped route put the driver back where it was
+    assert after.keys() == state.keys()
+    for key, value in state.items():
+        if isinstance(value, np.ndarray):
+            np.testing.assert_allclose(after[key], value, rtol=1e-12, atol=1e-300)  # set_state round-off
+    # one node: the Driver's own 3x3
+    np.testing.assert_allclose(step_compliances(d, [40]), d.step_compliance(40), rtol=1e-12, atol=0)
+
+
+def test_impedance_cross_compliances_are_the_static_inverse(plate):
+    model, modes = plate
+    nodes = np.array([30, 31, 40])
+    d = rt.ImpedanceMap.build(model, rt.Damping(alpha=5.0), nodes=nodes, radius=0.2, modes=modes).as_driver()
+    W = step_compliances(d, nodes)
+    K_inv = np.concatenate([np.stack([model.unit_load_response(j, k)[nodes] for k in range(3)], 2).reshape(-1, 3)
+                            for j in nodes], axis=1)
+    assert np.abs(W - K_inv).max() < 1e-12 * np.abs(K_inv).max()
+    assert np.abs(W - W.T).max() < 1e-12 * np.abs(W).max()
+
+
+def test_closest_points_on_triangles_against_a_brute_force_sampling():
+    rng = np.random.default_rng(3)
+    A, B, C = (rng.normal(size=(40, 3)) for _ in range(3))
+    P = rng.normal(size=(40, 3)) * 2
+    Q, bary = closest_points_on_triangles(P, A, B, C)
+    np.testing.assert_allclose(bary.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    assert bary.min() >= -1e-12
+    s, t = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
+    s, t = s[s + t <= 1], t[s + t <= 1]
+    for i in range(40):
+        samples = A[i] + s[:, None] * (B[i] - A[i]) + t[:, None] * (C[i] - A[i])
+        best = np.linalg.norm(samples - P[i], axis=1).min()
+        d = np.linalg.norm(Q[i] - P[i])
+        assert d <= best + 1e-12 and d > best - 1e-2  # never beaten by a sample, and the grid comes close
+
+
+def test_pgs_solves_one_contact_in_closed_form():
+    """One contact, A = diag(a): r_n = -b_n / a_n when penetrating; stick r_t = -b_t / a_t inside the
+    cone, else mu r_n along -b_t."""
+    A = np.diag([2.0, 4.0, 4.0])
+    r, _ = pgs(A, np.array([-1.0, 0.4, 0.0]), 0.5)
+    np.testing.assert_allclose(r, [0.5, -0.1, 0.0], rtol=1e-12)  # |r_t| 0.1 < 0.25: stick
+    r, _ = pgs(A, np.array([-1.0, 4.0, 0.0]), 0.5)
+    np.testing.assert_allclose(r, [0.5, -0.25, 0.0], rtol=1e-12)  # slip at mu r_n
+    r, _ = pgs(A, np.array([1.0, 4.0, 0.0]), 0.5)
+    np.testing.assert_array_equal(r, 0.0)  # apart: no force
+
+
+def test_hold_patch_of_one_vertex_is_the_single_spring_grab():
+    W = np.array([[2.0, 0.1, 0.0], [0.1, 1.0, 0.0], [0.0, 0.0, 3.0]])
+    h, g, k = np.zeros(3), 5.0 * np.array([0.1, -0.2, 0.3]), 5.0
+    f, _ = hold_patch(W, h, g, k, grip=1e15)
+    np.testing.assert_allclose(f[0], np.linalg.solve(np.eye(3) + k * W, g), rtol=1e-9)
+
+
+def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
+    model, modes = plate
+    mesh = model.mesh
+    with pytest.raises(rt.ModelError, match="radius"):
+        rt.Tool.sphere(-1.0)
+    with pytest.raises(rt.ModelError, match="length"):
+        rt.Tool.capsule(0.01, 0.0)
+    with pytest.raises(rt.ModelError, match="parallel"):
+        rt.Tool.jaw(0.01, 0.02, 0.002, normal=(0, 0, 1), along=(0, 0, 2))
+    with pytest.raises(rt.ModelError, match="nonzero"):
+        rt.Tool.capsule(0.01, 0.02, axis=(0, 0, 0))
+    with pytest.raises(rt.ModelError, match="rotation"):
+        rt.Tool(0.01, orientation=np.diag([1.0, 1.0, -1.0]))
+    sim = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0))
+    for bad in (dict(coupling="glue"), dict(stiffness=0.0), dict(friction=-0.1), dict(margin=np.nan),
+                dict(max_sweeps=0), dict(tol=-1.0), dict(surface_point="yes")):
+        with pytest.raises(rt.ModelError):
+            rt.ToolContact(mesh, sim, **bad)
+    with pytest.raises(rt.ModelError, match="rt.Tool"):
+        rt.ToolContact(mesh, sim, tool="sphere")
+    with pytest.raises(rt.ModelError, match="drives"):
+        rt.ToolContact(mesh, object())
+    tc = rt.ToolContact(mesh, sim, rt.Tool.sphere(0.01))
+    for _ in range(5):
+        tc.update([0.1, 0.1, 0.005])
+    before = (sim.get_state(), tc.proxy.copy(), tc.force.copy())
+    for bad in ([0.1, np.nan, 0.0], [0.1, 0.2], "here"):
+        with pytest.raises(rt.ModelError):
+            tc.update(bad)
+    with pytest.raises(rt.ModelError, match="around"):
+        tc.prepare()
+    with pytest.raises(rt.ModelError):
+        tc.prepare([10**6])
+    after = sim.get_state()
+    assert after["steps"] == before[0]["steps"] and np.array_equal(after["q"], before[0]["q"])
+    assert np.array_equal(tc.proxy, before[1]) and np.array_equal(tc.force, before[2])
+    # the cross compliances and the solver
+    with pytest.raises(rt.ModelError):
+        step_compliances(sim, [10**6])
+    with pytest.raises(rt.ModelError):
+        step_compliances(Stepped(sim), [-1, 3])
+    with pytest.raises(rt.ModelError, match="3m"):
+        pgs(np.eye(3), np.zeros(4), 0.1)
+    with pytest.raises(rt.ModelError, match="held"):
+        pgs(np.zeros((3, 3)), np.zeros(3), 0.1)
+    # the patch grasp
+    for bad in (dict(radius=-0.01), dict(grip=0.0), dict(radius=np.inf)):
+        with pytest.raises(rt.ModelError):
+            rt.Grasp(mesh, sim, **bad)
+    g = rt.Grasp(mesh, sim, radius=0.03)
+    held = g.grab(40)
+    state = sim.get_state()
+    for call in (lambda: g.grab(10**6), lambda: g.grab(40, radius=-1.0), lambda: g.update([np.nan, 0, 0])):
+        with pytest.raises(rt.ModelError):
+            call()
+    assert np.array_equal(g.nodes, held) and sim.get_state()["steps"] == state["steps"]
+    # the viewer's setting and the command line
+    with pytest.raises(rt.ModelError, match="grab_radius"):
+        Settings(grab_radius=-0.01).check()
+    assert main(["view", "--grab-radius", "-1"]) == 2
+    assert "--grab-radius" in capsys.readouterr().err
