@@ -116,6 +116,28 @@ def test_hold_patch_of_one_vertex_is_the_single_spring_grab():
     np.testing.assert_allclose(f[0], np.linalg.solve(np.eye(3) + k * W, g), rtol=1e-9)
 
 
+def test_a_patch_grasp_leaves_out_the_vertices_the_supports_hold(plate):
+    """A jaw closed next to the clamped edge: the footprint covers clamped vertices, but a grip on
+    them would anchor the jaw to the support (the pull would go into the support and the plate
+    would barely move), so the jaw holds only the free ones, and the settled plate is the static
+    response to the forces on them."""
+    model, modes = plate
+    X = np.asarray(model.mesh.vertices)
+    node = int(np.argmin(np.linalg.norm(X - [0.025, 0.1, 0.0], axis=1)))  # one row in from the edge x = 0
+    d = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=12.0), static_correction=True)  # ~critical for 1 Hz
+    g = rt.Grasp(model.mesh, d, stiffness=50.0, radius=0.03)
+    footprint = g.patch(node)
+    assert model.held_nodes[footprint].any()  # the footprint reaches the clamped edge
+    held = g.grab(node)
+    assert node in held and held.size > 3 and not model.held_nodes[held].any()
+    for _ in range(3000):
+        g.update(X[node] + [0.0, 0.0, 0.005])
+    static = model.solve_static({int(v): f for v, f in zip(held, g.forces)})
+    u = d.displacements()
+    np.testing.assert_allclose(u, static, atol=1e-6 * np.abs(static).max())
+    assert u[node, 2] > 0.2 * 0.005  # the pull lifts the plate: the spring is not held by the edge
+
+
 def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
     model, modes = plate
     mesh = model.mesh

@@ -609,8 +609,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_options(p)
     p.add_argument("--method", choices=("modal", "impedance", "direct"), default="modal", help="dynamics (default modal)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
-    p.add_argument("--grab-radius", type=nonnegative, default=0.0, help="the jaw holds the surface within this radius "
-                   "of the picked point, in mm (default 0: one vertex)")
+    p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
+                   "of the picked point, in mm (default 10; 0: one vertex)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")

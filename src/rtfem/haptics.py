@@ -186,6 +186,16 @@ class Probe:
         return self.force
 
 
+def _movable(nodes: np.ndarray, W: np.ndarray, node: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of a patch that can move, and their rows in the (3m, 3m) block ``W``: a vertex
+    held by the supports has a zero diagonal block (any driver), and a grip tied to it would anchor
+    the jaw to the support, so it is left out (the grabbed ``node`` always stays)."""
+    trace = np.diagonal(W).reshape(nodes.size, 3).sum(axis=1)
+    free = (trace > 1e-9 * trace.max()) | (nodes == node)
+    rows = np.flatnonzero(np.repeat(free, 3))
+    return nodes[free], rows
+
+
 class Grasp:
     """A grasp of the organ by a jaw held by the hand through a virtual spring: the viewer's drag.
 
@@ -249,7 +259,8 @@ class Grasp:
 
     def grab(self, node: int, radius: float | None = None) -> np.ndarray:
         """Close the jaw on ``node`` and the surface vertices within ``radius`` (default: the
-        grasp's) of its deformed position (:meth:`patch`); returns the held vertices."""
+        grasp's) of its deformed position (:meth:`patch`), less those the supports hold (a grip on them
+        would anchor the jaw); returns the held vertices."""
         nodes = self.patch(node, radius)
         node = validate.node(node, self.X.shape[0])
         x = self.X[node] + self.driver.displacement(node)
@@ -258,8 +269,10 @@ class Grasp:
             self._block = None
         else:
             prepare(self.driver, nodes)
-            self._block = None if getattr(self.driver, "compliance_changes", False) else \
-                step_compliances(self.driver, nodes)
+            W = step_compliances(self.driver, nodes)
+            nodes, keep = _movable(nodes, W, node)
+            W = W[np.ix_(keep, keep)]
+            self._block = None if getattr(self.driver, "compliance_changes", False) else W
         self.node, self.nodes = node, nodes
         self._hold = displacements_at(self.driver, nodes).reshape(-1)
         self._jaw = x

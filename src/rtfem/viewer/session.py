@@ -50,7 +50,7 @@ class Settings:
     alpha: float = 8.0  # mass-proportional damping (1/s)
     E: float | None = None  # Young's modulus (Pa); None: the material's
     grasp_stiffness: float = 200.0  # N/m
-    grab_radius: float = 0.0  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
+    grab_radius: float = 0.01  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
     max_force: float = 2.0  # N
     large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
 
