@@ -138,6 +138,29 @@ def test_a_patch_grasp_leaves_out_the_vertices_the_supports_hold(plate):
     assert u[node, 2] > 0.2 * 0.005  # the pull lifts the plate: the spring is not held by the edge
 
 
+def test_a_point_tool_behind_a_concave_crease_is_in_contact():
+    """A point tool (R = 0) just behind the crease of a valley, between two of its vertices: its
+    closest surface point is on the crease edge, where neither face's normal line passes through
+    it; judged by the edge's normal (the cone of its faces' normals) it has passed the surface, so
+    the constraint pushes the crease onto it. (Judged by a face's normal it was 'beside' the
+    surface: no contact, and a point tool sank into the dent of a pressed organ.)"""
+    flat = rt.meshes.plate(0.2, 0.2, 8, 8)
+    V = np.asarray(flat.vertices).copy()
+    V[:, 2] = 0.5 * np.abs(V[:, 0] - 0.1)  # a valley along x = 0.1, concave seen from +z
+    mesh = rt.TriMesh(V, flat.triangles)
+    model = rt.ShellModel(mesh, rt.Material()).fix(mesh.boundary_vertices())
+    d = rt.ModalSimulator(rt.modal_analysis(model, 12), 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    c = np.array([0.1, 0.1125, -0.0002])  # 0.2 mm behind the crease, half-way between two vertices
+    tc = rt.ToolContact(mesh, d, rt.Tool.sphere(0.0), coupling="constraint")
+    force = tc.update(c)
+    assert tc.contacts == 1 and force[2] > 0  # the device is pushed back out of the valley
+    ends = np.flatnonzero(np.linalg.norm(V[:, :2] - [0.1, 0.1125], axis=1) < 0.0126)  # the crease edge
+    assert ends.size == 2
+    y = (V[ends] + d.displacements()[ends]).mean(axis=0)  # the edge's midpoint after the step
+    np.testing.assert_allclose(tc.contact_normals, [[0.0, 0.0, -1.0]], atol=1e-12)  # the edge's normal, inward
+    assert abs(y[2] - c[2]) < 1e-9  # on the tool (frictionless: it may slide along the crease)
+
+
 def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
     model, modes = plate
     mesh = model.mesh

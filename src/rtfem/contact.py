@@ -104,16 +104,16 @@ class Tool:
         local = np.clip(local, -self.half_extents, self.half_extents)
         return position + local @ R.T
 
-    def distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray):
+    def distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray, spread=0.0):
         """Signed gaps (k,) between surface ``points`` and the tool at ``position``, and the unit
         directions (k, 3) the tool pushes them along; ``outward`` (k, 3) the surface's outward
         normals there. Away from the core, |x - core(x)| - R; a point the core has passed (the core
-        behind the surface, within R of the normal line: a tool pushed through a thin layer) gets a
-        negative gap and the inward normal, so that it is pushed on, not back; so does a point on
-        the core itself."""
+        behind the surface, within R of the normal line, or within the cone of normals of a
+        concave edge: ``spread`` (k,) the tangent of its half-angle) gets a negative gap and the
+        inward normal, so that it is pushed on, not back; so does a point on the core itself."""
         v = self.core(points, position) - points
         dist = np.sqrt(np.einsum("ij,ij->i", v, v))
-        above = _outside(v, outward, self.radius)
+        above = _outside(v, outward, self.radius, spread)
         n = np.where((above & (dist > 1e-12))[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
         return np.where(above, dist, -dist) - self.radius, n
 
@@ -437,20 +437,31 @@ class ToolContact:
             core = self.tool.core(P, c)
         outward = np.cross(B - A, C - A)
         outward /= np.maximum(np.sqrt(np.einsum("ij,ij->i", outward, outward)), 1e-300)[:, None]
-        gaps, n = self.tool.distance(P, c, outward)
         # a face's point inside it, or on an edge once (the two faces of a crease give the same
-        # point); at a vertex it is that vertex's contact
+        # point, judged by the edge's normal: the mean of its faces'); at a vertex it is that
+        # vertex's contact
         on = bary > 1e-9
         edge = on.sum(axis=1) == 2
-        keep = (gaps < self.margin + 2 * self.edge) & (on.sum(axis=1) >= 2)
+        keep = on.sum(axis=1) >= 2
+        spread = np.zeros(keep.size)
         if edge.any():
             ends = np.sort(np.where(on, local, -1), axis=1)[:, 1:]  # the edge's two corners
             key = ends[:, 0] * (Y.shape[0] + 1) + ends[:, 1]
+            idx = np.flatnonzero(edge)
+            keys, pick, inverse = np.unique(key[idx], return_index=True, return_inverse=True)
+            total = np.zeros((keys.size, 3))
+            np.add.at(total, inverse, outward[idx])
+            mean = total[inverse]
+            size = np.sqrt(np.einsum("ij,ij->i", mean, mean))
+            unit = mean / np.maximum(size, 1e-300)[:, None]
+            half = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", unit, outward[idx]) ** 2, 0.0))
+            spread[idx] = half / np.maximum(np.einsum("ij,ij->i", unit, outward[idx]), 1e-3)
+            outward[idx] = unit
             first = np.zeros(keep.size, dtype=bool)
-            idx = np.flatnonzero(keep & edge)
-            _, pick = np.unique(key[idx], return_index=True)
             first[idx[pick]] = True
             keep &= ~edge | first
+        gaps, n = self.tool.distance(P, c, outward, spread)
+        keep &= gaps < self.margin + 2 * self.edge
         return local[keep], bary[keep], n[keep], gaps[keep], -1 - tris[keep]
 
     # ---------------------------------------------------------------- the step
@@ -510,14 +521,16 @@ def nodes_to_prepare(touchable: np.ndarray, tree: cKDTree, n_nodes: int, nodes=N
     return touchable[np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64)]
 
 
-def _outside(v: np.ndarray, outward: np.ndarray, radius: float) -> np.ndarray:
+def _outside(v: np.ndarray, outward: np.ndarray, radius: float, spread=0.0) -> np.ndarray:
     """Whether the tool's core is outside the tissue, given v (k, 3) from a surface point to its
     closest core point and the surface's outward normals: it has passed the surface only when it is
-    behind it and within the tool's radius of the normal line (a core merely beside the point, as a
-    shaft lying on the surface, is not through it)."""
+    behind it and within the tool's radius of the normal line, widened on a concave edge to the
+    cone of its faces' normals (``spread``: the tangent of the cone's half-angle; the region of
+    points behind the edge whose closest surface point is on it). A core merely beside the point,
+    as a shaft lying on the surface, is not through it."""
     vn = np.einsum("ij,ij->i", v, outward)
     lateral = np.sqrt(np.maximum(np.einsum("ij,ij->i", v, v) - vn * vn, 0.0))
-    return (vn >= 0) | (lateral > radius + 1e-12)
+    return (vn >= 0) | (lateral > radius + spread * np.abs(vn) + 1e-12)
 
 
 def _block_diag(F: np.ndarray) -> np.ndarray:
