@@ -161,6 +161,24 @@ def test_a_point_tool_behind_a_concave_crease_is_in_contact():
     assert abs(y[2] - c[2]) < 1e-9  # on the tool (frictionless: it may slide along the crease)
 
 
+def test_a_rigid_jaw_over_the_clamped_edge_presses_only_the_free_vertices(plate):
+    """A jaw held at the device (constraint coupling) pressed over the plate's clamped edge: the
+    clamped vertices cannot move, so no force can be solved for them (zero compliance); they are
+    left out (no error in the force loop), and every contact point left is pressed onto the jaw.
+    (A rigid jaw over a support cannot be satisfied everywhere: a face point whose other corners
+    are clamped is put on the jaw by pushing its free corner past it.)"""
+    model, modes = plate
+    d = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    tc = rt.ToolContact(model.mesh, d, rt.Tool.jaw(0.06, 0.06, 0.002), coupling="constraint")
+    c = np.array([0.02, 0.1, 0.001 - 0.0005])  # the jaw's face 0.5 mm below the plate, over x = 0 .. 0.05
+    force = tc.update(c)
+    assert tc.contacts >= 3 and force[2] > 0
+    X = np.asarray(model.mesh.vertices)
+    np.testing.assert_allclose(tc.points[:, 2], -0.0005, atol=1e-9)
+    inner = (np.abs(X[:, 0] - 0.02) <= 0.03) & (np.abs(X[:, 1] - 0.1) <= 0.03) & (X[:, 0] > 0.03)
+    np.testing.assert_allclose(X[inner, 2] + d.displacements()[inner, 2], -0.0005, atol=1e-9)  # away from the edge
+
+
 def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
     model, modes = plate
     mesh = model.mesh

@@ -306,7 +306,8 @@ class ToolContact:
         an ImpedanceMap or any Driver.
     tool : a :class:`Tool` (default: a 5 mm sphere).
     coupling : "spring" (virtual coupling of ``stiffness`` N/m, default) or "constraint" (the tool
-        sits at the device).
+        sits at the device; points the supports hold, which a rigid tool cannot move, are left out
+        of its contacts).
     friction : Coulomb's coefficient mu (0: frictionless).
     margin : candidates within this distance of the tool (m) enter the solve (default: a quarter of
         the median edge), so that a point about to touch is in the set.
@@ -472,11 +473,7 @@ class ToolContact:
         found = self._contact_set(proxy)  # the geometry where the tool is; its move to c is linear below
         inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
         if found is None:
-            self.driver.step(None)
-            self.proxy, self.force, self.contacts, self.sweeps = c.copy(), np.zeros(3), 0, 0
-            self.points = self.contact_forces = self.contact_normals = np.zeros((0, 3))
-            self._warm = {}
-            return self.force
+            return self._apart(c)
         S, Bw, F, gaps, y_free, y_now, ids = found
         m = gaps.size
         W = self._block.block(S)
@@ -484,6 +481,15 @@ class ToolContact:
         BWB = Bk @ W @ Bk.T  # the contact points' cross compliances
         Fd = _block_diag(F)
         A = Fd.T @ (BWB + inv_k * np.tile(np.eye(3), (m, m))) @ Fd
+        if inv_k == 0.0:  # a rigid tool cannot press a point the supports hold (zero compliance): left out
+            soft = np.diagonal(A)[::3] > 1e-12 * max(float(np.diagonal(A)[::3].max()), 1e-300)
+            if not soft.all():
+                if not soft.any():
+                    return self._apart(c)
+                keep3 = np.flatnonzero(np.repeat(soft, 3))
+                A, BWB = A[np.ix_(keep3, keep3)], BWB[np.ix_(keep3, keep3)]
+                Bw, F, gaps, y_free, y_now, ids = Bw[soft], F[soft], gaps[soft], y_free[soft], y_now[soft], ids[soft]
+                m = gaps.size
         b = np.zeros((m, 3))
         b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
         slip = (y_free - y_now) - (c - proxy)
@@ -505,6 +511,14 @@ class ToolContact:
         active = r[:, 0] > 0
         y_after = y_free + (BWB @ f_points.reshape(-1)).reshape(m, 3)
         self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
+        return self.force
+
+    def _apart(self, c: np.ndarray) -> np.ndarray:
+        """A step with nothing touched: the organ moves freely, the tool sits at the device."""
+        self.driver.step(None)
+        self.proxy, self.force, self.contacts, self.sweeps = c.copy(), np.zeros(3), 0, 0
+        self.points = self.contact_forces = self.contact_normals = np.zeros((0, 3))
+        self._warm = {}
         return self.force
 
 
