@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from . import validate
@@ -409,14 +410,17 @@ class ToolContact:
         if m == 0:
             return None
         S = np.unique(np.concatenate([verts[take], verts[loc.reshape(-1)]]))
-        Bw = np.zeros((m, S.size))
-        Bw[np.arange(nv), np.searchsorted(S, verts[take])] = 1.0
-        rows = np.repeat(np.arange(nv, m), 3)
-        np.add.at(Bw, (rows, np.searchsorted(S, verts[loc.reshape(-1)])), bw.reshape(-1))
+        # each point's corners (m, 3) in S and their weights: a vertex is its own first corner
+        Bi = np.zeros((m, 3), dtype=np.int64)
+        Bv = np.zeros((m, 3))
+        Bi[:nv] = np.searchsorted(S, verts[take])[:, None]
+        Bv[:nv, 0] = 1.0
+        Bi[nv:] = np.searchsorted(S, verts[loc])
+        Bv[nv:] = bw
         normals, gaps, ids = np.vstack([n[take], nf]), np.concatenate([d[take], df]), np.concatenate([verts[take], fid])
         y_free = np.vstack([Yf[take], np.einsum("fk,fki->fi", bw, Yf[loc])])
         y_now = np.vstack([Y[take], np.einsum("fk,fki->fi", bw, Y[loc])])
-        return S, Bw, tangent_frames(normals), gaps, y_free, y_now, ids
+        return S, (Bi, Bv), tangent_frames(normals), gaps, y_free, y_now, ids
 
     def _ring(self, verts: np.ndarray, c: np.ndarray) -> np.ndarray:
         """The triangles around the candidate nearest the tool (by its last known position)."""
@@ -474,13 +478,10 @@ class ToolContact:
         inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
         if found is None:
             return self._apart(c)
-        S, Bw, F, gaps, y_free, y_now, ids = found
+        S, (Bi, Bv), F, gaps, y_free, y_now, ids = found
         m = gaps.size
-        W = self._block.block(S)
-        Bk = np.kron(Bw, np.eye(3))
-        BWB = Bk @ W @ Bk.T  # the contact points' cross compliances
-        Fd = _block_diag(F)
-        A = Fd.T @ (BWB + inv_k * np.tile(np.eye(3), (m, m))) @ Fd
+        BWB = _cross_compliances(self._block.block(S), Bi, Bv)  # (3m, 3m) of the contact points
+        A = _in_frames(BWB, F, inv_k)
         if inv_k == 0.0:  # a rigid tool cannot press a point the supports hold (zero compliance): left out
             soft = np.diagonal(A)[::3] > 1e-12 * max(float(np.diagonal(A)[::3].max()), 1e-300)
             if not soft.all():
@@ -488,19 +489,26 @@ class ToolContact:
                     return self._apart(c)
                 keep3 = np.flatnonzero(np.repeat(soft, 3))
                 A, BWB = A[np.ix_(keep3, keep3)], BWB[np.ix_(keep3, keep3)]
-                Bw, F, gaps, y_free, y_now, ids = Bw[soft], F[soft], gaps[soft], y_free[soft], y_now[soft], ids[soft]
+                Bi, Bv, F, gaps, y_free, y_now, ids = Bi[soft], Bv[soft], F[soft], gaps[soft], y_free[soft], \
+                    y_now[soft], ids[soft]
                 m = gaps.size
         b = np.zeros((m, 3))
         b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
         slip = (y_free - y_now) - (c - proxy)
         b[:, 1:] = np.einsum("kia,ki->ka", F[:, :, 1:], slip)
         mu = np.full(m, self.friction)
-        r0 = np.concatenate([self._warm.get(int(i), np.zeros(3)) for i in ids.tolist()])
+        r0 = np.zeros((m, 3))
+        for k, i in enumerate(ids.tolist()):  # warm start: last step's forces at the points still here
+            if i in self._warm:
+                r0[k] = self._warm[i]
+        r0 = r0.reshape(-1)
         r, sweeps = pgs(A, b.reshape(-1), mu, r0, max_sweeps=self.max_sweeps, tol=self.tol)
         r = r.reshape(m, 3)
         f_points = np.einsum("kij,kj->ki", F, r)  # force on the organ at each contact point
-        f_nodes = Bw.T @ f_points
-        loads = {int(v): (float(f[0]), float(f[1]), float(f[2])) for v, f in zip(S.tolist(), f_nodes) if np.any(f)}
+        f_nodes = np.zeros((S.size, 3))
+        np.add.at(f_nodes, Bi.reshape(-1), (Bv[:, :, None] * f_points[:, None, :]).reshape(-1, 3))
+        pushed = np.flatnonzero(f_nodes.any(axis=1))
+        loads = {v: tuple(f) for v, f in zip(S[pushed].tolist(), f_nodes[pushed].tolist())}
         self.driver.step(loads or None)
         total = f_points.sum(axis=0)
         self.proxy = c - inv_k * total
@@ -547,13 +555,39 @@ def _outside(v: np.ndarray, outward: np.ndarray, radius: float, spread=0.0) -> n
     return (vn >= 0) | (lateral > radius + spread * np.abs(vn) + 1e-12)
 
 
-def _block_diag(F: np.ndarray) -> np.ndarray:
-    """(3m, 3m) block-diagonal matrix of the (m, 3, 3) frames."""
+SMALL = 120  # blocks up to this size (40 vertices or points) are multiplied dense
+
+
+def _cross_compliances(W: np.ndarray, Bi: np.ndarray, Bv: np.ndarray) -> np.ndarray:
+    """B W B^T (3m, 3m) for the m points interpolating the vertices of the (3s, 3s) block W: point k
+    moves as sum_a Bv[k, a] u[Bi[k, a]] (at most three corners; a vertex is its own). B is sparse
+    (nine entries per point), so this costs O(m s), not the O(m s^2) of a dense product."""
+    m, s3 = Bi.shape[0], W.shape[0]
+    if s3 <= SMALL:  # a few points: dense products beat building sparse matrices
+        B = np.zeros((m, s3 // 3))
+        np.add.at(B, (np.repeat(np.arange(m), 3), Bi.reshape(-1)), Bv.reshape(-1))
+        B = np.kron(B, np.eye(3))
+        return B @ W @ B.T
+    rows = np.broadcast_to((3 * np.arange(m))[:, None, None] + np.arange(3)[None, None, :], (m, 3, 3))
+    cols = 3 * Bi[:, :, None] + np.arange(3)[None, None, :]
+    vals = np.broadcast_to(Bv[:, :, None], (m, 3, 3))
+    B = sp.csr_matrix((vals.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * m, s3))
+    return np.asarray((B @ np.asarray(B @ W).T).T)
+
+
+def _in_frames(BWB: np.ndarray, F: np.ndarray, inv_k: float) -> np.ndarray:
+    """The contact operator in the points' frames, F^T (B W B^T + E E^T / k) F (3m, 3m), E the
+    stacked identities (the coupling spring moves every point with the tool)."""
     m = F.shape[0]
-    out = np.zeros((3 * m, 3 * m))
-    idx = np.arange(m)
-    out.reshape(m, 3, m, 3)[idx, :, idx, :] = F
-    return out
+    M = BWB + inv_k * np.tile(np.eye(3), (m, m)) if inv_k else BWB
+    if 3 * m <= SMALL:
+        Fd = np.zeros((3 * m, 3 * m))
+        Fd.reshape(m, 3, m, 3)[np.arange(m), :, np.arange(m), :] = F
+        return Fd.T @ M @ Fd
+    idx = 3 * np.arange(m)[:, None, None] + np.zeros((1, 3, 3), dtype=np.int64)
+    Fd = sp.csr_matrix((F.reshape(-1), ((idx + np.arange(3)[None, :, None]).reshape(-1),
+                                        (idx + np.arange(3)[None, None, :]).reshape(-1))), shape=(3 * m, 3 * m))
+    return np.asarray((Fd.T @ np.asarray(Fd.T @ M).T).T)
 
 
 def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: float) -> tuple[np.ndarray, np.ndarray]:
