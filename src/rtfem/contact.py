@@ -105,13 +105,17 @@ class Tool:
         local = np.clip(local, -self.half_extents, self.half_extents)
         return position + local @ R.T
 
-    def distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray, spread=0.0):
+    def distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray):
         """Signed gaps (k,) between surface ``points`` and the tool at ``position``, and the unit
         directions (k, 3) the tool pushes them along; ``outward`` (k, 3) the surface's outward
         normals there. Away from the core, |x - core(x)| - R; a point the core has passed (the core
-        behind the surface, within R of the normal line, or within the cone of normals of a
-        concave edge: ``spread`` (k,) the tangent of its half-angle) gets a negative gap and the
-        inward normal, so that it is pushed on, not back; so does a point on the core itself."""
+        behind the surface, within R of the normal line) gets a negative gap and the inward normal,
+        so that it is pushed on, not back; so does a point on the core itself."""
+        return self._distance(points, position, outward, 0.0)
+
+    def _distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray, spread):
+        """:meth:`distance`, with the normal line widened on a concave edge to the cone of its
+        faces' normals (``spread`` (k,): the tangent of its half-angle)."""
         v = self.core(points, position) - points
         dist = np.sqrt(np.einsum("ij,ij->i", v, v))
         above = _outside(v, outward, self.radius, spread)
@@ -465,7 +469,7 @@ class ToolContact:
             first = np.zeros(keep.size, dtype=bool)
             first[idx[pick]] = True
             keep &= ~edge | first
-        gaps, n = self.tool.distance(P, c, outward, spread)
+        gaps, n = self.tool._distance(P, c, outward, spread)
         keep &= gaps < self.margin + 2 * self.edge
         return local[keep], bary[keep], n[keep], gaps[keep], -1 - tris[keep]
 
