@@ -170,3 +170,24 @@ def test_a_compiled_loop_leaves_blas_a_core_fewer():
         inside = threadpoolctl.threadpool_info()
         assert inside and all(p["num_threads"] <= max(1, cores - 1) for p in inside)
     assert {p["filepath"]: p["num_threads"] for p in threadpoolctl.threadpool_info()} == before  # restored
+
+
+def test_a_tick_that_overruns_the_end_leaves_no_slot_uncounted():
+    """A Python-tick loop whose 40th tick takes 30 ms: the loop wakes after its 50 ms end with slots
+    still due; they are skipped and counted, so steps + skipped cover the schedule (they were lost)."""
+    mesh = rt.meshes.plate(0.2, 0.2, 4, 4)
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix(mesh.boundary_vertices())
+    tc = rt.ToolContact(mesh, rt.ModalSimulator(rt.modal_analysis(model, 4), 1e-3, rt.Damping(alpha=5.0)))
+    update, calls = tc.update, []
+
+    def slow(p):
+        calls.append(p)
+        if len(calls) == 40:
+            time.sleep(0.03)
+        return update(p)
+
+    tc.update = slow
+    stats = rt.HapticLoop(tc, rt.ScriptedDevice(lambda t: np.array([0.1, 0.1, 0.05])), rate=1000.0).run(0.05)
+    assert not stats.compiled and stats.missed >= 1
+    assert stats.steps + stats.missed == 50 and stats.steps == len(calls)

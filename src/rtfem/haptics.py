@@ -543,8 +543,11 @@ class HapticLoop:
                     if wait > self.spin:
                         time.sleep(wait - self.spin)
                 start = time.perf_counter()
-                if deadline is not None and start >= deadline:
-                    break  # a loop that cannot keep the rate stops on time (the lateness says by how much)
+                if deadline is not None and start >= deadline:  # a loop that cannot keep the rate stops on
+                    while t0 + k * self.period < deadline:  # time; the slots still due are skipped, and counted
+                        k += 1
+                        st.missed += 1
+                    break
                 if start - target > self.period:  # behind by whole ticks: skip them, do not burst
                     skip = int((start - target) / self.period)
                     k += skip

@@ -262,11 +262,17 @@ def _make_probe_chunk(gettime, usleep, clock_id, tick):
                 gettime(clock_id, clock.ctypes)
                 now = clock[0] + 1e-9 * clock[1]
             start = now
-            if start >= deadline:
+            if start >= deadline:  # woke after the end: the slots still due are skipped, and counted
+                while period > 0.0 and t0 + k * period < deadline:
+                    k += 1
+                    counters[2] += 1
+                counters[0] = k
                 return 0
             if period > 0.0 and start - target > period:  # behind by whole ticks: skip them
                 skip = int((start - target) / period)
                 if scripted and k + skip >= positions.shape[0]:
+                    counters[2] += positions.shape[0] - k  # the rest of the script: skipped
+                    counters[0] = positions.shape[0]
                     return 0
                 k += skip
                 counters[2] += skip
