@@ -179,6 +179,50 @@ def test_a_rigid_jaw_over_the_clamped_edge_presses_only_the_free_vertices(plate)
     np.testing.assert_allclose(X[inner, 2] + d.displacements()[inner, 2], -0.0005, atol=1e-9)  # away from the edge
 
 
+def slide_over(mesh, modes, lookahead, wait=False, driver=None):
+    """A 1 cm sphere lowered onto the plate and slid 8 cm across it (forces (k, 3), nodes the loop
+    prepared itself, the contact); ``wait``: the background preparation finishes after the first
+    step, which names the vertices ahead while the sphere is still 15 mm above the plate."""
+    sim = driver or rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    tc = rt.ToolContact(mesh, sim, rt.Tool.sphere(0.01), lookahead=lookahead)
+    forces, in_loop = [], 0
+    for k in range(300):
+        x = 0.06 + 0.08 * max(k - 100, 0) / 200
+        forces.append(tc.update([x, 0.1, 0.025 - 0.018 * min(k, 100) / 100]).copy())
+        in_loop += tc._block.prepared_here
+        if k == 0 and wait:
+            tc._block.preparer._thread.join(10.0)  # it ends after a second with nothing left to do
+    return np.array(forces), in_loop, tc
+
+
+def test_lookahead_prepares_the_vertices_ahead_in_the_background_and_changes_no_number(plate):
+    """The vertices within the lookahead are prepared by a background thread before the tool touches
+    them, so the loop prepares none itself; the forces are those of preparing them in the loop."""
+    model, modes = plate
+    F0, loop0, tc0 = slide_over(model.mesh, modes, 0.0)
+    F1, loop1, tc1 = slide_over(model.mesh, modes, 0.1, wait=True)  # 10 cm ahead: the whole path
+    assert F0[:, 2].max() > 0.01  # it pressed
+    assert tc0._block.preparer.background == 0 and loop0 >= 10
+    assert tc1._block.preparer.background >= 10 and loop1 == 0
+    assert np.abs(F1 - F0).max() < 1e-9 * np.abs(F0).max()  # batched or not, in the loop or not
+    F2, _, tc2 = slide_over(model.mesh, modes, None)  # the default (2 edges), not waited for
+    assert np.abs(F2 - F0).max() < 1e-9 * np.abs(F0).max()
+
+
+def test_a_failing_background_preparation_is_raised_by_the_loop(plate):
+    """A driver whose preparation fails: the background thread stops, and the loop, preparing the
+    vertex itself, raises the driver's error (nothing is swallowed)."""
+    model, modes = plate
+
+    class Failing(Stepped):
+        def prepare(self, nodes):
+            raise rt.ModelError("cannot prepare these nodes")
+
+    driver = Failing(rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True))
+    with pytest.raises(rt.ModelError, match="cannot prepare"):
+        slide_over(model.mesh, modes, 0.05, wait=True, driver=driver)
+
+
 def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
     model, modes = plate
     mesh = model.mesh
@@ -194,7 +238,7 @@ def test_bad_arguments_are_refused_and_change_nothing(plate, capsys):
         rt.Tool(0.01, orientation=np.diag([1.0, 1.0, -1.0]))
     sim = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0))
     for bad in (dict(coupling="glue"), dict(stiffness=0.0), dict(friction=-0.1), dict(margin=np.nan),
-                dict(max_sweeps=0), dict(tol=-1.0), dict(surface_point="yes")):
+                dict(max_sweeps=0), dict(tol=-1.0), dict(surface_point="yes"), dict(lookahead=-0.01)):
         with pytest.raises(rt.ModelError):
             rt.ToolContact(mesh, sim, **bad)
     with pytest.raises(rt.ModelError, match="rt.Tool"):

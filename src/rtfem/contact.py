@@ -30,7 +30,11 @@ B^T F r; the hand feels -sum f.
 
 The contact set's compliance block is kept from step to step: when the set changes only the rows
 and columns of newly touched vertices are computed (for drivers whose W follows the motion,
-``compliance_changes``, the whole block each step).
+``compliance_changes``, the whole block each step). What a vertex needs from the driver first
+(its static-correction or compliance columns: sparse solves, milliseconds) is prepared by a
+background thread while the tool is still ``lookahead`` away, so a sliding tool does not stall
+the force loop; a vertex not ready when touched is prepared in the loop, so the numbers never
+depend on the timing.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
+from .threads import blas_limits, usable_cores
 
 __all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch", "nodes_to_prepare"]
 
@@ -263,6 +268,81 @@ def pgs(A, b, mu, r=None, *, max_sweeps: int = 500, tol: float = 1e-10) -> tuple
     return r, int(sweeps)
 
 
+class _Preparer:
+    """Prepares driver nodes (static-correction or compliance columns: sparse solves of
+    milliseconds each) before the force loop needs them: :meth:`want` names the vertices the tool
+    is about to reach and a background thread prepares them, nearest first, in small batches;
+    :meth:`ensure` (the loop) prepares whatever is still missing itself, so the results never
+    depend on the timing. One lock keeps the driver's preparation to one thread at a time. The
+    thread ends after a second with nothing to do and starts again on the next :meth:`want`; an
+    error there stops the background work (the loop's own preparation then raises it)."""
+
+    BATCH = 4  # nodes per background preparation: short lock holds, multi-column solves
+
+    def __init__(self, driver) -> None:
+        import threading
+
+        self.driver = driver
+        self.ready: set[int] = set()
+        self.lock = threading.Lock()
+        self._cv = threading.Condition()
+        self._pending = np.zeros(0, dtype=np.int64)
+        self._where = np.zeros((0, 3))  # rest positions of the pending vertices
+        self._at = np.zeros(3)
+        self._thread = None
+        self.failed: BaseException | None = None
+        self.background = 0  # nodes prepared by the thread (for benchmarks)
+
+    def ensure(self, nodes: np.ndarray) -> int:
+        """Prepare ``nodes`` now (those not ready); returns how many this call prepared."""
+        missing = [v for v in nodes.tolist() if v not in self.ready]
+        if missing:
+            with self.lock:
+                missing = [v for v in missing if v not in self.ready]
+                if missing:
+                    prepare(self.driver, np.asarray(missing, dtype=np.int64))
+                    self.ready.update(missing)
+        return len(missing)
+
+    def want(self, nodes: np.ndarray, where: np.ndarray, at: np.ndarray) -> None:
+        """Prepare ``nodes`` (rest positions ``where``) in the background, nearest ``at`` first."""
+        if self.failed is not None:
+            return
+        fresh = np.fromiter((v not in self.ready for v in nodes.tolist()), dtype=bool, count=nodes.size)
+        with self._cv:
+            self._pending, self._where, self._at = nodes[fresh], where[fresh], np.asarray(at, dtype=float)
+            if self._pending.size and (self._thread is None or not self._thread.is_alive()):
+                import threading
+
+                self._thread = threading.Thread(target=self._run, name="rtfem-prepare", daemon=True)
+                self._thread.start()
+            self._cv.notify()
+
+    def _run(self) -> None:
+        # BLAS and MKL keep a core free for the loop while this thread lives: their worker threads
+        # (spinning after each call) took the loop's core on 2 cores, p99 of the slide 1.7 -> 4.8 ms
+        with blas_limits(max(1, usable_cores() - 1)):
+            while True:
+                with self._cv:
+                    if not self._pending.size and not self._cv.wait_for(lambda: self._pending.size > 0, timeout=1.0):
+                        return
+                    gap = np.einsum("ij,ij->i", self._where - self._at, self._where - self._at)
+                    first = np.argsort(gap, kind="stable")[:self.BATCH]
+                    batch = self._pending[first]
+                    rest = np.setdiff1d(np.arange(self._pending.size), first)
+                    self._pending, self._where = self._pending[rest], self._where[rest]
+                try:
+                    with self.lock:
+                        todo = [v for v in batch.tolist() if v not in self.ready]
+                        if todo:
+                            prepare(self.driver, np.asarray(todo, dtype=np.int64))
+                            self.ready.update(todo)
+                            self.background += len(todo)
+                except BaseException as exc:  # noqa: BLE001 - the loop's own preparation raises it
+                    self.failed = exc
+                    return
+
+
 class _ComplianceBlock:
     """The driver's cross compliances W_SS of the current contact vertices, kept between steps:
     rows and columns are computed only for newly touched vertices (all of it each step when the
@@ -270,9 +350,11 @@ class _ComplianceBlock:
 
     def __init__(self, driver) -> None:
         self.driver = driver
+        self.preparer = _Preparer(driver)
         self.nodes = np.zeros(0, dtype=np.int64)
         self.W = np.zeros((0, 0))
         self.new_rows = 0  # vertices whose rows were computed in the last call (for benchmarks)
+        self.prepared_here = 0  # of them, vertices the loop had to prepare itself (for benchmarks)
 
     def block(self, nodes: np.ndarray) -> np.ndarray:
         d = self.driver
@@ -280,7 +362,7 @@ class _ComplianceBlock:
             self.new_rows = nodes.size
             return step_compliances(d, nodes)
         if nodes.size == self.nodes.size and np.array_equal(nodes, self.nodes):
-            self.new_rows = 0
+            self.new_rows = self.prepared_here = 0
             return self.W
         pos = {int(v): i for i, v in enumerate(self.nodes.tolist())}
         old = np.array([pos.get(int(v), -1) for v in nodes.tolist()], dtype=np.int64)
@@ -289,8 +371,9 @@ class _ComplianceBlock:
         ik = (3 * kept[:, None] + np.arange(3)).reshape(-1)
         io = (3 * old[kept][:, None] + np.arange(3)).reshape(-1)
         W[np.ix_(ik, ik)] = self.W[np.ix_(io, io)]
+        self.prepared_here = 0
         if fresh.size:
-            prepare(d, nodes[fresh])
+            self.prepared_here = self.preparer.ensure(nodes[fresh])
             jf = (3 * fresh[:, None] + np.arange(3)).reshape(-1)
             W[:, jf] = step_compliances(d, nodes, nodes[fresh])
             if kept.size:
@@ -318,11 +401,16 @@ class ToolContact:
         the median edge), so that a point about to touch is in the set.
     surface_point : also the surface point closest to the tool's core, on a triangle (default True;
         False: vertices only, for a tool much larger than the edges).
+    lookahead : vertices within this distance beyond the tool's reach (m; default two median edges)
+        are prepared on a background thread before the tool touches them (their static-correction
+        or compliance columns: a few ms each), so that a tool sliding onto new vertices does not
+        stall the force loop; 0: prepared in the loop when touched. Either way the same numbers.
     """
 
     def __init__(self, mesh: TriMesh, driver, tool: Tool | None = None, *, coupling: str = "spring",
                  stiffness: float = 200.0, friction: float = 0.0, margin: float | None = None,
-                 surface_point: bool = True, max_sweeps: int = 500, tol: float = 1e-10) -> None:
+                 surface_point: bool = True, lookahead: float | None = None, max_sweeps: int = 500,
+                 tol: float = 1e-10) -> None:
         from .haptics import check_driver_mesh
 
         driver = as_driver(driver, "tool")
@@ -349,7 +437,11 @@ class ToolContact:
         edges = mesh.edges()
         self.edge = float(np.median(np.linalg.norm(self.X[edges[:, 0]] - self.X[edges[:, 1]], axis=1)))
         self.margin = 0.25 * self.edge if margin is None else validate.nonnegative(margin, "margin", "a distance in m")
+        self.lookahead = 2 * self.edge if lookahead is None else validate.nonnegative(lookahead, "lookahead",
+                                                                                      "a distance in m")
         self._block = _ComplianceBlock(driver)
+        self._ahead = getattr(driver, "prepare", None) is not None and not getattr(driver, "compliance_changes", False)
+        self._asked_at: np.ndarray | None = None  # where the tool was when the vertices ahead were last named
         self._warm: dict[int, np.ndarray] = {}
         self._offset = np.zeros(3)
         self.proxy: np.ndarray | None = None  # the tool's position after the coupling (m)
@@ -366,7 +458,7 @@ class ToolContact:
         columns, maps) before the force loop; as :meth:`Probe.prepare`. Returns how many."""
         nodes = nodes_to_prepare(self._touchable, self._tree, self.X.shape[0], nodes, around, radius)
         if nodes.size:
-            prepare(self.driver, nodes)
+            self._block.preparer.ensure(nodes)
         return int(nodes.size)
 
     def displacements(self) -> np.ndarray:
@@ -478,6 +570,8 @@ class ToolContact:
         """One step with the device at ``position``; returns the force on the device (N)."""
         c = validate.point(position, "tool position")
         proxy = c if self.proxy is None or self.coupling == "constraint" else self.proxy
+        if self.lookahead > 0 and self._ahead:
+            self._look_ahead(c)
         found = self._contact_set(proxy)  # the geometry where the tool is; its move to c is linear below
         inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
         if found is None:
@@ -524,6 +618,18 @@ class ToolContact:
         y_after = y_free + (BWB @ f_points.reshape(-1)).reshape(m, 3)
         self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
         return self.force
+
+    def _look_ahead(self, c: np.ndarray) -> None:
+        """Name the vertices within the lookahead to the background preparer, when the tool has
+        moved a quarter edge since it last did (a ball query, some 10-50 us)."""
+        at = c - self._offset
+        if self._asked_at is not None and np.sum((at - self._asked_at) ** 2) < (0.25 * self.edge) ** 2:
+            return
+        self._asked_at = at
+        reach = self.tool.reach + self.margin + self.edge + self.lookahead
+        verts = self._touchable[np.asarray(self._tree.query_ball_point(at, reach), dtype=np.int64)]
+        if verts.size:
+            self._block.preparer.want(verts, self.X[verts], at)
 
     def _apart(self, c: np.ndarray) -> np.ndarray:
         """A step with nothing touched: the organ moves freely, the tool sits at the device."""

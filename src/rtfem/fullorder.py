@@ -214,9 +214,25 @@ class NewmarkSimulator(DirectSimulator):
         return rhs
 
     def prepare(self, nodes) -> None:
-        """Solve the step-compliance columns of the nodes that will be loaded (3 solves each)."""
-        for n in validate.nodes(nodes, self.n_nodes).tolist():
-            self.step_compliance(n)
+        """Solve the step-compliance columns of the nodes that will be loaded (the missing ones in
+        multi-column solves of at most 64 MB of right-hand sides)."""
+        missing = [n for n in dict.fromkeys(validate.nodes(nodes, self.n_nodes).tolist()) if n not in self._cols]
+        per = max(1, (64 * 2**20) // (8 * 3 * self._solved.size))
+        for start in range(0, len(missing), per):
+            chunk = missing[start:start + per]
+            held = [self._node_rows(n) for n in chunk]
+            E = np.zeros((self._solved.size, sum(rows.size for rows, _ in held)))
+            at = 0
+            for rows, _ in held:
+                E[rows, at + np.arange(rows.size)] = 1.0
+                at += rows.size
+            X = self._fac.solve(E).reshape(self._solved.size, -1) if E.shape[1] else E
+            at = 0
+            for n, (rows, dirs) in zip(chunk, held):
+                out = np.zeros((self._solved.size, 3))
+                out[:, dirs] = X[:, at:at + rows.size]
+                self._cols[n] = out
+                at += rows.size
 
     def predict(self, node: int) -> np.ndarray:
         """Displacement (3,) of ``node`` after one more step with no new load (one sparse solve).

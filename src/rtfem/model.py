@@ -532,19 +532,38 @@ class FEModel:
         F[self.translation_dofs(node)[validate.count(direction, "direction", 0, 2)]] = 1.0
         return self._solve(F, False)
 
+    def unit_load_responses(self, nodes, memory: float = 64 * 2**20) -> np.ndarray:
+        """(k, n, 3, 3) :meth:`unit_load_response` of each of ``nodes`` in its three directions
+        ([node, displaced node, displacement axis, load axis]), with multi-column solves of at most
+        ``memory`` bytes of right-hand sides each: one solve of 30 columns costs about what 4 single
+        ones do (MKL PARDISO, the 14,556-dof liver shell)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        out = np.empty((nodes.size, self.n_nodes, 3, 3))
+        per = max(1, int(memory // (8 * 3 * self.n_dofs)))
+        for start in range(0, nodes.size, per):
+            chunk = nodes[start:start + per]
+            F = np.zeros((self.n_dofs, 3 * chunk.size))
+            rows = (self.dofs_per_node * chunk[:, None] + np.arange(3)).reshape(-1)
+            F[rows, np.arange(rows.size)] = 1.0
+            U = self._solve(F).reshape(self.n_nodes, 3, chunk.size, 3)  # displaced node, axis, node, load axis
+            out[start:start + chunk.size] = U.transpose(2, 0, 1, 3)
+        return out
+
     def _solve(self, F: np.ndarray, return_rotations: bool = False) -> np.ndarray:
+        """Static displacements (n, 3) (``return_rotations``: (n, dofs per node)) of a load vector
+        (n_dofs,); a load matrix (n_dofs, m) gives (n, 3, m) (or (n, dofs per node, m))."""
         fac = self.factorization()
         t0 = time.perf_counter()
-        U = np.zeros(self.n_dofs)
+        U = np.zeros(F.shape)
         if self.constraints == "elimination":
             free = self.free_dofs
             U[free] = fac.solve(F[free])
         else:
             Fp = F.copy()
             Fp[self.fixed_dofs] *= self.penalty
-            U = fac.solve(Fp)
+            U = fac.solve(Fp).reshape(F.shape)
         self.timings["solve"] = time.perf_counter() - t0
-        U = U.reshape(-1, self.dofs_per_node)
+        U = U.reshape((-1, self.dofs_per_node) + F.shape[1:])
         return U if return_rotations else U[:, :3].copy()
 
     # ------------------------------------------------------------ condensation (Eq. 4-5)

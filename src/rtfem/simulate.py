@@ -413,9 +413,15 @@ class ModalSimulator(ForceInput):
             model = self.modes.model
             cols = [model.unit_load_response(node, k) for k in range(3)]
             Kinv = np.stack(cols, axis=2)  # (n, 3, 3): displacement, load direction
-            D = Kinv - np.einsum("nir,r,jr->nij", self._phi, 1.0 / self.modes.omega**2, self._phi[node])
+            D = Kinv - self._modal_statics(np.array([node]))[0]
             self._D[node] = D
         return D
+
+    def _modal_statics(self, nodes: np.ndarray) -> np.ndarray:
+        """Phi Lambda^-1 Phi^T for unit loads on ``nodes``: (k, n, 3, 3), one matrix product."""
+        n, r = self.n_nodes, self._phi.shape[2]
+        G = (self._phi.reshape(3 * n, r) / self.modes.omega**2) @ self._phi[nodes].reshape(3 * nodes.size, r).T
+        return G.reshape(n, 3, nodes.size, 3).transpose(2, 0, 1, 3)
 
     def _array_correction(self, F: np.ndarray) -> np.ndarray:
         """D F for an (n, 3) load: one static solve per distinct load, kept for the next call
@@ -431,11 +437,21 @@ class ModalSimulator(ForceInput):
         return hit
 
     def prepare(self, nodes) -> None:
-        """Precompute the static-correction columns of the nodes that will be loaded."""
+        """Precompute the static-correction columns of the nodes that will be loaded (the missing
+        ones together: multi-column solves when the model has ``unit_load_responses``)."""
         nodes = validate.nodes(nodes, self.n_nodes)
-        if self.static_correction:
-            for n in nodes.tolist():
+        if not self.static_correction:
+            return
+        missing = np.array([n for n in dict.fromkeys(nodes.tolist()) if n not in self._D], dtype=np.int64)
+        batched = getattr(self.modes.model, "unit_load_responses", None)
+        if missing.size < 2 or batched is None:
+            for n in missing.tolist():
                 self._correction_column(n)
+            return
+        Kinv = batched(missing)  # (k, n, 3, 3)
+        modal = self._modal_statics(missing)
+        for i, n in enumerate(missing.tolist()):
+            self._D[n] = Kinv[i] - modal[i]
 
     def predict(self, node: int) -> np.ndarray:
         """Displacement (3,) of ``node`` after one more step with no new load, O(r).
