@@ -39,6 +39,7 @@ def drivers(model, modes):
         "modal": rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True),
         "warped": rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True, warping=True),
         "newmark": rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=5.0)),
+        "newmark HHT": rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=5.0, beta=1e-3), numerical_damping=0.1),
         "central": rt.DirectSimulator(model, 1e-5, rt.Damping(alpha=5.0), method="central"),
         "corotational": rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=5.0), large_deformation=True),
     }
@@ -46,7 +47,7 @@ def drivers(model, modes):
 
 # the linear drivers to round-off; the warped and corotational ones are linearizations, and the
 # stepped route is a 1 N finite difference of them
-TOL = {"modal": 1e-12, "newmark": 1e-12, "central": 1e-12, "warped": 1e-3, "corotational": 1e-3}
+TOL = {"modal": 1e-12, "newmark": 1e-12, "newmark HHT": 1e-12, "central": 1e-12, "warped": 1e-3, "corotational": 1e-3}
 
 
 @pytest.mark.parametrize("name", list(TOL))

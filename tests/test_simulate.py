@@ -134,3 +134,22 @@ def test_single_precision_field_for_drawing():
         assert np.shares_memory(got, out) and np.array_equal(out, u32)
     with pytest.raises(rt.ModelError, match="float64 or float32"):
         sim.displacements(dtype=np.int32)
+
+
+def test_newmark_numerical_damping_is_checked_and_kept_in_the_state():
+    mesh = rt.meshes.plate(0.2, 0.2, 4, 4)
+    model = rt.ShellModel(mesh, rt.Material())
+    model.fix(mesh.boundary_vertices())
+    for bad, match in ((dict(method="central", numerical_damping=0.1), "Newmark's"),
+                       (dict(numerical_damping=0.5), r"\[0, 1/3\]"), (dict(numerical_damping="x"), "number")):
+        with pytest.raises(rt.ModelError, match=match):
+            rt.DirectSimulator(model, 1e-5, **bad)
+    sim = rt.DirectSimulator(model, 1e-3, numerical_damping=0.1)
+    sim.step({12: (0.0, 0.0, 1.0)})
+    state = sim.get_state()
+    assert np.abs(state["f"]).max() == 1.0  # HHT weighs the last step's forces into the next
+    sim.step(None)
+    after = sim.displacements()
+    sim.set_state(state)
+    sim.step(None)
+    assert np.array_equal(sim.displacements(), after)
