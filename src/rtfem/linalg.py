@@ -143,19 +143,23 @@ class _Pardiso:
 
 
 class Factorization:
-    """A sparse factorization of a square matrix: ``solve(b)`` for (n,) or (n, k) right-hand sides."""
+    """A sparse factorization of a square matrix: ``solve(b)`` for (n,) or (n, k) right-hand sides.
+    Solves from several threads (a contact's background preparation beside the force loop) take
+    turns: no backend promises that two solves on one factor may overlap."""
 
     def __init__(self, A: sp.spmatrix, backend: str, solver) -> None:
         self.shape = A.shape
         self.nnz = A.nnz
         self.backend = backend
         self._solver = solver
+        self._lock = threading.Lock()
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, dtype=float)
         if b.shape[0] != self.shape[0]:
             raise SolverError(f"right-hand side has {b.shape[0]} rows, the matrix {self.shape[0]}")
-        return self._solver(b)
+        with self._lock:
+            return self._solver(b)
 
     def __repr__(self) -> str:
         return f"Factorization({self.shape[0]}x{self.shape[1]}, nnz={self.nnz}, backend={self.backend!r})"
