@@ -144,6 +144,8 @@ def test_newmark_numerical_damping_is_checked_and_kept_in_the_state():
                        (dict(numerical_damping=0.5), r"\[0, 1/3\]"), (dict(numerical_damping="x"), "number")):
         with pytest.raises(rt.ModelError, match=match):
             rt.DirectSimulator(model, 1e-5, **bad)
+    with pytest.raises(rt.ModelError, match="Newmark's"):
+        rt.CentralDifferenceSimulator(model, 1e-5, numerical_damping=0.1)
     sim = rt.DirectSimulator(model, 1e-3, numerical_damping=0.1)
     sim.step({12: (0.0, 0.0, 1.0)})
     state = sim.get_state()
@@ -153,3 +155,20 @@ def test_newmark_numerical_damping_is_checked_and_kept_in_the_state():
     sim.set_state(state)
     sim.step(None)
     assert np.array_equal(sim.displacements(), after)
+
+
+def test_unit_load_responses_equal_the_single_ones_and_refuse_bad_nodes():
+    """The batched static columns (multi-column solves, here two nodes per solve) equal the single
+    ones to round-off, with fixes by elimination and by penalty; bad nodes or a bad memory bound
+    are refused before anything is solved."""
+    mesh = rt.meshes.plate(0.2, 0.2, 6, 6)
+    for constraints in ("elimination", "penalty"):
+        model = rt.ShellModel(mesh, rt.Material(), constraints=constraints)
+        model.fix(mesh.boundary_vertices())
+        nodes = np.array([10, 24, 0, 10])  # a held node and a repeat among them
+        A = model.unit_load_responses(nodes, memory=8 * 3 * model.n_dofs * 2)
+        B = np.stack([np.stack([model.unit_load_response(int(n), k) for k in range(3)], axis=2) for n in nodes])
+        assert np.abs(A - B).max() <= 1e-12 * np.abs(B).max()
+    for bad, kw in (([10**6], {}), ([1.5], {}), ([10], {"memory": 0.0})):
+        with pytest.raises(rt.ModelError):
+            model.unit_load_responses(bad, **kw)

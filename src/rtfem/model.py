@@ -538,6 +538,7 @@ class FEModel:
         ``memory`` bytes of right-hand sides each: one solve of 30 columns costs about what 4 single
         ones do (MKL PARDISO, the 14,556-dof liver shell)."""
         nodes = validate.nodes(nodes, self.n_nodes)
+        memory = validate.positive(memory, "memory", "a size in bytes")
         out = np.empty((nodes.size, self.n_nodes, 3, 3))
         per = max(1, int(memory // (8 * 3 * self.n_dofs)))
         for start in range(0, nodes.size, per):
