@@ -110,6 +110,86 @@ def test_pgs_solves_one_contact_in_closed_form():
     np.testing.assert_array_equal(r, 0.0)  # apart: no force
 
 
+def coupled_contacts(m: int, seed: int, extra: int = 0):
+    """The contact operator of m points on a soft, strongly coupled body (a shell under a rigid jaw:
+    every point's compliance mostly shared), in random frames, and ``extra`` more points
+    interpolating pairs of the first (a face point between its corners: A is then singular)."""
+    rng = np.random.default_rng(seed)
+    L = rng.normal(size=(3 * m, 3 * m))
+    W = 1.0 + 0.02 * (L @ L.T) / (3 * m)  # all points move together, 2 % apart
+    W = W * np.kron(np.ones((m, m)), np.eye(3)) + 0.02 * (L @ L.T) / (3 * m)
+    B = np.eye(m)
+    for _ in range(extra):
+        i, j = rng.choice(m, 2, replace=False)
+        t = rng.uniform(0.2, 0.8)
+        row = np.zeros(m)
+        row[i], row[j] = 1 - t, t
+        B = np.vstack([B, row])
+    B3 = np.kron(B, np.eye(3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    F = np.kron(np.eye(B.shape[0]), q)  # one frame per point
+    return F.T @ B3 @ W @ B3.T @ F, B3.T @ F, rng
+
+
+def check_signorini_coulomb(A, b, mu, r, atol):
+    """The solution's conditions, point by point: w_n >= 0, r_n >= 0, w_n r_n = 0; |r_t| <= mu r_n;
+    stuck (|r_t| < mu r_n): w_t = 0; sliding: r_t = -mu r_n w_t / |w_t|."""
+    w = b + A @ r
+    scale = np.abs(r).max()
+    for c in range(b.size // 3):
+        (wn, *wt), (rn, *rt_) = w[3 * c:3 * c + 3], r[3 * c:3 * c + 3]
+        wt, rt_ = np.array(wt), np.array(rt_)
+        assert rn >= 0 and wn >= -atol and min(rn / scale, wn) <= atol
+        assert np.linalg.norm(rt_) <= mu * rn * (1 + 1e-9) + 1e-15
+        if rn > 0 and mu > 0 and np.linalg.norm(rt_) < mu * rn * (1 - 1e-6):
+            np.testing.assert_allclose(wt, 0.0, atol=atol)
+        elif rn > 0 and mu > 0 and np.linalg.norm(wt) > atol:
+            np.testing.assert_allclose(rt_, -mu * rn * wt / np.linalg.norm(wt), atol=1e-6 * scale)
+
+
+def test_pgs_equals_the_active_set_enumeration_on_strongly_coupled_contacts():
+    """Frictionless, 8 points sharing most of their compliance (where plain projected Gauss-Seidel
+    crawls): the forces equal those of the one active set, found by trying all 256, whose forces are
+    nonnegative and leave no gap negative; with the subspace steps in tens of sweeps."""
+    A, _, rng = coupled_contacts(8, 1)
+    An = A[::3, ::3]
+    for trial in range(5):
+        b = np.zeros(24)
+        b[::3] = rng.normal(size=8) * 2e-5 - 5e-4  # the jaw pressed nearly evenly: 2-3 points carry it
+        r, sweeps = pgs(A, b, 0.0, max_sweeps=500, tol=1e-12)
+        assert sweeps <= 40  # plain projected Gauss-Seidel: 321-517 sweeps on these five
+        found = []
+        for mask in range(256):
+            act = np.flatnonzero([(mask >> i) & 1 for i in range(8)])
+            rn = np.zeros(8)
+            rn[act] = np.linalg.solve(An[np.ix_(act, act)], -b[::3][act]) if act.size else []
+            if (rn >= -1e-15).all() and (b[::3] + An @ rn >= -1e-12).all():
+                found.append(rn)
+        assert len(found) == 1  # A is positive definite: one solution
+        np.testing.assert_allclose(r[::3], found[0], rtol=1e-8, atol=1e-10 * np.abs(found[0]).max())
+        np.testing.assert_array_equal(r[1::3], 0.0)
+        np.testing.assert_array_equal(r[2::3], 0.0)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.3, 1.0])
+def test_pgs_meets_signorini_coulomb_on_dependent_points(mu):
+    """Twelve coupled points and five more between pairs of them (singular A: their forces are not
+    unique): every point meets the contact and friction conditions; without friction the forces on
+    the body (B^T F r, unique) are the same from another start."""
+    A, BF, rng = coupled_contacts(12, 2, extra=5)
+    for trial in range(4):
+        b = rng.normal(size=A.shape[0]) * 1e-3
+        b[::3] -= 5e-4
+        r, sweeps = pgs(A, b, mu, max_sweeps=2000, tol=1e-12)
+        assert sweeps <= 2000, "not converged"
+        check_signorini_coulomb(A, b, mu, r, atol=1e-9 * np.abs(b).max())
+        if mu:
+            continue
+        body = BF @ r
+        again, _ = pgs(A, b, mu, r + rng.uniform(0, 1e-3, r.size) * (np.arange(r.size) % 3 == 0),
+                       max_sweeps=2000, tol=1e-12)
+        np.testing.assert_allclose(BF @ again, body, atol=1e-7 * np.abs(body).max())  # another start
+
 def test_hold_patch_of_one_vertex_is_the_single_spring_grab():
     W = np.array([[2.0, 0.1, 0.0], [0.1, 1.0, 0.0], [0.0, 0.0, 3.0]])
     h, g, k = np.zeros(3), 5.0 * np.array([0.1, -0.2, 0.3]), 5.0

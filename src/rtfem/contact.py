@@ -24,9 +24,11 @@ x_d(k+1) enters linearly, -n . (x_d(k+1) - x_t(k)): the tool moves little per st
 coupling may leave it millimetres from the device), with the Signorini conditions w_n >= 0, r_n >= 0, w_n r_n = 0 and Coulomb's law |r_t| <= mu r_n
 (stick: w_t = 0; slip: r_t opposes w_t at |r_t| = mu r_n). This is solved by projected
 Gauss-Seidel over the 3x3 contact blocks (the normal by its row, the tangential pair by its 2x2
-block projected onto the friction disk), warm-started from the previous step's forces
-(:func:`pgs`, compiled when numba is present). The step is then taken with the vertex forces
-B^T F r; the hand feels -sum f.
+block, a sliding pair on the friction circle opposite its slip), warm-started from the previous
+step's forces, with subspace steps (Silcowitz, Niebe & Erleben's PGS-SM): once a sweep leaves
+every contact's state (apart, sliding, stuck) unchanged, the equalities of those states are solved
+directly, kept when they bring the forces closer to a solution (:func:`pgs`, compiled when numba
+is present). The step is then taken with the vertex forces B^T F r; the hand feels -sum f.
 
 The contact set's compliance block is kept from step to step: when the set changes only the rows
 and columns of newly touched vertices are computed (for drivers whose W follows the motion,
@@ -194,16 +196,191 @@ def closest_points_on_triangles(P: np.ndarray, A: np.ndarray, B: np.ndarray, C: 
 
 
 # ------------------------------------------------------------------------------ the contact solve
+def _lu_solve(M, x):
+    """Solve M y = x in place (y in x) by Gaussian elimination with complete pivoting; M (k, k) is
+    overwritten. A rank-deficient M (contact points that interpolate others: a face point and its
+    corners, whose forces are not unique) gets a basic solution: elimination stops where the
+    largest remaining entry is below 1e-11 of the first pivot, and the unknowns left get zero."""
+    k = x.shape[0]
+    perm = np.arange(k)
+    first = 0.0
+    rank = k
+    for j in range(k):
+        p, q, big = j, j, 0.0
+        for i in range(j, k):
+            for c in range(j, k):
+                if abs(M[i, c]) > big:
+                    p, q, big = i, c, abs(M[i, c])
+        if j == 0:
+            first = big
+        if big <= 1e-11 * first or big == 0.0:
+            rank = j
+            break
+        if p != j:
+            for c in range(k):
+                M[j, c], M[p, c] = M[p, c], M[j, c]
+            x[j], x[p] = x[p], x[j]
+        if q != j:
+            for i in range(k):
+                M[i, j], M[i, q] = M[i, q], M[i, j]
+            perm[j], perm[q] = perm[q], perm[j]
+        for i in range(j + 1, k):
+            f = M[i, j] / M[j, j]
+            if f != 0.0:
+                for c in range(j + 1, k):
+                    M[i, c] -= f * M[j, c]
+                x[i] -= f * x[j]
+    y = np.zeros(k)
+    for j in range(rank - 1, -1, -1):
+        s = x[j]
+        for c in range(j + 1, rank):
+            s -= M[j, c] * y[c]
+        y[j] = s / M[j, j]
+    for j in range(k):
+        x[perm[j]] = y[j]
+    return rank > 0
+
+
+def _residual(A, r, w, mu):
+    """The largest change of Alart and Curnier's fixed-point map, r_n <- max(0, r_n - w_n / A_nn),
+    r_t <- (r_t - rho w_t) projected onto the disk of radius mu r_n (rho = 1 / the mean tangential
+    diagonal, one number, so that a force on the rim is opposite the slip): zero exactly at a
+    solution of the Signorini-Coulomb conditions."""
+    res = 0.0
+    for c in range(r.shape[0] // 3):
+        i = 3 * c
+        rn = max(0.0, r[i] - w[i] / A[i, i])
+        res = max(res, abs(rn - r[i]))
+        att = A[i + 1, i + 1] + A[i + 2, i + 2]
+        if mu[c] > 0.0 and att > 0.0:
+            rho = 2.0 / att
+            t1 = r[i + 1] - rho * w[i + 1]
+            t2 = r[i + 2] - rho * w[i + 2]
+            t = math.sqrt(t1 * t1 + t2 * t2)
+            lim = mu[c] * rn
+            if t > lim:
+                s = lim / t if t > 0.0 else 0.0
+                t1 *= s
+                t2 *= s
+            res = max(res, abs(t1 - r[i + 1]), abs(t2 - r[i + 2]))
+    return res
+
+
+def _slide(a11, a12, a21, a22, t1, t2, lim):
+    """The tangential force of a sliding contact: s = (A_tt + lam I)^-1 t on the friction circle
+    |s| = lim, lam > 0, so that the slip w_t = A_tt s - t = -lam s opposes it (Coulomb's maximal
+    dissipation; a radial projection of A_tt^-1 t is not opposite the slip unless A_tt is a multiple
+    of I). Newton on 1/|s(lam)| (nearly linear in lam), kept inside a bisection bracket."""
+    lo, hi = 0.0, math.sqrt(t1 * t1 + t2 * t2) / lim  # |s(hi)| <= lim for a positive definite A_tt
+    lam = 0.0
+    s1, s2 = 0.0, 0.0
+    for _ in range(60):
+        b11, b22 = a11 + lam, a22 + lam
+        det = b11 * b22 - a12 * a21
+        s1 = (b22 * t1 - a12 * t2) / det
+        s2 = (b11 * t2 - a21 * t1) / det
+        norm = math.sqrt(s1 * s1 + s2 * s2)
+        if abs(norm - lim) <= 1e-13 * lim:
+            break
+        if norm > lim:
+            lo = lam
+        else:
+            hi = lam
+        # d|s|/dlam = -s.(A + lam I)^-1 s / |s|
+        q1 = (b22 * s1 - a12 * s2) / det
+        q2 = (b11 * s2 - a21 * s1) / det
+        slope = (s1 * q1 + s2 * q2) / (norm * norm * norm)  # d(1/|s|)/dlam
+        step = lam + (1.0 / lim - 1.0 / norm) / slope if slope > 0.0 else -1.0
+        lam = step if lo < step < hi else 0.5 * (lo + hi)
+    norm = math.sqrt(s1 * s1 + s2 * s2)
+    if norm > 0.0:  # on the circle to round-off
+        s1 *= lim / norm
+        s2 *= lim / norm
+    return s1, s2
+
+
+def _subspace(A, b, mu, r, w, status):
+    """The subspace step of PGS-SM (Silcowitz, Niebe & Erleben 2010): with the contacts' states
+    as the last sweeps left them (status: 0 apart, 1 pressed and sliding or frictionless, 2 stuck),
+    solve the equalities they imply in one linear system (pressed: w_n = 0, the tangential force
+    mu r_n along its present direction when sliding; stuck: w = 0; apart: r = 0), project the
+    result onto the cone and recompute w. Returns False (r, w unchanged) when nothing is pressed."""
+    n3 = b.shape[0]
+    m = n3 // 3
+    rows = np.empty(n3, np.int64)
+    d1 = np.zeros(m)
+    d2 = np.zeros(m)
+    k = 0
+    for c in range(m):
+        i = 3 * c
+        if status[c] == 2:
+            rows[k], rows[k + 1], rows[k + 2] = i, i + 1, i + 2
+            k += 3
+        elif status[c] == 1:
+            if mu[c] > 0.0:
+                t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
+                if t > 0.0:
+                    d1[c], d2[c] = r[i + 1] / t, r[i + 2] / t
+            rows[k] = i
+            k += 1
+    if k == 0:
+        return False
+    M = np.empty((k, k))
+    x = np.empty(k)
+    for a in range(k):
+        ia = rows[a]
+        x[a] = -b[ia]
+        for j in range(k):
+            ij = rows[j]
+            c = ij // 3
+            v = A[ia, ij]
+            if status[c] == 1 and mu[c] > 0.0:  # r_t = mu r_n d: the normal unknown carries it
+                v += mu[c] * (d1[c] * A[ia, ij + 1] + d2[c] * A[ia, ij + 2])
+            M[a, j] = v
+    if not _lu_solve(M, x):
+        return False
+    for i in range(n3):
+        r[i] = 0.0
+    for j in range(k):
+        r[rows[j]] = x[j]
+    for c in range(m):
+        i = 3 * c
+        if r[i] < 0.0:
+            r[i] = 0.0
+        lim = mu[c] * r[i]
+        if status[c] == 1:
+            r[i + 1], r[i + 2] = lim * d1[c], lim * d2[c]
+        t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
+        if t > lim:
+            s = lim / t if t > 0.0 else 0.0
+            r[i + 1] *= s
+            r[i + 2] *= s
+    for i in range(n3):
+        s = b[i]
+        for j in range(n3):
+            s += A[i, j] * r[j]
+        w[i] = s
+    return True
+
+
 def _pgs(A, b, mu, r, max_sweeps, tol):
     """Projected Gauss-Seidel on w = b + A r over 3x3 contact blocks [n, t1, t2]: r_n >= 0,
     w_n >= 0, complementary; |r_t| <= mu r_n (stick: w_t = 0). ``r`` (3m,) is the warm start,
-    updated in place. Returns the number of sweeps (max_sweeps + 1: not converged)."""
+    updated in place. When a sweep leaves every contact's state (apart, sliding, stuck) as the
+    sweep before did, a subspace step solves those states' equalities directly (:func:`_subspace`),
+    kept when it lowers the fixed-point residual (:func:`_residual`): PGS alone crawls on strongly
+    coupled contacts (a rigid jaw on a shell: hundreds of sweeps, often not converged in 500).
+    Converged when a sweep changes no force by more than ``tol`` of the largest normal force.
+    Returns the number of sweeps (max_sweeps + 1: not converged)."""
     n3 = b.shape[0]
     m = n3 // 3
     w = b.copy()
     for i in range(n3):
         for j in range(n3):
             w[i] += A[i, j] * r[j]
+    status = np.zeros(m, np.int64)
+    before = np.full(m, -1, np.int64)
+    try_subspace = True
     for sweep in range(max_sweeps):
         change = 0.0
         size = 0.0
@@ -219,6 +396,7 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
                 rn = 0.0
             s1 = 0.0
             s2 = 0.0
+            state = 1 if rn > 0.0 else 0
             if mu[c] > 0.0 and rn > 0.0:
                 t1 = -(b1 + A[i + 1, i] * rn)
                 t2 = -(b2 + A[i + 2, i] * rn)
@@ -229,8 +407,10 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
                 norm = math.sqrt(s1 * s1 + s2 * s2)
                 lim = mu[c] * rn
                 if norm > lim:
-                    s1 *= lim / norm
-                    s2 *= lim / norm
+                    s1, s2 = _slide(a11, a12, a21, a22, t1, t2, lim)
+                else:
+                    state = 2
+            status[c] = state
             d0, d1, d2 = rn - r0, s1 - r1, s2 - r2
             if d0 != 0.0 or d1 != 0.0 or d2 != 0.0:
                 for k in range(n3):
@@ -238,15 +418,33 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
             r[i], r[i + 1], r[i + 2] = rn, s1, s2
             change = max(change, abs(d0), abs(d1), abs(d2))
             size = max(size, abs(rn))
-        if change <= tol * size or size == 0.0:
+        if change <= tol * size:  # with no force anywhere: only when none changed (a zero start, nothing touching)
             return sweep + 1
+        same = True
+        for c in range(m):
+            if status[c] != before[c]:
+                same = False
+            before[c] = status[c]
+        if same and try_subspace:  # kept only when it brings r closer to a solution
+            r_old, w_old = r.copy(), w.copy()
+            if _subspace(A, b, mu, r, w, status) and _residual(A, r, w, mu) >= _residual(A, r_old, w_old, mu):
+                r[:] = r_old
+                w[:] = w_old
+                try_subspace = False  # not again before the states change
+        elif not same:
+            try_subspace = True
     return max_sweeps + 1
 
 
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
-    _pgs_compiled = _numba.njit("i8(f8[:, ::1], f8[::1], f8[::1], f8[::1], i8, f8)", cache=True, nogil=True)(_pgs)
+    _opts = dict(cache=True, nogil=True, error_model="numpy")  # no exceptions from the kernels
+    _lu_solve = _numba.njit(**_opts)(_lu_solve)  # the names _pgs calls: compiled too
+    _residual = _numba.njit(**_opts)(_residual)
+    _slide = _numba.njit(**_opts)(_slide)
+    _subspace = _numba.njit(**_opts)(_subspace)
+    _pgs_compiled = _numba.njit("i8(f8[:, ::1], f8[::1], f8[::1], f8[::1], i8, f8)", **_opts)(_pgs)
 except Exception:  # pragma: no cover - numba absent
     _pgs_compiled = None
 
