@@ -9,7 +9,8 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli import main
-from rtfem.contact import closest_points_on_triangles, hold_patch, pgs
+from rtfem import contact
+from rtfem.contact import closest_points_on_triangles, contact_operator, hold_patch, pgs, tangent_frames
 from rtfem.simulate import predictions, step_compliances
 from rtfem.viewer.session import Settings
 
@@ -82,6 +83,28 @@ def test_impedance_cross_compliances_are_the_static_inverse(plate):
     assert np.abs(W - W.T).max() < 1e-12 * np.abs(W).max()
 
 
+def test_a_patch_load_steps_and_reads_back_as_the_entry_by_entry_path(plate):
+    """A contact patch's load (12 vertices, the one-product path) gives the state of the same loads
+    parsed one by one (an insertion order the fast path refuses: numpy integer nodes), and the
+    displacements read at a set of nodes (the gathered static-correction path, kept between calls)
+    equal the full field's, also after the loads change."""
+    model, modes = plate
+    rng = np.random.default_rng(8)
+    free = np.flatnonzero(~model.held_nodes)
+    nodes = rng.choice(free, 12, replace=False)
+    ask = np.sort(rng.choice(free, 30, replace=False))
+    a = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    b = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    for step in range(4):
+        loads = {int(v): rng.normal(size=3) * 1e-3 for v in nodes[:12 - step]}
+        a.step(loads)
+        b.step({np.int64(v): tuple(f) for v, f in loads.items()})
+        np.testing.assert_allclose(a.q, b.q, rtol=1e-12, atol=1e-15 * np.abs(b.q).max())
+        for _ in range(2):  # the second call reads the kept gather
+            np.testing.assert_allclose(a.displacements_at(ask), b.displacements()[ask], rtol=1e-10,
+                                       atol=1e-12 * np.abs(b.displacements()).max())
+
+
 def test_closest_points_on_triangles_against_a_brute_force_sampling():
     rng = np.random.default_rng(3)
     A, B, C = (rng.normal(size=(40, 3)) for _ in range(3))
@@ -96,6 +119,73 @@ def test_closest_points_on_triangles_against_a_brute_force_sampling():
         best = np.linalg.norm(samples - P[i], axis=1).min()
         d = np.linalg.norm(Q[i] - P[i])
         assert d <= best + 1e-12 and d > best - 1e-2  # never beaten by a sample, and the grid comes close
+
+
+def test_compiled_geometry_equals_the_vectorized_definitions():
+    """The force loop's kernels against the numpy definitions: gaps and push directions against
+    Tool.distance for a sphere, a capsule and a jaw (points outside, inside, behind the surface);
+    each triangle's closest point against closest_points_on_triangles; frames orthonormal with n
+    first."""
+    rng = np.random.default_rng(5)
+    P = rng.normal(size=(300, 3)) * 0.006
+    O = rng.normal(size=(300, 3))
+    O /= np.linalg.norm(O, axis=1)[:, None]
+    c = np.array([0.001, -0.002, 0.0005])
+    for tool in (rt.Tool.sphere(0.004), rt.Tool.capsule(0.002, 0.012, axis=(1, 1, 0)),
+                 rt.Tool.jaw(0.01, 0.02, 0.002, normal=(0.2, 0.1, 1.0))):
+        d_ref, n_ref = tool.distance(P, c, O)
+        d, n = np.empty(300), np.empty((300, 3))
+        contact._gaps(P, P, O, np.zeros(300), c, tool.orientation, tool.half_extents, tool.radius, d, n)
+        np.testing.assert_allclose(d, d_ref, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(n, n_ref, rtol=0, atol=1e-12)
+        assert (d < 0).sum() > 10 and (d > 0).sum() > 10  # both sides met
+    A, B, C = (rng.normal(size=(60, 3)) for _ in range(3))
+    Q_ref, bary_ref = closest_points_on_triangles(P[:60] * 100, A, B, C)
+    for i in range(60):
+        q, bary = np.empty(3), np.empty(3)
+        contact._closest_on_triangle(P[i] * 100, A[i], B[i], C[i], q, bary)
+        np.testing.assert_allclose(q, Q_ref[i], atol=1e-12)
+        np.testing.assert_allclose(bary, bary_ref[i], atol=1e-12)
+    F = tangent_frames(O)
+    np.testing.assert_allclose(np.einsum("kia,kib->kab", F, F), np.broadcast_to(np.eye(3), (300, 3, 3)), atol=1e-14)
+    np.testing.assert_allclose(np.linalg.det(F), 1.0, atol=1e-14)
+    np.testing.assert_array_equal(F[:, :, 0], O)
+
+
+def test_contact_operator_equals_the_matrix_products_and_the_solve_needs_only_pressed_columns():
+    """A = F^T (B W B^T + E E^T / k) F from the one-pass kernel equals the sparse/dense matrix
+    products (vertex and face points, a nonsymmetric W); the solve that fills A's columns only for
+    contacts that get a force (at some sweep) gives the forces of the solve on the whole A, bit for
+    bit."""
+    rng = np.random.default_rng(6)
+    s, nv, nf = 30, 20, 25
+    L = rng.normal(size=(3 * s, 3 * s))
+    W = 1e-3 * (L @ L.T / (3 * s) + 0.3 * np.eye(3 * s)) + 1e-5 * rng.normal(size=(3 * s, 3 * s))
+    Bi = np.zeros((nv + nf, 3), dtype=np.int64)
+    Bv = np.zeros((nv + nf, 3))
+    Bi[:nv] = rng.choice(s, nv, replace=False)[:, None]
+    Bv[:nv, 0] = 1.0
+    Bi[nv:] = np.array([rng.choice(s, 3, replace=False) for _ in range(nf)])
+    Bv[nv:] = rng.dirichlet(np.ones(3), nf)
+    F = tangent_frames(rng.normal(size=(nv + nf, 3)) / np.sqrt(3))
+    F = tangent_frames(F[:, :, 0] / np.linalg.norm(F[:, :, 0], axis=1)[:, None])
+    for inv_k in (0.0, 1e-3):
+        A = contact_operator(W, Bi, Bv, F, inv_k)
+        ref = contact._in_frames(contact._cross_compliances(W, Bi, Bv), F, inv_k)
+        np.testing.assert_allclose(A, ref, rtol=0, atol=1e-14 * np.abs(ref).max())
+        b = np.zeros(3 * (nv + nf))
+        b[::3] = rng.normal(size=nv + nf) * 1e-5 + 2e-6  # some points pressed, most apart
+        b[1::3] = rng.normal(size=nv + nf) * 1e-6
+        mu = np.full(nv + nf, 0.4)
+        r_full, sweeps_full = pgs(A, b, mu)
+        have = np.zeros(nv + nf, dtype=bool)
+        lazy = np.full_like(A, np.nan)
+        r, sweeps = contact._solve(lazy, have, W, Bi, Bv, F, inv_k, b.copy(), mu, np.zeros_like(b), 500, 1e-10)
+        np.testing.assert_array_equal(r, r_full)
+        assert sweeps == sweeps_full
+        pressed = r[::3] > 0
+        assert have[pressed].all() and 0 < pressed.sum() <= have.sum() < nv + nf  # columns of the points
+        # pressed at some sweep (22 and 30 of 45 with the spring), not all
 
 
 def test_pgs_solves_one_contact_in_closed_form():

@@ -69,7 +69,7 @@ class Tool:
         self.radius = validate.nonnegative(radius, "radius", "the tool's radius in m")
         a, b = (validate.nonnegative(v, n, "a half-length in m") for v, n in zip(half_extents, ("a", "b")))
         self.half_extents = np.array([a, b, 0.0])
-        self.orientation = np.eye(3) if orientation is None else _rotation_matrix(orientation)
+        self.orientation = np.ascontiguousarray(np.eye(3) if orientation is None else _rotation_matrix(orientation), dtype=float)
         self.kind = kind
 
     @classmethod
@@ -160,10 +160,9 @@ def _rotation_matrix(R) -> np.ndarray:
 
 def tangent_frames(n: np.ndarray) -> np.ndarray:
     """(k, 3, 3) frames whose columns are n, t1, t2 (right-handed, orthonormal)."""
-    helper = np.where((np.abs(n[:, 0]) < 0.6)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    t1 = np.cross(n, helper)
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    return np.stack([n, t1, np.cross(n, t1)], axis=2)
+    F = np.empty((n.shape[0], 3, 3))
+    _frames(np.ascontiguousarray(n, dtype=float), F)
+    return F
 
 
 def closest_points_on_triangles(P: np.ndarray, A: np.ndarray, B: np.ndarray, C: np.ndarray):
@@ -299,7 +298,7 @@ def _slide(a11, a12, a21, a22, t1, t2, lim):
     return s1, s2
 
 
-def _subspace(A, b, mu, r, w, status):
+def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status):
     """The subspace step of PGS-SM (Silcowitz, Niebe & Erleben 2010): with the contacts' states
     as the last sweeps left them (status: 0 apart, 1 pressed and sliding or frictionless, 2 stuck),
     solve the equalities they imply in one linear system (pressed: w_n = 0, the tangential force
@@ -355,15 +354,23 @@ def _subspace(A, b, mu, r, w, status):
             s = lim / t if t > 0.0 else 0.0
             r[i + 1] *= s
             r[i + 2] *= s
-    for i in range(n3):
-        s = b[i]
-        for j in range(n3):
-            s += A[i, j] * r[j]
-        w[i] = s
+    _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w)
     return True
 
 
-def _pgs(A, b, mu, r, max_sweeps, tol):
+def _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w):
+    """w = b + A r, from the block columns of the contacts with a force (computed when missing)."""
+    for i in range(b.shape[0]):
+        w[i] = b[i]
+    for c in range(b.shape[0] // 3):
+        i = 3 * c
+        if r[i] != 0.0 or r[i + 1] != 0.0 or r[i + 2] != 0.0:
+            _column(W, Bi, Bv, F, inv_k, c, A, have)
+            for k in range(b.shape[0]):
+                w[k] += A[k, i] * r[i] + A[k, i + 1] * r[i + 1] + A[k, i + 2] * r[i + 2]
+
+
+def _pgs(A, have, W, Bi, Bv, F, inv_k, b, mu, r, max_sweeps, tol):
     """Projected Gauss-Seidel on w = b + A r over 3x3 contact blocks [n, t1, t2]: r_n >= 0,
     w_n >= 0, complementary; |r_t| <= mu r_n (stick: w_t = 0). ``r`` (3m,) is the warm start,
     updated in place. When a sweep leaves every contact's state (apart, sliding, stuck) as the
@@ -371,13 +378,16 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
     kept when it lowers the fixed-point residual (:func:`_residual`): PGS alone crawls on strongly
     coupled contacts (a rigid jaw on a shell: hundreds of sweeps, often not converged in 500).
     Converged when a sweep changes no force by more than ``tol`` of the largest normal force.
+    A's block columns are computed from (W, Bi, Bv, F, inv_k) (see :func:`contact_operator`) only
+    for contacts that get a force, unless ``have`` marks them given: O(m m_pressed), not O(m^2).
     Returns the number of sweeps (max_sweeps + 1: not converged)."""
     n3 = b.shape[0]
     m = n3 // 3
-    w = b.copy()
-    for i in range(n3):
-        for j in range(n3):
-            w[i] += A[i, j] * r[j]
+    for c in range(m):  # the diagonal blocks; a column when its contact first gets a force
+        if not have[c]:
+            _block(W, Bi, Bv, F, inv_k, c, c, A)
+    w = np.empty(n3)
+    _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w)
     status = np.zeros(m, np.int64)
     before = np.full(m, -1, np.int64)
     try_subspace = True
@@ -413,6 +423,7 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
             status[c] = state
             d0, d1, d2 = rn - r0, s1 - r1, s2 - r2
             if d0 != 0.0 or d1 != 0.0 or d2 != 0.0:
+                _column(W, Bi, Bv, F, inv_k, c, A, have)
                 for k in range(n3):
                     w[k] += A[k, i] * d0 + A[k, i + 1] * d1 + A[k, i + 2] * d2
             r[i], r[i + 1], r[i + 2] = rn, s1, s2
@@ -427,7 +438,7 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
             before[c] = status[c]
         if same and try_subspace:  # kept only when it brings r closer to a solution
             r_old, w_old = r.copy(), w.copy()
-            if _subspace(A, b, mu, r, w, status) and _residual(A, r, w, mu) >= _residual(A, r_old, w_old, mu):
+            if _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status) and _residual(A, r, w, mu) >= _residual(A, r_old, w_old, mu):
                 r[:] = r_old
                 w[:] = w_old
                 try_subspace = False  # not again before the states change
@@ -436,17 +447,256 @@ def _pgs(A, b, mu, r, max_sweeps, tol):
     return max_sweeps + 1
 
 
+def _block(W, Bi, Bv, F, inv_k, c, d, A):
+    """A's block (c, d): F_c^T (sum_ab Bv[c, a] Bv[d, b] W(Bi[c, a], Bi[d, b]) + I / k) F_d."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = inv_k, 0.0, 0.0, 0.0, inv_k, 0.0, 0.0, 0.0, inv_k
+    for a in range(3):
+        wa = Bv[c, a]
+        if wa == 0.0:
+            continue
+        p = 3 * Bi[c, a]
+        for e in range(3):
+            we = wa * Bv[d, e]
+            if we == 0.0:
+                continue
+            q = 3 * Bi[d, e]
+            m00 += we * W[p, q]
+            m01 += we * W[p, q + 1]
+            m02 += we * W[p, q + 2]
+            m10 += we * W[p + 1, q]
+            m11 += we * W[p + 1, q + 1]
+            m12 += we * W[p + 1, q + 2]
+            m20 += we * W[p + 2, q]
+            m21 += we * W[p + 2, q + 1]
+            m22 += we * W[p + 2, q + 2]
+    for be in range(3):  # M F_d, then F_c^T (M F_d)
+        x0 = m00 * F[d, 0, be] + m01 * F[d, 1, be] + m02 * F[d, 2, be]
+        x1 = m10 * F[d, 0, be] + m11 * F[d, 1, be] + m12 * F[d, 2, be]
+        x2 = m20 * F[d, 0, be] + m21 * F[d, 1, be] + m22 * F[d, 2, be]
+        for al in range(3):
+            A[3 * c + al, 3 * d + be] = F[c, 0, al] * x0 + F[c, 1, al] * x1 + F[c, 2, al] * x2
+
+
+def _column(W, Bi, Bv, F, inv_k, d, A, have):
+    """A's block column d (all contacts' rows), once: ``have[d]`` marks it computed."""
+    if have[d]:
+        return
+    for c in range(Bi.shape[0]):
+        _block(W, Bi, Bv, F, inv_k, c, d, A)
+    have[d] = True
+
+
+def _diagonal(W, Bi, Bv, F, inv_k, A):
+    """A's diagonal blocks only."""
+    for c in range(Bi.shape[0]):
+        _block(W, Bi, Bv, F, inv_k, c, c, A)
+
+
+def _operator(W, Bi, Bv, F, inv_k, A):
+    """A (3m, 3m) = F^T (B W B^T + E E^T / k) F in one pass (see :func:`contact_operator`)."""
+    have = np.zeros(Bi.shape[0], np.bool_)
+    for d in range(Bi.shape[0]):
+        _column(W, Bi, Bv, F, inv_k, d, A, have)
+
+
+# ------------------------------------------------------------------------------ compiled geometry
+def _core_into(p0, p1, p2, c, R, half, q):
+    """q (3,) = the tool core's point closest to p (see :meth:`Tool.core`)."""
+    l0 = (p0 - c[0]) * R[0, 0] + (p1 - c[1]) * R[1, 0] + (p2 - c[2]) * R[2, 0]
+    l1 = (p0 - c[0]) * R[0, 1] + (p1 - c[1]) * R[1, 1] + (p2 - c[2]) * R[2, 1]
+    l2 = (p0 - c[0]) * R[0, 2] + (p1 - c[1]) * R[1, 2] + (p2 - c[2]) * R[2, 2]
+    l0 = min(max(l0, -half[0]), half[0])
+    l1 = min(max(l1, -half[1]), half[1])
+    l2 = min(max(l2, -half[2]), half[2])
+    for i in range(3):
+        q[i] = c[i] + l0 * R[i, 0] + l1 * R[i, 1] + l2 * R[i, 2]
+
+
+def _gaps(P, Q, O, spread, c, R, half, radius, d, n):
+    """Each point P[k]'s signed gap d[k] and push direction n[k] (:meth:`Tool._distance`, outward
+    normals O, cone tangents ``spread``), the gap then moved on to Q[k] along n: d += n . (Q - P)."""
+    q = np.empty(3)
+    for k in range(P.shape[0]):
+        _core_into(P[k, 0], P[k, 1], P[k, 2], c, R, half, q)
+        v0, v1, v2 = q[0] - P[k, 0], q[1] - P[k, 1], q[2] - P[k, 2]
+        vv = v0 * v0 + v1 * v1 + v2 * v2
+        dist = math.sqrt(vv)
+        vn = v0 * O[k, 0] + v1 * O[k, 1] + v2 * O[k, 2]
+        lateral = math.sqrt(max(vv - vn * vn, 0.0))
+        above = vn >= 0 or lateral > radius + spread[k] * abs(vn) + 1e-12
+        if above and dist > 1e-12:
+            n[k, 0], n[k, 1], n[k, 2] = -v0 / dist, -v1 / dist, -v2 / dist
+        else:
+            n[k, 0], n[k, 1], n[k, 2] = -O[k, 0], -O[k, 1], -O[k, 2]
+        g = (dist if above else -dist) - radius
+        d[k] = g + n[k, 0] * (Q[k, 0] - P[k, 0]) + n[k, 1] * (Q[k, 1] - P[k, 1]) + n[k, 2] * (Q[k, 2] - P[k, 2])
+
+
+def _closest_on_triangle(p, A, B, C, out, bary):
+    """The point ``out`` (3,) of triangle ABC closest to p, and its barycentric weights (see
+    :func:`closest_points_on_triangles`)."""
+    e00, e01, e02 = B[0] - A[0], B[1] - A[1], B[2] - A[2]
+    e10, e11, e12 = C[0] - A[0], C[1] - A[1], C[2] - A[2]
+    d0, d1, d2 = p[0] - A[0], p[1] - A[1], p[2] - A[2]
+    a00 = e00 * e00 + e01 * e01 + e02 * e02
+    a01 = e00 * e10 + e01 * e11 + e02 * e12
+    a11 = e10 * e10 + e11 * e11 + e12 * e12
+    b0 = d0 * e00 + d1 * e01 + d2 * e02
+    b1 = d0 * e10 + d1 * e11 + d2 * e12
+    det = max(a00 * a11 - a01 * a01, 1e-300)
+    s, t = (a11 * b0 - a01 * b1) / det, (a00 * b1 - a01 * b0) / det
+    if s >= 0 and t >= 0 and s + t <= 1:
+        bary[0], bary[1], bary[2] = 1.0 - s - t, s, t
+    else:
+        best = np.inf
+        for e in range(3):
+            i, j = e, (e + 1) % 3
+            Q0 = A if i == 0 else (B if i == 1 else C)
+            Q1 = A if j == 0 else (B if j == 1 else C)
+            f0, f1, f2 = Q1[0] - Q0[0], Q1[1] - Q0[1], Q1[2] - Q0[2]
+            u = ((p[0] - Q0[0]) * f0 + (p[1] - Q0[1]) * f1 + (p[2] - Q0[2]) * f2) / max(f0 * f0 + f1 * f1 + f2 * f2, 1e-300)
+            u = min(max(u, 0.0), 1.0)
+            g0, g1, g2 = Q0[0] + u * f0 - p[0], Q0[1] + u * f1 - p[1], Q0[2] + u * f2 - p[2]
+            dist = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            if dist < best:
+                best = dist
+                bary[0] = bary[1] = bary[2] = 0.0
+                bary[i], bary[j] = 1.0 - u, u
+    for i in range(3):
+        out[i] = bary[0] * A[i] + bary[1] * B[i] + bary[2] * C[i]
+
+
+def _faces(Y, Yf, local, c, R, half, radius, iters, reach, margin, same, V, bary, n, gaps, keep):
+    """The ring's face contacts (every face of the ring is a contact of its own: where the probe
+    sits in its own dent, a concave crease, the closest point would jump across the crease, while
+    the set of faces' points moves continuously): for each triangle
+    (corners ``local``, rows of Y) the point closest to the tool's core (``iters`` alternating
+    projections), its weights ``bary``, push direction ``n`` and gap (``gaps``, linearized to the
+    free positions Yf); kept (``keep``, the count returned) when inside the face or on an edge
+    (once per edge, judged by the edge's mean normal and its cone), its gap below ``reach`` before
+    and ``margin`` after the linearization, and not within ``same`` of a vertex contact (rows of V)
+    or of a face point kept before."""
+    f = local.shape[0]
+    P = np.empty((f, 3))
+    O = np.empty((f, 3))
+    q = np.empty(3)
+    p = np.empty(3)
+    A = np.empty(3)
+    B = np.empty(3)
+    C = np.empty(3)
+    for k in range(f):
+        for i in range(3):
+            A[i], B[i], C[i] = Y[local[k, 0], i], Y[local[k, 1], i], Y[local[k, 2], i]
+        _core_into((A[0] + B[0] + C[0]) / 3.0, (A[1] + B[1] + C[1]) / 3.0, (A[2] + B[2] + C[2]) / 3.0, c, R, half, q)
+        for _ in range(iters):
+            _closest_on_triangle(q, A, B, C, p, bary[k])
+            _core_into(p[0], p[1], p[2], c, R, half, q)
+        P[k, 0], P[k, 1], P[k, 2] = p[0], p[1], p[2]
+        o0 = (B[1] - A[1]) * (C[2] - A[2]) - (B[2] - A[2]) * (C[1] - A[1])
+        o1 = (B[2] - A[2]) * (C[0] - A[0]) - (B[0] - A[0]) * (C[2] - A[2])
+        o2 = (B[0] - A[0]) * (C[1] - A[1]) - (B[1] - A[1]) * (C[0] - A[0])
+        size = max(math.sqrt(o0 * o0 + o1 * o1 + o2 * o2), 1e-300)
+        O[k, 0], O[k, 1], O[k, 2] = o0 / size, o1 / size, o2 / size
+    # which faces' points count: inside, or on an edge once (the edge's normal: its faces' mean)
+    on = np.zeros(f, np.int64)
+    lo = np.full(f, -1, np.int64)  # the edge's corners (rows of Y), for a point on an edge
+    hi = np.full(f, -1, np.int64)
+    for k in range(f):
+        for a in range(3):
+            if bary[k, a] > 1e-9:
+                on[k] += 1
+                if lo[k] < 0:
+                    lo[k] = local[k, a]
+                else:
+                    hi[k] = local[k, a]
+        if on[k] == 2 and lo[k] > hi[k]:
+            lo[k], hi[k] = hi[k], lo[k]
+    spread = np.zeros(f)
+    outward = O.copy()
+    ok = np.zeros(f, np.bool_)
+    for k in range(f):
+        ok[k] = on[k] >= 2
+        if on[k] != 2:
+            continue
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        first = True
+        for j in range(f):
+            if on[j] == 2 and lo[j] == lo[k] and hi[j] == hi[k]:
+                s0, s1, s2 = s0 + O[j, 0], s1 + O[j, 1], s2 + O[j, 2]
+                if j < k:
+                    first = False
+        size = max(math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 1e-300)
+        u0, u1, u2 = s0 / size, s1 / size, s2 / size
+        cos = u0 * O[k, 0] + u1 * O[k, 1] + u2 * O[k, 2]
+        spread[k] = math.sqrt(max(1.0 - cos * cos, 0.0)) / max(cos, 1e-3)
+        outward[k, 0], outward[k, 1], outward[k, 2] = u0, u1, u2
+        ok[k] = first
+    _gaps(P, P, outward, spread, c, R, half, radius, gaps, n)
+    kept = 0
+    for k in range(f):
+        if not ok[k] or not gaps[k] < reach:
+            continue
+        g = gaps[k]
+        for a in range(3):
+            w = bary[k, a]
+            for i in range(3):
+                g += n[k, i] * w * (Yf[local[k, a], i] - Y[local[k, a], i])
+        if not g < margin:
+            continue
+        fresh = True
+        for j in range(V.shape[0]):
+            if (V[j, 0] - P[k, 0]) ** 2 + (V[j, 1] - P[k, 1]) ** 2 + (V[j, 2] - P[k, 2]) ** 2 <= same * same:
+                fresh = False
+        for j in range(kept):
+            i = keep[j]
+            if (P[i, 0] - P[k, 0]) ** 2 + (P[i, 1] - P[k, 1]) ** 2 + (P[i, 2] - P[k, 2]) ** 2 <= same * same:
+                fresh = False
+        if fresh:
+            gaps[k] = g
+            keep[kept] = k
+            kept += 1
+    return kept
+
+
+def _frames(n, F):
+    """F (k, 3, 3): columns n, t1, t2 (see :func:`tangent_frames`)."""
+    for k in range(n.shape[0]):
+        n0, n1, n2 = n[k, 0], n[k, 1], n[k, 2]
+        h0, h1, h2 = (1.0, 0.0, 0.0) if abs(n0) < 0.6 else (0.0, 1.0, 0.0)
+        t0, t1, t2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
+        size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+        t0, t1, t2 = t0 / size, t1 / size, t2 / size
+        F[k, 0, 0], F[k, 1, 0], F[k, 2, 0] = n0, n1, n2
+        F[k, 0, 1], F[k, 1, 1], F[k, 2, 1] = t0, t1, t2
+        F[k, 0, 2], F[k, 1, 2], F[k, 2, 2] = n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0
+
+
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
     _opts = dict(cache=True, nogil=True, error_model="numpy")  # no exceptions from the kernels
-    _lu_solve = _numba.njit(**_opts)(_lu_solve)  # the names _pgs calls: compiled too
+    _block = _numba.njit(**_opts)(_block)  # the names _pgs calls: compiled too
+    _column = _numba.njit(**_opts)(_column)
+    _forces_into = _numba.njit(**_opts)(_forces_into)
+    _lu_solve = _numba.njit(**_opts)(_lu_solve)
     _residual = _numba.njit(**_opts)(_residual)
     _slide = _numba.njit(**_opts)(_slide)
     _subspace = _numba.njit(**_opts)(_subspace)
-    _pgs_compiled = _numba.njit("i8(f8[:, ::1], f8[::1], f8[::1], f8[::1], i8, f8)", **_opts)(_pgs)
+    _pgs_compiled = _numba.njit("i8(f8[:, ::1], b1[::1], f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[::1], "
+                                "f8[::1], f8[::1], i8, f8)", **_opts)(_pgs)
+    _operator_compiled = _numba.njit("void(f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[:, ::1])",
+                                     **_opts)(_operator)
+    _diagonal = _numba.njit("void(f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[:, ::1])",
+                            **_opts)(_diagonal)
+    _core_into = _numba.njit(**_opts)(_core_into)
+    _closest_on_triangle = _numba.njit(**_opts)(_closest_on_triangle)
+    _gaps = _numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8, f8[::1], "
+                        "f8[:, ::1])", **_opts)(_gaps)
+    _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, f8, "
+                         "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
+    _frames = _numba.njit("void(f8[:, ::1], f8[:, :, ::1])", **_opts)(_frames)
 except Exception:  # pragma: no cover - numba absent
-    _pgs_compiled = None
+    _pgs_compiled = _operator_compiled = None
 
 
 def pgs(A, b, mu, r=None, *, max_sweeps: int = 500, tol: float = 1e-10) -> tuple[np.ndarray, int]:
@@ -461,8 +711,15 @@ def pgs(A, b, mu, r=None, *, max_sweeps: int = 500, tol: float = 1e-10) -> tuple
         raise ModelError(f"pgs needs A (3m, 3m) and b (3m,), got {A.shape} and {b.shape}")
     if b.size and not np.all(np.diag(A)[::3] > 0):
         raise ModelError("the contact compliance has a zero or negative normal diagonal: a contact point on held nodes")
+    m = b.size // 3
+    return _solve(A, np.ones(m, dtype=bool), np.zeros((1, 1)), np.zeros((m, 3), dtype=np.int64), np.zeros((m, 3)),
+                  np.zeros((m, 3, 3)), 0.0, b, mu, r, max_sweeps, tol)
+
+
+def _solve(A, have, W, Bi, Bv, F, inv_k, b, mu, r, max_sweeps, tol):
+    """:func:`_pgs` (compiled where numba is present) on contiguous arrays; returns (r, sweeps)."""
     fn = _pgs_compiled if _pgs_compiled is not None else _pgs
-    sweeps = fn(A, b, mu, r, int(max_sweeps), float(tol)) if b.size else 0
+    sweeps = fn(A, have, W, Bi, Bv, F, float(inv_k), b, mu, r, int(max_sweeps), float(tol)) if b.size else 0
     return r, int(sweeps)
 
 
@@ -680,26 +937,20 @@ class ToolContact:
         self._offset = u_now.mean(axis=0)
         # the geometry of the surface now (continuous from step to step), its free motion linearly
         Y, Yf = self.X[verts] + u_now, self.X[verts] + u_free
-        d, n = self.tool.distance(Y, c, self.normals[verts])
-        d += np.einsum("ij,ij->i", n, Yf - Y)
+        tool = self.tool
+        R, half, radius = tool.orientation, tool.half_extents, float(tool.radius)
+        d, n = np.empty(verts.size), np.empty((verts.size, 3))
+        _gaps(Y, Yf, self.normals[verts], np.zeros(verts.size), c, R, half, radius, d, n)
         take = np.flatnonzero(d < self.margin)
-        if self.surface_point:
-            loc, bw, nf, df, fid = self._face_contacts(c, Y, ring, np.searchsorted(verts, self._tri[ring]))
-            df = df + np.einsum("fi,fi->f", nf, np.einsum("fk,fki->fi", bw, (Yf - Y)[loc]))
-            keep = df < self.margin
-            loc, bw, nf, df, fid = loc[keep], bw[keep], nf[keep], df[keep], fid[keep]
-        else:
-            loc, bw, nf, df, fid = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), \
-                np.zeros(0, dtype=np.int64)
-        if df.size:  # a face point within 1e-3 edge of a vertex contact or of another kept point: the same
-            P = np.einsum("fk,fki->fi", bw, Y[loc])  # contact twice (a probe sitting on a vertex), dropped
-            kept = list(Y[take])
-            fresh = []
-            for i in range(df.size):
-                if not kept or np.min(np.linalg.norm(np.asarray(kept) - P[i], axis=1)) > 1e-3 * self.edge:
-                    kept.append(P[i])
-                    fresh.append(i)
-            loc, bw, nf, df, fid = loc[fresh], bw[fresh], nf[fresh], df[fresh], fid[fresh]
+        f = ring.size if self.surface_point else 0
+        loc = np.searchsorted(verts, self._tri[ring[:f]])
+        bw, nf, df, keep = np.empty((f, 3)), np.empty((f, 3)), np.empty(f), np.empty(f, dtype=np.int64)
+        if f:  # a face point within 1e-3 edge of a vertex contact or of another kept point is the
+            # same contact twice (a probe sitting on a vertex): dropped
+            kept = _faces(Y, Yf, loc, c, R, half, radius, 1 if not half.any() else 4,
+                          self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[take], bw, nf, df, keep)
+            keep = keep[:kept]
+        loc, bw, nf, df, fid = loc[keep], bw[keep], nf[keep], df[keep], -1 - ring[keep]
         nv, m = take.size, take.size + df.size
         if m == 0:
             return None
@@ -718,50 +969,12 @@ class ToolContact:
 
     def _ring(self, verts: np.ndarray, c: np.ndarray) -> np.ndarray:
         """The triangles around the candidate nearest the tool (by its last known position)."""
-        d, _ = self.tool.distance(self.X[verts] + self._offset, c, self.normals[verts])
+        P = self.X[verts] + self._offset
+        d, n = np.empty(verts.size), np.empty((verts.size, 3))
+        _gaps(P, P, self.normals[verts], np.zeros(verts.size), c, self.tool.orientation, self.tool.half_extents,
+              float(self.tool.radius), d, n)
         v = int(verts[np.argmin(d)])
         return self._vt_tris[self._vt_start[v]:self._vt_start[v + 1]]
-
-    def _face_contacts(self, c: np.ndarray, Y: np.ndarray, tris: np.ndarray, local: np.ndarray):
-        """The points of the triangles ``tris`` (corners ``local``, indices into Y) closest to the
-        tool's core, those within margin + 2 edges (the caller linearizes and keeps those within the margin) and not at a vertex (a vertex contact already):
-        (corners (f, 3), barycentric weights (f, 3), push directions (f, 3), gaps (f,), ids (f,)).
-        Every face of the ring is a contact of its own: where the probe sits in its own dent (a
-        concave crease) the closest point would jump across the crease, while the set of faces'
-        points moves continuously."""
-        A, B, C = Y[local[:, 0]], Y[local[:, 1]], Y[local[:, 2]]
-        core = self.tool.core((A + B + C) / 3.0, c)
-        for _ in range(1 if not self.tool.half_extents.any() else 4):  # alternating projections (core and
-            P, bary = closest_points_on_triangles(core, A, B, C)  # triangle are convex; a point core: one)
-            core = self.tool.core(P, c)
-        outward = np.cross(B - A, C - A)
-        outward /= np.maximum(np.sqrt(np.einsum("ij,ij->i", outward, outward)), 1e-300)[:, None]
-        # a face's point inside it, or on an edge once (the two faces of a crease give the same
-        # point, judged by the edge's normal: the mean of its faces'); at a vertex it is that
-        # vertex's contact
-        on = bary > 1e-9
-        edge = on.sum(axis=1) == 2
-        keep = on.sum(axis=1) >= 2
-        spread = np.zeros(keep.size)
-        if edge.any():
-            ends = np.sort(np.where(on, local, -1), axis=1)[:, 1:]  # the edge's two corners
-            key = ends[:, 0] * (Y.shape[0] + 1) + ends[:, 1]
-            idx = np.flatnonzero(edge)
-            keys, pick, inverse = np.unique(key[idx], return_index=True, return_inverse=True)
-            total = np.zeros((keys.size, 3))
-            np.add.at(total, inverse, outward[idx])
-            mean = total[inverse]
-            size = np.sqrt(np.einsum("ij,ij->i", mean, mean))
-            unit = mean / np.maximum(size, 1e-300)[:, None]
-            half = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", unit, outward[idx]) ** 2, 0.0))
-            spread[idx] = half / np.maximum(np.einsum("ij,ij->i", unit, outward[idx]), 1e-3)
-            outward[idx] = unit
-            first = np.zeros(keep.size, dtype=bool)
-            first[idx[pick]] = True
-            keep &= ~edge | first
-        gaps, n = self.tool._distance(P, c, outward, spread)
-        keep &= gaps < self.margin + 2 * self.edge
-        return local[keep], bary[keep], n[keep], gaps[keep], -1 - tris[keep]
 
     # ---------------------------------------------------------------- the step
     def update(self, position) -> np.ndarray:
@@ -776,18 +989,19 @@ class ToolContact:
             return self._apart(c)
         S, (Bi, Bv), F, gaps, y_free, y_now, ids = found
         m = gaps.size
-        BWB = _cross_compliances(self._block.block(S), Bi, Bv)  # (3m, 3m) of the contact points
-        A = _in_frames(BWB, F, inv_k)
+        W = np.ascontiguousarray(self._block.block(S))
+        A = np.empty((3 * m, 3 * m))  # the contact operator (see contact_operator), filled as the solve needs it
         if inv_k == 0.0:  # a rigid tool cannot press a point the supports hold (zero compliance): left out
-            soft = np.diagonal(A)[::3] > 1e-12 * max(float(np.diagonal(A)[::3].max()), 1e-300)
+            _diagonal(W, Bi, Bv, F, inv_k, A)
+            normal = np.diagonal(A)[::3]
+            soft = normal > 1e-12 * max(float(normal.max()), 1e-300)
             if not soft.all():
                 if not soft.any():
                     return self._apart(c)
-                keep3 = np.flatnonzero(np.repeat(soft, 3))
-                A, BWB = A[np.ix_(keep3, keep3)], BWB[np.ix_(keep3, keep3)]
                 Bi, Bv, F, gaps, y_free, y_now, ids = Bi[soft], Bv[soft], F[soft], gaps[soft], y_free[soft], \
                     y_now[soft], ids[soft]
                 m = gaps.size
+                A = np.empty((3 * m, 3 * m))
         b = np.zeros((m, 3))
         b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
         slip = (y_free - y_now) - (c - proxy)
@@ -798,7 +1012,8 @@ class ToolContact:
             if i in self._warm:
                 r0[k] = self._warm[i]
         r0 = r0.reshape(-1)
-        r, sweeps = pgs(A, b.reshape(-1), mu, r0, max_sweeps=self.max_sweeps, tol=self.tol)
+        r, sweeps = _solve(A, np.zeros(m, dtype=bool), W, np.ascontiguousarray(Bi), np.ascontiguousarray(Bv),
+                           np.ascontiguousarray(F), inv_k, b.reshape(-1), mu, r0, self.max_sweeps, self.tol)
         r = r.reshape(m, 3)
         f_points = np.einsum("kij,kj->ki", F, r)  # force on the organ at each contact point
         f_nodes = np.zeros((S.size, 3))
@@ -813,7 +1028,8 @@ class ToolContact:
         self.contacts = int(np.count_nonzero(r[:, 0] > 0))
         self._warm = {int(i): r[k] for k, i in enumerate(ids.tolist()) if r[k, 0] > 0}
         active = r[:, 0] > 0
-        y_after = y_free + (BWB @ f_points.reshape(-1)).reshape(m, 3)
+        moved = (W @ f_nodes.reshape(-1)).reshape(-1, 3)  # the contact vertices' move under the forces
+        y_after = y_free + np.einsum("ka,kai->ki", Bv, moved[Bi])
         self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
         return self.force
 
@@ -896,6 +1112,20 @@ def _in_frames(BWB: np.ndarray, F: np.ndarray, inv_k: float) -> np.ndarray:
     Fd = sp.csr_matrix((F.reshape(-1), ((idx + np.arange(3)[None, :, None]).reshape(-1),
                                         (idx + np.arange(3)[None, None, :]).reshape(-1))), shape=(3 * m, 3 * m))
     return np.asarray((Fd.T @ np.asarray(Fd.T @ M).T).T)
+
+
+def contact_operator(W: np.ndarray, Bi: np.ndarray, Bv: np.ndarray, F: np.ndarray, inv_k: float) -> np.ndarray:
+    """The contact operator A = F^T (B W B^T + E E^T / k) F (3m, 3m) of m points: point k moves as
+    sum_a Bv[k, a] u[Bi[k, a]] (its corners in the (3s, 3s) block W; a vertex is its own), F (m, 3, 3)
+    the points' frames, E the stacked identities (the coupling spring, 1/k = ``inv_k``, moves every
+    point with the tool). One compiled pass where numba is present (O(m^2), no (3m)^2 temporaries),
+    else sparse/dense products (:func:`_cross_compliances`, :func:`_in_frames`)."""
+    if _operator_compiled is None:
+        return _in_frames(_cross_compliances(W, Bi, Bv), F, inv_k)
+    A = np.empty((3 * Bi.shape[0], 3 * Bi.shape[0]))
+    _operator_compiled(np.ascontiguousarray(W, dtype=float), np.ascontiguousarray(Bi, dtype=np.int64),
+                       np.ascontiguousarray(Bv, dtype=float), np.ascontiguousarray(F, dtype=float), float(inv_k), A)
+    return A
 
 
 def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: float) -> tuple[np.ndarray, np.ndarray]:
