@@ -87,7 +87,8 @@ def test_a_patch_load_steps_and_reads_back_as_the_entry_by_entry_path(plate):
     """A contact patch's load (12 vertices, the one-product path) gives the state of the same loads
     parsed one by one (an insertion order the fast path refuses: numpy integer nodes), and the
     displacements read at a set of nodes (the gathered static-correction path, kept between calls)
-    equal the full field's, also after the loads change."""
+    equal the full field's, also after the loads change; cross compliances of a few nodes against many
+    equal the transpose of the many against the few."""
     model, modes = plate
     rng = np.random.default_rng(8)
     free = np.flatnonzero(~model.held_nodes)
@@ -103,6 +104,12 @@ def test_a_patch_load_steps_and_reads_back_as_the_entry_by_entry_path(plate):
         for _ in range(2):  # the second call reads the kept gather
             np.testing.assert_allclose(a.displacements_at(ask), b.displacements()[ask], rtol=1e-10,
                                        atol=1e-12 * np.abs(b.displacements()).max())
+    # a few rows against many loads come from the few's own columns (D symmetric): the same block as
+    # the many rows against the few loads, transposed (one load's column per load)
+    few, many = nodes[:3], ask
+    a.prepare(many)
+    W = a.step_compliances(few, many)
+    np.testing.assert_allclose(W, a.step_compliances(many, few).T, rtol=0, atol=1e-9 * np.abs(W).max())
 
 
 def test_closest_points_on_triangles_against_a_brute_force_sampling():

@@ -516,7 +516,13 @@ class ModalSimulator(ForceInput):
         Pa, Pb = self._phi[nodes].reshape(-1, r), self._phi[loaded].reshape(-1, r)
         W = (Pa * self._G1[0]) @ Pb.T
         if self.static_correction and loaded.size:
-            W += np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()], axis=1)
+            if nodes.size < loaded.size and all(v in self._D for v in nodes.tolist()):
+                # D is symmetric (K^-1 minus the modes' part): rows of a few nodes against many loads
+                # are the transposed columns of those few (one gather each, not one per load)
+                W += np.concatenate([self._D[j][loaded].reshape(-1, 3) for j in nodes.tolist()], axis=1).T
+            else:
+                W += np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()],
+                                    axis=1)
         return W
 
     def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64) -> np.ndarray:
