@@ -10,7 +10,7 @@ import pytest
 import rtfem as rt
 from rtfem.cli import main
 from rtfem import contact
-from rtfem.contact import closest_points_on_triangles, contact_operator, hold_patch, pgs, tangent_frames
+from rtfem.contact import closest_points_on_triangles, hold_patch, pgs, tangent_frames
 from rtfem.simulate import predictions, step_compliances
 from rtfem.viewer.session import Settings
 
@@ -160,38 +160,44 @@ def test_compiled_geometry_equals_the_vectorized_definitions():
 
 
 def test_contact_operator_equals_the_matrix_products_and_the_solve_needs_only_pressed_columns():
-    """A = F^T (B W B^T + E E^T / k) F from the one-pass kernel equals the sparse/dense matrix
-    products (vertex and face points, a nonsymmetric W); the solve that fills A's columns only for
-    contacts that get a force (at some sweep) gives the forces of the solve on the whole A, bit for
-    bit."""
+    """A = F^T (B W B^T + E E^T / k) F from the kernel's 3x3 blocks equals the dense matrix products
+    (vertex and face points, a nonsymmetric W); the solve that fills A's columns only for contacts
+    that get a force (at some sweep) gives the forces of the solve on the whole A, bit for bit."""
     rng = np.random.default_rng(6)
     s, nv, nf = 30, 20, 25
+    m = nv + nf
     L = rng.normal(size=(3 * s, 3 * s))
     W = 1e-3 * (L @ L.T / (3 * s) + 0.3 * np.eye(3 * s)) + 1e-5 * rng.normal(size=(3 * s, 3 * s))
-    Bi = np.zeros((nv + nf, 3), dtype=np.int64)
-    Bv = np.zeros((nv + nf, 3))
+    Bi = np.zeros((m, 3), dtype=np.int64)
+    Bv = np.zeros((m, 3))
     Bi[:nv] = rng.choice(s, nv, replace=False)[:, None]
     Bv[:nv, 0] = 1.0
     Bi[nv:] = np.array([rng.choice(s, 3, replace=False) for _ in range(nf)])
     Bv[nv:] = rng.dirichlet(np.ones(3), nf)
-    F = tangent_frames(rng.normal(size=(nv + nf, 3)) / np.sqrt(3))
-    F = tangent_frames(F[:, :, 0] / np.linalg.norm(F[:, :, 0], axis=1)[:, None])
+    n = rng.normal(size=(m, 3))
+    F = tangent_frames(n / np.linalg.norm(n, axis=1)[:, None])
+    B = np.zeros((m, s))
+    np.add.at(B, (np.repeat(np.arange(m), 3), Bi.reshape(-1)), Bv.reshape(-1))
+    B3, Fd = np.kron(B, np.eye(3)), np.zeros((3 * m, 3 * m))
+    Fd.reshape(m, 3, m, 3)[np.arange(m), :, np.arange(m), :] = F
     for inv_k in (0.0, 1e-3):
-        A = contact_operator(W, Bi, Bv, F, inv_k)
-        ref = contact._in_frames(contact._cross_compliances(W, Bi, Bv), F, inv_k)
+        A, full = np.empty((3 * m, 3 * m)), np.zeros(m, dtype=bool)
+        for d in range(m):
+            contact._column(W, Bi, Bv, F, inv_k, d, A, full)
+        ref = Fd.T @ (B3 @ W @ B3.T + inv_k * np.tile(np.eye(3), (m, m))) @ Fd
         np.testing.assert_allclose(A, ref, rtol=0, atol=1e-14 * np.abs(ref).max())
         b = np.zeros(3 * (nv + nf))
         b[::3] = rng.normal(size=nv + nf) * 1e-5 + 2e-6  # some points pressed, most apart
         b[1::3] = rng.normal(size=nv + nf) * 1e-6
-        mu = np.full(nv + nf, 0.4)
+        mu = np.full(m, 0.4)
         r_full, sweeps_full = pgs(A, b, mu)
-        have = np.zeros(nv + nf, dtype=bool)
+        have = np.zeros(m, dtype=bool)
         lazy = np.full_like(A, np.nan)
         r, sweeps = contact._solve(lazy, have, W, Bi, Bv, F, inv_k, b.copy(), mu, np.zeros_like(b), 500, 1e-10)
         np.testing.assert_array_equal(r, r_full)
         assert sweeps == sweeps_full
         pressed = r[::3] > 0
-        assert have[pressed].all() and 0 < pressed.sum() <= have.sum() < nv + nf  # columns of the points
+        assert have[pressed].all() and 0 < pressed.sum() <= have.sum() < m  # columns of the points
         # pressed at some sweep (22 and 30 of 45 with the spring), not all
 
 

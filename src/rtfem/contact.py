@@ -44,7 +44,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from . import validate
@@ -117,15 +116,11 @@ class Tool:
         directions (k, 3) the tool pushes them along; ``outward`` (k, 3) the surface's outward
         normals there. Away from the core, |x - core(x)| - R; a point the core has passed (the core
         behind the surface, within R of the normal line) gets a negative gap and the inward normal,
-        so that it is pushed on, not back; so does a point on the core itself."""
-        return self._distance(points, position, outward, 0.0)
-
-    def _distance(self, points: np.ndarray, position: np.ndarray, outward: np.ndarray, spread):
-        """:meth:`distance`, with the normal line widened on a concave edge to the cone of its
-        faces' normals (``spread`` (k,): the tangent of its half-angle)."""
+        so that it is pushed on, not back; so does a point on the core itself. (The force loop's
+        compiled :func:`_gaps` is this, with the normal line widened on a concave edge.)"""
         v = self.core(points, position) - points
         dist = np.sqrt(np.einsum("ij,ij->i", v, v))
-        above = _outside(v, outward, self.radius, spread)
+        above = _outside(v, outward, self.radius)
         n = np.where((above & (dist > 1e-12))[:, None], -v / np.maximum(dist, 1e-300)[:, None], -outward)
         return np.where(above, dist, -dist) - self.radius, n
 
@@ -378,8 +373,10 @@ def _pgs(A, have, W, Bi, Bv, F, inv_k, b, mu, r, max_sweeps, tol):
     kept when it lowers the fixed-point residual (:func:`_residual`): PGS alone crawls on strongly
     coupled contacts (a rigid jaw on a shell: hundreds of sweeps, often not converged in 500).
     Converged when a sweep changes no force by more than ``tol`` of the largest normal force.
-    A's block columns are computed from (W, Bi, Bv, F, inv_k) (see :func:`contact_operator`) only
-    for contacts that get a force, unless ``have`` marks them given: O(m m_pressed), not O(m^2).
+    A = F^T (B W B^T + E E^T / k) F (point k moves as sum_a Bv[k, a] u[Bi[k, a]], its corners in the
+    block W; F the points' frames; E the stacked identities, the coupling spring moving every point
+    with the tool): its block columns are computed (:func:`_column`) only for contacts that get a
+    force, unless ``have`` marks them given: O(m m_pressed), not O(m^2).
     Returns the number of sweeps (max_sweeps + 1: not converged)."""
     n3 = b.shape[0]
     m = n3 // 3
@@ -492,13 +489,6 @@ def _diagonal(W, Bi, Bv, F, inv_k, A):
         _block(W, Bi, Bv, F, inv_k, c, c, A)
 
 
-def _operator(W, Bi, Bv, F, inv_k, A):
-    """A (3m, 3m) = F^T (B W B^T + E E^T / k) F in one pass (see :func:`contact_operator`)."""
-    have = np.zeros(Bi.shape[0], np.bool_)
-    for d in range(Bi.shape[0]):
-        _column(W, Bi, Bv, F, inv_k, d, A, have)
-
-
 # ------------------------------------------------------------------------------ compiled geometry
 def _core_into(p0, p1, p2, c, R, half, q):
     """q (3,) = the tool core's point closest to p (see :meth:`Tool.core`)."""
@@ -513,8 +503,10 @@ def _core_into(p0, p1, p2, c, R, half, q):
 
 
 def _gaps(P, Q, O, spread, c, R, half, radius, d, n):
-    """Each point P[k]'s signed gap d[k] and push direction n[k] (:meth:`Tool._distance`, outward
-    normals O, cone tangents ``spread``), the gap then moved on to Q[k] along n: d += n . (Q - P)."""
+    """Each point P[k]'s signed gap d[k] and push direction n[k] (:meth:`Tool.distance`, outward
+    normals O), the normal line widened by ``spread`` |v . O| (on a concave edge, the tangent of
+    its faces' cone: the points behind the edge whose closest surface point is on it), the gap
+    then moved on to Q[k] along n: d += n . (Q - P)."""
     q = np.empty(3)
     for k in range(P.shape[0]):
         _core_into(P[k, 0], P[k, 1], P[k, 2], c, R, half, q)
@@ -684,8 +676,6 @@ try:  # compiled when numba is present (the same code)
     _subspace = _numba.njit(**_opts)(_subspace)
     _pgs_compiled = _numba.njit("i8(f8[:, ::1], b1[::1], f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[::1], "
                                 "f8[::1], f8[::1], i8, f8)", **_opts)(_pgs)
-    _operator_compiled = _numba.njit("void(f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[:, ::1])",
-                                     **_opts)(_operator)
     _diagonal = _numba.njit("void(f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[:, ::1])",
                             **_opts)(_diagonal)
     _core_into = _numba.njit(**_opts)(_core_into)
@@ -696,7 +686,7 @@ try:  # compiled when numba is present (the same code)
                          "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
     _frames = _numba.njit("void(f8[:, ::1], f8[:, :, ::1])", **_opts)(_frames)
 except Exception:  # pragma: no cover - numba absent
-    _pgs_compiled = _operator_compiled = None
+    _pgs_compiled = None
 
 
 def pgs(A, b, mu, r=None, *, max_sweeps: int = 500, tol: float = 1e-10) -> tuple[np.ndarray, int]:
@@ -990,7 +980,7 @@ class ToolContact:
         S, (Bi, Bv), F, gaps, y_free, y_now, ids = found
         m = gaps.size
         W = np.ascontiguousarray(self._block.block(S))
-        A = np.empty((3 * m, 3 * m))  # the contact operator (see contact_operator), filled as the solve needs it
+        A = np.empty((3 * m, 3 * m))  # the contact operator (see _pgs), filled as the solve needs it
         if inv_k == 0.0:  # a rigid tool cannot press a point the supports hold (zero compliance): left out
             _diagonal(W, Bi, Bv, F, inv_k, A)
             normal = np.diagonal(A)[::3]
@@ -1067,65 +1057,14 @@ def nodes_to_prepare(touchable: np.ndarray, tree: cKDTree, n_nodes: int, nodes=N
     return touchable[np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64)]
 
 
-def _outside(v: np.ndarray, outward: np.ndarray, radius: float, spread=0.0) -> np.ndarray:
+def _outside(v: np.ndarray, outward: np.ndarray, radius: float) -> np.ndarray:
     """Whether the tool's core is outside the tissue, given v (k, 3) from a surface point to its
     closest core point and the surface's outward normals: it has passed the surface only when it is
-    behind it and within the tool's radius of the normal line, widened on a concave edge to the
-    cone of its faces' normals (``spread``: the tangent of the cone's half-angle; the region of
-    points behind the edge whose closest surface point is on it). A core merely beside the point,
-    as a shaft lying on the surface, is not through it."""
+    behind it and within the tool's radius of the normal line (a core merely beside the point, as a
+    shaft lying on the surface, is not through it)."""
     vn = np.einsum("ij,ij->i", v, outward)
     lateral = np.sqrt(np.maximum(np.einsum("ij,ij->i", v, v) - vn * vn, 0.0))
-    return (vn >= 0) | (lateral > radius + spread * np.abs(vn) + 1e-12)
-
-
-SMALL = 120  # blocks up to this size (40 vertices or points) are multiplied dense
-
-
-def _cross_compliances(W: np.ndarray, Bi: np.ndarray, Bv: np.ndarray) -> np.ndarray:
-    """B W B^T (3m, 3m) for the m points interpolating the vertices of the (3s, 3s) block W: point k
-    moves as sum_a Bv[k, a] u[Bi[k, a]] (at most three corners; a vertex is its own). B is sparse
-    (nine entries per point), so this costs O(m s), not the O(m s^2) of a dense product."""
-    m, s3 = Bi.shape[0], W.shape[0]
-    if s3 <= SMALL:  # a few points: dense products beat building sparse matrices
-        B = np.zeros((m, s3 // 3))
-        np.add.at(B, (np.repeat(np.arange(m), 3), Bi.reshape(-1)), Bv.reshape(-1))
-        B = np.kron(B, np.eye(3))
-        return B @ W @ B.T
-    rows = np.broadcast_to((3 * np.arange(m))[:, None, None] + np.arange(3)[None, None, :], (m, 3, 3))
-    cols = 3 * Bi[:, :, None] + np.arange(3)[None, None, :]
-    vals = np.broadcast_to(Bv[:, :, None], (m, 3, 3))
-    B = sp.csr_matrix((vals.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * m, s3))
-    return np.asarray((B @ np.asarray(B @ W).T).T)
-
-
-def _in_frames(BWB: np.ndarray, F: np.ndarray, inv_k: float) -> np.ndarray:
-    """The contact operator in the points' frames, F^T (B W B^T + E E^T / k) F (3m, 3m), E the
-    stacked identities (the coupling spring moves every point with the tool)."""
-    m = F.shape[0]
-    M = BWB + inv_k * np.tile(np.eye(3), (m, m)) if inv_k else BWB
-    if 3 * m <= SMALL:
-        Fd = np.zeros((3 * m, 3 * m))
-        Fd.reshape(m, 3, m, 3)[np.arange(m), :, np.arange(m), :] = F
-        return Fd.T @ M @ Fd
-    idx = 3 * np.arange(m)[:, None, None] + np.zeros((1, 3, 3), dtype=np.int64)
-    Fd = sp.csr_matrix((F.reshape(-1), ((idx + np.arange(3)[None, :, None]).reshape(-1),
-                                        (idx + np.arange(3)[None, None, :]).reshape(-1))), shape=(3 * m, 3 * m))
-    return np.asarray((Fd.T @ np.asarray(Fd.T @ M).T).T)
-
-
-def contact_operator(W: np.ndarray, Bi: np.ndarray, Bv: np.ndarray, F: np.ndarray, inv_k: float) -> np.ndarray:
-    """The contact operator A = F^T (B W B^T + E E^T / k) F (3m, 3m) of m points: point k moves as
-    sum_a Bv[k, a] u[Bi[k, a]] (its corners in the (3s, 3s) block W; a vertex is its own), F (m, 3, 3)
-    the points' frames, E the stacked identities (the coupling spring, 1/k = ``inv_k``, moves every
-    point with the tool). One compiled pass where numba is present (O(m^2), no (3m)^2 temporaries),
-    else sparse/dense products (:func:`_cross_compliances`, :func:`_in_frames`)."""
-    if _operator_compiled is None:
-        return _in_frames(_cross_compliances(W, Bi, Bv), F, inv_k)
-    A = np.empty((3 * Bi.shape[0], 3 * Bi.shape[0]))
-    _operator_compiled(np.ascontiguousarray(W, dtype=float), np.ascontiguousarray(Bi, dtype=np.int64),
-                       np.ascontiguousarray(Bv, dtype=float), np.ascontiguousarray(F, dtype=float), float(inv_k), A)
-    return A
+    return (vn >= 0) | (lateral > radius + 1e-12)
 
 
 def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: float) -> tuple[np.ndarray, np.ndarray]:

@@ -296,6 +296,7 @@ class ModalSimulator(ForceInput):
         self._loads: dict[int, np.ndarray] = {}
         self._load_array: np.ndarray | None = None
         self._D: dict[int, np.ndarray] = {}
+        self._patch_rows: tuple | None = None  # (nodes, loaded nodes, their D rows at nodes) of the last patch read
         self._D_array: dict[bytes, np.ndarray] = {}  # static corrections of (n, 3) loads, last few kept
         if self.static_correction:
             model = modes.model
@@ -317,17 +318,16 @@ class ModalSimulator(ForceInput):
         load_array = None
         if forces is None:
             pass
-        elif (type(forces) is dict or isinstance(forces, Mapping)) and self._patch_force(forces, out, loads):
-            pass
         elif type(forces) is dict or isinstance(forces, Mapping):
-            fn, fv = self._fn, self._fv
-            for node, f in forces.items():
-                i, fx, fy, fz = self._point(node, f)
-                fv[0], fv[1], fv[2] = fx, fy, fz
-                np.dot(fv, self._phi[i], out=fn)
-                out += fn
-                if self.static_correction:
-                    loads[i] = loads.get(i, 0.0) + fv.copy()
+            if not self._patch_force(forces, out, loads):
+                fn, fv = self._fn, self._fv
+                for node, f in forces.items():
+                    i, fx, fy, fz = self._point(node, f)
+                    fv[0], fv[1], fv[2] = fx, fy, fz
+                    np.dot(fv, self._phi[i], out=fn)
+                    out += fn
+                    if self.static_correction:
+                        loads[i] = loads.get(i, 0.0) + fv.copy()
         else:
             A = self._as_array(forces)
             np.dot(A.reshape(-1), self._P, out=out)
@@ -588,11 +588,11 @@ class ModalSimulator(ForceInput):
         while the loaded nodes and the nodes asked about stay the same (a tool resting on a patch:
         one matrix-vector product instead of a gather per load each tick)."""
         keys = tuple(self._loads)
-        hit = getattr(self, "_gather", None)
+        hit = self._patch_rows
         if hit is not None and hit[1] == keys and np.array_equal(hit[0], nodes):
             return hit[2]
         G = np.stack([self._correction_column(j)[nodes].reshape(-1, 3) for j in keys], axis=1).reshape(3 * nodes.size, -1)
-        self._gather = (nodes.copy(), keys, G) if G.size <= 4_000_000 else None
+        self._patch_rows = (nodes.copy(), keys, G) if G.size <= 4_000_000 else None
         return G
 
     @property
