@@ -112,6 +112,31 @@ def test_a_patch_load_steps_and_reads_back_as_the_entry_by_entry_path(plate):
     np.testing.assert_allclose(W, a.step_compliances(many, few).T, rtol=0, atol=1e-9 * np.abs(W).max())
 
 
+def test_the_kept_compliance_block_equals_a_fresh_one_as_the_contact_set_changes(plate):
+    """ToolContact keeps the cross compliances of the vertices touched lately in one pool and reads
+    a contact set's block through their slots: over a sequence of sets that overflows the pool (it
+    then keeps the current set and lets the rest go, or grows), each set's block equals the driver's
+    fresh step_compliances, and only vertices not in the pool were computed."""
+    model, modes = plate
+    d = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
+    d.step({30: (0.0, 0.0, 0.3)})
+    pool = contact._ComplianceBlock(d, slots=16)
+    rng = np.random.default_rng(3)
+    free = np.flatnonzero(~model.held_nodes)
+    caps, computed = set(), 0
+    for size in (5, 9, 3, 12, 14, 6, 30, 8, 40, 2, 25, 33):
+        nodes = np.sort(rng.choice(free, size, replace=False))
+        missing = int(np.count_nonzero(pool.slot[nodes] < 0))
+        W, slots = pool.block(nodes)
+        idx = (3 * slots[:, None] + np.arange(3)).reshape(-1)
+        ref = step_compliances(d, nodes)
+        assert np.abs(W[np.ix_(idx, idx)] - ref).max() <= 1e-13 * np.abs(ref).max()
+        assert pool.new_rows == missing
+        computed += missing
+        caps.add(W.shape[0] // 3)
+    assert len(caps) >= 2 and computed < 187  # it grew, and kept rows it had (187 = every set in full)
+
+
 def test_closest_points_on_triangles_against_a_brute_force_sampling():
     rng = np.random.default_rng(3)
     A, B, C = (rng.normal(size=(40, 3)) for _ in range(3))

@@ -30,9 +30,10 @@ every contact's state (apart, sliding, stuck) unchanged, the equalities of those
 directly, kept when they bring the forces closer to a solution (:func:`pgs`, compiled when numba
 is present). The step is then taken with the vertex forces B^T F r; the hand feels -sum f.
 
-The contact set's compliance block is kept from step to step: when the set changes only the rows
-and columns of newly touched vertices are computed (for drivers whose W follows the motion,
-``compliance_changes``, the whole block each step). What a vertex needs from the driver first
+The compliances of the vertices touched lately are kept from step to step in one pool: when the
+set changes only the rows and columns of newly touched vertices are computed, and the set's block
+is read in place (for drivers whose W follows the motion, ``compliance_changes``, the whole block
+each step). What a vertex needs from the driver first
 (its static-correction or compliance columns: sparse solves, milliseconds) is prepared by a
 background thread while the tool is still ``lookahead`` away, so a sliding tool does not stall
 the force loop; a vertex not ready when touched is prepared in the loop, so the numbers never
@@ -650,17 +651,120 @@ def _faces(Y, Yf, local, c, R, half, radius, iters, reach, margin, same, V, bary
     return kept
 
 
+def _points(d0, n, Y, Yf, verts, margin, loc, bw, nf, df, fid, pos, S, Bi, Bv, F, gaps, y_free, y_now, ids):
+    """The contact points from the candidates' gaps ``d0`` (k,) now and push directions n: each
+    vertex whose gap, moved on to its free position, is below ``margin``, then the kept face
+    points (corners ``loc``, rows of Y, weights ``bw``, directions ``nf``, gaps ``df``, ids
+    ``fid``). Fills the points' corners Bi (rows of S) and weights Bv, frames F, gaps, free and
+    current positions and ids (vertex number, or -1 - triangle); S (the candidates the points
+    use, ascending rows of Y). Returns (m points, s nodes)."""
+    k = d0.shape[0]
+    for i in range(k):
+        pos[i] = -1
+    m = 0
+    for i in range(k):
+        g = d0[i] + n[i, 0] * (Yf[i, 0] - Y[i, 0]) + n[i, 1] * (Yf[i, 1] - Y[i, 1]) + n[i, 2] * (Yf[i, 2] - Y[i, 2])
+        if g < margin:
+            pos[i] = 0
+            Bi[m, 0] = Bi[m, 1] = Bi[m, 2] = i
+            Bv[m, 0], Bv[m, 1], Bv[m, 2] = 1.0, 0.0, 0.0
+            _frame_into(n[i, 0], n[i, 1], n[i, 2], F, m)
+            gaps[m] = g
+            for j in range(3):
+                y_free[m, j], y_now[m, j] = Yf[i, j], Y[i, j]
+            ids[m] = verts[i]
+            m += 1
+    for f in range(loc.shape[0]):
+        for a in range(3):
+            pos[loc[f, a]] = 0
+            Bi[m, a] = loc[f, a]
+            Bv[m, a] = bw[f, a]
+        _frame_into(nf[f, 0], nf[f, 1], nf[f, 2], F, m)
+        gaps[m] = df[f]
+        for j in range(3):
+            y_free[m, j] = bw[f, 0] * Yf[loc[f, 0], j] + bw[f, 1] * Yf[loc[f, 1], j] + bw[f, 2] * Yf[loc[f, 2], j]
+            y_now[m, j] = bw[f, 0] * Y[loc[f, 0], j] + bw[f, 1] * Y[loc[f, 1], j] + bw[f, 2] * Y[loc[f, 2], j]
+        ids[m] = fid[f]
+        m += 1
+    s = 0
+    for i in range(k):
+        if pos[i] == 0:
+            pos[i] = s
+            S[s] = i
+            s += 1
+    for c in range(m):
+        for a in range(3):
+            Bi[c, a] = pos[Bi[c, a]]
+    return m, s
+
+
+def _rhs(F, gaps, y_free, y_now, move, ids, warm_ids, warm_r, b, r):
+    """b (m, 3) of the solve (see the module's docstring: the gap and the slip in each point's
+    frame, the tool's move ``move`` since its last position linear), and the warm start r (m, 3):
+    last step's forces at the points (by id) still here."""
+    for c in range(gaps.shape[0]):
+        s0 = y_free[c, 0] - y_now[c, 0] - move[0]
+        s1 = y_free[c, 1] - y_now[c, 1] - move[1]
+        s2 = y_free[c, 2] - y_now[c, 2] - move[2]
+        b[c, 0] = gaps[c] - (F[c, 0, 0] * move[0] + F[c, 1, 0] * move[1] + F[c, 2, 0] * move[2])
+        b[c, 1] = F[c, 0, 1] * s0 + F[c, 1, 1] * s1 + F[c, 2, 1] * s2
+        b[c, 2] = F[c, 0, 2] * s0 + F[c, 1, 2] * s1 + F[c, 2, 2] * s2
+        r[c, 0] = r[c, 1] = r[c, 2] = 0.0
+        for j in range(warm_ids.shape[0]):
+            if warm_ids[j] == ids[c]:
+                r[c, 0], r[c, 1], r[c, 2] = warm_r[j, 0], warm_r[j, 1], warm_r[j, 2]
+                break
+
+
+def _after(W, slots, Bi, Bv, F, r, y_free, f_points, f_nodes, y_after):
+    """After the solve: each point's force on the organ f_points = F r (m, 3), the nodes' forces
+    f_nodes = B^T f (s, 3), and each pressed point's position after the step y_free + B W f
+    (y_after, only rows with r_n > 0; W's rows and columns at the nodes' ``slots``)."""
+    m = r.shape[0]
+    for i in range(f_nodes.shape[0]):
+        f_nodes[i, 0] = f_nodes[i, 1] = f_nodes[i, 2] = 0.0
+    for c in range(m):
+        for j in range(3):
+            f_points[c, j] = F[c, j, 0] * r[c, 0] + F[c, j, 1] * r[c, 1] + F[c, j, 2] * r[c, 2]
+        for a in range(3):
+            w = Bv[c, a]
+            if w != 0.0:
+                for j in range(3):
+                    f_nodes[Bi[c, a], j] += w * f_points[c, j]
+    for c in range(m):
+        if not r[c, 0] > 0.0:
+            continue
+        for j in range(3):
+            y_after[c, j] = y_free[c, j]
+        for a in range(3):
+            w = Bv[c, a]
+            if w == 0.0:
+                continue
+            p = 3 * slots[Bi[c, a]]
+            for e in range(f_nodes.shape[0]):
+                f0, f1, f2 = f_nodes[e, 0], f_nodes[e, 1], f_nodes[e, 2]
+                if f0 == 0.0 and f1 == 0.0 and f2 == 0.0:
+                    continue
+                q = 3 * slots[e]
+                for j in range(3):
+                    y_after[c, j] += w * (W[p + j, q] * f0 + W[p + j, q + 1] * f1 + W[p + j, q + 2] * f2)
+
+
+def _frame_into(n0, n1, n2, F, k):
+    """F[k] (3, 3): columns n, t1, t2 (see :func:`tangent_frames`)."""
+    h0, h1, h2 = (1.0, 0.0, 0.0) if abs(n0) < 0.6 else (0.0, 1.0, 0.0)
+    t0, t1, t2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
+    size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    t0, t1, t2 = t0 / size, t1 / size, t2 / size
+    F[k, 0, 0], F[k, 1, 0], F[k, 2, 0] = n0, n1, n2
+    F[k, 0, 1], F[k, 1, 1], F[k, 2, 1] = t0, t1, t2
+    F[k, 0, 2], F[k, 1, 2], F[k, 2, 2] = n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0
+
+
 def _frames(n, F):
     """F (k, 3, 3): columns n, t1, t2 (see :func:`tangent_frames`)."""
     for k in range(n.shape[0]):
-        n0, n1, n2 = n[k, 0], n[k, 1], n[k, 2]
-        h0, h1, h2 = (1.0, 0.0, 0.0) if abs(n0) < 0.6 else (0.0, 1.0, 0.0)
-        t0, t1, t2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
-        size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-        t0, t1, t2 = t0 / size, t1 / size, t2 / size
-        F[k, 0, 0], F[k, 1, 0], F[k, 2, 0] = n0, n1, n2
-        F[k, 0, 1], F[k, 1, 1], F[k, 2, 1] = t0, t1, t2
-        F[k, 0, 2], F[k, 1, 2], F[k, 2, 2] = n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0
+        _frame_into(n[k, 0], n[k, 1], n[k, 2], F, k)
 
 
 try:  # compiled when numba is present (the same code)
@@ -684,7 +788,15 @@ try:  # compiled when numba is present (the same code)
                         "f8[:, ::1])", **_opts)(_gaps)
     _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, f8, "
                          "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
+    _frame_into = _numba.njit(**_opts)(_frame_into)
     _frames = _numba.njit("void(f8[:, ::1], f8[:, :, ::1])", **_opts)(_frames)
+    _points = _numba.njit("UniTuple(i8, 2)(f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8, i8[:, ::1], "
+                          "f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1], i8[:, ::1], f8[:, ::1], "
+                          "f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], i8[::1])", **_opts)(_points)
+    _rhs = _numba.njit("void(f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], i8[::1], f8[:, ::1], "
+                       "f8[:, ::1], f8[:, ::1])", **_opts)(_rhs)
+    _after = _numba.njit("void(f8[:, ::1], i8[::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, ::1], f8[:, ::1], "
+                         "f8[:, ::1], f8[:, ::1], f8[:, ::1])", **_opts)(_after)
 except Exception:  # pragma: no cover - numba absent
     _pgs_compiled = None
 
@@ -789,42 +901,54 @@ class _Preparer:
 
 
 class _ComplianceBlock:
-    """The driver's cross compliances W_SS of the current contact vertices, kept between steps:
-    rows and columns are computed only for newly touched vertices (all of it each step when the
-    driver's compliance follows the motion)."""
+    """The driver's cross compliances W of the vertices touched lately, kept between steps in one
+    buffer (a pool of slots): a vertex touched for the first time gets a slot, and its rows and
+    columns against the pool are computed then; a contact set's block is read in place through
+    its vertices' slots, so a set that changes costs only its new vertices. When the pool is full
+    the vertices of the current set are kept (copied to the front) and the rest let go. Drivers
+    whose W follows the motion (``compliance_changes``) get the set's whole block each step."""
 
-    def __init__(self, driver) -> None:
+    def __init__(self, driver, slots: int = 64) -> None:
         self.driver = driver
+        self.min_slots = slots
         self.preparer = _Preparer(driver)
-        self.nodes = np.zeros(0, dtype=np.int64)
-        self.W = np.zeros((0, 0))
+        self.slot = np.full(driver.n_nodes, -1, dtype=np.int64)  # node -> slot (-1: not in the pool)
+        self.nodes = np.zeros(0, dtype=np.int64)  # the pool's nodes, by slot
+        self.W = np.zeros((3 * slots, 3 * slots))
         self.new_rows = 0  # vertices whose rows were computed in the last call (for benchmarks)
         self.prepared_here = 0  # of them, vertices the loop had to prepare itself (for benchmarks)
 
-    def block(self, nodes: np.ndarray) -> np.ndarray:
+    def block(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(W, slots): the compliance of ``nodes`` (ascending) is W at rows and columns 3 slot + (0, 1, 2)."""
         d = self.driver
         if getattr(d, "compliance_changes", False):
             self.new_rows = nodes.size
-            return step_compliances(d, nodes)
-        if nodes.size == self.nodes.size and np.array_equal(nodes, self.nodes):
-            self.new_rows = self.prepared_here = 0
-            return self.W
-        pos = {int(v): i for i, v in enumerate(self.nodes.tolist())}
-        old = np.array([pos.get(int(v), -1) for v in nodes.tolist()], dtype=np.int64)
-        kept, fresh = np.flatnonzero(old >= 0), np.flatnonzero(old < 0)
-        W = np.empty((3 * nodes.size, 3 * nodes.size))
-        ik = (3 * kept[:, None] + np.arange(3)).reshape(-1)
-        io = (3 * old[kept][:, None] + np.arange(3)).reshape(-1)
-        W[np.ix_(ik, ik)] = self.W[np.ix_(io, io)]
-        self.prepared_here = 0
-        if fresh.size:
-            self.prepared_here = self.preparer.ensure(nodes[fresh])
-            jf = (3 * fresh[:, None] + np.arange(3)).reshape(-1)
-            W[:, jf] = step_compliances(d, nodes, nodes[fresh])
-            if kept.size:
-                W[np.ix_(jf, ik)] = step_compliances(d, nodes[fresh], nodes[kept])
-        self.nodes, self.W, self.new_rows = nodes.copy(), W, int(fresh.size)
-        return W
+            return np.ascontiguousarray(step_compliances(d, nodes)), np.arange(nodes.size, dtype=np.int64)
+        slots = self.slot[nodes]
+        fresh = nodes[slots < 0]
+        self.new_rows = self.prepared_here = int(fresh.size)
+        if not fresh.size:
+            return self.W, slots
+        self.prepared_here = self.preparer.ensure(fresh)
+        used, cap = self.nodes.size, self.W.shape[0] // 3
+        if used + fresh.size > cap:  # full: keep the current set's vertices, let the others go
+            kept = nodes[slots >= 0]
+            need = kept.size + fresh.size
+            cap = max(cap, 2 * need, self.min_slots) if need > cap // 2 else cap
+            idx = (3 * self.slot[kept][:, None] + np.arange(3)).reshape(-1)
+            W = np.empty((3 * cap, 3 * cap))
+            W[:idx.size, :idx.size] = self.W[idx][:, idx]
+            self.slot[self.nodes] = -1
+            self.slot[kept] = np.arange(kept.size)
+            self.nodes, self.W, used = kept, W, kept.size
+        old = self.nodes
+        self.slot[fresh] = used + np.arange(fresh.size)
+        self.nodes = np.concatenate([old, fresh])
+        j = slice(3 * used, 3 * self.nodes.size)
+        self.W[:3 * self.nodes.size, j] = step_compliances(d, self.nodes, fresh)
+        if used:
+            self.W[j, :3 * used] = step_compliances(d, fresh, old)
+        return self.W, self.slot[nodes]
 
 
 class ToolContact:
@@ -887,7 +1011,11 @@ class ToolContact:
         self._block = _ComplianceBlock(driver)
         self._ahead = getattr(driver, "prepare", None) is not None and not getattr(driver, "compliance_changes", False)
         self._asked_at: np.ndarray | None = None  # where the tool was when the vertices ahead were last named
-        self._warm: dict[int, np.ndarray] = {}
+        self._warm_ids, self._warm_r = np.zeros(0, dtype=np.int64), np.zeros((0, 3))  # last step's forces
+        self._cand: np.ndarray | None = None  # the candidate vertices (see _candidates)
+        self._cand_at = np.zeros(3)
+        self._buf: tuple | None = None  # the contact set's arrays (see _contact_set), reused
+        self._A = np.empty(0)  # the contact operator's buffer (see _operator)
         self._offset = np.zeros(3)
         self.proxy: np.ndarray | None = None  # the tool's position after the coupling (m)
         self.force = np.zeros(3)  # force on the device (N); the organ gets -force in total
@@ -910,61 +1038,69 @@ class ToolContact:
         return self.driver.displacements()
 
     # ---------------------------------------------------------------- the contact set
+    def _candidates(self, c: np.ndarray) -> np.ndarray:
+        """The surface vertices that may touch the tool at ``c`` (ascending), from a ball query
+        one edge wider than needed, kept until the tool has moved that edge (relative to the
+        vertices' mean motion)."""
+        at = c - self._offset
+        if self._cand is None or np.sum((at - self._cand_at) ** 2) > self.edge**2:
+            reach = self.tool.reach + self.margin + 2 * self.edge
+            verts = self._touchable[np.asarray(self._tree.query_ball_point(at, reach), dtype=np.int64)]
+            verts.sort()
+            self._cand, self._cand_at = verts, at
+        return self._cand
+
     def _contact_set(self, c: np.ndarray):
-        """Contact points near the tool at ``c``: (vertices S, weights B (m, s), frames (m, 3, 3),
-        gaps (m,), free positions (m, 3), current positions (m, 3), ids (m,))."""
-        reach = self.tool.reach + self.margin + self.edge
-        verts = self._touchable[np.asarray(self._tree.query_ball_point(c - self._offset, reach), dtype=np.int64)]
+        """Contact points near the tool at ``c``: (nodes S, corners Bi (m, 3) (rows of S) and
+        weights Bv, frames (m, 3, 3), gaps (m,), free positions (m, 3), current positions (m, 3),
+        ids (m,)), or None."""
+        verts = self._candidates(c)
         if verts.size == 0:
             return None
-        verts.sort()
-        ring = self._ring(verts, c)  # the triangles around the vertex nearest the tool
-        extra = np.setdiff1d(self._tri[ring], verts)
-        if extra.size:
-            verts = np.union1d(verts, extra)
+        tool = self.tool
+        R, half, radius = tool.orientation, tool.half_extents, float(tool.radius)
+        k = verts.size
+        d, n, O = np.empty(k), np.empty((k, 3)), self.normals[verts]
+        # the triangles around the candidate nearest the tool, by the rest shape moved by the
+        # candidates' mean motion (a stable choice: by the deformed shape a flat jaw over many
+        # vertices at one gap would pick another ring each step)
+        X = self.X[verts]
+        P = X + self._offset
+        _gaps(P, P, O, np.zeros(k), c, R, half, radius, d, n)
+        v = int(verts[np.argmin(d)])
+        ring = self._vt_tris[self._vt_start[v]:self._vt_start[v + 1]]
+        corners = self._tri[ring]
+        loc = np.searchsorted(verts, corners)
+        if np.any(verts[np.minimum(loc, k - 1)] != corners):  # the ring reaches past the candidates
+            self._cand = np.union1d(verts, corners)
+            return self._contact_set(c)
         u_free = predictions(self.driver, verts)
         u_now = displacements_at(self.driver, verts)
         self._offset = u_now.mean(axis=0)
         # the geometry of the surface now (continuous from step to step), its free motion linearly
-        Y, Yf = self.X[verts] + u_now, self.X[verts] + u_free
-        tool = self.tool
-        R, half, radius = tool.orientation, tool.half_extents, float(tool.radius)
-        d, n = np.empty(verts.size), np.empty((verts.size, 3))
-        _gaps(Y, Yf, self.normals[verts], np.zeros(verts.size), c, R, half, radius, d, n)
-        take = np.flatnonzero(d < self.margin)
+        Y, Yf = X + u_now, X + u_free
+        _gaps(Y, Y, O, np.zeros(k), c, R, half, radius, d, n)
         f = ring.size if self.surface_point else 0
-        loc = np.searchsorted(verts, self._tri[ring[:f]])
         bw, nf, df, keep = np.empty((f, 3)), np.empty((f, 3)), np.empty(f), np.empty(f, dtype=np.int64)
         if f:  # a face point within 1e-3 edge of a vertex contact or of another kept point is the
             # same contact twice (a probe sitting on a vertex): dropped
+            near = d + np.einsum("ki,ki->k", n, Yf - Y) < self.margin
             kept = _faces(Y, Yf, loc, c, R, half, radius, 1 if not half.any() else 4,
-                          self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[take], bw, nf, df, keep)
+                          self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[near], bw, nf, df, keep)
             keep = keep[:kept]
         loc, bw, nf, df, fid = loc[keep], bw[keep], nf[keep], df[keep], -1 - ring[keep]
-        nv, m = take.size, take.size + df.size
+        size = k + loc.shape[0]
+        if self._buf is None or self._buf[0].size < size:
+            cap = 2 * size
+            self._buf = (np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64), np.empty((cap, 3), dtype=np.int64),
+                         np.empty((cap, 3)), np.empty((cap, 3, 3)), np.empty(cap), np.empty((cap, 3)),
+                         np.empty((cap, 3)), np.empty(cap, dtype=np.int64))
+        pos, S, Bi, Bv, F, gaps, y_free, y_now, ids = self._buf
+        m, ns = _points(d, n, Y, Yf, verts, self.margin, np.ascontiguousarray(loc), np.ascontiguousarray(bw), nf, df,
+                        np.ascontiguousarray(fid), pos, S, Bi, Bv, F, gaps, y_free, y_now, ids)
         if m == 0:
             return None
-        S = np.unique(np.concatenate([verts[take], verts[loc.reshape(-1)]]))
-        # each point's corners (m, 3) in S and their weights: a vertex is its own first corner
-        Bi = np.zeros((m, 3), dtype=np.int64)
-        Bv = np.zeros((m, 3))
-        Bi[:nv] = np.searchsorted(S, verts[take])[:, None]
-        Bv[:nv, 0] = 1.0
-        Bi[nv:] = np.searchsorted(S, verts[loc])
-        Bv[nv:] = bw
-        normals, gaps, ids = np.vstack([n[take], nf]), np.concatenate([d[take], df]), np.concatenate([verts[take], fid])
-        y_free = np.vstack([Yf[take], np.einsum("fk,fki->fi", bw, Yf[loc])])
-        y_now = np.vstack([Y[take], np.einsum("fk,fki->fi", bw, Y[loc])])
-        return S, (Bi, Bv), tangent_frames(normals), gaps, y_free, y_now, ids
-
-    def _ring(self, verts: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """The triangles around the candidate nearest the tool (by its last known position)."""
-        P = self.X[verts] + self._offset
-        d, n = np.empty(verts.size), np.empty((verts.size, 3))
-        _gaps(P, P, self.normals[verts], np.zeros(verts.size), c, self.tool.orientation, self.tool.half_extents,
-              float(self.tool.radius), d, n)
-        v = int(verts[np.argmin(d)])
-        return self._vt_tris[self._vt_start[v]:self._vt_start[v + 1]]
+        return verts[S[:ns]], Bi[:m], Bv[:m], F[:m], gaps[:m], y_free[:m], y_now[:m], ids[:m]
 
     # ---------------------------------------------------------------- the step
     def update(self, position) -> np.ndarray:
@@ -977,51 +1113,47 @@ class ToolContact:
         inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
         if found is None:
             return self._apart(c)
-        S, (Bi, Bv), F, gaps, y_free, y_now, ids = found
+        S, Bi, Bv, F, gaps, y_free, y_now, ids = found
         m = gaps.size
-        W = np.ascontiguousarray(self._block.block(S))
-        A = np.empty((3 * m, 3 * m))  # the contact operator (see _pgs), filled as the solve needs it
+        W, slots = self._block.block(S)
+        Bs = slots[Bi]  # the points' corners as the pool's slots
+        A = self._operator(m)  # the contact operator (see _pgs), filled as the solve needs it
         if inv_k == 0.0:  # a rigid tool cannot press a point the supports hold (zero compliance): left out
-            _diagonal(W, Bi, Bv, F, inv_k, A)
+            _diagonal(W, Bs, Bv, F, inv_k, A)
             normal = np.diagonal(A)[::3]
             soft = normal > 1e-12 * max(float(normal.max()), 1e-300)
             if not soft.all():
                 if not soft.any():
                     return self._apart(c)
-                Bi, Bv, F, gaps, y_free, y_now, ids = Bi[soft], Bv[soft], F[soft], gaps[soft], y_free[soft], \
-                    y_now[soft], ids[soft]
+                Bi, Bs, Bv, F, gaps, y_free, y_now, ids = (np.ascontiguousarray(x[soft]) for x in
+                                                           (Bi, Bs, Bv, F, gaps, y_free, y_now, ids))
                 m = gaps.size
-                A = np.empty((3 * m, 3 * m))
-        b = np.zeros((m, 3))
-        b[:, 0] = gaps - np.einsum("ki,i->k", F[:, :, 0], c - proxy)
-        slip = (y_free - y_now) - (c - proxy)
-        b[:, 1:] = np.einsum("kia,ki->ka", F[:, :, 1:], slip)
-        mu = np.full(m, self.friction)
-        r0 = np.zeros((m, 3))
-        for k, i in enumerate(ids.tolist()):  # warm start: last step's forces at the points still here
-            if i in self._warm:
-                r0[k] = self._warm[i]
-        r0 = r0.reshape(-1)
-        r, sweeps = _solve(A, np.zeros(m, dtype=bool), W, np.ascontiguousarray(Bi), np.ascontiguousarray(Bv),
-                           np.ascontiguousarray(F), inv_k, b.reshape(-1), mu, r0, self.max_sweeps, self.tol)
+                A = self._operator(m)
+        b, r = np.empty((m, 3)), np.empty((m, 3))
+        _rhs(F, gaps, y_free, y_now, c - proxy, ids, self._warm_ids, self._warm_r, b, r)
+        r, sweeps = _solve(A, np.zeros(m, dtype=bool), W, Bs, Bv, F, inv_k, b.reshape(-1), np.full(m, self.friction),
+                           r.reshape(-1), self.max_sweeps, self.tol)
         r = r.reshape(m, 3)
-        f_points = np.einsum("kij,kj->ki", F, r)  # force on the organ at each contact point
-        f_nodes = np.zeros((S.size, 3))
-        np.add.at(f_nodes, Bi.reshape(-1), (Bv[:, :, None] * f_points[:, None, :]).reshape(-1, 3))
+        f_points, f_nodes, y_after = np.empty((m, 3)), np.empty((S.size, 3)), np.empty((m, 3))
+        _after(W, slots, Bi, Bv, F, r, y_free, f_points, f_nodes, y_after)
         pushed = np.flatnonzero(f_nodes.any(axis=1))
-        loads = {v: tuple(f) for v, f in zip(S[pushed].tolist(), f_nodes[pushed].tolist())}
+        loads = dict(zip(S[pushed].tolist(), map(tuple, f_nodes[pushed].tolist())))
         self.driver.step(loads or None)
         total = f_points.sum(axis=0)
         self.proxy = c - inv_k * total
         self.force = -total
         self.sweeps = sweeps
-        self.contacts = int(np.count_nonzero(r[:, 0] > 0))
-        self._warm = {int(i): r[k] for k, i in enumerate(ids.tolist()) if r[k, 0] > 0}
         active = r[:, 0] > 0
-        moved = (W @ f_nodes.reshape(-1)).reshape(-1, 3)  # the contact vertices' move under the forces
-        y_after = y_free + np.einsum("ka,kai->ki", Bv, moved[Bi])
+        self.contacts = int(np.count_nonzero(active))
+        self._warm_ids, self._warm_r = ids[active], r[active]
         self.points, self.contact_forces, self.contact_normals = y_after[active], f_points[active], F[active, :, 0]
         return self.force
+
+    def _operator(self, m: int) -> np.ndarray:
+        """A (3m, 3m) for the solve, in a buffer kept between steps (filled by the solve itself)."""
+        if self._A.size < 9 * m * m:
+            self._A = np.empty(max(9 * m * m, 2 * self._A.size))
+        return self._A[:9 * m * m].reshape(3 * m, 3 * m)
 
     def _look_ahead(self, c: np.ndarray) -> None:
         """Name the vertices within the lookahead to the background preparer, when the tool has
@@ -1040,7 +1172,7 @@ class ToolContact:
         self.driver.step(None)
         self.proxy, self.force, self.contacts, self.sweeps = c.copy(), np.zeros(3), 0, 0
         self.points = self.contact_forces = self.contact_normals = np.zeros((0, 3))
-        self._warm = {}
+        self._warm_ids, self._warm_r = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         return self.force
 
 

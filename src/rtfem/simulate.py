@@ -138,6 +138,12 @@ def as_driver(obj, what: str = "probe"):
     return obj
 
 
+def rows_times(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(k, 3, r) times (r,) -> (k, 3) as one matrix-vector product (numpy's stacked matmul of the
+    (k, 3, r) array is 4-6x slower: 1.5 ms against 0.23 ms for 10,242 nodes and r = 40)."""
+    return (A.reshape(-1, A.shape[-1]) @ x).reshape(-1, 3)
+
+
 def prepare(driver, nodes) -> None:
     """Let the driver compute what it needs at ``nodes`` before they are loaded (its optional
     ``prepare(nodes)``: static-correction or compliance columns, impedance maps); a no-op for
@@ -296,6 +302,7 @@ class ModalSimulator(ForceInput):
         self._loads: dict[int, np.ndarray] = {}
         self._load_array: np.ndarray | None = None
         self._D: dict[int, np.ndarray] = {}
+        self._shape_rows: tuple | None = None  # (nodes, the shapes there) of the last batched query
         self._patch_rows: tuple | None = None  # (nodes, loaded nodes, their D rows at nodes) of the last patch read
         self._D_array: dict[bytes, np.ndarray] = {}  # static corrections of (n, 3) loads, last few kept
         if self.static_correction:
@@ -375,7 +382,7 @@ class ModalSimulator(ForceInput):
         idx = np.array(nodes, dtype=np.int64)
         if F.shape != (idx.size, 3) or not np.isfinite(F).all() or idx.min() < 0 or idx.max() >= self.n_nodes:
             return False
-        np.einsum("lj,ljr->r", F, self._phi[idx], out=out)
+        np.dot(F.reshape(-1), self._phi[idx].reshape(3 * idx.size, -1), out=out)
         if self.static_correction:
             loads.update(zip(nodes, F))
         return True
@@ -453,7 +460,7 @@ class ModalSimulator(ForceInput):
         hit = self._D_array.get(key)
         if hit is None:
             Kinv_f = self.modes.model.solve_static(F, warn=False)
-            modal = self._phi @ ((self._P.T @ F.reshape(-1)) / self.modes.omega**2)
+            modal = (self._P @ ((self._P.T @ F.reshape(-1)) / self.modes.omega**2)).reshape(-1, 3)
             if len(self._D_array) >= 8:
                 self._D_array.pop(next(iter(self._D_array)))
             hit = self._D_array[key] = Kinv_f - modal
@@ -504,7 +511,7 @@ class ModalSimulator(ForceInput):
 
     def predict_at(self, nodes) -> np.ndarray:
         """(k, 3) :meth:`predict` of ``nodes``, O(k r)."""
-        return self._phi[validate.nodes(nodes, self.n_nodes)] @ self._q_free()
+        return (self._shapes_at(validate.nodes(nodes, self.n_nodes)) @ self._q_free()).reshape(-1, 3)
 
     def step_compliances(self, nodes, loaded=None) -> np.ndarray:
         """The cross compliances (3k, 3l) of a contact set (see :func:`step_compliances`):
@@ -571,7 +578,7 @@ class ModalSimulator(ForceInput):
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         """(k, 3) displacements of ``nodes`` (indices), O(k r) plus the static correction of the loads."""
         nodes = validate.nodes(nodes, self.n_nodes)
-        u = self._phi[nodes] @ self._S[0]
+        u = (self._shapes_at(nodes) @ self._S[0]).reshape(-1, 3)
         if self.static_correction:
             if self._load_array is not None:
                 return self.displacements()[nodes]
@@ -583,16 +590,32 @@ class ModalSimulator(ForceInput):
                 u = u + self._correction_column(j)[nodes] @ f
         return u
 
+    def _shapes_at(self, nodes: np.ndarray) -> np.ndarray:
+        """The mode shapes at ``nodes`` as (3k, r) rows, kept while the same nodes are asked about (a
+        contact's candidates: their prediction and displacement each tick, one gather). (A product
+        with the (k, 3, r) stack would be numpy's stacked matmul, several times slower.)"""
+        hit = self._shape_rows
+        if hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes):
+            return hit[1]
+        P = self._phi[nodes].reshape(3 * nodes.size, -1)
+        self._shape_rows = (nodes.copy(), P) if P.size <= 1_000_000 else None
+        return P
+
     def _gathered(self, nodes: np.ndarray) -> np.ndarray:
         """The loaded nodes' static-correction columns at ``nodes`` as one (3k, 3 loads) matrix, kept
         while the loaded nodes and the nodes asked about stay the same (a tool resting on a patch:
         one matrix-vector product instead of a gather per load each tick)."""
         keys = tuple(self._loads)
         hit = self._patch_rows
-        if hit is not None and hit[1] == keys and np.array_equal(hit[0], nodes):
+        same = hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes)
+        if same and hit[1] == keys:
             return hit[2]
-        G = np.stack([self._correction_column(j)[nodes].reshape(-1, 3) for j in keys], axis=1).reshape(3 * nodes.size, -1)
-        self._patch_rows = (nodes.copy(), keys, G) if G.size <= 4_000_000 else None
+        cols = hit[3] if same and len(hit[3]) < 256 else {}  # each load's rows, for the loads to come
+        for j in keys:
+            if j not in cols:
+                cols[j] = self._correction_column(j)[nodes].reshape(-1, 3)
+        G = np.concatenate([cols[j] for j in keys], axis=1)
+        self._patch_rows = (nodes.copy(), keys, G, cols) if G.size <= 4_000_000 else None
         return G
 
     @property

@@ -23,7 +23,7 @@ import numpy as np
 from . import validate
 from .errors import ModelError
 from .rotations import integrated_rotation, rotation
-from .simulate import ModalSimulator
+from .simulate import ModalSimulator, rows_times
 
 __all__ = ["WarpedModalSimulator", "rotation", "integrated_rotation"]
 
@@ -58,7 +58,7 @@ class WarpedModalSimulator(ModalSimulator):
     # ---------------------------------------------------------------- loads in the rotated frame
     def _rotations(self, nodes: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
         """R(w_i) (k, 3, 3) of ``nodes`` at modal coordinates ``q`` (default: now)."""
-        return rotation(self._psi[nodes] @ (self._S[0] if q is None else q))
+        return rotation(rows_times(self._psi[nodes], self._S[0] if q is None else q))
 
     def _local_forces(self, forces):
         """The loads turned into each node's rest frame, R(w_i)^T f_i (same format)."""
@@ -83,7 +83,7 @@ class WarpedModalSimulator(ModalSimulator):
 
     # ---------------------------------------------------------------- warped outputs
     def _warp(self, nodes: np.ndarray, q: np.ndarray, linear: np.ndarray, correction: np.ndarray | None):
-        w = self._psi[nodes] @ q
+        w = rows_times(self._psi[nodes], q)
         u = np.einsum("kij,kj->ki", integrated_rotation(w), linear)
         if correction is not None:
             u += np.einsum("kij,kj->ki", rotation(w), correction)
@@ -102,7 +102,7 @@ class WarpedModalSimulator(ModalSimulator):
             raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
         q = self._S[0]
         nodes = np.arange(self.n_nodes)
-        u = self._warp(nodes, q, self._phi @ q, self._corrections(nodes))
+        u = self._warp(nodes, q, rows_times(self._phi, q), self._corrections(nodes))
         if out is not None:
             out[...] = u
             return out
@@ -111,7 +111,7 @@ class WarpedModalSimulator(ModalSimulator):
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         nodes = validate.nodes(nodes, self.n_nodes)
         q = self._S[0]
-        return self._warp(nodes, q, self._phi[nodes] @ q, self._corrections(nodes))
+        return self._warp(nodes, q, rows_times(self._phi[nodes], q), self._corrections(nodes))
 
     def displacement(self, node: int) -> np.ndarray:
         return self.displacements_at(np.array([self._node(node)]))[0]
@@ -119,7 +119,7 @@ class WarpedModalSimulator(ModalSimulator):
     def velocities(self) -> np.ndarray:
         """Rt(w_i) Phi_i q' (the warp's own rate neglected)."""
         q = self._S[0]
-        return np.einsum("kij,kj->ki", integrated_rotation(self._psi @ q), self._phi @ self._S[1])
+        return np.einsum("kij,kj->ki", integrated_rotation(rows_times(self._psi, q)), rows_times(self._phi, self._S[1]))
 
     # ---------------------------------------------------------------- the one-step contract
     def predict(self, node: int) -> np.ndarray:
@@ -130,13 +130,13 @@ class WarpedModalSimulator(ModalSimulator):
         """(k, 3) :meth:`predict` of ``nodes``."""
         nodes = validate.nodes(nodes, self.n_nodes)
         q = self._q_free()
-        return self._warp(nodes, q, self._phi[nodes] @ q, None)
+        return self._warp(nodes, q, rows_times(self._phi[nodes], q), None)
 
     def _jacobians(self, nodes: np.ndarray, q: np.ndarray) -> np.ndarray:
         """d u_i / d q (k, 3, r) of the warped displacement at ``q``: Rt(w_i) Phi_i plus the warp's
         derivative (central differences of Rt in w, which is smooth)."""
         P, Ps = self._phi[nodes], self._psi[nodes]
-        a, w = P @ q, Ps @ q
+        a, w = rows_times(P, q), rows_times(Ps, q)
         J = integrated_rotation(w) @ P
         h = 1e-6
         for k in range(3):
@@ -164,7 +164,7 @@ class WarpedModalSimulator(ModalSimulator):
         Pb = np.einsum("kij,kjr->kir", Rn, self._phi[loaded]).reshape(-1, r)  # R_b Phi_b
         W = (J * self._G1[0]) @ Pb.T
         if self.static_correction and loaded.size:
-            Ra = rotation(self._psi[nodes] @ q)
+            Ra = rotation(rows_times(self._psi[nodes], q))
             for b, j in enumerate(loaded.tolist()):
                 D = self._correction_column(j)[nodes]  # (k, 3, 3)
                 W[:, 3 * b:3 * b + 3] += np.einsum("kij,kjl,ml->kim", Ra, D, Rn[b]).reshape(-1, 3)
