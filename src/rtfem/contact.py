@@ -294,57 +294,88 @@ def _slide(a11, a12, a21, a22, t1, t2, lim):
     return s1, s2
 
 
-def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status):
+def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol):
     """The subspace step of PGS-SM (Silcowitz, Niebe & Erleben 2010): with the contacts' states
     as the last sweeps left them (status: 0 apart, 1 pressed and sliding or frictionless, 2 stuck),
     solve the equalities they imply in one linear system (pressed: w_n = 0, the tangential force
-    mu r_n along its present direction when sliding; stuck: w = 0; apart: r = 0), project the
-    result onto the cone and recompute w. Returns False (r, w unchanged) when nothing is pressed."""
+    mu r_n along its present direction when sliding; stuck: w = 0; apart: r = 0). Where that
+    solution pulls (r_n < 0) the contacts are let go, and where it leaves a contact apart
+    penetrating (w_n < 0 beyond ``tol`` of the largest force, in force units w_n / A_nn) it is
+    pressed, and the system is solved again (block principal pivoting, Judice & Pires 1994), up to
+    eight times; the result is projected onto the cone and w recomputed. Returns False (r, w
+    unchanged) when nothing is pressed. ``status`` is left as the last solve's."""
     n3 = b.shape[0]
     m = n3 // 3
     rows = np.empty(n3, np.int64)
     d1 = np.zeros(m)
     d2 = np.zeros(m)
-    k = 0
     for c in range(m):
         i = 3 * c
-        if status[c] == 2:
-            rows[k], rows[k + 1], rows[k + 2] = i, i + 1, i + 2
-            k += 3
-        elif status[c] == 1:
-            if mu[c] > 0.0:
-                t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
-                if t > 0.0:
-                    d1[c], d2[c] = r[i + 1] / t, r[i + 2] / t
-            rows[k] = i
-            k += 1
-    if k == 0:
-        return False
-    M = np.empty((k, k))
-    x = np.empty(k)
-    for a in range(k):
-        ia = rows[a]
-        x[a] = -b[ia]
+        if status[c] == 1 and mu[c] > 0.0:
+            t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
+            if t > 0.0:
+                d1[c], d2[c] = r[i + 1] / t, r[i + 2] / t
+    r_in = r.copy()
+    for _ in range(8):
+        k = 0
+        for c in range(m):
+            i = 3 * c
+            if status[c] == 2:
+                rows[k], rows[k + 1], rows[k + 2] = i, i + 1, i + 2
+                k += 3
+            elif status[c] == 1:
+                rows[k] = i
+                k += 1
+        if k == 0:
+            r[:] = r_in
+            return False
+        for j in range(k):  # the columns the system needs
+            _column(W, Bi, Bv, F, inv_k, rows[j] // 3, A, have)
+        M = np.empty((k, k))
+        x = np.empty(k)
+        for a in range(k):
+            ia = rows[a]
+            x[a] = -b[ia]
+            for j in range(k):
+                ij = rows[j]
+                c = ij // 3
+                v = A[ia, ij]
+                if status[c] == 1 and mu[c] > 0.0:  # r_t = mu r_n d: the normal unknown carries it
+                    v += mu[c] * (d1[c] * A[ia, ij + 1] + d2[c] * A[ia, ij + 2])
+                M[a, j] = v
+        if not _lu_solve(M, x):
+            r[:] = r_in
+            return False
+        for i in range(n3):
+            r[i] = 0.0
         for j in range(k):
-            ij = rows[j]
-            c = ij // 3
-            v = A[ia, ij]
-            if status[c] == 1 and mu[c] > 0.0:  # r_t = mu r_n d: the normal unknown carries it
-                v += mu[c] * (d1[c] * A[ia, ij + 1] + d2[c] * A[ia, ij + 2])
-            M[a, j] = v
-    if not _lu_solve(M, x):
-        return False
-    for i in range(n3):
-        r[i] = 0.0
-    for j in range(k):
-        r[rows[j]] = x[j]
+            r[rows[j]] = x[j]
+        for c in range(m):
+            if status[c] == 1 and mu[c] > 0.0:
+                i = 3 * c
+                r[i + 1], r[i + 2] = mu[c] * r[i] * d1[c], mu[c] * r[i] * d2[c]
+        switched = False
+        size = 0.0
+        for c in range(m):
+            size = max(size, r[3 * c])
+        for c in range(m):
+            if status[c] != 0 and r[3 * c] < 0.0:
+                status[c] = 0
+                switched = True
+        if not switched:
+            _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w)
+            for c in range(m):
+                i = 3 * c
+                if status[c] == 0 and -w[i] / A[i, i] > tol * size:
+                    status[c] = 1 if mu[c] == 0.0 else 2
+                    switched = True
+        if not switched:
+            break
     for c in range(m):
         i = 3 * c
         if r[i] < 0.0:
             r[i] = 0.0
         lim = mu[c] * r[i]
-        if status[c] == 1:
-            r[i + 1], r[i + 2] = lim * d1[c], lim * d2[c]
         t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
         if t > lim:
             s = lim / t if t > 0.0 else 0.0
@@ -436,7 +467,8 @@ def _pgs(A, have, W, Bi, Bv, F, inv_k, b, mu, r, max_sweeps, tol):
             before[c] = status[c]
         if same and try_subspace:  # kept only when it brings r closer to a solution
             r_old, w_old = r.copy(), w.copy()
-            if _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status) and _residual(A, r, w, mu) >= _residual(A, r_old, w_old, mu):
+            if _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol) and \
+                    _residual(A, r, w, mu) >= _residual(A, r_old, w_old, mu):
                 r[:] = r_old
                 w[:] = w_old
                 try_subspace = False  # not again before the states change
