@@ -236,3 +236,52 @@ def test_every_driver_settles_to_the_quasi_static_contact_force(plate):
     assert abs(last["warped"][2] - ref[2]) < 1e-5 * ref[2]  # measured 7e-7
     assert abs(last["newmark HHT"][2] - ref[2]) < 1e-4 * ref[2] and ripple["newmark HHT"] < 0.01  # 3e-6, 9e-4
     assert ripple["newmark"] > 0.5  # measured 4.4: the force jumps between steps
+
+
+def test_a_sphere_pressed_into_a_large_deformation_plate_settles_to_the_nonlinear_static_solve():
+    """The corotational full-order driver through rt.ToolContact (quasi-static: a 100 s critically
+    damped step is a static solve): a 2 cm sphere pressed 3 mm into an 8 x 8 plate 4 mm thick. The
+    settled field equals rt.nonlinear.solve_static under the loads the contact applied, the
+    pressed points sit on the sphere and no vertex is inside it, and the plate's membrane action
+    makes it 50 % stiffer than the linear driver's. (Linearized at no load, the one-step contract of
+    the corotational driver put the settled plate 0.7 mm inside the sphere: it must be linearized at
+    the loads held.)"""
+    mesh = rt.meshes.plate(A_PLATE, A_PLATE, 8, 8)
+    model = rt.ShellModel(mesh, rt.Material(E=3e4, nu=0.3, thickness=4e-3))
+    model.fix(mesh.boundary_vertices(), dofs="xyz")
+    damping = rt.Damping(alpha=2 * rt.modal_analysis(model, 1).omega[0])
+    R, depth = 0.02, 0.003
+    tool = np.array([0.1, 0.1, R - depth])
+    force = {}
+    for large in (False, True):
+        d = rt.DirectSimulator(model, 100.0, damping, numerical_damping=1 / 3, large_deformation=large)
+        applied, step = {}, d.step
+
+        def recorded(loads, step=step, applied=applied):
+            applied.clear()
+            applied.update(loads or {})
+            step(loads)
+
+        d.step = recorded
+        tc = rt.ToolContact(mesh, d, rt.Tool.sphere(R), stiffness=200.0, coupling="constraint")
+        F = np.array([tc.update(tool) for _ in range(30)])
+        force[large] = F[-1, 2]
+        assert abs(F[-1, 2] - F[-2, 2]) < 1e-9 * F[-1, 2]  # settled
+    # the settled corotational plate: the nonlinear static solve under the contact's loads
+    loads = np.zeros((mesh.n_vertices, 3))
+    for v, f in applied.items():
+        loads[v] += f
+    U = d.displacements()
+    ref = rt.nonlinear.solve_static(model, loads).displacements
+    assert np.abs(U - ref).max() < 1e-7 * np.abs(ref).max()  # measured 5e-11
+    gaps = np.linalg.norm(tc.points - tool, axis=1) - R
+    assert tc.contacts >= 3 and np.abs(gaps).max() < 1e-9 * R  # the pressed points on the sphere
+    inside = np.linalg.norm(np.asarray(mesh.vertices) + U - tool, axis=1) - R
+    assert inside.min() > -1e-9 * R  # no vertex inside (it was 0.7 mm)
+    assert 1.3 < force[True] / force[False] < 1.7  # measured 1.51: membrane stiffening
+    # the one-step contract holds the loads: the next step under the same loads is its prediction
+    nodes = np.array(sorted(applied))
+    f = np.concatenate([applied[v] for v in nodes.tolist()])
+    predicted = d.predict_at(nodes) + (d.step_compliances(nodes) @ f).reshape(-1, 3)
+    d.step(dict(applied))
+    assert np.abs(d.displacements()[nodes] - predicted).max() < 1e-9 * np.abs(U).max()
