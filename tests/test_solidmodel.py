@@ -122,6 +122,41 @@ def test_static_correction_and_impedance_map_settle_at_the_static_solution(beam)
     assert interior.size and not np.isin(interior, model.mesh.used_vertices()).any()
 
 
+def test_surface_compliance_by_condensation_equals_the_solves_and_the_map_built_on_it(beam, monkeypatch):
+    """Bro-Nielsen & Cotin's condensed surface compliance (the interior's Schur complement,
+    inverted) equals the surface block of K^-1 by multi-column solves and the single unit-load
+    responses, and is symmetric; an impedance map whose static limits come from it equals the
+    default one (three solves per node) at the surface nodes and keeps no interior node."""
+    model, node = beam
+    nodes, C = model.surface_compliance()
+    nodes_c, C_c = model.surface_compliance(method="condensation")
+    used = model.mesh.used_vertices()
+    assert np.array_equal(nodes, nodes_c) and np.array_equal(nodes, used[~model.fixed[used, :3].all(axis=1)])
+    scale = np.abs(C).max()
+    assert np.abs(C - C_c).max() < 1e-12 * scale and np.abs(C_c - C_c.T).max() < 1e-12 * scale
+    b = 3 * int(np.searchsorted(nodes, node))
+    ref = np.stack([model.unit_load_response(node, k)[nodes] for k in range(3)], axis=2).reshape(-1, 3)
+    assert np.abs(C_c[:, b:b + 3] - ref).max() < 1e-12 * scale
+    other = int(nodes[nodes.size // 3])
+    maps = [rt.ImpedanceMap.build(model, rt.Damping(alpha=4.0), nodes=[node, other], radius=0.05, n_modes=10,
+                                  static=static) for static in ("solves", "condensation")]
+    a, c = maps
+    assert c.info["static"] == "condensation" and np.isin(c.neighbours, used).all()
+    assert not np.isin(a.neighbours, used).all()  # the default map keeps interior nodes too
+    for k in range(2):
+        na, nc = (m.neighbours[m.offsets[k]:m.offsets[k + 1]] for m in maps)
+        ra, rc = (m.responses[m.offsets[k]:m.offsets[k + 1]] for m in maps)
+        on = np.isin(na, used)
+        assert np.array_equal(na[on], nc)
+        assert np.abs(ra[on] - rc).max() < 1e-10 * np.abs(ra).max()
+    np.testing.assert_allclose(c.point, a.point, rtol=0, atol=1e-10 * np.abs(a.point).max())
+    with pytest.raises(rt.ModelError, match="method"):
+        model.surface_compliance(method="dense")
+    monkeypatch.setattr("rtfem.model._DENSE_LIMIT", 30)
+    with pytest.raises(rt.ModelError, match="allow_large"):
+        model.surface_compliance()
+
+
 def test_probe_and_loop_touch_the_surface_only(beam):
     model, node = beam
     sim = rt.ModalSimulator(rt.modal_analysis(model, 12), 1e-3, rt.Damping(alpha=20.0), static_correction=True)

@@ -121,6 +121,7 @@ class ImpedanceMap:
         progress: Callable[[int, int, str], None] | None = None,
         workers: int = 1,
         modes=None,
+        static: str = "solves",
     ) -> "ImpedanceMap":
         """Precompute the map.
 
@@ -142,6 +143,12 @@ class ImpedanceMap:
             and the BLAS products release the interpreter lock).
         modes : a :class:`~rtfem.ModalBasis` of this model to use instead of computing
             ``n_modes`` modes (method "modal").
+        static : where the static limits (and the modal route's static correction) come from:
+            "solves" (three sparse solves per loaded node, default) or "condensation" (Bro-Nielsen
+            & Cotin: the surface's whole static compliance at once, :meth:`surface_compliance`
+            with its Schur complement; the map then keeps surface nodes only, which is what is
+            drawn and touched). Condensation pays for maps over a large part of a solid's surface
+            (``benchmarks/condensation.py``); it is dense, (3 s)^2 for s surface nodes.
 
         A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
         (``info["complete"]`` is False, ``info["requested_nodes"]`` says how many were asked
@@ -164,6 +171,7 @@ class ImpedanceMap:
         memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
         progress = validate.progress(progress)
         workers = validate.count(workers, "workers", 1, 256)
+        static = validate.choice(static, "static", ("solves", "condensation"))
         if modes is not None:
             from .modal import ModalBasis
 
@@ -177,10 +185,22 @@ class ImpedanceMap:
         _check_memory(loaded, within, t.size, memory_limit)
         engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
                   else _SLDMColumns(model, damping, t, tol))
+        surface = None
+        if static == "condensation":
+            t_cond = time.perf_counter()
+            used = model.mesh.used_vertices()
+            nodes_s, C = model.surface_compliance(np.union1d(used[~model.fixed[used, :3].all(axis=1)], loaded),
+                                                  method="condensation")
+            engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
+            engine.setup_seconds += time.perf_counter() - t_cond
+            surface = np.zeros(model.n_nodes, dtype=bool)
+            surface[nodes_s] = True
 
         def one(j: int):
             cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
             keep = within(j)
+            if surface is not None:  # the static limit is known on the surface only
+                keep = keep[surface[keep]]
             if threshold is not None and threshold > 0:
                 mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
                 keep = keep[mag >= threshold * mag.max()]
@@ -192,7 +212,7 @@ class ImpedanceMap:
                 "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
                 "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
                 "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
-                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size),
+                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size), "static": static,
                 "requested_nodes": int(loaded.size)}
         offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
         return cls(model.n_nodes, t, np.array([r[0] for r in results]), offsets,
@@ -450,6 +470,7 @@ class _ModalColumns:
         self.lam = lam
         g = step_response(lam[:, None], damping.modal_alpha(self.basis.omega)[:, None], times[None, :])
         self.g = np.concatenate([g, (1.0 / lam)[:, None]], axis=1)  # (r, n_t + 1): samples + static
+        self.static = _SolvedStatic(model)
         self.setup_seconds = time.perf_counter() - t0
 
     def columns(self, j: int) -> np.ndarray:
@@ -458,9 +479,7 @@ class _ModalColumns:
         # modal part: u(t) = sum_i phi_i g_i(t) phi_i(j)^T e_k
         cols = np.einsum("nir,rt,kr->ntik", phi, self.g, pj, optimize=True)
         # static correction: D = K^-1 e_jk - Phi Lambda^-1 Phi^T e_jk, added at every time
-        static = np.empty((self.model.n_nodes, 3, 3))
-        for k in range(3):
-            static[:, :, k] = self.model.unit_load_response(j, k)
+        static = self.static(j)
         modal_static = cols[:, -1]
         cols += (static - modal_static)[:, None]
         return cols
@@ -476,12 +495,14 @@ class _SLDMColumns:
         self.model = model
         self.sldm = SLDM(model, damping, tol=tol)
         self.times = times
+        self.static = _SolvedStatic(model)
         self.setup_seconds = time.perf_counter() - t0
 
     def columns(self, j: int) -> np.ndarray:
         n = self.model.n_nodes
         cols = np.zeros((n, self.times.size + 1, 3, 3))
         F = np.zeros((n, 6))
+        static = self.static(j)
         for k in range(3):
             if self.model.fixed[j, k]:
                 continue  # a load on a fixed dof goes into the support: a zero column
@@ -489,8 +510,37 @@ class _SLDMColumns:
             F[j, k] = 1.0
             U = self.sldm.step_response(F[:, :3], self.times)  # (n_t, n, 3)
             cols[:, :-1, :, k] = U.transpose(1, 0, 2)
-            cols[:, -1, :, k] = self.model.unit_load_response(j, k)
+            cols[:, -1, :, k] = static[:, :, k]
         return cols
+
+
+class _SolvedStatic:
+    """A loaded node's static responses (n, 3, 3) by three sparse solves."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+
+    def __call__(self, j: int) -> np.ndarray:
+        static = np.empty((self.model.n_nodes, 3, 3))
+        for k in range(3):
+            static[:, :, k] = self.model.unit_load_response(j, k)
+        return static
+
+
+class _CondensedStatic:
+    """A loaded node's static responses from the condensed surface compliance (zero off the surface,
+    where the map then keeps nothing)."""
+
+    def __init__(self, n_nodes: int, nodes: np.ndarray, C: np.ndarray) -> None:
+        self.n, self.nodes, self.C = n_nodes, nodes, C
+        self.pos = np.full(n_nodes, -1, dtype=np.int64)
+        self.pos[nodes] = np.arange(nodes.size)
+
+    def __call__(self, j: int) -> np.ndarray:
+        static = np.zeros((self.n, 3, 3))
+        b = 3 * self.pos[j]
+        static[self.nodes] = self.C[:, b:b + 3].reshape(-1, 3, 3)
+        return static
 
 
 class ImpedanceDriver:
