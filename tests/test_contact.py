@@ -416,6 +416,11 @@ def test_lookahead_prepares_the_vertices_ahead_in_the_background_and_changes_no_
     assert np.abs(F1 - F0).max() < 1e-9 * np.abs(F0).max()  # batched or not, in the loop or not
     F2, _, tc2 = slide_over(model.mesh, modes, None)  # the default (2 edges), not waited for
     assert np.abs(F2 - F0).max() < 1e-9 * np.abs(F0).max()
+    # two tools on one driver take turns on one lock (their threads would prepare the same vertices
+    # at once); tools on different drivers do not wait for each other
+    other = rt.ToolContact(model.mesh, tc2.driver, rt.Tool.sphere(0.002))
+    assert other._block.preparer.lock is tc2._block.preparer.lock
+    assert tc1._block.preparer.lock is not tc2._block.preparer.lock
 
 
 def test_a_failing_background_preparation_is_raised_by_the_loop(plate):

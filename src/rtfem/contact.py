@@ -43,6 +43,8 @@ depend on the timing.
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -857,6 +859,19 @@ def _solve(A, have, W, Bi, Bv, F, inv_k, b, mu, r, max_sweeps, tol):
     return r, int(sweeps)
 
 
+_LOCKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # driver -> its preparations' lock
+
+
+def _driver_lock(driver) -> threading.Lock:
+    """One lock per driver, shared by every ToolContact on it (two tools' background threads would
+    otherwise prepare the same vertices at once); a fresh lock for a driver without weak
+    references."""
+    try:
+        return _LOCKS.setdefault(driver, threading.Lock())
+    except TypeError:  # not weakly referenceable (__slots__ without __weakref__)
+        return threading.Lock()
+
+
 class _Preparer:
     """Prepares driver nodes (static-correction or compliance columns: sparse solves of
     milliseconds each) before the force loop needs them: :meth:`want` names the vertices the tool
@@ -869,11 +884,9 @@ class _Preparer:
     BATCH = 4  # nodes per background preparation: short lock holds, multi-column solves
 
     def __init__(self, driver) -> None:
-        import threading
-
         self.driver = driver
         self.ready: set[int] = set()
-        self.lock = threading.Lock()
+        self.lock = _driver_lock(driver)  # shared by every tool on this driver
         self._cv = threading.Condition()
         self._pending = np.zeros(0, dtype=np.int64)
         self._where = np.zeros((0, 3))  # rest positions of the pending vertices
@@ -901,8 +914,6 @@ class _Preparer:
         with self._cv:
             self._pending, self._where, self._at = nodes[fresh], where[fresh], np.asarray(at, dtype=float)
             if self._pending.size and (self._thread is None or not self._thread.is_alive()):
-                import threading
-
                 self._thread = threading.Thread(target=self._run, name="rtfem-prepare", daemon=True)
                 self._thread.start()
             self._cv.notify()
