@@ -53,7 +53,7 @@ def small():
 
 # ============================================================== data loss: atomic saves
 _SAVER = textwrap.dedent("""
-    import sys, time
+    import signal, sys, time
     import numpy as np
     import rtfem as rt
     kind, target, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
@@ -84,9 +84,14 @@ _SAVER = textwrap.dedent("""
         print("saving", flush=True)
         try:
             new.save(target)
-            print("saved", flush=True)
+            outcome = "saved"
         except KeyboardInterrupt:
-            print("interrupted", flush=True)
+            outcome = "interrupted"
+        # the report is not interrupted: a Ctrl-C in the middle of print("saved") made the line
+        # "savedinterrupted" (the save had finished; the harness, not the save, failed)
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print(outcome, flush=True)
+        signal.signal(signal.SIGINT, previous)
     """)
 
 
