@@ -142,6 +142,8 @@ def _entries() -> list[Entry]:
         make=lambda: fresh_model().fix("attachment"), snapshot=lambda o: [o.fixed.copy()])
     add("ShellModel.solve_static", lambda o, **k: model.solve_static(**k), dict(forces=f),
         dict(forces=forces_bad(n, node)))
+    add("ShellModel.surface_compliance", lambda o, **k: model.surface_compliance(**k), dict(nodes=[node]),
+        dict(nodes=[-1, 10**9, 2.5, NAN, True, OBJ, "abc"], method=CHOICE, memory=POSITIVE, allow_large=FLAG))
     add("ShellModel.pressure_forces", lambda o, **k: model.pressure_forces(**k), dict(pressure=10.0),
         dict(pressure=[None, "abc", NAN, INF, [], OBJ, True]))
     add("ShellModel.nearest_free_node", lambda o, **k: model.nearest_free_node(**k), dict(point=[0.0, 0.0, 0.0]),
@@ -216,7 +218,7 @@ def _entries() -> list[Entry]:
         dict(model=model, damping=w["damping"], nodes=[node], modes=modes),
         dict(model=[None, "abc", OBJ], damping=["abc"], nodes=[-1, 10**9, 2.5, "nogroup", [], OBJ, [True]],
              radius=[NAN, -1.0, 0.0, "abc", OBJ], metric=CHOICE, threshold=[NAN, -0.1, 1.0, 2.0, "abc", OBJ],
-             times=TIMES, method=CHOICE, n_modes=COUNT, tol=[NAN, 0.0, 1.0, "abc"],
+             times=TIMES, method=CHOICE, static=CHOICE, n_modes=COUNT, tol=[NAN, 0.0, 1.0, "abc"],
              memory_limit=[NAN, -1.0, 0.0, "abc", OBJ, None], progress=["abc", 5], workers=[0, -1, 2.5, "abc", NAN, True],
              modes=["abc", 5, rt.modal_analysis(rt.ShellModel(w["other"], rt.Material()).fix("attachment"), 3)]))
     add("ImpedanceMap.displacements", lambda o, **k: imap.displacements(**k), dict(loads=[(node, (0.0, 0.0, -0.1), 0.0)], t=0.01),

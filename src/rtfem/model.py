@@ -634,6 +634,7 @@ class FEModel:
 
         method = validate.choice(method, "method", ("solves", "condensation"))
         memory = validate.positive(memory, "memory", "a size in bytes")
+        allow_large = validate.flag(allow_large, "allow_large")
         if nodes is None:
             used = self.mesh.used_vertices()
             nodes = used[~self.fixed[used, :3].all(axis=1)]
