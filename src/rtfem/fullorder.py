@@ -495,7 +495,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         nd = free.size
         self._u, self._v, self._a, self._g = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
         self.configuration = Configuration.rest(model.n_nodes, model.dofs_per_node == 6)
-        self._free = None  # (step, configuration, u, g, factorization) of the step with the last loads held
+        self._free = None  # (step, configuration, u, g, factorization, prediction) of the step with the last loads held
         self._held = np.zeros(model.n_dofs)  # the last step's load vector
         self.iterations = 0  # Newton iterations of the last step
 
