@@ -156,13 +156,6 @@ def _rotation_matrix(R) -> np.ndarray:
     return R
 
 
-def tangent_frames(n: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) frames whose columns are n, t1, t2 (right-handed, orthonormal)."""
-    F = np.empty((n.shape[0], 3, 3))
-    _frames(np.ascontiguousarray(n, dtype=float), F)
-    return F
-
-
 def closest_points_on_triangles(P: np.ndarray, A: np.ndarray, B: np.ndarray, C: np.ndarray):
     """Closest points of triangles (A, B, C) (k, 3 each) to points P (k, 3): (points, barycentric
     weights (k, 3)). The projection on the plane when it falls inside, else the nearest of the
@@ -685,25 +678,24 @@ def _faces(Y, Yf, local, c, R, half, radius, iters, reach, margin, same, V, bary
     return kept
 
 
-def _points(d0, n, Y, Yf, verts, margin, loc, bw, nf, df, fid, pos, S, Bi, Bv, F, gaps, y_free, y_now, ids):
-    """The contact points from the candidates' gaps ``d0`` (k,) now and push directions n: each
-    vertex whose gap, moved on to its free position, is below ``margin``, then the kept face
+def _points(g, n, Y, Yf, verts, margin, loc, bw, nf, df, fid, pos, S, Bi, Bv, F, gaps, y_free, y_now, ids):
+    """The contact points from the candidates' gaps ``g`` (k,) (moved on to their free positions)
+    and push directions n: each vertex whose gap is below ``margin``, then the kept face
     points (corners ``loc``, rows of Y, weights ``bw``, directions ``nf``, gaps ``df``, ids
     ``fid``). Fills the points' corners Bi (rows of S) and weights Bv, frames F, gaps, free and
     current positions and ids (vertex number, or -1 - triangle); S (the candidates the points
     use, ascending rows of Y). Returns (m points, s nodes)."""
-    k = d0.shape[0]
+    k = g.shape[0]
     for i in range(k):
         pos[i] = -1
     m = 0
     for i in range(k):
-        g = d0[i] + n[i, 0] * (Yf[i, 0] - Y[i, 0]) + n[i, 1] * (Yf[i, 1] - Y[i, 1]) + n[i, 2] * (Yf[i, 2] - Y[i, 2])
-        if g < margin:
+        if g[i] < margin:
             pos[i] = 0
             Bi[m, 0] = Bi[m, 1] = Bi[m, 2] = i
             Bv[m, 0], Bv[m, 1], Bv[m, 2] = 1.0, 0.0, 0.0
             _frame_into(n[i, 0], n[i, 1], n[i, 2], F, m)
-            gaps[m] = g
+            gaps[m] = g[i]
             for j in range(3):
                 y_free[m, j], y_now[m, j] = Yf[i, j], Y[i, j]
             ids[m] = verts[i]
@@ -785,7 +777,8 @@ def _after(W, slots, Bi, Bv, F, r, y_free, f_points, f_nodes, y_after):
 
 
 def _frame_into(n0, n1, n2, F, k):
-    """F[k] (3, 3): columns n, t1, t2 (see :func:`tangent_frames`)."""
+    """F[k] (3, 3): the contact frame of unit normal n, columns n, t1, t2 (right-handed,
+    orthonormal; t1 = n x e, e the x axis, or the y axis where n is near x)."""
     h0, h1, h2 = (1.0, 0.0, 0.0) if abs(n0) < 0.6 else (0.0, 1.0, 0.0)
     t0, t1, t2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
     size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
@@ -793,12 +786,6 @@ def _frame_into(n0, n1, n2, F, k):
     F[k, 0, 0], F[k, 1, 0], F[k, 2, 0] = n0, n1, n2
     F[k, 0, 1], F[k, 1, 1], F[k, 2, 1] = t0, t1, t2
     F[k, 0, 2], F[k, 1, 2], F[k, 2, 2] = n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0
-
-
-def _frames(n, F):
-    """F (k, 3, 3): columns n, t1, t2 (see :func:`tangent_frames`)."""
-    for k in range(n.shape[0]):
-        _frame_into(n[k, 0], n[k, 1], n[k, 2], F, k)
 
 
 try:  # compiled when numba is present (the same code)
@@ -823,7 +810,6 @@ try:  # compiled when numba is present (the same code)
     _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, f8, "
                          "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
     _frame_into = _numba.njit(**_opts)(_frame_into)
-    _frames = _numba.njit("void(f8[:, ::1], f8[:, :, ::1])", **_opts)(_frames)
     _points = _numba.njit("UniTuple(i8, 2)(f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8, i8[:, ::1], "
                           "f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1], i8[:, ::1], f8[:, ::1], "
                           "f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], i8[::1])", **_opts)(_points)
@@ -1123,13 +1109,14 @@ class ToolContact:
         # the geometry of the surface now (continuous from step to step), its free motion linearly
         Y, Yf = X + u_now, X + u_free
         _gaps(Y, Y, O, np.zeros(k), c, R, half, radius, d, n)
+        g = d + np.einsum("ki,ki->k", n, Yf - Y)  # each gap moved on to the free position, linearly
         f = ring.size if self.surface_point else 0
         bw, nf, df, keep = np.empty((f, 3)), np.empty((f, 3)), np.empty(f), np.empty(f, dtype=np.int64)
         if f:  # a face point within 1e-3 edge of a vertex contact or of another kept point is the
             # same contact twice (a probe sitting on a vertex): dropped
-            near = d + np.einsum("ki,ki->k", n, Yf - Y) < self.margin
             kept = _faces(Y, Yf, loc, c, R, half, radius, 1 if not half.any() else 4,
-                          self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[near], bw, nf, df, keep)
+                          self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[g < self.margin], bw, nf, df,
+                          keep)
             keep = keep[:kept]
         loc, bw, nf, df, fid = loc[keep], bw[keep], nf[keep], df[keep], -1 - ring[keep]
         size = k + loc.shape[0]
@@ -1139,7 +1126,7 @@ class ToolContact:
                          np.empty((cap, 3)), np.empty((cap, 3, 3)), np.empty(cap), np.empty((cap, 3)),
                          np.empty((cap, 3)), np.empty(cap, dtype=np.int64))
         pos, S, Bi, Bv, F, gaps, y_free, y_now, ids = self._buf
-        m, ns = _points(d, n, Y, Yf, verts, self.margin, np.ascontiguousarray(loc), np.ascontiguousarray(bw), nf, df,
+        m, ns = _points(g, n, Y, Yf, verts, self.margin, np.ascontiguousarray(loc), np.ascontiguousarray(bw), nf, df,
                         np.ascontiguousarray(fid), pos, S, Bi, Bv, F, gaps, y_free, y_now, ids)
         if m == 0:
             return None
