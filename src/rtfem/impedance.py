@@ -188,9 +188,7 @@ class ImpedanceMap:
         surface = None
         if static == "condensation":
             t_cond = time.perf_counter()
-            used = model.mesh.used_vertices()
-            nodes_s, C = model.surface_compliance(np.union1d(used[~model.fixed[used, :3].all(axis=1)], loaded),
-                                                  method="condensation")
+            nodes_s, C = model.surface_compliance(np.union1d(_free_surface(model), loaded), method="condensation")
             engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
             engine.setup_seconds += time.perf_counter() - t_cond
             surface = np.zeros(model.n_nodes, dtype=bool)
@@ -377,12 +375,17 @@ class ImpedanceMap:
             raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
 
 
+def _free_surface(model) -> np.ndarray:
+    """The surface's nodes that can move (all free nodes on a shell; a solid is touched on its surface)."""
+    surface = model.mesh.used_vertices()
+    return surface[~model.held_nodes[surface]]
+
+
 def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
     """The nodes to load (default every free surface node) and those given that are held (skipped: a
     load on a fixed node moves nothing)."""
-    if nodes is None:  # the surface's free nodes (all of them on a shell; a solid is touched on its surface)
-        surface = model.mesh.used_vertices()
-        loaded = surface[~model.held_nodes[surface]]
+    if nodes is None:
+        loaded = _free_surface(model)
     else:
         loaded = np.unique(model.select_nodes(nodes))
     held = loaded[model.held_nodes[loaded]]

@@ -628,7 +628,7 @@ class FEModel:
         factorization (``memory`` bytes of right-hand sides per solve); "condensation": Bro-Nielsen
         and Cotin's route, the Schur complement K* = K_SS - K_SI K_II^-1 K_IS of the other dofs
         (a factorization of K_II, solves with the columns of K_IS) and its dense Cholesky inverse.
-        Both are exact; ``benchmarks/solid.py`` measures which is faster. Dense: refused above
+        Both are exact; ``benchmarks/condensation.py`` measures which is faster. Dense: refused above
         6,000 rows unless ``allow_large``."""
         from scipy.linalg import cho_factor, cho_solve
 
@@ -637,7 +637,7 @@ class FEModel:
         allow_large = validate.flag(allow_large, "allow_large")
         if nodes is None:
             used = self.mesh.used_vertices()
-            nodes = used[~self.fixed[used, :3].all(axis=1)]
+            nodes = used[~self.held_nodes[used]]
         else:
             nodes = np.unique(validate.nodes(nodes, self.n_nodes))
         if 3 * nodes.size > _DENSE_LIMIT and not allow_large:
