@@ -81,6 +81,12 @@ def test_block_eigs_on_a_known_spectrum():
         assert abs(abs(Y[:, i] @ U[:, i]) - 1.0) < 1e-9
     assert info["max_residual"] <= 1e-10 and info["krylov_dim"] == calls[-1] and info["block_solves"] == len(calls)
     assert calls == list(range(4, 4 * len(calls) + 1, 4))
+    # C Y read off the Lanczos relation (no further application of C), residual term included
+    assert np.abs(info["image"] - C @ Y).max() <= 1e-13 * d[0]
+    assert info["coefficients"].shape == (info["krylov_dim"], k)
+    theta, Y, info = block_eigs(lambda B: C @ B, n, k, block=4, tol=1e-5)  # stopped with a visible residual
+    assert info["max_residual"] > 1e-9
+    assert np.abs(info["image"] - C @ Y).max() <= 1e-13 * d[0]
 
 
 def test_block_eigs_stops_short_instead_of_giving_wrong_pairs():

@@ -275,23 +275,29 @@ def _shifted_factorization(model, K, M, dofs, sigma: float, report, timing: dict
     return fac
 
 
-def _block_modes(model, K, M, fac, n_modes: int, sigma: float, tol: float, report, timing: dict):
+def _block_modes(model, K, M, dofs, fac, n_modes: int, sigma: float, tol: float, report, timing: dict):
     """Block shift-invert Lanczos (lanczos.block_eigs) on C = M^1/2 (K - sigma M)^-1 M^1/2 over
     the massed dofs: C y = theta y gives K x = (sigma + 1/theta) M x with x = (K - sigma M)^-1
-    M^1/2 y / theta, recovered by one solve with n_modes right-hand sides. Raises
+    M^1/2 y / theta. Its massed rows are M^-1/2 C y / theta, which the Lanczos relation gives
+    without another solve. Of its massless rows only translations are wanted (the shell's
+    rotations are not part of a mode shape); where a model has massless translations, their
+    rows of each block solve are kept and combined with the Ritz coefficients. Raises
     BlockLanczosFailed when the caller should use ARPACK instead."""
     m = M.diagonal()
     massed = np.flatnonzero(m > 0)
+    massless = np.flatnonzero(m <= 0)
+    wanted = massless[np.asarray(dofs)[massless] % model.dofs_per_node < 3]  # massless translations
     root = np.sqrt(m[massed])[:, None]
     n = K.shape[0]
-
-    def spread(Y: np.ndarray) -> np.ndarray:
-        B = np.zeros((n, Y.shape[1]))
-        B[massed] = root * Y
-        return fac.solve(B)
+    kept: list[np.ndarray] = []
 
     def apply(Y: np.ndarray) -> np.ndarray:
-        return root * spread(Y)[massed]
+        B = np.zeros((n, Y.shape[1]), order="F")
+        B[massed] = root * Y
+        X = fac.solve(B)
+        if wanted.size:
+            kept.append(X[wanted])
+        return root * X[massed]
 
     t0 = time.perf_counter()
 
@@ -300,13 +306,15 @@ def _block_modes(model, K, M, fac, n_modes: int, sigma: float, tol: float, repor
 
     report(f"block shift-invert Lanczos for {n_modes} modes (block {_BLOCK})", 0, int(3.4 * n_modes))
     theta, Y, stats = block_eigs(apply, massed.size, n_modes, block=_BLOCK, tol=tol or _BLOCK_TOL, report=progress)
-    ts = time.perf_counter()
-    vec = spread(Y) / theta
-    recover = time.perf_counter() - ts
-    timing["solve_seconds"] = stats["solve_seconds"] + recover
+    vec = np.zeros((n, n_modes))
+    vec[massed] = stats["image"] / root / theta
+    if wanted.size:
+        vec[wanted] = np.hstack(kept) @ (stats["coefficients"] / theta)
+    timing["solve_seconds"] = stats["solve_seconds"]
     timing["lanczos_other_seconds"] = time.perf_counter() - t0 - timing["solve_seconds"]
-    timing["solves"] = stats["block_solves"] * _BLOCK + n_modes
-    timing.update(block_solves=stats["block_solves"] + 1, block=_BLOCK, krylov_dim=stats["krylov_dim"])
+    timing["solves"] = stats["block_solves"] * _BLOCK
+    timing.update(block_solves=stats["block_solves"], block=_BLOCK, krylov_dim=stats["krylov_dim"],
+                  reorthogonalized_blocks=stats["reorthogonalized"])
     lam = sigma + 1.0 / theta
     order = np.argsort(lam)
     return lam[order], vec[:, order], f"block shift-invert Lanczos ({stats['block_solves']} blocks of {_BLOCK})"
@@ -354,12 +362,12 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
     fac = _shifted_factorization(model, K, M, dofs, sigma, report, timing)
     quiet = blas_limits(1, "openblas") if fac.backend == "pardiso" else contextlib.nullcontext()
     with quiet:  # MKL's threads do the solves; OpenBLAS's spinning workers would take their cores
-        lam, vec, method = _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing)
+        lam, vec, method = _iterate(model, K, M, dofs, fac, n_modes, sigma, tol, solver, report, timing)
     vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
     return np.sqrt(np.clip(lam, 0.0, None)), vec, method
 
 
-def _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing):
+def _iterate(model, K, M, dofs, fac, n_modes, sigma, tol, solver, report, timing):
     """The block method where it applies (falling back to ARPACK when it stops short), else ARPACK."""
     lam = vec = None
     if not is_diagonal(M):
@@ -371,7 +379,7 @@ def _iterate(model, K, M, fac, n_modes, sigma, tol, solver, report, timing):
         timing["fallback"] = "consistent mass: ARPACK's generalized shift-invert mode"
     elif solver != "arpack" and (sigma < 0 or (sigma == 0.0 and model.fixed.any())):
         try:
-            lam, vec, method = _block_modes(model, K, M, fac, n_modes, sigma, tol, report, timing)
+            lam, vec, method = _block_modes(model, K, M, dofs, fac, n_modes, sigma, tol, report, timing)
         except BlockLanczosFailed as exc:
             if solver == "block":
                 raise SolverError(f"block Lanczos: {exc}; use solver='arpack'") from None
