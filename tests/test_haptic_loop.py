@@ -126,10 +126,73 @@ def test_a_shared_device_is_read_without_the_gil(organ):
         device.move_to([np.nan, 0, 0])
 
 
+def pull(X, N, node, steps=600):
+    """The hand pulls the grabbed vertex 2 cm out along its normal and 1 cm sideways, then back."""
+    t = np.arange(steps) / steps
+    tang = np.cross(N[node], [0.0, 0.0, 1.0])
+    tang /= np.linalg.norm(tang)
+    s = np.sin(np.pi * t)[:, None]
+    return X[node] + s * (0.02 * N[node] + 0.01 * tang)
+
+
+@needs_loop
+@pytest.mark.parametrize("integrator", ["exact", "newmark"])
+@pytest.mark.parametrize("radius", [0.0, 0.02])
+def test_compiled_grasp_ticks_are_the_python_ticks(organ, integrator, radius):
+    """Grasp ticks in the compiled loop (the jaw's system inverted once) against Grasp.update, for
+    one vertex and a patch, with a force cap reached on the way."""
+    mesh, basis, node, X, N = organ
+    P = pull(X, N, node)
+    runs = {}
+    for compiled in (True, False):
+        sim = sim_for(basis, integrator=integrator)
+        grasp = rt.Grasp(mesh, sim, stiffness=300.0, radius=radius, max_force=0.4)
+        held = grasp.grab(node)
+        F = grasp.replay(P, compiled=compiled)
+        runs[compiled] = (F, sim.get_state(), sim.displacements(), grasp.forces.copy(), sim.steps, held.size)
+    (Fc, Sc, Uc, fc, kc, mc), (Fp, Sp, Up, fp, kp, mp) = runs[True], runs[False]
+    assert mc == mp and (mc > 2) == (radius > 0)
+    norms = np.linalg.norm(Fp, axis=1)
+    assert norms.max() == pytest.approx(0.4) and np.median(norms) > 0.1  # pulled hard enough to reach the cap
+    assert np.abs(Fc - Fp).max() <= 1e-10 * norms.max()
+    for key in Sp:
+        assert np.allclose(Sc[key], Sp[key], rtol=0, atol=1e-10 * max(np.abs(Sp[key]).max(), 1e-300))
+    assert np.abs(Uc - Up).max() <= 1e-10 * np.abs(Up).max() and np.abs(fc - fp).max() <= 1e-10 * norms.max()
+    assert kc == kp == len(P)
+
+
+@needs_loop
+def test_a_grab_during_a_compiled_loop_pauses_its_ticks(organ):
+    """grab() and release() from another thread while a compiled loop runs a Grasp: its ticks stop
+    for the new grip and go on with it (the slots meanwhile are skipped, not burst through)."""
+    mesh, basis, node, X, N = organ
+    sim = sim_for(basis)
+    grasp = rt.Grasp(mesh, sim, stiffness=300.0)
+    device = rt.SharedDevice(X[node] + 0.01 * N[node])
+    loop = rt.HapticLoop(grasp, device, rate=2000.0)
+    assert loop.compiled
+    loop.start()
+    try:
+        time.sleep(0.05)
+        assert np.all(device.force == 0)  # nothing held: no force
+        grasp.grab(node)
+        time.sleep(0.1)
+        pulling = device.force.copy()
+        grasp.release()
+        time.sleep(0.05)
+        after = device.force.copy()
+    finally:
+        stats = loop.stop()
+    assert stats.compiled and stats.steps > 100
+    assert pulling @ N[node] > 0.05  # the organ is pulled out along the normal
+    assert np.all(after == 0) and np.all(grasp.force == 0) and grasp.node is None
+    assert sim.steps == stats.steps
+
+
 def test_compiled_refusals_say_why(organ):
     mesh, basis, node, X, N = organ
     sim = sim_for(basis)
-    grasp = rt.Grasp(mesh, sim)
+    grasp = rt.Grasp(mesh, rt.ModalSimulator(basis, 1e-3, warping=True))  # compliances follow the motion
     with pytest.raises(rt.ModelError, match="compiled=True"):
         rt.HapticLoop(grasp, rt.SharedDevice(), compiled=True)
     assert not rt.HapticLoop(grasp, rt.SharedDevice()).compiled  # auto: the Python loop

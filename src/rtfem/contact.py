@@ -1237,7 +1237,12 @@ def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: floa
     free prediction), E^T f + k delta = g (g = k (hand - jaw's grab position)), E the stacked 3x3
     identities; one symmetric (3m + 3) solve."""
     m = h.size // 3
-    E = np.tile(np.eye(3), (m, 1))
-    K = np.block([[W + np.eye(3 * m) / grip, -E], [E.T, k * np.eye(3)]])
-    sol = np.linalg.solve(K, np.concatenate([h, g]))
+    sol = np.linalg.solve(patch_system(W, k, grip), np.concatenate([h, g]))
     return sol[:-3].reshape(m, 3), sol[-3:]
+
+
+def patch_system(W: np.ndarray, k: float, grip: float) -> np.ndarray:
+    """The (3m + 3) matrix of :func:`hold_patch`: [[W + I/grip, -E], [E^T, k I]]."""
+    m = W.shape[0] // 3
+    E = np.tile(np.eye(3), (m, 1))
+    return np.block([[W + np.eye(3 * m) / grip, -E], [E.T, k * np.eye(3)]])

@@ -30,6 +30,7 @@ solves inside the loop.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ from scipy.spatial import cKDTree
 from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
-from .contact import hold_patch, nodes_to_prepare
+from .contact import hold_patch, nodes_to_prepare, patch_system
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
 
 __all__ = ["Probe", "Grasp", "HapticLoop", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "LoopStats"]
@@ -113,21 +114,7 @@ class Probe:
         a recorded or scripted trajectory's forces (k, 3), and the state where it ends. With a
         ModalSimulator and numba the ticks run in the haptic loop's compiled code (``compiled``:
         None = when available), which gives the same forces as the Python ticks to round-off."""
-        P = validate.real_array(positions, "positions", 2)
-        if P.shape[1] != 3:
-            raise ModelError(f"positions must be a (k, 3) array of probe positions in m, got shape {P.shape}")
-        usable = _compiled_loop() is not None and _compiled_driver(self.driver)
-        if compiled is None:
-            compiled = usable
-        elif validate.flag(compiled, "compiled") and not usable:
-            raise ModelError("compiled=True needs numba (rtfem[fast]) and a ModalSimulator with its compiled step")
-        if not compiled:
-            return np.array([self.update(c).copy() for c in P]).reshape(-1, 3)
-        out = []
-        run = _CompiledProbe(self, _compiled_loop()[0])
-        run.ticks(np.array([0.0, 0.0, np.inf, 0.0]), np.ascontiguousarray(P, dtype=float), np.zeros(6),
-                  np.zeros(1, dtype=np.int64), max(len(P), 1), None, lambda late, comp, f, slots: out.append(f.copy()))
-        return np.concatenate(out).reshape(-1, 3)
+        return _replay(self, positions, compiled, "probe")
 
     # ---------------------------------------------------------------- compiled loop support
     def _grid(self) -> tuple:
@@ -260,7 +247,12 @@ class Grasp:
     def grab(self, node: int, radius: float | None = None) -> np.ndarray:
         """Close the jaw on ``node`` and the surface vertices within ``radius`` (default: the
         grasp's) of its deformed position (:meth:`patch`), less those the supports hold (a grip on them
-        would anchor the jaw); returns the held vertices."""
+        would anchor the jaw); returns the held vertices. While a compiled HapticLoop runs this
+        grasp, its ticks wait for the new grip (a few skipped slots)."""
+        with _loop_paused(self):
+            return self._grab(node, radius)
+
+    def _grab(self, node: int, radius: float | None) -> np.ndarray:
         nodes = self.patch(node, radius)
         node = validate.node(node, self.X.shape[0])
         x = self.X[node] + self.driver.displacement(node)
@@ -278,8 +270,20 @@ class Grasp:
         self._jaw = x
         return nodes
 
+    def replay(self, targets, *, compiled: bool | None = None) -> np.ndarray:
+        """Run :meth:`update` at each of the hand's ``targets`` (k, 3) back to back, offline (no
+        clock), with the jaw as it is now: the total forces (k, 3), and the state where it ends.
+        With a linear ModalSimulator and numba the ticks run in the haptic loop's compiled code
+        (``compiled``: None = when available), which gives the same forces as the Python ticks
+        to round-off."""
+        return _replay(self, targets, compiled, "hand")
+
     def release(self) -> None:
         """Open the jaw."""
+        with _loop_paused(self):
+            self._release()
+
+    def _release(self) -> None:
         self.node = None
         self.nodes = np.zeros(0, dtype=np.int64)
         self._block = None
@@ -499,7 +503,9 @@ class HapticLoop:
         self.spin = spin
         self.stats = LoopStats()
         self._stop = threading.Event()
-        self._ctl = np.zeros(1, dtype=np.int64)  # the compiled loop's stop flag
+        self._ctl = np.zeros(1, dtype=np.int64)  # the compiled loop's flag: 1 stop, 2 pause
+        self._paused, self._resume = threading.Event(), threading.Event()
+        self._pause_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self._kernels = None
@@ -517,10 +523,10 @@ class HapticLoop:
         """Why the ticks cannot run in compiled code here (None: they can)."""
         if _compiled_loop() is None:
             return "the compiled loop needs numba (rtfem[fast]) and a monotonic clock (Linux, macOS)"
-        if type(self.probe) is not Probe:
-            return "only an rt.Probe runs in the compiled loop (a Grasp or another object runs in Python)"
+        if type(self.probe) not in (Probe, Grasp):
+            return "only an rt.Probe or an rt.Grasp runs in the compiled loop (another object runs in Python)"
         if not _compiled_driver(self.probe.driver):
-            return "only a ModalSimulator with its compiled step drives the compiled loop"
+            return "only a (linear) ModalSimulator with its compiled step drives the compiled loop"
         if type(self.device) not in (ScriptedDevice, SharedDevice):
             return "the compiled loop reads an rt.ScriptedDevice (sampled in advance) or an rt.SharedDevice"
         return None
@@ -590,7 +596,11 @@ class HapticLoop:
             capacity = n_slots if seconds is not None else int(10 * self.rate)
             if max_steps is not None:
                 capacity = min(capacity, max_steps) if capacity else max_steps
-            run = _CompiledProbe(self.probe, self._kernels[0])
+            if type(self.probe) is Grasp:
+                run = _CompiledGrasp(self.probe, self._kernels[2])
+            else:
+                run = _CompiledProbe(self.probe, self._kernels[0])
+            run.pause = self._pause_point
             with _spare_core():
                 t0 = time.perf_counter()
                 deadline = t0 + seconds if seconds is not None else np.inf
@@ -642,6 +652,8 @@ class HapticLoop:
             compiled = False  # an open-ended scripted run: the Python ticks (stats.compiled says so)
         self._stop.clear()
         self._ctl[0] = 0
+        self._paused.clear()
+        self._resume.clear()
         self.error = None
         self.stats = LoopStats(compiled=compiled)
         run = self._run_compiled if compiled else self._run
@@ -650,9 +662,38 @@ class HapticLoop:
         self._thread.start()
         return self
 
+    def _pause_point(self) -> None:
+        """The loop thread, its ticks stopped for a waiting grab or release: wait until it is done."""
+        self._paused.set()
+        self._resume.wait()
+        self._resume.clear()
+
+    @contextlib.contextmanager
+    def _held(self):
+        """For a grab or a release from another thread while the compiled ticks run: the ticks
+        stop (the slots meanwhile are skipped and counted), the grasp's state is handed back to
+        it, and the ticks go on with the new grip when the block ends."""
+        with self._pause_lock:
+            self._paused.clear()
+            self._ctl[0] = 2
+            paused = False
+            while not paused:
+                paused = self._paused.wait(0.002)
+                if not paused and (self._thread is None or not self._thread.is_alive() or self._ctl[0] == 1):
+                    break  # the loop ended meanwhile: nothing to pause
+            try:
+                yield
+            finally:
+                if paused:
+                    self._paused.clear()
+                    self._resume.set()
+                elif self._ctl[0] == 2:
+                    self._ctl[0] = 0
+
     def stop(self) -> LoopStats:
         self._stop.set()
         self._ctl[0] = 1
+        self._resume.set()  # a loop waiting for a grab or release goes on to stop
         if self._thread is not None:
             self._thread.join()
         if self.error is not None:
@@ -674,24 +715,16 @@ class HapticLoop:
         return self.stop()
 
 
-class _CompiledProbe:
-    """A Probe and its ModalSimulator packed into the arrays of the compiled loop
-    (kernels.probe_chunk), and unpacked back into them when the ticks end."""
+class _CompiledTicks:
+    """A haptic object (Probe or Grasp) and its ModalSimulator packed into the arrays of a compiled
+    loop (kernels.loop_kernels), and unpacked back into them when the ticks end. ``pause``, set
+    by the loop, is called when the ticks stop for a waiting grab or release (status 3)."""
 
-    def __init__(self, probe: Probe, chunk) -> None:
-        self.probe, self.sim, self.chunk = probe, probe.driver, chunk
-        self.grid = probe._grid()
-        self.X, self.normals = np.array(probe.X, dtype=float, order="C"), np.array(probe.normals, dtype=float, order="C")  # writable, C order
-        self.slot, self.table = probe._compliance_table()
-        inv_k = 1.0 / probe.stiffness if probe.coupling == "spring" else 0.0
-        self.fpar = np.array([probe.radius, inv_k, probe._requery])
-        self.ist = np.array([-1 if probe.contact_node is None else probe.contact_node, 0, -1], dtype=np.int64)
-        self.cand = np.zeros(probe._k, dtype=np.int64)
-        self.fst = np.zeros(7)
-        if probe._cand is not None and probe._cand.size == probe._k:
-            self.cand[:], self.ist[1], self.fst[:3] = probe._cand, probe._k, probe._cand_at
-        self.fst[3:6], self.fst[6] = probe.force, probe.penetration
+    def __init__(self, obj, chunk) -> None:
+        self.obj, self.sim, self.chunk = obj, obj.driver, chunk
+        self.fout = np.zeros(3)
         self.missed = 0
+        self.pause = None
 
     def ticks(self, sched, positions, mailbox, ctl, capacity: int, max_steps, keep) -> None:
         """Run the compiled ticks; ``keep(lateness, compute, forces, slots)`` receives the records
@@ -701,17 +734,20 @@ class _CompiledProbe:
         forces, slots = np.zeros((capacity, 3)), np.zeros(capacity, dtype=np.int64)
         counters = np.array([0, 0, 0, -1 if max_steps is None else max_steps, 0], dtype=np.int64)
         clock = np.zeros(2, dtype=np.int64)
-        lo, h, dims, cell_start, cell_order = self.grid
         steps0 = sim.steps
         try:
             while True:
-                status = self.chunk(sim._coef, sim._S, sim._f_old, sim._phi, sim._G0 is not None, self.X, self.normals,
-                                    lo, h, dims, cell_start, cell_order, self.fpar, self.ist, self.cand, self.fst,
-                                    self.slot, self.table, sched, positions, mailbox, ctl, late, comp, forces, slots,
-                                    counters, clock)
+                status = self.chunk(self.arguments(), self.fout, sched, positions, mailbox, ctl, late, comp, forces,
+                                    slots, counters, clock)
                 if status == 1:  # a vertex touched for the first time: its compliance, then on
-                    self.probe._compliance(int(self.ist[2]))
-                    self.slot, self.table = self.probe._compliance_table()
+                    self.prepare()
+                    continue
+                if status == 3:  # a grab or release waits: hand over the state, take it back after
+                    self._unpack(steps0 + int(counters[1]))
+                    steps0, counters[1] = sim.steps, 0
+                    ctl[0] = 0
+                    self.pause()
+                    self.pack()
                     continue
                 n = int(counters[4])
                 if status == 0 and n == capacity and (max_steps is None or counters[1] < max_steps):
@@ -726,10 +762,50 @@ class _CompiledProbe:
             self.missed = int(counters[2])
             self._unpack(steps0 + int(counters[1]))
 
+    def _sim_arguments(self) -> tuple:
+        sim = self.sim
+        return sim._coef, sim._S, sim._f_old, sim._phi, sim._G0 is not None
+
+    def _steps_done(self, steps: int) -> None:
+        self.sim.steps = steps
+        self.sim.time = steps * self.sim.dt
+
+
+class _CompiledProbe(_CompiledTicks):
+    """A Probe in the compiled loop (kernels.probe_chunk)."""
+
+    def __init__(self, probe: Probe, chunk) -> None:
+        super().__init__(probe, chunk)
+        self.probe = probe
+        self.grid = probe._grid()
+        self.X, self.normals = np.array(probe.X, dtype=float, order="C"), np.array(probe.normals, dtype=float, order="C")  # writable, C order
+        self.slot, self.table = probe._compliance_table()
+        inv_k = 1.0 / probe.stiffness if probe.coupling == "spring" else 0.0
+        self.fpar = np.array([probe.radius, inv_k, probe._requery])
+        self.ist = np.array([-1 if probe.contact_node is None else probe.contact_node, 0, -1], dtype=np.int64)
+        self.cand = np.zeros(probe._k, dtype=np.int64)
+        self.fst = np.zeros(7)
+        if probe._cand is not None and probe._cand.size == probe._k:
+            self.cand[:], self.ist[1], self.fst[:3] = probe._cand, probe._k, probe._cand_at
+        self.fst[3:6], self.fst[6] = probe.force, probe.penetration
+        self._args = None
+
+    def arguments(self) -> tuple:
+        from .kernels import probe_arguments
+
+        if self._args is None:
+            self._args = probe_arguments(*self._sim_arguments(), self.X, self.normals, *self.grid, self.fpar, self.ist,
+                                         self.cand, self.fst, self.slot, self.table)
+        return self._args
+
+    def prepare(self) -> None:
+        self.probe._compliance(int(self.ist[2]))
+        self.slot, self.table = self.probe._compliance_table()
+        self._args = None
+
     def _unpack(self, steps: int) -> None:
         probe, sim, ist, fst = self.probe, self.sim, self.ist, self.fst
-        sim.steps = steps
-        sim.time = steps * sim.dt
+        self._steps_done(steps)
         p = int(ist[0])
         probe.contact_node = p if p >= 0 else None
         probe.force = fst[3:6].copy()
@@ -738,6 +814,55 @@ class _CompiledProbe:
             probe._cand, probe._cand_at = self.cand[: ist[1]].copy(), fst[:3].copy()
         if sim.static_correction:
             sim._loads = {p: -fst[3:6].copy()} if p >= 0 else {}
+            sim._load_array = None
+
+
+class _CompiledGrasp(_CompiledTicks):
+    """A Grasp in the compiled loop (kernels.grasp_chunk): the jaw's system, which does not
+    change while the grip holds (a linear ModalSimulator's compliances are constant), is
+    inverted once when the jaw closes, and each tick is a prediction at the held vertices, one
+    small matrix-vector product and the modal step."""
+
+    def __init__(self, grasp: "Grasp", chunk) -> None:
+        super().__init__(grasp, chunk)
+        self.grasp = grasp
+        self.pack()
+
+    def pack(self) -> None:
+        g, sim = self.grasp, self.sim
+        r = sim._phi.shape[2]
+        if g.node is None:
+            nodes, A, base = np.zeros(0, dtype=np.int64), np.zeros((3, 3)), np.zeros(3)
+        elif g.nodes.size == 1:
+            nodes = np.array([g.node], dtype=np.int64)
+            A = np.linalg.inv(np.eye(3) + g.stiffness * g.compliance(g.node))
+            base = np.array(g.X[g.node], dtype=float)
+        else:
+            nodes = np.asarray(g.nodes, dtype=np.int64)
+            W = g._block if g._block is not None else step_compliances(sim, nodes)
+            A = np.linalg.inv(patch_system(W, g.stiffness, g.grip))
+            base = np.concatenate([g._hold, g._jaw])
+        m = nodes.size
+        self.nodes, self.F = nodes, np.zeros((m, 3))
+        self.gpar = np.array([g.stiffness, np.inf if g.max_force is None else g.max_force])
+        from .kernels import grasp_arguments
+
+        self._args = grasp_arguments(*self._sim_arguments(), nodes, np.ascontiguousarray(A), base, self.gpar, self.F,
+                                     np.zeros(3 * m + 3), np.zeros(r))
+
+    def arguments(self) -> tuple:
+        return self._args
+
+    def _unpack(self, steps: int) -> None:
+        g, sim = self.grasp, self.sim
+        self._steps_done(steps)
+        if self.nodes.size and steps:
+            g.forces = self.F.copy()
+            g.force = g.forces.sum(axis=0)
+        else:
+            g.force, g.forces = np.zeros(3), np.zeros((0, 3))
+        if sim.static_correction:
+            sim._loads = {int(v): f.copy() for v, f in zip(self.nodes.tolist(), self.F)} if self.nodes.size else {}
             sim._load_array = None
 
 
@@ -765,6 +890,36 @@ def _compiled_driver(driver) -> bool:
 
     return type(driver) is ModalSimulator and bool(driver.compiled)
 _OWNERS_LOCK = threading.Lock()
+
+
+def _replay(obj, positions, compiled, what: str) -> np.ndarray:
+    """Probe.replay and Grasp.replay: ``obj.update`` at each position, in Python or in the
+    compiled loop's ticks with no schedule."""
+    P = validate.real_array(positions, "positions", 2)
+    if P.shape[1] != 3:
+        raise ModelError(f"positions must be a (k, 3) array of {what} positions in m, got shape {P.shape}")
+    usable = _compiled_loop() is not None and _compiled_driver(obj.driver)
+    if compiled is None:
+        compiled = usable
+    elif validate.flag(compiled, "compiled") and not usable:
+        raise ModelError("compiled=True needs numba (rtfem[fast]) and a linear ModalSimulator with its compiled step")
+    if not compiled:
+        return np.array([obj.update(c).copy() for c in P]).reshape(-1, 3)
+    out = []
+    kernels = _compiled_loop()
+    run = _CompiledGrasp(obj, kernels[2]) if isinstance(obj, Grasp) else _CompiledProbe(obj, kernels[0])
+    run.ticks(np.array([0.0, 0.0, np.inf, 0.0]), np.ascontiguousarray(P, dtype=float), np.zeros(6),
+              np.zeros(1, dtype=np.int64), max(len(P), 1), None, lambda late, comp, f, slots: out.append(f.copy()))
+    return np.concatenate(out).reshape(-1, 3)
+
+
+def _loop_paused(obj):
+    """The compiled loop driving ``obj`` paused (from another thread), or nothing to pause."""
+    with _OWNERS_LOCK:
+        loop = _OWNERS.get(id(obj))
+    if loop is None or not loop.stats.compiled or threading.current_thread() is loop._thread:
+        return contextlib.nullcontext()
+    return loop._held()
 
 
 def _cached_compliance(driver, cache: dict, node: int) -> np.ndarray:

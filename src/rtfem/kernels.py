@@ -152,6 +152,25 @@ def _knn(c, X, grid_lo, grid_h, dims, cell_start, cell_order, k, out, d2):
     return found
 
 
+def _predict(coef, S, f_old, phi, newmark, p, out, at):
+    """out[at:at + 3] = predict(p) = phi_p (C1 x + C2 v (+ G0 f_old)): node p after one more step
+    with no new load."""
+    r = S.shape[1]
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    for j in range(r):
+        x = coef[0, j] * S[0, j] + coef[2, j] * S[1, j]
+        if newmark:
+            x = x + coef[6, j] * f_old[j]
+        ux += phi[p, 0, j] * x
+        uy += phi[p, 1, j] * x
+        uz += phi[p, 2, j] * x
+    out[at] = ux
+    out[at + 1] = uy
+    out[at + 2] = uz
+
+
 def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
                 fpar, ist, cand, fst, wslot, wtab, d2, u):
     """One Probe.update (haptics.Probe, same formulas and order) at probe position c.
@@ -162,7 +181,6 @@ def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, di
     step, or -1 without touching anything when the contact node's compliance is not in wtab yet
     (ist[2] names it).
     """
-    r = S.shape[1]
     k = cand.shape[0]
     p = ist[0]
     if p < 0:
@@ -189,18 +207,8 @@ def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, di
     ny = normals[p, 1]
     nz = normals[p, 2]
     g = nx * (c[0] - X[p, 0]) + ny * (c[1] - X[p, 1]) + nz * (c[2] - X[p, 2]) - fpar[0]
-    # u_free = predict(p): phi_p (C1 x + C2 v (+ G0 f_old))
-    ux = 0.0
-    uy = 0.0
-    uz = 0.0
-    for j in range(r):
-        x = coef[0, j] * S[0, j] + coef[2, j] * S[1, j]
-        if newmark:
-            x = x + coef[6, j] * f_old[j]
-        ux += phi[p, 0, j] * x
-        uy += phi[p, 1, j] * x
-        uz += phi[p, 2, j] * x
-    un = nx * ux + ny * uy + nz * uz
+    _predict(coef, S, f_old, phi, newmark, p, u, 0)  # u_free = predict(p)
+    un = nx * u[0] + ny * u[1] + nz * u[2]
     lam = 0.0
     if un > g:
         slot = wslot[p]
@@ -226,17 +234,103 @@ def _probe_tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, di
     return 0
 
 
-def _make_probe_chunk(gettime, usleep, clock_id, tick):
-    def probe_chunk(coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
-                    fpar, ist, cand, fst, wslot, wtab, sched, positions, mailbox, ctl, lateness, compute, forces,
-                    slots, counters, clock):
-        """Ticks of a probe loop until the deadline, max steps, a stop request or a node to
-        prepare. sched: t0, period, deadline (clock seconds), spin; positions (N, 3) by slot
-        (scripted) or mailbox (3,) read each tick (len(positions) == 0); ctl[0] != 0 stops;
-        counters: next slot k, steps, missed, max steps (-1 none), records written.
-        Returns 0 (deadline/steps), 1 (a node to prepare: ist[2]) or 2 (stopped)."""
-        d2 = np.empty(cand.shape[0])
-        u = np.empty(3)
+def _probe_tick_packed(c, a, fout):
+    """_probe_tick on the packed arguments of :func:`_make_chunk`; the force into fout (3,)."""
+    status = _probe_tick(c, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], a[11], a[12], a[13],
+                         a[14], a[15], a[16], a[17], a[18], a[19])
+    fst = a[15]
+    fout[0] = fst[3]
+    fout[1] = fst[4]
+    fout[2] = fst[5]
+    return status
+
+
+def _grasp_tick(c, a, fout):
+    """One Grasp.update (haptics.Grasp, same formulas) of a jaw held on m vertices, at hand
+    position c, with a ModalSimulator whose step compliances do not change (linear modes).
+
+    a: coef, S, f_old, phi, newmark (the simulator, as in _point_step); nodes (m,) held;
+    A the precomputed inverse: (3, 3) of I + k W for one vertex, else (3m + 3, 3m + 3) of the
+    jaw system [[W + I/grip, -E], [E^T, k I]]; base: X[node] (3,) for one vertex, else the held
+    displacements at the grab and the jaw's grab position (3m + 3); gpar: k, max_force (inf:
+    none); F (m, 3) the forces on the held vertices (out); w (3m + 3,) and fm (r,) scratch.
+    Writes the total force on the organ to fout; returns 0."""
+    coef, S, f_old, phi, newmark, nodes, A, base, gpar, F, w, fm = a
+    r = S.shape[1]
+    m = nodes.shape[0]
+    k = gpar[0]
+    for i in range(m):  # predict(nodes)
+        _predict(coef, S, f_old, phi, newmark, nodes[i], w, 3 * i)
+    if m == 1:  # (I + k W) f = k (c - X - u_free)
+        for d in range(3):
+            w[d] = k * (c[d] - base[d] - w[d])
+        n_rhs = 3
+    else:  # [h; k (c - x_jaw)] with h = u_S(grab) - u_free
+        for d in range(3 * m):
+            w[d] = base[d] - w[d]
+        for d in range(3):
+            w[3 * m + d] = k * (c[d] - base[3 * m + d])
+        n_rhs = 3 * m + 3
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    for i in range(m):
+        for d in range(3):
+            acc = 0.0
+            row = 3 * i + d
+            for e in range(n_rhs):
+                acc += A[row, e] * w[e]
+            F[i, d] = acc
+        tx += F[i, 0]
+        ty += F[i, 1]
+        tz += F[i, 2]
+    mag = np.sqrt(tx * tx + ty * ty + tz * tz)
+    if mag > gpar[1]:
+        scale = gpar[1] / mag
+        for i in range(m):
+            for d in range(3):
+                F[i, d] *= scale
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        for i in range(m):
+            tx += F[i, 0]
+            ty += F[i, 1]
+            tz += F[i, 2]
+    for j in range(r):
+        f = 0.0
+        for i in range(m):
+            p = nodes[i]
+            f += phi[p, 0, j] * F[i, 0] + phi[p, 1, j] * F[i, 1] + phi[p, 2, j] * F[i, 2]
+        fm[j] = f
+    for j in range(r):  # the step, as _point_step
+        x = S[0, j]
+        v = S[1, j]
+        xn = coef[0, j] * x + coef[2, j] * v
+        vn = coef[1, j] * v + coef[3, j] * x
+        xn = xn + coef[4, j] * fm[j]
+        vn = vn + coef[5, j] * fm[j]
+        if newmark:
+            xn = xn + coef[6, j] * f_old[j]
+            vn = vn + coef[7, j] * f_old[j]
+            f_old[j] = fm[j]
+        S[0, j] = xn
+        S[1, j] = vn
+    fout[0] = tx
+    fout[1] = ty
+    fout[2] = tz
+    return 0
+
+
+def _make_chunk(gettime, usleep, clock_id, tick):
+    def chunk(targs, fout, sched, positions, mailbox, ctl, lateness, compute, forces, slots, counters, clock):
+        """Ticks of a loop until the deadline, max steps, a stop request or a node to prepare;
+        each tick is ``tick(c, targs, fout)`` (a probe's or a grasp's, on its packed arguments;
+        the force it hands back in fout (3,)). sched: t0, period, deadline (clock seconds),
+        spin; positions (N, 3) by slot (scripted) or mailbox (3,) read each tick (len(positions)
+        == 0); ctl[0] == 1 stops, 2 pauses; counters: next slot k, steps, missed, max steps (-1
+        none), records written. Returns 0 (deadline/steps), 1 (a node to prepare: the probe's
+        ist[2]), 2 (stopped) or 3 (paused: a grab or a release is waiting)."""
         c = np.empty(3)
         t0 = sched[0]
         period = sched[1]
@@ -245,7 +339,7 @@ def _make_probe_chunk(gettime, usleep, clock_id, tick):
         scripted = positions.shape[0] > 0
         while True:
             if ctl[0] != 0:
-                return 2
+                return 2 if ctl[0] == 1 else 3
             if counters[3] >= 0 and counters[1] >= counters[3]:
                 return 0
             k = counters[0]
@@ -288,34 +382,33 @@ def _make_probe_chunk(gettime, usleep, clock_id, tick):
                 c[0] = mailbox[0]
                 c[1] = mailbox[1]
                 c[2] = mailbox[2]
-            if tick(c, coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order,
-                    fpar, ist, cand, fst, wslot, wtab, d2, u) < 0:
+            if tick(c, targs, fout) < 0:
                 return 1
             if not scripted:
-                mailbox[3] = fst[3]
-                mailbox[4] = fst[4]
-                mailbox[5] = fst[5]
+                mailbox[3] = fout[0]
+                mailbox[4] = fout[1]
+                mailbox[5] = fout[2]
             gettime(clock_id, clock.ctypes)
             end = clock[0] + 1e-9 * clock[1]
             i = counters[4]
             if i < lateness.shape[0]:
                 lateness[i] = start - target
                 compute[i] = end - start
-                forces[i, 0] = fst[3]
-                forces[i, 1] = fst[4]
-                forces[i, 2] = fst[5]
+                forces[i, 0] = fout[0]
+                forces[i, 1] = fout[1]
+                forces[i, 2] = fout[2]
                 slots[i] = k
                 counters[4] = i + 1
             counters[0] = k + 1
             counters[1] += 1
             if i + 1 >= lateness.shape[0]:
                 return 0  # the record is full: the caller makes room
-    return probe_chunk
+    return chunk
 
 
 def loop_kernels():
-    """The compiled probe loop ``(probe_chunk, probe_tick)``, compiled on first use (cached on
-    disk), or None without numba or a monotonic clock numba can call."""
+    """The compiled loops ``(probe_chunk, probe_tick, grasp_chunk)``, compiled on first use (cached
+    on disk), or None without numba or a monotonic clock numba can call."""
     global _LOOP
     if _LOOP is None:
         _LOOP = False
@@ -327,13 +420,20 @@ def loop_kernels():
                 opts = dict(nogil=True, fastmath=False, error_model="numpy")
                 knn = numba.njit(**opts, cache=True)(_knn)
                 # the tick calls the compiled point step and read-back the simulator uses
+                predict = numba.njit(**opts, cache=True)(_predict)
                 g = dict(_probe_tick.__globals__, _point_step=point_step, _point_displacement=point_displacement,
-                         _knn=knn)
+                         _knn=knn, _predict=predict)
                 tick = numba.njit(**opts)(type(_probe_tick)(_probe_tick.__code__, g, "_probe_tick"))
-                chunk = numba.njit(**opts)(_make_probe_chunk(gettime, usleep, clock_id, tick))
-                _warm(chunk)
-                chunk.disable_compile()  # a call with other types fails loudly instead of compiling in a tick
-                _LOOP = (chunk, tick)
+                packed = numba.njit(**opts)(type(_probe_tick_packed)(_probe_tick_packed.__code__,
+                                                                     dict(g, _probe_tick=tick), "_probe_tick_packed"))
+                chunk = numba.njit(**opts)(_make_chunk(gettime, usleep, clock_id, packed))
+                grasp = numba.njit(**opts)(_make_chunk(gettime, usleep, clock_id, numba.njit(**opts)(
+                    type(_grasp_tick)(_grasp_tick.__code__, dict(g), "_grasp_tick"))))
+                _warm(chunk, grasp)
+                # a call with other types fails loudly instead of compiling in a tick
+                chunk.disable_compile()
+                grasp.disable_compile()
+                _LOOP = (chunk, tick, grasp)
             except Exception:  # pragma: no cover - a numba that cannot compile this
                 _LOOP = False
     return _LOOP or None
@@ -342,13 +442,29 @@ def loop_kernels():
 _LOOP = None
 
 
-def _warm(chunk) -> None:
-    """Compile the loop for the argument types HapticLoop passes, on a schedule already over
+def _warm(chunk, grasp) -> None:
+    """Compile the loops for the argument types HapticLoop passes, on a schedule already over
     (nothing runs): compilation happens here, not inside the first tick."""
     r, n = 2, 1
     f, i = np.float64, np.int64
-    chunk(np.zeros((8, r)), np.zeros((2, r)), np.zeros(r), np.zeros((n, 3, r)), False, np.zeros((n, 3)),
-          np.zeros((n, 3)), np.zeros(3), 1.0, np.ones(3, i), np.zeros(2, i), np.zeros(n, i), np.zeros(3),
-          np.zeros(3, i), np.zeros(1, i), np.zeros(7), np.zeros(n, i), np.zeros((1, 3, 3)),
-          np.array([0.0, 1.0, -np.inf, 0.0]), np.zeros((0, 3)), np.zeros(6), np.zeros(1, i), np.zeros(1, f),
-          np.zeros(1, f), np.zeros((1, 3)), np.zeros(1, i), np.zeros(5, i), np.zeros(2, i))
+    sim = (np.zeros((8, r)), np.zeros((2, r)), np.zeros(r), np.zeros((n, 3, r)), False)
+    rest = (np.array([0.0, 1.0, -np.inf, 0.0]), np.zeros((0, 3)), np.zeros(6), np.zeros(1, i), np.zeros(1, f),
+            np.zeros(1, f), np.zeros((1, 3)), np.zeros(1, i), np.zeros(5, i), np.zeros(2, i))
+    chunk(probe_arguments(*sim, np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(3), 1.0, np.ones(3, i), np.zeros(2, i),
+                          np.zeros(n, i), np.zeros(3), np.zeros(3, i), np.zeros(1, i), np.zeros(7), np.zeros(n, i),
+                          np.zeros((1, 3, 3))), np.zeros(3), *rest)
+    grasp(grasp_arguments(*sim, np.zeros(1, i), np.eye(3), np.zeros(3), np.zeros(2), np.zeros((1, 3)), np.zeros(6),
+                          np.zeros(r)), np.zeros(3), *rest)
+
+
+def probe_arguments(coef, S, f_old, phi, newmark, X, normals, grid_lo, grid_h, dims, cell_start, cell_order, fpar,
+                    ist, cand, fst, wslot, wtab) -> tuple:
+    """The probe tick's packed arguments (the types the compiled loop was compiled for), with
+    its scratch arrays."""
+    return (coef, S, f_old, phi, bool(newmark), X, normals, grid_lo, float(grid_h), dims, cell_start, cell_order, fpar,
+            ist, cand, fst, wslot, wtab, np.empty(cand.shape[0]), np.empty(3))
+
+
+def grasp_arguments(coef, S, f_old, phi, newmark, nodes, A, base, gpar, F, w, fm) -> tuple:
+    """The grasp tick's packed arguments (see _grasp_tick)."""
+    return (coef, S, f_old, phi, bool(newmark), nodes, A, base, gpar, F, w, fm)
