@@ -196,6 +196,11 @@ def test_compiled_refusals_say_why(organ):
     with pytest.raises(rt.ModelError, match="compiled=True"):
         rt.HapticLoop(grasp, rt.SharedDevice(), compiled=True)
     assert not rt.HapticLoop(grasp, rt.SharedDevice()).compiled  # auto: the Python loop
+    with pytest.raises(rt.ModelError, match=r"\(k, 3\) array of hand"):
+        grasp.replay(np.zeros((4, 2)))
+    with pytest.raises(rt.ModelError, match="compiled=True"):
+        grasp.replay(np.zeros((4, 3)), compiled=True)
+    assert grasp.driver.steps == 0  # refused before any tick
     slow = rt.ModalSimulator(basis, 1e-3)
     slow.compiled = False
     assert not rt.HapticLoop(rt.Probe(mesh, slow), rt.SharedDevice()).compiled
