@@ -721,7 +721,7 @@ class _CompiledTicks:
     by the loop, is called when the ticks stop for a waiting grab or release (status 3)."""
 
     def __init__(self, obj, chunk) -> None:
-        self.obj, self.sim, self.chunk = obj, obj.driver, chunk
+        self.sim, self.chunk = obj.driver, chunk
         self.fout = np.zeros(3)
         self.missed = 0
         self.pause = None
@@ -844,10 +844,10 @@ class _CompiledGrasp(_CompiledTicks):
             base = np.concatenate([g._hold, g._jaw])
         m = nodes.size
         self.nodes, self.F = nodes, np.zeros((m, 3))
-        self.gpar = np.array([g.stiffness, np.inf if g.max_force is None else g.max_force])
+        gpar = np.array([g.stiffness, np.inf if g.max_force is None else g.max_force])
         from .kernels import grasp_arguments
 
-        self._args = grasp_arguments(*self._sim_arguments(), nodes, np.ascontiguousarray(A), base, self.gpar, self.F,
+        self._args = grasp_arguments(*self._sim_arguments(), nodes, np.ascontiguousarray(A), base, gpar, self.F,
                                      np.zeros(3 * m + 3), np.zeros(r))
 
     def arguments(self) -> tuple:
@@ -855,8 +855,9 @@ class _CompiledGrasp(_CompiledTicks):
 
     def _unpack(self, steps: int) -> None:
         g, sim = self.grasp, self.sim
+        ticked = steps > sim.steps  # the simulator's count moves only here: ticks ran since the last pack
         self._steps_done(steps)
-        if self.nodes.size and steps:
+        if self.nodes.size and ticked:
             g.forces = self.F.copy()
             g.force = g.forces.sum(axis=0)
         else:
