@@ -1,0 +1,283 @@
+"""A reduced geometrically nonlinear model: modes and modal derivatives (Barbic & James 2005).
+
+The linear modes Phi span the small-motion response. A large motion also moves along directions
+the modes leave out: a bending mode pulled far enough stretches the membrane, and a lobe swung
+shortens along its arc. The modal derivatives
+
+    Psi_ij = -K^-1 (d^2 g / dq_i dq_j)(0),     g(v): the internal forces at the dof vector v,
+
+the second-order static response to the amplitudes of modes i and j, span those directions. The
+reduced model is the Galerkin projection of the full corotational internal forces on
+U = [Phi, Psi]: g_r(q) = U^T g(U q) and K_r(q) = U^T K(U q) U, exact for the motions U can hold
+(no small-rotation assumption).
+
+On a shell, a node's coordinates are its translation and its rotation vector theta (Q = exp([theta]x));
+the corotational kernel gives moments m about the spin axes, and the generalized moment on theta is
+J(theta)^T m with J the left Jacobian of SO(3) (dQ Q^T = [J dtheta]x). The modes' rotations are those
+the condensation recovers (``model.rotation_field``).
+
+The internal forces here are evaluated on every element, so a step costs about as much as one
+full-order force evaluation: this is the accuracy model (and its static equilibrium); a haptic
+rate needs the forces on a cubature subset of the elements (An, Kim & James 2008).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import validate
+from .errors import ModelError, SolverError
+from .modal import mesh_fingerprint
+from .nonlinear import Configuration
+from .rotations import integrated_rotation, rotation
+
+__all__ = ["ReducedNonlinearModel", "ReducedStatic"]
+
+
+@dataclass
+class ReducedStatic:
+    """What :meth:`ReducedNonlinearModel.solve_static` found: the reduced coordinates ``q``, the
+    translations (n, 3), the load factors of the converged steps and the residual norms of each
+    step's Newton iterations."""
+
+    q: np.ndarray
+    displacements: np.ndarray
+    load_factors: list = field(default_factory=list)
+    residuals: list = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def iterations(self) -> int:
+        return sum(len(h) - 1 for h in self.residuals)
+
+
+class ReducedNonlinearModel:
+    """The Galerkin projection of a model's corotational forces on its modes and modal derivatives.
+
+    Parameters
+    ----------
+    model : a ShellModel or SolidModel with its fixes (the same the modes were computed with).
+    modes : its :class:`~rtfem.ModalBasis` (from :func:`rtfem.modal_analysis`).
+    derivatives : the modal derivatives of the lowest ``derivatives`` modes are added
+        (d (d + 1) / 2 columns); 0 gives the plain modal Galerkin model.
+    size : keep only this many derivative directions, the largest after weighting Psi_ij by
+        w_1^4 / (w_i^2 w_j^2) (Barbic & James' mass-PCA, in the stiffness norm here); default all.
+    progress : ``progress(done, total, message)`` per derivative mode.
+
+    ``basis`` (free dofs x r) is stiffness-orthonormal (basis^T K basis = I at rest); ``info``
+    holds the sizes and the time split.
+    """
+
+    def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
+                 progress: Callable[[int, int, str], None] | None = None) -> None:
+        t0 = time.perf_counter()
+        if modes.fingerprint != mesh_fingerprint(model.mesh) or modes.shapes.shape[0] != model.n_nodes:
+            raise ModelError("these modes were computed for another mesh: pass the model they came from, or "
+                             "recompute them with rt.modal_analysis(model, ...)")
+        n_modes = modes.omega.size
+        derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
+        self.model = model
+        self.system = model.nonlinear()
+        self.dpn = model.dofs_per_node
+        self.free = self.system.free
+        n = model.n_nodes
+        K0 = self.system.evaluate(Configuration.rest(n, self.dpn == 6))[1]
+        self._K0 = K0
+        self._solver = self.system.solver(K0, "the stiffness at rest")
+        shapes = np.asarray(modes.shapes, float)
+        if self.dpn == 6:
+            shapes = np.concatenate([shapes, model.rotation_field(shapes)], axis=1)
+        Phi = shapes.reshape(n * self.dpn, n_modes)[self.free]
+        t1 = time.perf_counter()
+        Psi = self.derivatives(Phi[:, :derivatives], progress=progress)
+        t2 = time.perf_counter()
+        if Psi.shape[1]:
+            w2 = np.asarray(modes.omega[:derivatives], float) ** 2
+            i, j = np.triu_indices(derivatives)
+            Psi = Psi * (w2[0] ** 2 / (w2[i] * w2[j]))
+        self.basis = self._orthonormal(Phi, Psi, size)
+        self.n_modes = n_modes
+        self.n_derivatives = self.basis.shape[1] - n_modes
+        self.info = {"modes": n_modes, "derivative_modes": derivatives, "derivatives": self.n_derivatives,
+                     "size": self.basis.shape[1], "seconds": {"derivatives": t2 - t1,
+                                                              "total": time.perf_counter() - t0}}
+
+    # ---------------------------------------------------------------- configurations and forces
+    def _configuration(self, v: np.ndarray) -> tuple[Configuration, np.ndarray]:
+        """The configuration of a free-dof vector v (translations; rotation vectors on a shell)."""
+        full = self.system.expand(v)
+        Q = rotation(full[:, 3:]) if self.dpn == 6 else None
+        return Configuration(full[:, :3].copy(), Q), full
+
+    def forces(self, v: np.ndarray, tangent: bool = True):
+        """The generalized internal forces g(v) on the free dofs and their Jacobian dg/dv (sparse;
+        None unless ``tangent``), for a free-dof vector v."""
+        conf, full = self._configuration(v)
+        f, K, _ = self.system.evaluate(conf, tangent)
+        if self.dpn == 3:
+            return f[self.free], K
+        n = self.model.n_nodes
+        f = f.reshape(n, 6).copy()
+        theta = full[:, 3:]
+        J = integrated_rotation(theta)  # the left Jacobian of SO(3)
+        m = f[:, 3:].copy()
+        f[:, 3:] = np.einsum("kji,kj->ki", J, m)
+        if not tangent:
+            return f.ravel()[self.free], None
+        # d(J^T m)/dtheta with m held: the derivative of the Jacobian (central differences; J is smooth)
+        h = 1e-7
+        G = np.zeros((n, 3, 3))
+        for c in range(3):
+            e = np.zeros(3)
+            e[c] = h
+            G[:, :, c] = np.einsum("kji,kj->ki", integrated_rotation(theta + e) - integrated_rotation(theta - e), m) / (2 * h)
+        B = np.zeros((n, 6, 6))
+        B[:, :3, :3] = np.eye(3)
+        B[:, 3:, 3:] = J
+        Bf = _block_diagonal(B)[self.free][:, self.free]
+        Gf = _block_diagonal(np.pad(G, ((0, 0), (3, 0), (3, 0))))[self.free][:, self.free]
+        return f.ravel()[self.free], (Bf.T @ K @ Bf + Gf).tocsr()
+
+    def derivatives(self, Phi: np.ndarray, *, progress=None) -> np.ndarray:
+        """The modal derivatives Psi_ij = -K^-1 (dK/dq_j) phi_i (i <= j) of the columns of Phi
+        (free dofs), ordered as ``np.triu_indices``. dK/dq_j is the central difference of the
+        tangent along phi_j (a step moving no node by more than 1e-5 of the model's size); the
+        pair is symmetrized, ((dK/dq_j) phi_i + (dK/dq_i) phi_j) / 2."""
+        m = Phi.shape[1]
+        if m == 0:
+            return np.zeros((Phi.shape[0], 0))
+        dK = []
+        for j in range(m):
+            b = Phi[:, j]
+            scale = np.abs(self.system.expand(b)[:, :3]).max()
+            eps = 1e-5 * self.system.size / max(scale, 1e-300)
+            Kp, Km = self.forces(eps * b)[1], self.forces(-eps * b)[1]
+            dK.append(((Kp - Km) / (2 * eps)).tocsr())
+            if progress is not None:
+                progress(j + 1, m, f"tangent derivative {j + 1} of {m}")
+        i, j = np.triu_indices(m)
+        rhs = np.column_stack([0.5 * (dK[b] @ Phi[:, a] + dK[a] @ Phi[:, b]) for a, b in zip(i, j)])
+        return -self._solver.solve(rhs)
+
+    def _orthonormal(self, Phi: np.ndarray, Psi: np.ndarray, size: int | None) -> np.ndarray:
+        """[Phi, the kept directions of Psi], stiffness-orthonormal."""
+        K = self._K0
+        U = Phi / np.sqrt(np.einsum("ir,ir->r", Phi, K @ Phi))
+        L = np.linalg.cholesky(U.T @ (K @ U))
+        U = np.linalg.solve(L, U.T).T
+        if Psi.shape[1] == 0:
+            return U
+        P = Psi - U @ (U.T @ (K @ Psi))  # the part the modes do not hold
+        P = P - U @ (U.T @ (K @ P))
+        G = P.T @ (K @ P)
+        lam, V = np.linalg.eigh(0.5 * (G + G.T))
+        keep = lam > 1e-12 * lam.max()
+        order = np.argsort(lam[keep])[::-1]
+        if size is not None:
+            size = validate.count(size, "size", 0, int(keep.sum()))
+            order = order[:size]
+        V, lam = V[:, keep][:, order], lam[keep][order]
+        return np.column_stack([U, (P @ V) / np.sqrt(lam)])
+
+    # ---------------------------------------------------------------- the reduced model
+    @property
+    def size(self) -> int:
+        return self.basis.shape[1]
+
+    def displacements(self, q: np.ndarray) -> np.ndarray:
+        """The nodal translations (n, 3) of reduced coordinates q."""
+        return self.system.expand(self.basis @ q)[:, :3].copy()
+
+    def reduced_forces(self, q: np.ndarray, tangent: bool = True):
+        """g_r(q) = U^T g(U q) and K_r(q) = U^T K(U q) U (dense r x r; None unless ``tangent``)."""
+        U = self.basis
+        g, K = self.forces(U @ q, tangent)
+        return U.T @ g, (None if K is None else U.T @ (K @ U))
+
+    def _rows(self, nodes: np.ndarray) -> np.ndarray:
+        """Positions among the free dofs of the translations of ``nodes`` (3k,), refused if held."""
+        pos = np.full(self.model.n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        rows = pos[(self.dpn * nodes[:, None] + np.arange(3)).ravel()]
+        if (rows < 0).any():
+            raise ModelError("a pulled node is fixed in the model: pull free nodes")
+        return rows
+
+    def solve_static(self, forces=None, *, targets: Mapping[int, np.ndarray] | None = None, steps: int = 4,
+                     tol: float = 1e-9, max_iterations: int = 30, max_cuts: int = 10) -> ReducedStatic:
+        """The reduced nonlinear static equilibrium under dead ``forces`` ((n, 3) or {node: f}) with
+        the nodes of ``targets`` ({node: displacement (3,)}) moved there exactly (Lagrange
+        multipliers), by Newton's method with load steps halved on failure (like
+        :func:`rtfem.nonlinear.solve_static`)."""
+        t0 = time.perf_counter()
+        U = self.basis
+        F = np.zeros(self.model.n_dofs) if forces is None else self.model.force_vector(forces)
+        Fr = U.T @ F[self.free]
+        targets = dict(targets or {})
+        nodes = np.array([validate.node(k, self.model.n_nodes) for k in targets], dtype=int)
+        C = U[self._rows(nodes)] if nodes.size else np.zeros((0, self.size))
+        t = np.concatenate([validate.vector(v, "target displacement") for v in targets.values()]) if nodes.size \
+            else np.zeros(0)
+        if nodes.size and np.linalg.matrix_rank(C) < C.shape[0]:
+            raise ModelError(f"the reduced basis cannot move the {nodes.size} pulled nodes independently: pull "
+                             "fewer nodes, or add modes or derivatives")
+        q, applied, step, cuts = np.zeros(self.size), 0.0, 1.0 / validate.count(steps, "steps", 1, 10**6), 0
+        result = ReducedStatic(q, np.zeros((self.model.n_nodes, 3)))
+        while applied < 1.0 - 1e-12:
+            target = min(1.0, applied + step)
+            trial, history, ok = self._newton(q, target * Fr, C, target * t, tol, max_iterations)
+            if ok:
+                q, applied = trial, target
+                result.load_factors.append(target)
+                result.residuals.append(history)
+                if cuts == 0 and len(history) <= 6:
+                    step *= 2.0
+                cuts = 0
+                continue
+            cuts += 1
+            if cuts > max_cuts:
+                raise SolverError(f"the reduced Newton iterations did not converge past load factor {applied:.4g}: "
+                                  "reduce the load or pass more steps")
+            step *= 0.5
+        result.q, result.displacements = q, self.displacements(q)
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def _newton(self, q, Fr, C, t, tol, max_iterations):
+        q = q.copy()
+        k = C.shape[0]
+        lam = np.zeros(k)
+        history = []
+        for _ in range(max_iterations):
+            g, A = self.reduced_forces(q)
+            r = np.concatenate([g + C.T @ lam - Fr, C @ q - t])
+            rn = float(np.linalg.norm(r))
+            history.append(rn)
+            if not np.isfinite(rn):
+                return q, history, False
+            if rn <= tol * (float(np.linalg.norm(Fr)) + float(np.linalg.norm(g)) + float(np.linalg.norm(C.T @ lam))) \
+                    and np.abs(C @ q - t).max(initial=0.0) <= 1e-12 * self.system.size:
+                return q, history, True
+            KKT = np.block([[A, C.T], [C, np.zeros((k, k))]])
+            try:
+                dx = -np.linalg.solve(KKT, r)
+            except np.linalg.LinAlgError:
+                return q, history, False
+            q += dx[:self.size]
+            lam += dx[self.size:]
+            if np.abs(self.system.expand(self.basis @ dx[:self.size])[:, :3]).max() <= 1e-12 * self.system.size:
+                return q, history, True  # the round-off floor: no translation moves any more
+        return q, history, False
+
+
+def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:
+    """The block-diagonal sparse matrix of blocks B (n, d, d)."""
+    n, d, _ = B.shape
+    rows = (d * np.arange(n)[:, None, None] + np.arange(d)[None, :, None]).repeat(d, axis=2)
+    cols = (d * np.arange(n)[:, None, None] + np.arange(d)[None, None, :]).repeat(d, axis=1)
+    return sp.csr_matrix((B.ravel(), (rows.ravel(), cols.ravel())), shape=(n * d, n * d))
