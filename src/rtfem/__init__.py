@@ -21,6 +21,7 @@ from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimul
 from .simulate import Driver, ModalSimulator
 from .sldm import SLDM
 from . import nonlinear
+from .reduced import ReducedNonlinearModel, ReducedNonlinearSimulator
 
 __version__ = "0.1.0"
 
@@ -48,6 +49,8 @@ __all__ = [
     "Load",
     "ModalBasis",
     "ModalSimulator",
+    "ReducedNonlinearModel",
+    "ReducedNonlinearSimulator",
     "modal_analysis",
     "MeshError",
     "MeshReport",

@@ -32,11 +32,13 @@ import scipy.sparse as sp
 
 from . import validate
 from .errors import ModelError, SolverError
+from .material import Damping
 from .modal import mesh_fingerprint
 from .nonlinear import Configuration
 from .rotations import integrated_rotation, rotation
+from .simulate import ForceInput
 
-__all__ = ["ReducedNonlinearModel", "ReducedStatic"]
+__all__ = ["ReducedNonlinearModel", "ReducedNonlinearSimulator", "ReducedStatic"]
 
 
 @dataclass
@@ -199,6 +201,75 @@ class ReducedNonlinearModel:
         g, K = self.forces(U @ q, tangent)
         return U.T @ g, (None if K is None else U.T @ (K @ U))
 
+    # ---------------------------------------------------------------- elements and cubature
+    def _element_data(self, elements: np.ndarray | None = None):
+        """The compiled kernel's arguments for ``elements`` (default all): the basis rows of each
+        element's dofs (E, 18, r), the rest corners, frames, local coordinates and stiffnesses."""
+        if self.dpn != 6:
+            raise ModelError("the compiled reduced forces cover shells; a solid evaluates its forces with numpy")
+        kern, cells = self.system.kernel, self.system.cells
+        idx = np.arange(cells.shape[0]) if elements is None else np.asarray(elements, int)
+        pos = np.full(self.model.n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        p = pos[self.system.dofs[idx]]
+        Ue = np.zeros((idx.size, 18, self.size))
+        Ue[p >= 0] = self.basis[p[p >= 0]]
+        X = np.ascontiguousarray(np.asarray(self.model.mesh.vertices)[cells[idx]])
+        return (Ue, X, np.ascontiguousarray(kern.R0[idx]), np.ascontiguousarray(kern.x2[idx]),
+                np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
+                np.ascontiguousarray(kern.k[idx]))
+
+    def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool) -> np.ndarray:
+        """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r)."""
+        from . import cubature
+
+        Ue, X, R0, x2, x3, y3, k = data
+        out = np.zeros((Ue.shape[0] if per_element else 1, self.size))
+        fn = cubature.compiled_forces()
+        if fn is None:
+            fn = cubature._shell_reduced_forces  # pure Python: the same loop, slow (tests without numba)
+        V = (Ue.reshape(-1, self.size) @ np.asarray(q, dtype=float)).reshape(-1, 18)
+        fn(V, Ue, np.ascontiguousarray(weights, dtype=float), X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, out,
+           per_element)
+        return out
+
+    def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0) -> dict:
+        """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
+        James 2008) on ``poses`` random poses, each moving the organ by up to ``reach`` times its
+        size. Afterwards :meth:`reduced_forces` with ``cubature=True`` sums those elements only.
+        Returns what it found (``elements``, relative training ``error``, ``seconds``)."""
+        from . import cubature
+
+        t0 = time.perf_counter()
+        poses = validate.count(poses, "poses", 1, 10**4)
+        tol = validate.positive(tol, "tol", "a relative error such as 0.05")
+        reach = validate.positive(reach, "reach", "a fraction of the model's size such as 0.1")
+        data = self._element_data()
+        E = data[0].shape[0]
+        rng = np.random.default_rng(seed)
+        rows, targets = [], []
+        for s in range(poses):
+            q = rng.normal(size=self.size)
+            q *= rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max()
+            per = self._element_forces(q, data, np.ones(E), True)  # (E, r)
+            b = per.sum(axis=0)
+            scale = 1.0 / np.linalg.norm(b)
+            rows.append(per.T * scale)
+            targets.append(b * scale)
+        elements, weights, error = cubature.train(np.vstack(rows), np.concatenate(targets), tol)
+        self._cubature = (self._element_data(elements), weights)
+        self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
+                                 "seconds": time.perf_counter() - t0}
+        return dict(self.info["cubature"], elements=elements, weights=weights)
+
+    def cubature_forces(self, q: np.ndarray) -> np.ndarray:
+        """The reduced forces g_r(q) summed over the cubature elements (compiled; see
+        :meth:`train_cubature`)."""
+        if getattr(self, "_cubature", None) is None:
+            raise ModelError("no cubature yet: call train_cubature() first")
+        data, weights = self._cubature
+        return self._element_forces(q, data, weights, False)[0]
+
     def _rows(self, nodes: np.ndarray) -> np.ndarray:
         """Positions among the free dofs of the translations of ``nodes`` (3k,), refused if held."""
         pos = np.full(self.model.n_dofs, -1)
@@ -209,12 +280,17 @@ class ReducedNonlinearModel:
         return rows
 
     def solve_static(self, forces=None, *, targets: Mapping[int, np.ndarray] | None = None, steps: int = 4,
-                     tol: float = 1e-9, max_iterations: int = 30, max_cuts: int = 10) -> ReducedStatic:
+                     tol: float = 1e-9, max_iterations: int = 30, max_cuts: int = 10,
+                     cubature: bool = False) -> ReducedStatic:
         """The reduced nonlinear static equilibrium under dead ``forces`` ((n, 3) or {node: f}) with
         the nodes of ``targets`` ({node: displacement (3,)}) moved there exactly (Lagrange
         multipliers), by Newton's method with load steps halved on failure (like
-        :func:`rtfem.nonlinear.solve_static`)."""
+        :func:`rtfem.nonlinear.solve_static`). ``cubature``: the equilibrium of the cubature forces
+        (:meth:`train_cubature`; the Newton matrix stays the all-element tangent, so the iterations
+        converge linearly, at the rate of the cubature's error)."""
         t0 = time.perf_counter()
+        if cubature and getattr(self, "_cubature", None) is None:
+            raise ModelError("no cubature yet: call train_cubature() first")
         U = self.basis
         F = np.zeros(self.model.n_dofs) if forces is None else self.model.force_vector(forces)
         Fr = U.T @ F[self.free]
@@ -230,7 +306,7 @@ class ReducedNonlinearModel:
         result = ReducedStatic(q, np.zeros((self.model.n_nodes, 3)))
         while applied < 1.0 - 1e-12:
             target = min(1.0, applied + step)
-            trial, history, ok = self._newton(q, target * Fr, C, target * t, tol, max_iterations)
+            trial, history, ok = self._newton(q, target * Fr, C, target * t, tol, max_iterations, cubature)
             if ok:
                 q, applied = trial, target
                 result.load_factors.append(target)
@@ -248,13 +324,15 @@ class ReducedNonlinearModel:
         result.seconds = time.perf_counter() - t0
         return result
 
-    def _newton(self, q, Fr, C, t, tol, max_iterations):
+    def _newton(self, q, Fr, C, t, tol, max_iterations, cubature=False):
         q = q.copy()
         k = C.shape[0]
         lam = np.zeros(k)
         history = []
         for _ in range(max_iterations):
             g, A = self.reduced_forces(q)
+            if cubature:
+                g = self.cubature_forces(q)
             r = np.concatenate([g + C.T @ lam - Fr, C @ q - t])
             rn = float(np.linalg.norm(r))
             history.append(rn)
@@ -281,3 +359,176 @@ def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:
     rows = (d * np.arange(n)[:, None, None] + np.arange(d)[None, :, None]).repeat(d, axis=2)
     cols = (d * np.arange(n)[:, None, None] + np.arange(d)[None, None, :]).repeat(d, axis=1)
     return sp.csr_matrix((B.ravel(), (rows.ravel(), cols.ravel())), shape=(n * d, n * d))
+
+
+class ReducedNonlinearSimulator(ForceInput):
+    """A Driver on a :class:`ReducedNonlinearModel`: its reduced coordinates integrated by the
+    average-acceleration Newmark rule, linearized once per step about the predictor with the rest
+    tangent (a semi-implicit step: one cubature force evaluation and one r x r solve, no Newton
+    iterations). At rest the state is the reduced nonlinear equilibrium exactly; in motion the
+    nonlinearity is integrated explicitly, stable while the tangent stiffening over one step is
+    small against the step's mass term (checked on the organ pulls of
+    ``benchmarks/reduced_nonlinear.py``).
+
+    Parameters
+    ----------
+    reduced : the model, with :meth:`ReducedNonlinearModel.train_cubature` called (the forces are
+        the cubature's; ``cubature=False`` sums every element: exact, ~100 times slower).
+    dt, damping : the step (s) and :class:`~rtfem.Damping`; alpha, beta and a scalar zeta act on
+        the reduced model's own linear modes (the eigenvectors of its rest mass and stiffness).
+
+    The step is affine in the loads: ``predict(node)`` is the no-load step and
+    ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T, so Probe and Grasp work as on a
+    linear driver. Loads are dead forces on the translations.
+    """
+
+    compliance_changes = False
+    warping = False
+
+    def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
+                 cubature: bool = True) -> None:
+        from .simulate import check_dt
+
+        if not isinstance(reduced, ReducedNonlinearModel):
+            raise ModelError(f"reduced={validate.show(reduced)} must be a ReducedNonlinearModel")
+        if cubature and getattr(reduced, "_cubature", None) is None:
+            raise ModelError("the reduced model has no cubature yet: call reduced.train_cubature() first, or pass "
+                             "cubature=False (every element each step: exact, slow)")
+        self.reduced = reduced
+        self.cubature = bool(cubature)
+        self.dt = check_dt(dt)
+        damping = Damping() if damping is None else damping
+        if not isinstance(damping, Damping):
+            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping")
+        if isinstance(damping.zeta, tuple):
+            raise ModelError("the reduced nonlinear simulator takes one damping ratio zeta for all its modes")
+        model = reduced.model
+        self.n_nodes = model.n_nodes
+        U = reduced.basis
+        self._U = U
+        m = model.mass_diagonal[reduced.free]
+        M = U.T @ (m[:, None] * U)
+        K = U.T @ (reduced._K0 @ U)
+        self._M, self._K0r = 0.5 * (M + M.T), 0.5 * (K + K.T)
+        # the reduced model's linear modes: K y = w^2 M y; with K = L L^T, L^-1 M L^-T = V diag(mu) V^T
+        L = np.linalg.cholesky(self._K0r)
+        Linv = np.linalg.inv(L)
+        mu, V = np.linalg.eigh(Linv @ self._M @ Linv.T)
+        mu = np.clip(mu, 0.0, None)
+        zeta = float(damping.zeta or 0.0)
+        c = damping.alpha * mu + damping.beta + 2.0 * zeta * np.sqrt(mu)  # alpha_i mu_i (finite as mu -> 0)
+        self._C = L @ (V * c) @ V.T @ L.T
+        h = self.dt
+        S = self._M + 0.5 * h * self._C + 0.25 * h * h * self._K0r
+        self._Sinv = np.linalg.inv(0.5 * (S + S.T))
+        self._trans = self._translation_rows()
+        self.reset()
+
+    def _translation_rows(self) -> np.ndarray:
+        """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
+        red = self.reduced
+        out = np.zeros((self.n_nodes * red.dpn, red.size))
+        out[red.free] = self._U
+        return np.ascontiguousarray(out.reshape(self.n_nodes, red.dpn, red.size)[:, :3])
+
+    # ---------------------------------------------------------------- state
+    def reset(self) -> None:
+        r = self.reduced.size
+        self._q, self._v, self._a = np.zeros(r), np.zeros(r), np.zeros(r)
+        self.time = 0.0
+        self.steps = 0
+        self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*))) of the next step
+
+    def get_state(self) -> dict:
+        return {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
+
+    def set_state(self, state) -> None:
+        r = self.reduced.size
+        if not isinstance(state, Mapping) or "q" not in state:
+            raise ModelError(f"state={validate.show(state)} must be a mapping with 'q', 'qdot', 'qddot' (and "
+                             "'steps'), as get_state() returns")
+        arrays = {}
+        for key in ("q", "qdot", "qddot"):
+            a = validate.real_array(state.get(key, np.zeros(r)), f"state[{key!r}]", 1)
+            if a.shape != (r,):
+                raise ModelError(f"state[{key!r}] must have shape ({r},), got {a.shape}")
+            arrays[key] = a.copy()
+        steps = state.get("steps", 0)
+        steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
+        self._q, self._v, self._a = arrays["q"], arrays["qdot"], arrays["qddot"]
+        self.steps = steps
+        self.time = steps * self.dt
+        self._free = None
+
+    @property
+    def fingerprint(self) -> str:
+        from .modal import mesh_fingerprint
+
+        return mesh_fingerprint(self.reduced.model.mesh)
+
+    # ---------------------------------------------------------------- the step
+    def _forces_at(self, q: np.ndarray) -> np.ndarray:
+        red = self.reduced
+        return red.cubature_forces(q) if self.cubature else red.reduced_forces(q, tangent=False)[0]
+
+    def _free_step(self):
+        """The predictor and the no-load acceleration of the next step (cached until it is taken)."""
+        if self._free is None or self._free[0] != self.steps:
+            h = self.dt
+            qs = self._q + h * self._v + 0.25 * h * h * self._a
+            vs = self._v + 0.5 * h * self._a
+            a0 = self._Sinv @ (-(self._C @ vs) - self._forces_at(qs))
+            self._free = (self.steps, qs, vs, a0)
+        return self._free
+
+    def step(self, forces=None) -> None:
+        """Advance one step of dt under dead ``forces`` ({node: f} or (n, 3); None for none)."""
+        Fr = None
+        if forces is not None:
+            if isinstance(forces, Mapping):
+                items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
+                Fr = sum((self._trans[i].T @ f for i, f in items), np.zeros(self.reduced.size))
+            else:
+                Fr = np.einsum("nir,ni->r", self._trans, self._as_array(forces))
+        _, qs, vs, a0 = self._free_step()
+        a = a0 if Fr is None else a0 + self._Sinv @ Fr
+        h = self.dt
+        self._q = qs + 0.25 * h * h * a
+        self._v = vs + 0.5 * h * a
+        self._a = a
+        self.steps += 1
+        self.time = self.steps * self.dt
+        self._free = None
+
+    def run(self, forces, n_steps: int) -> None:
+        for _ in range(self._n_steps(n_steps)):
+            self.step(forces)
+
+    # ---------------------------------------------------------------- outputs and the one-step contract
+    def displacements(self) -> np.ndarray:
+        return self.reduced.displacements(self._q)
+
+    def displacements_at(self, nodes) -> np.ndarray:
+        nodes = validate.nodes(nodes, self.n_nodes)
+        return self._trans[nodes] @ self._q
+
+    def displacement(self, node: int) -> np.ndarray:
+        return self._trans[self._node(node)] @ self._q
+
+    def predict_at(self, nodes) -> np.ndarray:
+        nodes = validate.nodes(nodes, self.n_nodes)
+        _, qs, _, a0 = self._free_step()
+        return self._trans[nodes] @ (qs + 0.25 * self.dt**2 * a0)
+
+    def predict(self, node: int) -> np.ndarray:
+        return self.predict_at(np.array([self._node(node)]))[0]
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        Ua = self._trans[nodes].reshape(-1, self.reduced.size)
+        Ub = self._trans[loaded].reshape(-1, self.reduced.size)
+        return 0.25 * self.dt**2 * (Ua @ self._Sinv @ Ub.T)
+
+    def step_compliance(self, node: int) -> np.ndarray:
+        return self.step_compliances(np.array([self._node(node)]))
