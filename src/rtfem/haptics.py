@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.linalg import lu_factor, lu_solve
 from scipy.spatial import cKDTree
 
 from . import validate
@@ -224,6 +225,7 @@ class Grasp:
         self.forces = np.zeros((0, 3))  # the force on each held vertex (N)
         self._W: dict[int, np.ndarray] = {}
         self._block = None
+        self._patch_lu = None
 
     def compliance(self, node: int) -> np.ndarray:
         """The 3x3 step compliance W at ``node`` (the driver prepares the node the first time)."""
@@ -259,12 +261,14 @@ class Grasp:
         if nodes.size == 1:
             self.compliance(node)
             self._block = None
+            self._patch_lu = None
         else:
             prepare(self.driver, nodes)
             W = step_compliances(self.driver, nodes)
             nodes, keep = _movable(nodes, W, node)
             W = W[np.ix_(keep, keep)]
             self._block = None if getattr(self.driver, "compliance_changes", False) else W
+            self._patch_lu = None
         self.node, self.nodes = node, nodes
         self._hold = displacements_at(self.driver, nodes).reshape(-1)
         self._jaw = x
@@ -287,6 +291,7 @@ class Grasp:
         self.node = None
         self.nodes = np.zeros(0, dtype=np.int64)
         self._block = None
+        self._patch_lu = None
 
     def update(self, target=None) -> np.ndarray:
         """One step with the hand at ``target`` (None or no grab: the organ moves freely).
@@ -305,9 +310,14 @@ class Grasp:
             p = self.node
             f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - d.predict(p)))[None]
         else:
-            W = self._block if self._block is not None else step_compliances(d, self.nodes)
             h = self._hold - predictions(d, self.nodes).reshape(-1)
-            f, _ = hold_patch(W, h, k * (c - self._jaw), k, self.grip)
+            if self._block is not None:  # a constant compliance: the jaw's system is factorized once per grip
+                key = (k, self.grip)
+                if self._patch_lu is None or self._patch_lu[0] != key:
+                    self._patch_lu = (key, lu_factor(patch_system(self._block, k, self.grip)))
+                f = lu_solve(self._patch_lu[1], np.concatenate([h, k * (c - self._jaw)]))[:-3].reshape(-1, 3)
+            else:
+                f, _ = hold_patch(step_compliances(d, self.nodes), h, k * (c - self._jaw), k, self.grip)
         total = f.sum(axis=0)
         if self.max_force is not None:
             mag = float(np.linalg.norm(total))
