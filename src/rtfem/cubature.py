@@ -9,7 +9,8 @@ Sec. 4), until the relative error on the training forces is below the tolerance.
 
 The compiled kernel (numba) evaluates the corotational shell triangle's forces (the same
 deformational dofs and first derivatives as :class:`rtfem.shell.CorotationalTriangles`, to
-round-off) and projects them, per element, in one loop that releases the GIL. Without numba the
+round-off) in one loop that releases the GIL; the element dofs before it and the projection
+after it are BLAS products. Without numba the
 numpy kernel runs on the chosen elements (the same numbers, slower).
 """
 
@@ -71,17 +72,13 @@ def _left_jacobian(t, J):
             J[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
 
 
-def _shell_reduced_forces(V, Ue, w, X, R0, x2, x3, y3, k, AP, AQ, out, per_element):
-    """out[0] (r,) = sum_e w_e Ue_e^T g_e(V_e) (or each term in out[e] when ``per_element``) for
-    corotational triangles, V_e = Ue_e q (E, 18) the element dofs (one BLAS product before): Ue (E, 18, r) the basis
-    rows of each element's dofs (zero on fixed dofs), X (E, 3, 3) rest corners, R0 (E, 3, 3) rest
-    frames, x2, x3, y3 (E,) local rest coordinates, k (E, 18, 18) local stiffnesses. g_e: the
-    forces on the corners' translations and J(theta)^T m on their rotation vectors."""
-    E = Ue.shape[0]
-    r = Ue.shape[2]
-    for e in range(out.shape[0]):
-        for j in range(r):
-            out[e, j] = 0.0
+def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
+    """F (E, 18) = g_e(V_e), the generalized forces of corotational triangles at element dofs V
+    (E, 18) (V_e = U_e q: one BLAS product before; the projection U_e^T F_e is one after).
+    X (E, 3, 3) rest corners, R0 (E, 3, 3) rest frames, x2, x3, y3 (E,) local rest coordinates,
+    k (E, 18, 18) local stiffnesses. g_e: the forces on the corners' translations and
+    J(theta)^T m on their rotation vectors."""
+    E = V.shape[0]
     v = np.zeros(18)
     x = np.zeros((3, 3))
     Q = np.zeros((3, 3))
@@ -240,11 +237,8 @@ def _shell_reduced_forces(V, Ue, w, X, R0, x2, x3, y3, k, AP, AQ, out, per_eleme
                 for m in range(3):
                     s += Jl[m, c] * fz[6 + 3 * i + m]
                 f[6 * i + 3 + c] = s
-        row = e if per_element else 0
         for i in range(18):
-            fi = w[e] * f[i]
-            for j in range(r):
-                out[row, j] += Ue[e, i, j] * fi
+            F[e, i] = f[i]
 
 
 _COMPILED: dict = {}
@@ -259,8 +253,8 @@ def compiled_forces():
             opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
             rod = numba.njit(**opts)(_rodrigues)
             jac = numba.njit(**opts)(_left_jacobian)
-            g = dict(_shell_reduced_forces.__globals__, _rodrigues=rod, _left_jacobian=jac)
-            fn = type(_shell_reduced_forces)(_shell_reduced_forces.__code__, g, "_shell_reduced_forces")
+            g = dict(_shell_element_forces.__globals__, _rodrigues=rod, _left_jacobian=jac)
+            fn = type(_shell_element_forces)(_shell_element_forces.__code__, g, "_shell_element_forces")
             _COMPILED["shell"] = numba.njit(**opts)(fn)
         except Exception:  # pragma: no cover - numba absent or unable to compile here
             _COMPILED["shell"] = None

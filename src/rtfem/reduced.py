@@ -224,14 +224,17 @@ class ReducedNonlinearModel:
         from . import cubature
 
         Ue, X, R0, x2, x3, y3, k = data
-        out = np.zeros((Ue.shape[0] if per_element else 1, self.size))
         fn = cubature.compiled_forces()
         if fn is None:
-            fn = cubature._shell_reduced_forces  # pure Python: the same loop, slow (tests without numba)
-        V = (Ue.reshape(-1, self.size) @ np.asarray(q, dtype=float)).reshape(-1, 18)
-        fn(V, Ue, np.ascontiguousarray(weights, dtype=float), X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, out,
-           per_element)
-        return out
+            fn = cubature._shell_element_forces  # pure Python: the same loop, slow (tests without numba)
+        E = Ue.shape[0]
+        V = (Ue.reshape(-1, self.size) @ np.asarray(q, dtype=float)).reshape(E, 18)
+        F = np.empty((E, 18))
+        fn(V, X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, F)
+        F *= np.asarray(weights, dtype=float)[:, None]
+        if per_element:
+            return np.einsum("eir,ei->er", Ue, F)
+        return (F.reshape(1, -1) @ Ue.reshape(-1, self.size))
 
     def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0) -> dict:
         """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
