@@ -28,10 +28,16 @@ _AP = np.array([2, 0, 1])
 _AQ = np.array([1, 2, 0])
 
 
-def _rodrigues(t, Q):
-    """Q (3, 3) = exp([t]x) (Rodrigues)."""
+def _exp_series(t, jacobian, out):
+    """out (3, 3) = I + a [t]x + b [t]x^2: exp([t]x) (Rodrigues; a = sin|t|/|t|, b = (1 - cos|t|)/|t|^2),
+    or with ``jacobian`` the left Jacobian of SO(3) (a = (1 - cos|t|)/|t|^2, b = (|t| - sin|t|)/|t|^3)."""
     th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-    if th < 1e-8:
+    if jacobian:
+        if th < 1e-6:
+            a, b = 0.5 - th * th / 24.0, 1.0 / 6.0 - th * th / 120.0
+        else:
+            a, b = (1.0 - np.cos(th)) / (th * th), (th - np.sin(th)) / (th * th * th)
+    elif th < 1e-8:
         a, b = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
     else:
         a, b = np.sin(th) / th, (1.0 - np.cos(th)) / (th * th)
@@ -47,29 +53,7 @@ def _rodrigues(t, Q):
             s = 0.0
             for m in range(3):
                 s += K[i, m] * K[m, j]
-            Q[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
-
-
-def _left_jacobian(t, J):
-    """J (3, 3) = I + (1 - cos t)/t^2 [t]x + (t - sin t)/t^3 [t]x^2."""
-    th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-    if th < 1e-6:
-        a, b = 0.5 - th * th / 24.0, 1.0 / 6.0 - th * th / 120.0
-    else:
-        a, b = (1.0 - np.cos(th)) / (th * th), (th - np.sin(th)) / (th * th * th)
-    K = np.zeros((3, 3))
-    K[0, 1] = -t[2]
-    K[0, 2] = t[1]
-    K[1, 0] = t[2]
-    K[1, 2] = -t[0]
-    K[2, 0] = -t[1]
-    K[2, 1] = t[0]
-    for i in range(3):
-        for j in range(3):
-            s = 0.0
-            for m in range(3):
-                s += K[i, m] * K[m, j]
-            J[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
+            out[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
 
 
 def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
@@ -159,7 +143,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         for i in range(3):  # corner rotations relative to the element frame
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
-            _rodrigues(t, Q)
+            _exp_series(t, False, Q)
             for p in range(3):
                 for s_ in range(3):
                     acc = 0.0
@@ -198,7 +182,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         for i in range(3):  # the rotational rows: over (a, b) and over the corner's spins
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
-            _rodrigues(t, Q)
+            _exp_series(t, False, Q)
             for p in range(3):
                 for s_ in range(3):
                     acc = 0.0
@@ -231,7 +215,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         for i in range(3):  # generalized moments J(theta)^T m on the rotation vectors
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
-            _left_jacobian(t, Jl)
+            _exp_series(t, True, Jl)
             for c in range(3):
                 s = 0.0
                 for m in range(3):
@@ -251,9 +235,7 @@ def compiled_forces():
             import numba
 
             opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            rod = numba.njit(**opts)(_rodrigues)
-            jac = numba.njit(**opts)(_left_jacobian)
-            g = dict(_shell_element_forces.__globals__, _rodrigues=rod, _left_jacobian=jac)
+            g = dict(_shell_element_forces.__globals__, _exp_series=numba.njit(**opts)(_exp_series))
             fn = type(_shell_element_forces)(_shell_element_forces.__code__, g, "_shell_element_forces")
             _COMPILED["shell"] = numba.njit(**opts)(fn)
         except Exception:  # pragma: no cover - numba absent or unable to compile here
