@@ -190,3 +190,35 @@ def test_simulator_comes_to_the_reduced_equilibrium_and_keeps_the_driver_contrac
     assert np.array_equal(sim.displacements(), U)
     with pytest.raises(rt.ModelError, match="train_cubature"):
         ReducedNonlinearSimulator(ReducedNonlinearModel(model, rt.modal_analysis(model, 4), 1), 1e-3)
+
+
+def test_bad_arguments_are_refused_and_change_nothing(small_liver):
+    from rtfem.reduced import ReducedNonlinearSimulator
+
+    red = small_liver
+    red.train_cubature(8, tol=0.1)
+    cub = red._cubature
+    for kwargs in ({"poses": 0}, {"tol": -1.0}, {"reach": float("nan")}, {"poses": 2.5}):
+        with pytest.raises(rt.ModelError):
+            red.train_cubature(**kwargs)
+    assert red._cubature is cub  # the trained cubature is kept
+    for args in ((0.0,), (float("nan"),)):
+        with pytest.raises(rt.RtfemError):
+            ReducedNonlinearSimulator(red, *args)
+    with pytest.raises(rt.ModelError, match="one damping ratio"):
+        ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=(0.1, 0.2)))
+    with pytest.raises(rt.ModelError, match="ReducedNonlinearModel"):
+        ReducedNonlinearSimulator("not a model", 1e-3)
+    sim = ReducedNonlinearSimulator(red, 1e-3)
+    node = red.model.nearest_free_node(rt.meshes.PROBE_POINT)
+    sim.step({node: (0.0, 0.0, 0.2)})
+    state = sim.get_state()
+    for bad in ({node: (0.0, float("nan"), 0.0)}, {node: (1.0, 2.0)}, {10**6: (0.0, 0.0, 1.0)}, np.zeros((3, 3))):
+        with pytest.raises(rt.ModelError):
+            sim.step(bad)
+    after = sim.get_state()
+    assert all(np.array_equal(state[k], after[k]) for k in state)
+    with pytest.raises(rt.ModelError):
+        sim.set_state({"q": np.zeros(3)})
+    with pytest.raises(rt.ModelError):
+        red.solve_static(targets={node: (0.0, float("inf"), 0.0)})
