@@ -67,7 +67,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
     x = np.zeros((3, 3))
     Q = np.zeros((3, 3))
     Jl = np.zeros((3, 3))
-    C = np.zeros((3, 3))
+    C = np.zeros((3, 3, 3))  # each corner's Q_i R0^T
     A = np.zeros((3, 3))
     R = np.zeros((3, 3))
     dR = np.zeros((3, 3, 6))
@@ -140,7 +140,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         d[6] = la - x2[e]
         d[12] = R[0, 0] * b[0] + R[0, 1] * b[1] + R[0, 2] * b[2] - x3[e]
         d[13] = R[1, 0] * b[0] + R[1, 1] * b[1] + R[1, 2] * b[2] - y3[e]
-        for i in range(3):  # corner rotations relative to the element frame
+        for i in range(3):  # corner rotations relative to the element frame: C_i = Q_i R0^T, A = R C_i
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
             _exp_series(t, False, Q)
@@ -149,12 +149,12 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
                     acc = 0.0
                     for m in range(3):
                         acc += Q[p, m] * R0[e, s_, m]
-                    C[p, s_] = acc
+                    C[i, p, s_] = acc
             for p in range(3):
                 for s_ in range(3):
                     acc = 0.0
                     for m in range(3):
-                        acc += R[p, m] * C[m, s_]
+                        acc += R[p, m] * C[i, m, s_]
                     A[p, s_] = acc
             for c in range(3):
                 d[6 * i + 3 + c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
@@ -180,21 +180,12 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
                 s13 += dR[1, c, 3 + m] * b[c]
             fz[3 + m] += g[12] * (s12 + R[0, m]) + g[13] * (s13 + R[1, m])
         for i in range(3):  # the rotational rows: over (a, b) and over the corner's spins
-            for c in range(3):
-                t[c] = v[6 * i + 3 + c]
-            _exp_series(t, False, Q)
-            for p in range(3):
-                for s_ in range(3):
-                    acc = 0.0
-                    for m in range(3):
-                        acc += Q[p, m] * R0[e, s_, m]
-                    C[p, s_] = acc
             for p in range(3):
                 for s_ in range(3):
                     for m in range(6):
                         acc = 0.0
                         for u in range(3):
-                            acc += dR[p, u, m] * C[u, s_]
+                            acc += dR[p, u, m] * C[i, u, s_]
                         dA[p, s_, m] = acc
             for c in range(3):
                 gi = g[6 * i + 3 + c]
@@ -205,8 +196,8 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
                 for ll in range(3):
                     # (R [e_l]x C)[p, q] = sum_u R[p, u] (e_l x C[:, q])_u = R[p, l+2] C[l+1, q] - R[p, l+1] C[l+2, q]
                     l1, l2 = (ll + 1) % 3, (ll + 2) % 3
-                    xp = R[p, l2] * C[l1, qq] - R[p, l1] * C[l2, qq]
-                    xq = R[qq, l2] * C[l1, p] - R[qq, l1] * C[l2, p]
+                    xp = R[p, l2] * C[i, l1, qq] - R[p, l1] * C[i, l2, qq]
+                    xq = R[qq, l2] * C[i, l1, p] - R[qq, l1] * C[i, l2, p]
                     fz[6 + 3 * i + ll] += gi * 0.5 * (xp - xq)
         for c in range(3):
             f[c] = -fz[c] - fz[3 + c]
