@@ -219,18 +219,30 @@ class ReducedNonlinearModel:
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
                 np.ascontiguousarray(kern.k[idx]))
 
-    def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool) -> np.ndarray:
-        """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r)."""
+    @staticmethod
+    def _kernel_forces(V: np.ndarray, data) -> np.ndarray:
+        """Each element's forces (E, 18) at its dofs V (E, 18) (compiled where numba is)."""
         from . import cubature
 
-        Ue, X, R0, x2, x3, y3, k = data
+        _, X, R0, x2, x3, y3, k = data
         fn = cubature.compiled_forces()
         if fn is None:
             fn = cubature._shell_element_forces  # pure Python: the same loop, slow (tests without numba)
+        F = np.empty(V.shape)
+        fn(np.ascontiguousarray(V), X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, F)
+        return F
+
+    def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool,
+                        rest: np.ndarray | None = None) -> np.ndarray:
+        """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r).
+        ``rest`` (E, 18, 18): subtract each element's rest tangent times its dofs (the nonlinear
+        remainder g_e(v) - K_e v)."""
+        Ue = data[0]
         E = Ue.shape[0]
         V = (Ue.reshape(-1, self.size) @ np.asarray(q, dtype=float)).reshape(E, 18)
-        F = np.empty((E, 18))
-        fn(V, X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, F)
+        F = self._kernel_forces(V, data)
+        if rest is not None:
+            F -= np.einsum("eij,ej->ei", rest, V)
         F *= np.asarray(weights, dtype=float)[:, None]
         if per_element:
             return np.einsum("eir,ei->er", Ue, F)
@@ -272,6 +284,28 @@ class ReducedNonlinearModel:
             raise ModelError("no cubature yet: call train_cubature() first")
         data, weights = self._cubature
         return self._element_forces(q, data, weights, False)[0]
+
+    def cubature_rest(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cubature elements' rest tangents K_e (E, 18, 18; central differences of the kernel,
+        which is smooth) and the cubature's reduced rest stiffness sum_e w_e U_e^T K_e U_e (r, r),
+        computed once. They split the cubature forces into a linear part and the remainder
+        g_e(v) - K_e v that :class:`ReducedNonlinearSimulator` refreshes a group at a time."""
+        if getattr(self, "_cubature", None) is None:
+            raise ModelError("no cubature yet: call train_cubature() first")
+        if getattr(self, "_cubature_rest", None) is None or self._cubature_rest[0] is not self._cubature:
+            data, w = self._cubature
+            E = data[0].shape[0]
+            h = 1e-7 * self.system.size  # relative to the organ: truncation and round-off both ~1e-10
+            Ke = np.empty((E, 18, 18))
+            for j in range(18):
+                V = np.zeros((E, 18))
+                V[:, j] = h
+                Ke[:, :, j] = (self._kernel_forces(V, data) - self._kernel_forces(-V, data)) / (2 * h)
+            Ke = 0.5 * (Ke + Ke.transpose(0, 2, 1))  # symmetric at rest (the generalized moments' J = I)
+            Ue = data[0]
+            K = np.einsum("eir,eij,ejs->rs", Ue * w[:, None, None], Ke, Ue, optimize=True)
+            self._cubature_rest = (self._cubature, Ke, 0.5 * (K + K.T))
+        return self._cubature_rest[1], self._cubature_rest[2]
 
     def _rows(self, nodes: np.ndarray) -> np.ndarray:
         """Positions among the free dofs of the translations of ``nodes`` (3k,), refused if held."""
@@ -379,6 +413,12 @@ class ReducedNonlinearSimulator(ForceInput):
         the cubature's; ``cubature=False`` sums every element: exact, ~100 times slower).
     dt, damping : the step (s) and :class:`~rtfem.Damping`; alpha, beta and a scalar zeta act on
         the reduced model's own linear modes (the eigenvectors of its rest mass and stiffness).
+    spread : split the cubature elements into this many groups and re-evaluate one group per step
+        (multirate, after Cavusoglu & Tendick 2000): the forces are the cubature's rest-linear part
+        K_c q, exact every step, plus each group's nonlinear remainder g_e(v) - K_e v as last
+        evaluated (at most ``spread - 1`` steps old). A step then costs about 1/spread of the
+        cubature; the static equilibrium is the same (every group is current at rest). Default 1:
+        every element every step.
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T, so Probe and Grasp work as on a
@@ -389,7 +429,7 @@ class ReducedNonlinearSimulator(ForceInput):
     warping = False
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
-                 cubature: bool = True) -> None:
+                 cubature: bool = True, spread: int = 1) -> None:
         from .simulate import check_dt
 
         if not isinstance(reduced, ReducedNonlinearModel):
@@ -425,6 +465,18 @@ class ReducedNonlinearSimulator(ForceInput):
         S = self._M + 0.5 * h * self._C + 0.25 * h * h * self._K0r
         self._Sinv = np.linalg.inv(0.5 * (S + S.T))
         self._trans = self._translation_rows()
+        self.spread = validate.count(spread, "spread", 1, 1024)
+        self._groups = []
+        if self.spread > 1:
+            if not self.cubature:
+                raise ModelError("spread > 1 refreshes the cubature forces a group at a time: it needs cubature=True")
+            data, w = reduced._cubature
+            if self.spread > w.size:
+                raise ModelError(f"spread={self.spread} is more than the {w.size} cubature elements: pass at most "
+                                 f"{w.size}")
+            Ke, self._Kc = reduced.cubature_rest()
+            cut = np.linspace(0, w.size, self.spread + 1).astype(int)
+            self._groups = [(tuple(a[lo:hi] for a in data), w[lo:hi], Ke[lo:hi]) for lo, hi in zip(cut[:-1], cut[1:])]
         self.reset()
 
     def _translation_rows(self) -> np.ndarray:
@@ -440,10 +492,14 @@ class ReducedNonlinearSimulator(ForceInput):
         self._q, self._v, self._a = np.zeros(r), np.zeros(r), np.zeros(r)
         self.time = 0.0
         self.steps = 0
-        self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*))) of the next step
+        self._lag = np.zeros((self.spread, r))  # each group's remainder, as last evaluated (zero at rest)
+        self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*)), (group, its new remainder)) of the next step
 
     def get_state(self) -> dict:
-        return {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
+        state = {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
+        if self.spread > 1:
+            state["lag"] = self._lag.copy()
+        return state
 
     def set_state(self, state) -> None:
         r = self.reduced.size
@@ -458,7 +514,17 @@ class ReducedNonlinearSimulator(ForceInput):
             arrays[key] = a.copy()
         steps = state.get("steps", 0)
         steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
+        lag = None
+        if self.spread > 1 and state.get("lag") is not None:
+            lag = validate.real_array(state["lag"], "state['lag']", 2)
+            if lag.shape != (self.spread, r):
+                raise ModelError(f"state['lag'] must have shape ({self.spread}, {r}) (one remainder per group), got "
+                                 f"{lag.shape}")
+        elif self.spread > 1:  # no lags saved: every group evaluated at q
+            lag = np.stack([self._remainder(c, arrays["q"]) for c in range(self.spread)])
         self._q, self._v, self._a = arrays["q"], arrays["qdot"], arrays["qddot"]
+        if lag is not None:
+            self._lag = lag.copy()
         self.steps = steps
         self.time = steps * self.dt
         self._free = None
@@ -474,14 +540,30 @@ class ReducedNonlinearSimulator(ForceInput):
         red = self.reduced
         return red.cubature_forces(q) if self.cubature else red.reduced_forces(q, tangent=False)[0]
 
+    def _remainder(self, c: int, q: np.ndarray) -> np.ndarray:
+        """Group c's nonlinear remainder sum_e w_e U_e^T (g_e(U_e q) - K_e U_e q)."""
+        data, w, Ke = self._groups[c]
+        return self.reduced._element_forces(q, data, w, False, rest=Ke)[0]
+
     def _free_step(self):
         """The predictor and the no-load acceleration of the next step (cached until it is taken)."""
         if self._free is None or self._free[0] != self.steps:
             h = self.dt
             qs = self._q + h * self._v + 0.25 * h * h * self._a
             vs = self._v + 0.5 * h * self._a
-            a0 = self._Sinv @ (-(self._C @ vs) - self._forces_at(qs))
-            self._free = (self.steps, qs, vs, a0)
+            fresh = None
+            if self.spread == 1:
+                g = self._forces_at(qs)
+            else:  # one group refreshed at the predictor, the others as last evaluated
+                c = self.steps % self.spread
+                fresh = (c, self._remainder(c, qs))
+                g = self._Kc @ qs + (self._lag.sum(axis=0) - self._lag[c] + fresh[1])
+            a0 = self._Sinv @ (-(self._C @ vs) - g)
+            if not np.isfinite(a0).all():
+                raise SolverError(f"the reduced nonlinear simulation diverged at step {self.steps} (t = {self.time:g} s): "
+                                  "the forces are no longer finite; reset() it, and take a smaller dt or spread "
+                                  f"(now {self.spread}), or more damping")
+            self._free = (self.steps, qs, vs, a0, fresh)
         return self._free
 
     def step(self, forces=None) -> None:
@@ -489,11 +571,13 @@ class ReducedNonlinearSimulator(ForceInput):
         Fr = None
         if forces is not None:
             if isinstance(forces, Mapping):
-                items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
-                Fr = sum((self._trans[i].T @ f for i, f in items), np.zeros(self.reduced.size))
+                nodes, P = self._loads(forces)
+                Fr = np.einsum("kir,ki->r", self._trans[nodes], P)
             else:
                 Fr = np.einsum("nir,ni->r", self._trans, self._as_array(forces))
-        _, qs, vs, a0 = self._free_step()
+        _, qs, vs, a0, fresh = self._free_step()
+        if fresh is not None:
+            self._lag[fresh[0]] = fresh[1]
         a = a0 if Fr is None else a0 + self._Sinv @ Fr
         h = self.dt
         self._q = qs + 0.25 * h * h * a
@@ -502,6 +586,22 @@ class ReducedNonlinearSimulator(ForceInput):
         self.steps += 1
         self.time = self.steps * self.dt
         self._free = None
+
+    def _loads(self, forces: Mapping) -> tuple[np.ndarray, np.ndarray]:
+        """{node: f} as (nodes, (k, 3)), checked in one pass (a grasp loads tens of nodes per tick)."""
+        try:
+            nodes = np.fromiter(forces.keys(), dtype=np.int64, count=len(forces))
+            P = np.array(list(forces.values()), dtype=float).reshape(len(forces), 3)
+            ok = bool(((nodes >= 0) & (nodes < self.n_nodes)).all()) and bool(np.isfinite(P).all())
+            ok = ok and all(isinstance(k, (int, np.integer)) and not isinstance(k, (bool, np.bool_)) for k in forces)
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:  # find the bad entry and say what is wrong with it
+            for k, f in forces.items():
+                self._node(k)
+                self._vec(k, f)
+            raise ModelError(f"forces={validate.show(forces)}: give {{node: (fx, fy, fz)}}")
+        return nodes, P
 
     def run(self, forces, n_steps: int) -> None:
         for _ in range(self._n_steps(n_steps)):
@@ -520,7 +620,7 @@ class ReducedNonlinearSimulator(ForceInput):
 
     def predict_at(self, nodes) -> np.ndarray:
         nodes = validate.nodes(nodes, self.n_nodes)
-        _, qs, _, a0 = self._free_step()
+        _, qs, _, a0, _ = self._free_step()
         return self._trans[nodes] @ (qs + 0.25 * self.dt**2 * a0)
 
     def predict(self, node: int) -> np.ndarray:
