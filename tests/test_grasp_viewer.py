@@ -155,3 +155,27 @@ def test_session_large_deformation_switch(cap):
     with pytest.raises(rt.ModelError, match="impedance map"):
         s.configure(method="impedance", large=True)
     assert s.settings.method == "direct"  # nothing lost
+
+
+def test_session_reduced_nonlinear_method(cap):
+    """method="nonlinear": the reduced nonlinear driver (the modes, their modal derivatives and
+    cubature forces). Held by the grasp, the organ settles to the reduced
+    model's own static equilibrium under the forces the jaw applies (dead loads)."""
+    from rtfem.reduced import ReducedNonlinearSimulator
+
+    mesh = cap.mesh
+    node = int(mesh.groups["pole"][0])
+    X = np.asarray(mesh.vertices)[node]
+    s = Session(mesh, cap.material, fixed="rim", settings=Settings(method="nonlinear", n_modes=12, alpha=60.0,
+                                                                   grasp_stiffness=50.0, grab_radius=0.0))
+    assert s.settings.label.startswith("reduced nonlinear")
+    assert isinstance(s.driver, ReducedNonlinearSimulator) and s.driver.spread == 1
+    s.grab(X)
+    s.drag(X + np.array([0.0, 0.0, 0.01]))
+    for _ in range(1500):
+        s.step()
+    forces = {int(v): f for v, f in zip(s.grasp.nodes, s.grasp.forces)}
+    static = s.driver.reduced.solve_static(forces, cubature=True, max_iterations=60)
+    U = s.driver.displacements()
+    assert np.abs(U[node]).max() > 0.003  # pulled a few millimetres
+    assert np.abs(U - static.displacements).max() < 1e-4 * np.abs(U).max()

@@ -418,6 +418,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True, warping=large)
     elif args.method == "direct":
         sim = DirectSimulator(model, args.dt, damping, large_deformation=large)
+    elif args.method == "nonlinear":
+        from .reduced import check_shell, reduced_nonlinear_driver
+
+        check_shell(model)
+        modes = _modes(model, args)
+        with progress_bar("modal derivatives", unit="mode") as bar:
+            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, progress=bar)
+        print(f"reduced     {sim.reduced.size} coordinates ({modes.n_modes} modes + {sim.reduced.n_derivatives} "
+              f"derivatives), cubature on {sim.reduced.info['cubature']['elements']} of "
+              f"{sim.reduced.info['cubature']['of']} elements")
     else:
         sim = None
     t0 = time.perf_counter()
@@ -430,7 +440,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     csv_path, pvd = out.close()
     print(f"load        {what}")
-    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method) if large else args.method
+    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method, args.method) if large \
+        else args.method
+    label = "reduced nonlinear" if args.method == "nonlinear" else label
     print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({label}) in {elapsed:.2f} s "
           f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")
     if schedule is None:
@@ -562,9 +574,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "--depth over 20 %% of the run, hold to 60 %%, release by 80 %%), or the loads of --load act. "
                        "Writes response.pvd (+ frames) and response.csv to --out.")
     add_model_options(p)
-    p.add_argument("--method", choices=("modal", "direct", "sldm"), default="modal",
+    p.add_argument("--method", choices=("modal", "direct", "sldm", "nonlinear"), default="modal",
                    help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
-                        "baseline) or sldm (Krylov, --load only)")
+                        "baseline), sldm (Krylov, --load only) or nonlinear (the reduced nonlinear model: the r modes "
+                        "and the modal derivatives of up to 20 of them, cubature forces; large deformation on a shell)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
@@ -607,7 +620,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
     add_model_options(p)
-    p.add_argument("--method", choices=("modal", "impedance", "direct"), default="modal", help="dynamics (default modal)")
+    p.add_argument("--method", choices=("modal", "impedance", "direct", "nonlinear"), default="modal",
+                   help="dynamics (default modal; nonlinear: the reduced nonlinear model, modes + modal derivatives "
+                        "with cubature forces: a shell's large deformation, ~1 ms a step on the default liver)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")

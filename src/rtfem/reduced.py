@@ -38,7 +38,7 @@ from .nonlinear import Configuration
 from .rotations import integrated_rotation, rotation
 from .simulate import ForceInput
 
-__all__ = ["ReducedNonlinearModel", "ReducedNonlinearSimulator", "ReducedStatic"]
+__all__ = ["ReducedNonlinearModel", "ReducedNonlinearSimulator", "ReducedStatic", "reduced_nonlinear_driver"]
 
 
 @dataclass
@@ -418,7 +418,13 @@ class ReducedNonlinearSimulator(ForceInput):
         K_c q, exact every step, plus each group's nonlinear remainder g_e(v) - K_e v as last
         evaluated (at most ``spread - 1`` steps old). A step then costs about 1/spread of the
         cubature; the static equilibrium is the same (every group is current at rest). Default 1:
-        every element every step.
+        every element every step. The lagged remainders are explicit with a delay, so spread > 1
+        is conditionally stable: it needs the reduced model's high modes damped (a zeta; mass-
+        proportional alpha alone leaves them free) and soft coupling. Measured on the level-4
+        liver (40 modes + derivatives of 20, zeta 1): a 200 N/m probe at 1 kHz settles with
+        spread 8; a Grasp 1e5 times stiffer than the organ, jumped 1-5 cm, diverges with spread
+        6-8 and keeps a ripple of ~6 % of the pull with spread 2 and 4. A diverged state raises
+        SolverError.
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T, so Probe and Grasp work as on a
@@ -635,3 +641,24 @@ class ReducedNonlinearSimulator(ForceInput):
 
     def step_compliance(self, node: int) -> np.ndarray:
         return self.step_compliances(np.array([self._node(node)]))
+
+
+def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,
+                             spread: int = 1, progress: Callable[[int, int, str], None] | None = None):
+    """The reduced nonlinear Driver in one call, as ``rtfem simulate --method nonlinear`` and the
+    viewer build it: a :class:`ReducedNonlinearModel` on ``modes`` and the modal derivatives of the
+    lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
+    :class:`ReducedNonlinearSimulator` with ``spread`` element groups (1: every element every
+    step, the setting measured stable in every case; see the class for when more is). Shells only:
+    the compiled cubature kernel is the corotational triangle's."""
+    check_shell(model)
+    red = ReducedNonlinearModel(model, modes, min(int(derivatives), modes.n_modes), progress=progress)
+    red.train_cubature(16, tol=0.05)
+    return ReducedNonlinearSimulator(red, dt, damping, spread=spread)
+
+
+def check_shell(model) -> None:
+    """Refuse, before any precompute, a model the reduced nonlinear driver cannot run (a solid)."""
+    if getattr(model, "dofs_per_node", 6) != 6:
+        raise ModelError("the reduced nonlinear model's cubature covers shells; for a solid organ use the warped modal "
+                         "model (--method modal --large) or the corotational full order (--method direct --large)")
