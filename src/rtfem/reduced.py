@@ -77,7 +77,11 @@ class ReducedNonlinearModel:
 
     def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
                  progress: Callable[[int, int, str], None] | None = None) -> None:
+        from .modal import ModalBasis
+
         t0 = time.perf_counter()
+        if not isinstance(modes, ModalBasis):
+            raise ModelError(f"modes={validate.show(modes)} must be an rt.ModalBasis (from rt.modal_analysis(model, r))")
         if modes.fingerprint != mesh_fingerprint(model.mesh) or modes.shapes.shape[0] != model.n_nodes:
             raise ModelError("these modes were computed for another mesh: pass the model they came from, or "
                              "recompute them with rt.modal_analysis(model, ...)")
@@ -652,7 +656,9 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     step, the setting measured stable in every case; see the class for when more is). Shells only:
     the compiled cubature kernel is the corotational triangle's."""
     check_shell(model)
-    red = ReducedNonlinearModel(model, modes, min(int(derivatives), modes.n_modes), progress=progress)
+    derivatives = validate.count(derivatives, "derivatives", 0, 10**4)
+    red = ReducedNonlinearModel(model, modes, min(derivatives, getattr(modes, "n_modes", derivatives)),
+                                progress=progress)
     red.train_cubature(16, tol=0.05)
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread)
 

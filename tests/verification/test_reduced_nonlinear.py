@@ -246,6 +246,12 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
     for kwargs in ({"spread": 0}, {"spread": 10**5}, {"spread": 2, "cubature": False}, {"spread": 1.5}):
         with pytest.raises(rt.ModelError):
             ReducedNonlinearSimulator(red, 1e-3, **kwargs)
+    from rtfem.reduced import reduced_nonlinear_driver
+
+    for args, kwargs in (((model, "modes", 1e-3), {}), ((model, None, 1e-3), {"derivatives": "x"}),
+                         ((rt.SolidModel(rt.meshes.box(nx=2, ny=1, nz=1), rt.Material()), None, 1e-3), {})):
+        with pytest.raises(rt.ModelError):
+            reduced_nonlinear_driver(*args, **kwargs)
 
 
 def test_bad_arguments_are_refused_and_change_nothing(small_liver):
