@@ -440,8 +440,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     csv_path, pvd = out.close()
     print(f"load        {what}")
-    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method, args.method) if large \
-        else args.method
+    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method) if large else args.method
     label = "reduced nonlinear" if args.method == "nonlinear" else label
     print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({label}) in {elapsed:.2f} s "
           f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")

@@ -598,20 +598,13 @@ class ReducedNonlinearSimulator(ForceInput):
         self._free = None
 
     def _loads(self, forces: Mapping) -> tuple[np.ndarray, np.ndarray]:
-        """{node: f} as (nodes, (k, 3)), checked in one pass (a grasp loads tens of nodes per tick)."""
-        try:
-            nodes = np.fromiter(forces.keys(), dtype=np.int64, count=len(forces))
-            P = np.array(list(forces.values()), dtype=float).reshape(len(forces), 3)
-            ok = bool(((nodes >= 0) & (nodes < self.n_nodes)).all()) and bool(np.isfinite(P).all())
-            ok = ok and all(isinstance(k, (int, np.integer)) and not isinstance(k, (bool, np.bool_)) for k in forces)
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:  # find the bad entry and say what is wrong with it
-            for k, f in forces.items():
-                self._node(k)
-                self._vec(k, f)
-            raise ModelError(f"forces={validate.show(forces)}: give {{node: (fx, fy, fz)}}")
-        return nodes, P
+        """{node: f} as (nodes, (k, 3)): in one pass where it can (a grasp loads tens of nodes per
+        tick), else entry by entry, which names a bad entry."""
+        parsed = self._load_arrays(forces)
+        if parsed is not None:
+            return parsed
+        items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
+        return np.array([i for i, _ in items], dtype=np.int64), np.array([f for _, f in items]).reshape(-1, 3)
 
     def run(self, forces, n_steps: int) -> None:
         for _ in range(self._n_steps(n_steps)):

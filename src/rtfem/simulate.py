@@ -221,6 +221,22 @@ class ForceInput:
     def _n_steps(n_steps) -> int:
         return validate.count(n_steps, "n_steps", 0, 10**9)
 
+    def _load_arrays(self, forces: Mapping):
+        """A {node: f} mapping as (nodes (k,), forces (k, 3)) in one pass, when every key is a plain
+        int node on the mesh and every value three finite numbers (a contact patch's or a grasp's
+        loads); None for anything else, which the caller parses entry by entry (naming a bad one)."""
+        nodes = list(forces)
+        if not all(type(v) is int for v in nodes):
+            return None
+        try:
+            F = np.array(list(forces.values()), dtype=float)
+        except (TypeError, ValueError):
+            return None
+        idx = np.array(nodes, dtype=np.int64)
+        if F.shape != (idx.size, 3) or not np.isfinite(F).all() or idx.min() < 0 or idx.max() >= self.n_nodes:
+            return None
+        return idx, F
+
 
 class ModalSimulator(ForceInput):
     """Reduced dynamics in modal coordinates (paper section 3).
@@ -372,19 +388,13 @@ class ModalSimulator(ForceInput):
         else, which the entry-by-entry path then parses or refuses."""
         if len(forces) < 8:
             return False
-        nodes = list(forces)
-        if not all(type(v) is int for v in nodes):
+        parsed = self._load_arrays(forces)
+        if parsed is None:
             return False
-        try:
-            F = np.array(list(forces.values()), dtype=float)
-        except (TypeError, ValueError):
-            return False
-        idx = np.array(nodes, dtype=np.int64)
-        if F.shape != (idx.size, 3) or not np.isfinite(F).all() or idx.min() < 0 or idx.max() >= self.n_nodes:
-            return False
+        idx, F = parsed
         np.dot(F.reshape(-1), self._phi[idx].reshape(3 * idx.size, -1), out=out)
         if self.static_correction:
-            loads.update(zip(nodes, F))
+            loads.update(zip(idx.tolist(), F))
         return True
 
     def _point(self, node, f) -> tuple[int, float, float, float]:
