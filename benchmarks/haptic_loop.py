@@ -6,7 +6,10 @@ Scene: the liver at ``--level`` (default 6: 40,962 vertices), fixed at its attac
 (default 100), static correction on, a point probe (virtual coupling 200 N/m) pressing 4 mm
 into the "probe" vertex and backing out once a second, for ``--seconds`` of wall time per row.
 With ``--grasp``, also Grasp rows: a jaw of radius 4 mm holding that vertex (37 nodes at level 6)
-pulls it 4 mm out along its normal and back once a second.
+pulls it 4 mm out along its normal and back once a second. With ``--impedance``, also rows of
+the same press on a quasi-static impedance map (paper 4.1) of the vertices within 1 cm of the
+probe vertex (static responses kept within 3 cm), built from the same modes: its ticks are the
+probe's with nothing to integrate. ``--no-probe`` leaves out the modal probe rows.
 "busy viewer" rows run a second thread meanwhile that draws like a viewer: each 1/60 s frame the
 float32 field, then 5 ms of pure-Python work (holding the GIL, as a frame's scene update does),
 then it sleeps until the next frame. The static-correction columns (they depend on the basis
@@ -68,11 +71,16 @@ class BusyViewer:
 _COLUMNS: dict = {}  # static-correction columns by node, shared by the rows (same basis)
 
 
-def loop_row(model, basis, node, rate, seconds, compiled, busy, tool="probe"):
+def loop_row(model, basis, node, rate, seconds, compiled, busy, tool="probe", imap=None):
     X, N = np.asarray(model.mesh.vertices), model.mesh.vertex_normals()
     sim = rt.ModalSimulator(basis, 1.0 / rate, rt.Damping(alpha=8.0), static_correction=True)
     sim._D = _COLUMNS
-    if tool == "probe":
+    if tool == "impedance":  # the same press on the quasi-static map's driver
+        sim = imap.as_driver(1.0 / rate)
+        handle = rt.Probe(model.mesh, sim)
+        handle.prepare(around=X[node], radius=0.01)
+        device = rt.ScriptedDevice.press(X[node], N[node], 0.004, 1.0, repeat=True)
+    elif tool == "probe":
         handle = rt.Probe(model.mesh, sim)
         handle.prepare(around=X[node], radius=0.01)
         device = rt.ScriptedDevice.press(X[node], N[node], 0.004, 1.0, repeat=True)
@@ -92,7 +100,7 @@ def loop_row(model, basis, node, rate, seconds, compiled, busy, tool="probe"):
     c, e = np.asarray(st.compute), st.period_errors()
     if e.size == 0:  # no two adjacent ticks (every other slot skipped)
         e = np.array([np.nan])
-    return [("compiled" if compiled else "python") + ("" if tool == "probe" else " grasp"),
+    return [("compiled" if compiled else "python") + ("" if tool == "probe" else " " + tool),
             "busy viewer" if busy else "-", f"{rate / 1000:g} kHz", st.steps,
             f"{st.rate:.0f} Hz", st.missed, us(np.median(c)), us(np.percentile(c, 99)), us(c.max()),
             us(np.median(e)), us(np.percentile(e, 99)), us(e.max()), int((c > 1e-4).sum()),
@@ -128,6 +136,9 @@ def main() -> None:
     ap.add_argument("--rates", type=float, nargs="+", default=[1000.0, 5000.0, 10000.0])
     ap.add_argument("--grasp", action="store_true", help="add Grasp rows: a 4 mm jaw pulling the vertex 4 mm "
                     "out and back once a second, compiled and Python, at each rate")
+    ap.add_argument("--impedance", action="store_true", help="add rows of the probe on a quasi-static impedance map "
+                    "of the vertices within 1 cm of the probe vertex, compiled and Python, at each rate")
+    ap.add_argument("--no-probe", action="store_true", help="leave out the modal probe rows")
     args = ap.parse_args()
     model = rt.ShellModel(rt.meshes.liver(args.level), rt.Material()).fix("attachment")
     node = int(model.mesh.groups["probe"][0])
@@ -136,17 +147,28 @@ def main() -> None:
           f"liver level {args.level}: {model.n_nodes:,} vertices, r = {args.modes}, {args.seconds:g} s per row; "
           f"compiled loop available: {_compiled_loop() is not None}")
     rows = []
-    for rate in args.rates:
-        for compiled in ([True, False] if _compiled_loop() is not None else [False]):
-            rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False))
-            print(f"  {rows[-1][0]} {rows[-1][2]}: {rows[-1][4]}", file=sys.stderr, flush=True)
-    if _compiled_loop() is not None:
-        for compiled in (True, False):
-            rows.append(loop_row(model, basis, node, max(args.rates), args.seconds, compiled, True))
-    if args.grasp:
+    modes = [True, False] if _compiled_loop() is not None else [False]
+    if not args.no_probe:
         for rate in args.rates:
-            for compiled in ([True, False] if _compiled_loop() is not None else [False]):
-                rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False, tool="grasp"))
+            for compiled in modes:
+                rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False))
+                print(f"  {rows[-1][0]} {rows[-1][2]}: {rows[-1][4]}", file=sys.stderr, flush=True)
+        if _compiled_loop() is not None:
+            for compiled in (True, False):
+                rows.append(loop_row(model, basis, node, max(args.rates), args.seconds, compiled, True))
+    tools = (["grasp"] if args.grasp else []) + (["impedance"] if args.impedance else [])
+    imap = None
+    if args.impedance:
+        X = np.asarray(model.mesh.vertices)
+        near = np.flatnonzero(np.linalg.norm(X - X[node], axis=1) <= 0.01)
+        t0 = time.perf_counter()
+        imap = rt.ImpedanceMap.build(model, rt.Damping(alpha=8.0), nodes=near, radius=0.03, modes=basis)
+        print(f"impedance map: {near.size} loaded vertices within 1 cm, {imap.neighbours.size:,} kept responses, "
+              f"built in {time.perf_counter() - t0:.1f} s")
+    for tool in tools:
+        for rate in args.rates:
+            for compiled in modes:
+                rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False, tool=tool, imap=imap))
                 print(f"  {rows[-1][0]} {rows[-1][2]}: {rows[-1][4]}", file=sys.stderr, flush=True)
     print("\nProbe loop (period error = |tick interval - period| between adjacent ticks; times in us):")
     print_table(["loop", "other thread", "rate", "steps", "achieved", "skipped", "compute p50", "p99", "max",

@@ -189,6 +189,97 @@ def test_a_grab_during_a_compiled_loop_pauses_its_ticks(organ):
     assert sim.steps == stats.steps
 
 
+@pytest.fixture(scope="module")
+def organ_map(liver3_modes, organ):
+    """A quasi-static impedance map of the vertices within 3 cm of the probe vertex (the press
+    and slide stay on them), from the same modes."""
+    model, basis = liver3_modes
+    mesh, _, node, X, N = organ
+    near = np.flatnonzero(np.linalg.norm(X - X[node], axis=1) < 0.03)
+    return rt.ImpedanceMap.build(model, rt.Damping(alpha=8.0), nodes=near, radius=0.04, modes=basis, times=(0.01,))
+
+
+@needs_loop
+def test_compiled_impedance_ticks_are_the_python_ticks(organ, organ_map):
+    """The impedance-map driver (quasi-static) in the compiled loop: its ticks are the modal ones
+    with no modes. Probe (both couplings, stopped in contact and after release) and Grasp (one
+    vertex and a patch) against the Python ticks: forces, the driver's loads and field, steps."""
+    mesh, _, node, X, N = organ
+    P = press_and_slide(X, N, node, steps=600)
+    H = pull(X, N, node, steps=300) * 0.5 + 0.5 * X[node]  # a 1 cm pull: the map's static responses
+    cases = [("probe", c, P[:n]) for c in ("spring", "constraint") for n in (300, 600)]
+    cases += [("grasp", r, H) for r in (0.0, 0.01)]
+    for tool, option, path in cases:
+        runs = {}
+        for compiled in (True, False):
+            driver = organ_map.as_driver(1e-3)
+            if tool == "probe":
+                obj = rt.Probe(mesh, driver, coupling=option, radius=0.0005)
+            else:
+                obj = rt.Grasp(mesh, driver, stiffness=300.0, radius=option, max_force=0.12)
+                obj.grab(node)
+            F = obj.replay(path, compiled=compiled)
+            runs[compiled] = (F, driver.displacements(), driver.steps, dict(driver._loads), obj.force.copy())
+        (Fc, Uc, kc, Lc, fc), (Fp, Up, kp, Lp, fp) = runs[True], runs[False]
+        scale = np.abs(Fp).max()
+        assert scale > 0.05, (tool, option)  # pressed or pulled for real
+        assert np.abs(Fc - Fp).max() <= 1e-12 * scale and np.abs(fc - fp).max() <= 1e-12 * scale
+        assert kc == kp == len(path) and sorted(Lc) == sorted(Lp)
+        assert all(np.abs(Lc[v] - Lp[v]).max() <= 1e-12 * scale for v in Lp)
+        assert np.abs(Uc - Up).max() <= 1e-12 * max(np.abs(Up).max(), 1e-300)
+        if tool == "probe":
+            assert (len(path) == 300) == bool(Lp)  # in contact mid-slide, released at the end
+
+
+@needs_loop
+def test_a_compiled_impedance_loop_shows_its_load_while_it_runs(organ, organ_map):
+    """A drawing thread reads the impedance driver's field while the compiled ticks run: it is the
+    static response G_pp f to the force the loop hands the device (quasi-static: constant under a
+    held press). Stopped, the driver keeps that load."""
+    mesh, _, node, X, N = organ
+    driver = organ_map.as_driver(1e-3)
+    device = rt.SharedDevice(X[node] - 0.003 * N[node])
+    probe = rt.Probe(mesh, driver)
+    probe.prepare([node])
+    loop = rt.HapticLoop(probe, device, rate=2000.0)
+    assert loop.compiled
+    loop.start()
+    try:
+        time.sleep(0.3)
+        u, f = driver.displacement(node), device.force.copy()
+    finally:
+        stats = loop.stop()
+    assert stats.compiled and stats.steps > 100 and f @ N[node] > 0.05
+    expected = organ_map.point_compliance(node) @ -f
+    assert np.abs(u - expected).max() <= 1e-12 * np.abs(expected).max()
+    assert list(driver._loads) == [node] and np.abs(driver._loads[node] + f).max() <= 1e-15
+    assert driver.steps == stats.steps
+
+
+def test_compiled_impedance_refusals_say_why(organ, organ_map):
+    """A dynamic map's force history is Python: its ticks run in Python (refused when compiled=True
+    is asked). A driver holding loads the probe did not apply: Python ticks too (the compiled
+    search takes the surface at rest)."""
+    mesh, _, node, X, N = organ
+    dynamic = rt.Probe(mesh, organ_map.as_driver(1e-3, dynamic=True))
+    assert not rt.HapticLoop(dynamic, rt.SharedDevice()).compiled
+    with pytest.raises(rt.ModelError, match="dynamic"):
+        rt.HapticLoop(dynamic, rt.SharedDevice(), compiled=True)
+    if _compiled_loop() is None:
+        return
+    driver = organ_map.as_driver(1e-3)
+    probe = rt.Probe(mesh, driver)
+    other = int(organ_map.loaded[organ_map.loaded != node][0])
+    driver.step({other: (0.0, 0.0, -0.05)})
+    with pytest.raises(rt.ModelError, match="loads the probe did not apply"):
+        probe.replay(np.tile(X[node] + 0.01 * N[node], (3, 1)), compiled=True)
+    assert driver.steps == 1  # refused before any tick
+    with pytest.raises(rt.ModelError, match="loads the probe did not apply"):
+        rt.HapticLoop(probe, rt.SharedDevice(), compiled=True).start()
+    stats = rt.HapticLoop(probe, rt.SharedDevice(X[node] + 0.01 * N[node])).run(0.02)
+    assert not stats.compiled and stats.steps >= 1 and not driver._loads  # Python ticks; the probe's own loads now
+
+
 def test_compiled_refusals_say_why(organ):
     mesh, basis, node, X, N = organ
     sim = sim_for(basis)

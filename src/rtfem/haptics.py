@@ -113,8 +113,9 @@ class Probe:
     def replay(self, positions, *, compiled: bool | None = None) -> np.ndarray:
         """Run :meth:`update` at each of ``positions`` (k, 3) back to back, offline (no clock):
         a recorded or scripted trajectory's forces (k, 3), and the state where it ends. With a
-        ModalSimulator and numba the ticks run in the haptic loop's compiled code (``compiled``:
-        None = when available), which gives the same forces as the Python ticks to round-off."""
+        linear ModalSimulator or a quasi-static ImpedanceDriver, and numba, the ticks run in the
+        haptic loop's compiled code (``compiled``: None = when available), which gives the same
+        forces as the Python ticks to round-off."""
         return _replay(self, positions, compiled, "probe")
 
     # ---------------------------------------------------------------- compiled loop support
@@ -277,9 +278,9 @@ class Grasp:
     def replay(self, targets, *, compiled: bool | None = None) -> np.ndarray:
         """Run :meth:`update` at each of the hand's ``targets`` (k, 3) back to back, offline (no
         clock), with the jaw as it is now: the total forces (k, 3), and the state where it ends.
-        With a linear ModalSimulator and numba the ticks run in the haptic loop's compiled code
-        (``compiled``: None = when available), which gives the same forces as the Python ticks
-        to round-off."""
+        With a linear ModalSimulator or a quasi-static ImpedanceDriver, and numba, the ticks run in
+        the haptic loop's compiled code (``compiled``: None = when available), which gives the same
+        forces as the Python ticks to round-off."""
         return _replay(self, targets, compiled, "hand")
 
     def release(self) -> None:
@@ -490,6 +491,11 @@ class HapticLoop:
     through the ticks it owes: they are skipped, counted in ``stats.missed`` (``stats.behind``,
     and said by ``str(stats)``), and the loop resumes on the current slot of the schedule, so
     ``stats.rate`` is the rate actually achieved and the device's time stays the wall time.
+
+    With numba, a Probe or a Grasp on a linear ModalSimulator or on a quasi-static
+    ImpedanceDriver, read from a ScriptedDevice (with ``seconds``) or a SharedDevice, ticks in
+    compiled code without the GIL (``compiled``: None = when it can, True = insist, False = the
+    Python ticks); ``loop.compiled`` and ``stats.compiled`` say which ran.
     """
 
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
@@ -536,7 +542,8 @@ class HapticLoop:
         if type(self.probe) not in (Probe, Grasp):
             return "only an rt.Probe or an rt.Grasp runs in the compiled loop (another object runs in Python)"
         if not _compiled_driver(self.probe.driver):
-            return "only a (linear) ModalSimulator with its compiled step drives the compiled loop"
+            return ("only a (linear) ModalSimulator with its compiled step, or a quasi-static ImpedanceDriver "
+                    "(dynamic=False: a dynamic one keeps its force history in Python), drives the compiled loop")
         if type(self.device) not in (ScriptedDevice, SharedDevice):
             return "the compiled loop reads an rt.ScriptedDevice (sampled in advance) or an rt.SharedDevice"
         return None
@@ -650,16 +657,20 @@ class HapticLoop:
             seconds = validate.positive(seconds, "seconds", "a duration in seconds")
         if self._thread is not None and self._thread.is_alive():
             raise ModelError("this haptic loop is already running; stop() it first")
-        with _OWNERS_LOCK:
-            owner = _OWNERS.get(id(self.probe))
-            if owner is not None and owner is not self:
-                raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
-            _OWNERS[id(self.probe)] = self
         compiled = self.compiled
         if compiled and type(self.device) is ScriptedDevice and seconds is None:
             if self._required:
                 raise ModelError("a compiled loop samples a ScriptedDevice in advance: give seconds= (or compiled=False)")
             compiled = False  # an open-ended scripted run: the Python ticks (stats.compiled says so)
+        if compiled and _foreign_loads(self.probe):
+            if self._required:
+                raise ModelError(f"compiled=True: {_foreign_loads(self.probe)}")
+            compiled = False
+        with _OWNERS_LOCK:
+            owner = _OWNERS.get(id(self.probe))
+            if owner is not None and owner is not self:
+                raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
+            _OWNERS[id(self.probe)] = self
         self._stop.clear()
         self._ctl[0] = 0
         self._paused.clear()
@@ -732,6 +743,7 @@ class _CompiledTicks:
 
     def __init__(self, obj, chunk) -> None:
         self.sim, self.chunk = obj.driver, chunk
+        self.impedance = _is_impedance(self.sim)
         self.fout = np.zeros(3)
         self.missed = 0
         self.pause = None
@@ -745,6 +757,8 @@ class _CompiledTicks:
         counters = np.array([0, 0, 0, -1 if max_steps is None else max_steps, 0], dtype=np.int64)
         clock = np.zeros(2, dtype=np.int64)
         steps0 = sim.steps
+        if self.impedance:  # the driver's field follows the ticks' loads (a drawing thread reads them)
+            sim._live = self._live_loads
         try:
             while True:
                 status = self.chunk(self.arguments(), self.fout, sched, positions, mailbox, ctl, late, comp, forces,
@@ -771,9 +785,17 @@ class _CompiledTicks:
             keep(late[:n], comp[:n], forces[:n], slots[:n])
             self.missed = int(counters[2])
             self._unpack(steps0 + int(counters[1]))
+            if self.impedance:
+                sim._live = None
 
     def _sim_arguments(self) -> tuple:
         sim = self.sim
+        if self.impedance:  # quasi-static: no modes, so predict is 0 and the step moves nothing; the
+            # contact compliance is the map's static one (the compliance table) and the loads are
+            # read off the ticks' forces (_live_loads, _unpack)
+            if getattr(self, "_none", None) is None:
+                self._none = (np.zeros((8, 0)), np.zeros((2, 0)), np.zeros(0), np.zeros((sim.n_nodes, 3, 0)), False)
+            return self._none
         return sim._coef, sim._S, sim._f_old, sim._phi, sim._G0 is not None
 
     def _steps_done(self, steps: int) -> None:
@@ -822,9 +844,17 @@ class _CompiledProbe(_CompiledTicks):
         probe.penetration = float(fst[6])
         if ist[1]:
             probe._cand, probe._cand_at = self.cand[: ist[1]].copy(), fst[:3].copy()
-        if sim.static_correction:
+        if self.impedance:
+            sim._loads = self._live_loads()
+        elif sim.static_correction:
             sim._loads = {p: -fst[3:6].copy()} if p >= 0 else {}
             sim._load_array = None
+
+
+    def _live_loads(self) -> dict:
+        """The load the ticks apply: an ImpedanceDriver's ``_loads`` as its step would hold them."""
+        p, f = int(self.ist[0]), -self.fst[3:6]
+        return {p: f} if p >= 0 and f.any() else {}
 
 
 class _CompiledGrasp(_CompiledTicks):
@@ -840,7 +870,7 @@ class _CompiledGrasp(_CompiledTicks):
 
     def pack(self) -> None:
         g, sim = self.grasp, self.sim
-        r = sim._phi.shape[2]
+        r = self._sim_arguments()[3].shape[2]
         if g.node is None:
             nodes, A, base = np.zeros(0, dtype=np.int64), np.zeros((3, 3)), np.zeros(3)
         elif g.nodes.size == 1:
@@ -872,9 +902,18 @@ class _CompiledGrasp(_CompiledTicks):
             g.force = g.forces.sum(axis=0)
         else:
             g.force, g.forces = np.zeros(3), np.zeros((0, 3))
-        if sim.static_correction:
+        if self.impedance:
+            if ticked:
+                sim._loads = self._live_loads()
+        elif sim.static_correction:
             sim._loads = {int(v): f.copy() for v, f in zip(self.nodes.tolist(), self.F)} if self.nodes.size else {}
             sim._load_array = None
+
+
+    def _live_loads(self) -> dict:
+        """The loads the ticks apply (the nonzero forces on the held vertices), as an
+        ImpedanceDriver's step would hold them."""
+        return {int(v): f.copy() for v, f in zip(self.nodes.tolist(), self.F) if f.any()}
 
 
 _OWNERS: dict[int, HapticLoop] = {}  # id(probe) -> the loop driving it
@@ -896,10 +935,31 @@ def _spare_core():
     return blas_limits(max(1, usable_cores() - 1))
 
 
+def _is_impedance(driver) -> bool:
+    from .impedance import ImpedanceDriver
+
+    return type(driver) is ImpedanceDriver
+
+
 def _compiled_driver(driver) -> bool:
+    """Whether the compiled ticks can drive ``driver``: a linear ModalSimulator with its compiled
+    step, or a quasi-static ImpedanceDriver (its ticks are the modal ones with no modes)."""
     from .simulate import ModalSimulator
 
+    if _is_impedance(driver):
+        return not driver.dynamic
     return type(driver) is ModalSimulator and bool(driver.compiled)
+
+
+def _foreign_loads(obj) -> str | None:
+    """Why the compiled ticks would not match the Python ones for ``obj`` now, else None: a Probe
+    out of contact on an ImpedanceDriver that holds loads the probe did not apply (the compiled
+    nearest-vertex search takes the surface at rest, which is where the probe's own loads leave it)."""
+    d = obj.driver
+    if type(obj) is Probe and _is_impedance(d) and obj.contact_node is None and d._loads:
+        return ("the impedance driver holds loads the probe did not apply (its field moves the surface the "
+                "probe searches): step(None) it first, or run the Python ticks")
+    return None
 _OWNERS_LOCK = threading.Lock()
 
 
@@ -909,11 +969,12 @@ def _replay(obj, positions, compiled, what: str) -> np.ndarray:
     P = validate.real_array(positions, "positions", 2)
     if P.shape[1] != 3:
         raise ModelError(f"positions must be a (k, 3) array of {what} positions in m, got shape {P.shape}")
-    usable = _compiled_loop() is not None and _compiled_driver(obj.driver)
+    usable = _compiled_loop() is not None and _compiled_driver(obj.driver) and not _foreign_loads(obj)
     if compiled is None:
         compiled = usable
     elif validate.flag(compiled, "compiled") and not usable:
-        raise ModelError("compiled=True needs numba (rtfem[fast]) and a linear ModalSimulator with its compiled step")
+        raise ModelError("compiled=True needs numba (rtfem[fast]) and a linear ModalSimulator with its compiled step "
+                         "or a quasi-static ImpedanceDriver" + (f"; {_foreign_loads(obj)}" if _foreign_loads(obj) else ""))
     if not compiled:
         return np.array([obj.update(c).copy() for c in P]).reshape(-1, 3)
     out = []

@@ -609,6 +609,7 @@ class ImpedanceDriver:
         self.steps = 0
         self._loads: dict[int, np.ndarray] = {}
         self._history: list[tuple[int, np.ndarray, float]] = []  # (node, force change, onset); -inf: settled
+        self._live = None  # while a compiled HapticLoop ticks this driver: the loads it applies now
 
     # ---------------------------------------------------------------- maps
     def add(self, imap: ImpedanceMap) -> None:
@@ -730,7 +731,8 @@ class ImpedanceDriver:
         """(node, force, delay since its onset; inf for a static or settled load) of what is
         superposed now."""
         if not self.dynamic:
-            return [(p, f, np.inf) for p, f in self._loads.items()]
+            live = self._live
+            return [(p, f, np.inf) for p, f in (self._loads if live is None else live()).items()]
         return [(p, f, self.time - onset) for p, f, onset in self._history]  # onset -inf: settled
 
     def displacements_at(self, nodes) -> np.ndarray:
