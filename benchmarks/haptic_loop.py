@@ -35,6 +35,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
+from rtfem import gpu  # noqa: E402
 from rtfem.haptics import _compiled_loop  # noqa: E402
 from rtfem.simulate import prepare  # noqa: E402
 
@@ -110,21 +111,26 @@ def loop_row(model, basis, node, rate, seconds, compiled, busy, tool="probe", im
 def field_rows(basis, calls=300):
     sim = rt.ModalSimulator(basis, 1e-3)
     sim.step({0: (0.0, 0.0, -0.1)})
+    devices = [("cpu", np.float64), ("cpu", np.float32)]
+    if gpu.module() is not None:
+        devices += [("gpu", np.float64), ("gpu", np.float32)]
     rows = []
-    for dtype in (np.float64, np.float32):
-        sim.displacements(dtype=dtype)
+    u64 = sim.displacements()
+    for device, dtype in devices:
+        sim.displacements(dtype=dtype, device=device)  # the GPU's upload happens here, not in a timed call
         ts = []
         for _ in range(calls):
             t0 = time.perf_counter()
-            sim.displacements(dtype=dtype)
+            sim.displacements(dtype=dtype, device=device)
             ts.append(time.perf_counter() - t0)
-        rows.append([basis.n_nodes, basis.n_modes, np.dtype(dtype).name, f"{np.median(ts) * 1e3:.2f} ms",
-                     f"{np.percentile(ts, 99) * 1e3:.2f} ms"])
-    u64, u32 = sim.displacements(), sim.displacements(dtype=np.float32)
-    rows[1].append(f"{np.abs(u32 - u64).max() / np.abs(u64).max():.1e}")
-    rows[0].append("-")
-    rows[1].insert(5, f"{float(rows[0][3].split()[0]) / float(rows[1][3].split()[0]):.2f}x")
-    rows[0].insert(5, "1.00x")
+        u = sim.displacements(dtype=dtype, device=device)
+        rows.append([basis.n_nodes, basis.n_modes, device, np.dtype(dtype).name, np.median(ts),
+                     f"{np.percentile(ts, 99) * 1e3:.2f} ms",
+                     "-" if (device, dtype) == ("cpu", np.float64) else f"{np.abs(u - u64).max() / np.abs(u64).max():.1e}"])
+    base = rows[0][4]
+    for row in rows:
+        row.insert(6, f"{base / row[4]:.2f}x")
+        row[4] = f"{row[4] * 1e3:.2f} ms"
     return rows
 
 
@@ -170,11 +176,15 @@ def main() -> None:
             for compiled in modes:
                 rows.append(loop_row(model, basis, node, rate, args.seconds, compiled, False, tool=tool, imap=imap))
                 print(f"  {rows[-1][0]} {rows[-1][2]}: {rows[-1][4]}", file=sys.stderr, flush=True)
-    print("\nProbe loop (period error = |tick interval - period| between adjacent ticks; times in us):")
-    print_table(["loop", "other thread", "rate", "steps", "achieved", "skipped", "compute p50", "p99", "max",
-                 "period err p50", "p99", "max", "ticks > 100 us", "peak force", "viewer frames"], rows)
+    if rows:
+        print("\nProbe loop (period error = |tick interval - period| between adjacent ticks; times in us):")
+        print_table(["loop", "other thread", "rate", "steps", "achieved", "skipped", "compute p50", "p99", "max",
+                     "period err p50", "p99", "max", "ticks > 100 us", "peak force", "viewer frames"], rows)
     print("\nFull-field reconstruction U = Phi q (+ static correction), the viewer's per-frame product:")
-    print_table(["vertices", "modes", "dtype", "median", "p99", "speed-up", "max rel. diff"], field_rows(basis))
+    print_table(["vertices", "modes", "device", "dtype", "median", "p99", "speed-up", "max rel. diff"],
+                field_rows(basis))
+    if gpu.module() is None:
+        print(f"(no GPU rows: {gpu.status()})")
 
 
 if __name__ == "__main__":

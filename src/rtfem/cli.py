@@ -291,6 +291,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .linalg import available_backends, default_backend
 
     print(f"solver      {default_backend()} (sparse Cholesky in use; available: {', '.join(available_backends())})")
+    from .gpu import status
+
+    print(f"gpu field   {status()}")
     return 0
 
 

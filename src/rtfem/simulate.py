@@ -542,13 +542,27 @@ class ModalSimulator(ForceInput):
                                     axis=1)
         return W
 
-    def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64) -> np.ndarray:
+    def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64, device: str = "cpu") -> np.ndarray:
         """The (n, 3) displacement field, U = Phi_r X (Eq. 11), plus the static correction.
 
         ``dtype=np.float32`` is for drawing: the product runs on a single-precision copy of the
         shapes (made on first use), which halves the memory read per frame, the limit of this
         O(n r) product (benchmarks/haptic_loop.py: 1.8 -> 0.9 ms at 40,962 vertices, r = 100, on
-        2 cores); relative error ~1e-7. ``out`` (n, 3) of that dtype is filled when given."""
+        2 cores); relative error ~1e-7. ``out`` (n, 3) of that dtype is filled when given.
+        ``device="gpu"``: the product on a CUDA GPU through CuPy (:mod:`rtfem.gpu`; the shapes
+        uploaded once per dtype, the field copied back), the static correction on the host."""
+        if device != "cpu":
+            validate.choice(device, "device", ("cpu", "gpu"))
+            if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+                raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
+            if getattr(self, "_gpu_field", None) is None:
+                from .gpu import Field
+
+                self._gpu_field = Field(self._P)
+            u = self._gpu_field.product(self._S[0], dtype, out)
+            if self.static_correction:
+                self._add_correction(u)
+            return u
         if np.dtype(dtype) == np.float32:
             if getattr(self, "_P32", None) is None:
                 self._P32 = self._P.astype(np.float32)

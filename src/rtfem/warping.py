@@ -96,8 +96,13 @@ class WarpedModalSimulator(ModalSimulator):
             return self._array_correction(self._load_array)[nodes]
         return sum(self._correction_column(j)[nodes] @ f for j, f in self._loads.items())
 
-    def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64) -> np.ndarray:
-        """The warped (n, 3) field: Rt(w_i) Phi_i q (+ R(w_i) times the static correction)."""
+    def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64, device: str = "cpu") -> np.ndarray:
+        """The warped (n, 3) field: Rt(w_i) Phi_i q (+ R(w_i) times the static correction), on
+        the CPU (each node's rotation is its own: no single product to hand a GPU)."""
+        if device != "cpu":
+            validate.choice(device, "device", ("cpu", "gpu"))
+            raise ModelError("the warped field is computed on the CPU (device='cpu'): its per-node rotations are not "
+                             "one product")
         if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
             raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
         q = self._S[0]

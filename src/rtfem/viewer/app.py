@@ -332,7 +332,7 @@ class Viewer:
             f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
             f"{st.step_us:,.1f} us per step",
             f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
-            f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm)",
+            f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm); field drawn on the {s.field_on.upper()}",
         ]
         if s.error:
             lines.append(f"**error:** {s.error}")
@@ -368,6 +368,7 @@ class Viewer:
             "peak_force_plotted": float(forces[:, 1].max()) if forces.size else 0.0,
             "clients": len(self.server.get_clients()),
             "error": s.error,
+            "field_on": s.field_on,
         }
 
 

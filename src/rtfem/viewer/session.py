@@ -38,6 +38,7 @@ from ..tetmesh import TetMesh
 from ..modal import ModalBasis, modal_analysis
 from ..reduced import check_shell, reduced_nonlinear_driver
 from ..model import make_model
+from .. import gpu
 from ..simulate import ModalSimulator, as_driver, prepare
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
@@ -125,6 +126,7 @@ class Session:
         self._fixed = fixed
         self.X = np.asarray(self.mesh.vertices)
         self._lock = threading.RLock()
+        self.field_device = "gpu" if gpu.module() is not None else "cpu"  # where a modal field is drawn from
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.stats = Stats()
@@ -238,10 +240,21 @@ class Session:
         """Force on the organ at the grabbed vertex (N); the hand feels the opposite."""
         return self.grasp.force.copy()
 
+    @property
+    def field_on(self) -> str:
+        """Where the drawn field is computed: "gpu" (a linear modal driver, CuPy present) or "cpu"."""
+        return self.field_device if type(self.driver) is ModalSimulator else "cpu"
+
     def displacements(self) -> np.ndarray:
         """The (n, 3) displacement field now (called at the frame rate; reads only)."""
         with self._lock:
             if type(self.driver) is ModalSimulator:  # single precision for drawing: half the memory read
+                if self.field_device == "gpu":
+                    try:
+                        return self.driver.displacements(dtype=np.float32, device="gpu")
+                    except Exception as exc:  # e.g. out of device memory: draw from the CPU from now on
+                        self.field_device = "cpu"
+                        self.error = f"the GPU field failed ({type(exc).__name__}: {exc}); drawing from the CPU"
                 return self.driver.displacements(dtype=np.float32)
             return self.driver.displacements()
 
