@@ -21,27 +21,30 @@ from scipy.optimize import nnls
 
 from .errors import ModelError
 
-__all__ = ["train", "compiled_forces"]
+__all__ = ["train", "compiled_forces", "element_forces"]
 
 # axial(skew(A))_c = (A[p, q] - A[q, p]) / 2 for (p, q) = (2, 1), (0, 2), (1, 0)
 _AP = np.array([2, 0, 1])
 _AQ = np.array([1, 2, 0])
 
 
-def _exp_series(t, jacobian, out):
+def _exp_series(t, th, sn, cs, jacobian, K, out):
     """out (3, 3) = I + a [t]x + b [t]x^2: exp([t]x) (Rodrigues; a = sin|t|/|t|, b = (1 - cos|t|)/|t|^2),
-    or with ``jacobian`` the left Jacobian of SO(3) (a = (1 - cos|t|)/|t|^2, b = (|t| - sin|t|)/|t|^3)."""
-    th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    or with ``jacobian`` the left Jacobian of SO(3) (a = (1 - cos|t|)/|t|^2, b = (|t| - sin|t|)/|t|^3).
+    th = |t|, sn = sin th, cs = cos th (a corner's exponential and Jacobian share them); K (3, 3)
+    scratch for [t]x."""
     if jacobian:
         if th < 1e-6:
             a, b = 0.5 - th * th / 24.0, 1.0 / 6.0 - th * th / 120.0
         else:
-            a, b = (1.0 - np.cos(th)) / (th * th), (th - np.sin(th)) / (th * th * th)
+            a, b = (1.0 - cs) / (th * th), (th - sn) / (th * th * th)
     elif th < 1e-8:
         a, b = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
     else:
-        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / (th * th)
-    K = np.zeros((3, 3))
+        a, b = sn / th, (1.0 - cs) / (th * th)
+    K[0, 0] = 0.0
+    K[1, 1] = 0.0
+    K[2, 2] = 0.0
     K[0, 1] = -t[2]
     K[0, 2] = t[1]
     K[1, 0] = t[2]
@@ -63,6 +66,8 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
     k (E, 18, 18) local stiffnesses. g_e: the forces on the corners' translations and
     J(theta)^T m on their rotation vectors."""
     E = V.shape[0]
+    Kx = np.zeros((3, 3))
+    trig = np.zeros((3, 3))  # each corner's |theta|, sin and cos (for its exponential and its Jacobian)
     v = np.zeros(18)
     x = np.zeros((3, 3))
     Q = np.zeros((3, 3))
@@ -143,7 +148,11 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         for i in range(3):  # corner rotations relative to the element frame: C_i = Q_i R0^T, A = R C_i
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
-            _exp_series(t, False, Q)
+            th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+            trig[i, 0] = th
+            trig[i, 1] = np.sin(th)
+            trig[i, 2] = np.cos(th)
+            _exp_series(t, th, trig[i, 1], trig[i, 2], False, Kx, Q)
             for p in range(3):
                 for s_ in range(3):
                     acc = 0.0
@@ -206,7 +215,7 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
         for i in range(3):  # generalized moments J(theta)^T m on the rotation vectors
             for c in range(3):
                 t[c] = v[6 * i + 3 + c]
-            _exp_series(t, True, Jl)
+            _exp_series(t, trig[i, 0], trig[i, 1], trig[i, 2], True, Kx, Jl)
             for c in range(3):
                 s = 0.0
                 for m in range(3):
@@ -232,6 +241,15 @@ def compiled_forces():
         except Exception:  # pragma: no cover - numba absent or unable to compile here
             _COMPILED["shell"] = None
     return _COMPILED["shell"]
+
+
+def element_forces(V, X, R0, x2, x3, y3, k, F) -> None:
+    """F (E, 18) = g_e(V_e) for element dofs V (E, 18): the compiled kernel, or without numba the
+    same loop in Python (slow: machines without the ``fast`` extra). One thread: on this 2-core
+    machine a two-thread kernel (numba prange, OpenMP) did not shorten the reduced step, whose
+    BLAS passes over the basis rows then compete with OpenMP's spinning threads."""
+    fn = compiled_forces()
+    (_shell_element_forces if fn is None else fn)(V, X, R0, x2, x3, y3, k, _AP, _AQ, F)
 
 
 def train(contributions, targets, tol: float = 0.02, max_elements: int | None = None, seed: int = 0):

@@ -228,19 +228,16 @@ class ReducedNonlinearModel:
         """Each element's forces (E, 18) at its dofs V (E, 18) (compiled where numba is)."""
         from . import cubature
 
-        _, X, R0, x2, x3, y3, k = data
-        fn = cubature.compiled_forces()
-        if fn is None:
-            fn = cubature._shell_element_forces  # pure Python: the same loop, slow (tests without numba)
         F = np.empty(V.shape)
-        fn(np.ascontiguousarray(V), X, R0, x2, x3, y3, k, cubature._AP, cubature._AQ, F)
+        cubature.element_forces(np.ascontiguousarray(V), *data[1:], F)
         return F
 
     def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool,
-                        rest: np.ndarray | None = None) -> np.ndarray:
+                        rest: np.ndarray | None = None, UT: np.ndarray | None = None) -> np.ndarray:
         """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r).
         ``rest`` (E, 18, 18): subtract each element's rest tangent times its dofs (the nonlinear
-        remainder g_e(v) - K_e v)."""
+        remainder g_e(v) - K_e v). ``UT``: the basis rows as (r, 18 E) in C order (:func:`_rows_T`),
+        for the sum's projection."""
         Ue = data[0]
         E = Ue.shape[0]
         V = (Ue.reshape(-1, self.size) @ np.asarray(q, dtype=float)).reshape(E, 18)
@@ -250,7 +247,9 @@ class ReducedNonlinearModel:
         F *= np.asarray(weights, dtype=float)[:, None]
         if per_element:
             return np.einsum("eir,ei->er", Ue, F)
-        return (F.reshape(1, -1) @ Ue.reshape(-1, self.size))
+        if UT is not None:  # the projection as a row-major product: 1.4-1.7x faster than F @ Ue
+            return (UT @ F.reshape(-1))[None]
+        return F.reshape(1, -1) @ Ue.reshape(-1, self.size)
 
     def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0) -> dict:
         """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
@@ -287,7 +286,9 @@ class ReducedNonlinearModel:
         if getattr(self, "_cubature", None) is None:
             raise ModelError("no cubature yet: call train_cubature() first")
         data, weights = self._cubature
-        return self._element_forces(q, data, weights, False)[0]
+        if getattr(self, "_cubature_T", None) is None or self._cubature_T[0] is not self._cubature:
+            self._cubature_T = (self._cubature, _rows_T(data[0]))
+        return self._element_forces(q, data, weights, False, UT=self._cubature_T[1])[0]
 
     def cubature_rest(self) -> tuple[np.ndarray, np.ndarray]:
         """The cubature elements' rest tangents K_e (E, 18, 18; central differences of the kernel,
@@ -394,6 +395,11 @@ class ReducedNonlinearModel:
         return q, history, False
 
 
+def _rows_T(Ue: np.ndarray) -> np.ndarray:
+    """Elements' basis rows (E, 18, r) as one (r, 18 E) C-order matrix: U^T F reads it row-major."""
+    return np.ascontiguousarray(Ue.reshape(-1, Ue.shape[2]).T)
+
+
 def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:
     """The block-diagonal sparse matrix of blocks B (n, d, d)."""
     n, d, _ = B.shape
@@ -486,7 +492,8 @@ class ReducedNonlinearSimulator(ForceInput):
                                  f"{w.size}")
             Ke, self._Kc = reduced.cubature_rest()
             cut = np.linspace(0, w.size, self.spread + 1).astype(int)
-            self._groups = [(tuple(a[lo:hi] for a in data), w[lo:hi], Ke[lo:hi]) for lo, hi in zip(cut[:-1], cut[1:])]
+            self._groups = [(tuple(a[lo:hi] for a in data), w[lo:hi], Ke[lo:hi], _rows_T(data[0][lo:hi]))
+                            for lo, hi in zip(cut[:-1], cut[1:])]
         self.reset()
 
     def _translation_rows(self) -> np.ndarray:
@@ -552,8 +559,8 @@ class ReducedNonlinearSimulator(ForceInput):
 
     def _remainder(self, c: int, q: np.ndarray) -> np.ndarray:
         """Group c's nonlinear remainder sum_e w_e U_e^T (g_e(U_e q) - K_e U_e q)."""
-        data, w, Ke = self._groups[c]
-        return self.reduced._element_forces(q, data, w, False, rest=Ke)[0]
+        data, w, Ke, UT = self._groups[c]
+        return self.reduced._element_forces(q, data, w, False, rest=Ke, UT=UT)[0]
 
     def _free_step(self):
         """The predictor and the no-load acceleration of the next step (cached until it is taken)."""
