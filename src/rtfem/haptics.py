@@ -850,7 +850,6 @@ class _CompiledProbe(_CompiledTicks):
             sim._loads = {p: -fst[3:6].copy()} if p >= 0 else {}
             sim._load_array = None
 
-
     def _live_loads(self) -> dict:
         """The load the ticks apply: an ImpedanceDriver's ``_loads`` as its step would hold them."""
         p, f = int(self.ist[0]), -self.fst[3:6]

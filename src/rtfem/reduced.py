@@ -247,7 +247,7 @@ class ReducedNonlinearModel:
         F *= np.asarray(weights, dtype=float)[:, None]
         if per_element:
             return np.einsum("eir,ei->er", Ue, F)
-        if UT is not None:  # the projection as a row-major product: 1.4-1.7x faster than F @ Ue
+        if UT is not None:  # the projection as a row-major product: 0.5-0.6 times the time of F @ Ue
             return (UT @ F.reshape(-1))[None]
         return F.reshape(1, -1) @ Ue.reshape(-1, self.size)
 
