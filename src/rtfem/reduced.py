@@ -251,33 +251,44 @@ class ReducedNonlinearModel:
             return (UT @ F.reshape(-1))[None]
         return F.reshape(1, -1) @ Ue.reshape(-1, self.size)
 
-    def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0) -> dict:
+    def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0,
+                       remainder: bool = False) -> dict:
         """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
         James 2008) on ``poses`` random poses, each moving the organ by up to ``reach`` times its
         size. Afterwards :meth:`reduced_forces` with ``cubature=True`` sums those elements only.
-        Returns what it found (``elements``, relative training ``error``, ``seconds``)."""
+        ``remainder``: the rest-linear part is kept exact (K_r q, K_r = U^T K U the reduced rest
+        stiffness) and the cubature fits only the nonlinear remainder sum_e U_e^T (g_e(v) - K_e v),
+        so the forces are exact to first order in the motion and ``tol`` bounds the error of the
+        remainder alone. Returns what it found (``elements``, relative training ``error``,
+        ``seconds``)."""
         from . import cubature
 
         t0 = time.perf_counter()
         poses = validate.count(poses, "poses", 1, 10**4)
         tol = validate.positive(tol, "tol", "a relative error such as 0.05")
         reach = validate.positive(reach, "reach", "a fraction of the model's size such as 0.1")
+        remainder = validate.flag(remainder, "remainder")
         data = self._element_data()
         E = data[0].shape[0]
+        Ke = self._rest_tangents(data) if remainder else None
         rng = np.random.default_rng(seed)
         rows, targets = [], []
         for s in range(poses):
             q = rng.normal(size=self.size)
             q *= rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max()
-            per = self._element_forces(q, data, np.ones(E), True)  # (E, r)
+            per = self._element_forces(q, data, np.ones(E), True, rest=Ke)  # (E, r)
             b = per.sum(axis=0)
             scale = 1.0 / np.linalg.norm(b)
             rows.append(per.T * scale)
             targets.append(b * scale)
         elements, weights, error = cubature.train(np.vstack(rows), np.concatenate(targets), tol)
         self._cubature = (self._element_data(elements), weights)
+        if remainder:
+            K = self.basis.T @ (self._K0 @ self.basis)
+            self._cubature_rest = (self._cubature, Ke[elements], 0.5 * (K + K.T))
+        self._cubature_remainder = remainder
         self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
-                                 "seconds": time.perf_counter() - t0}
+                                 "remainder": remainder, "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
 
     def cubature_forces(self, q: np.ndarray) -> np.ndarray:
@@ -288,29 +299,38 @@ class ReducedNonlinearModel:
         data, weights = self._cubature
         if getattr(self, "_cubature_T", None) is None or self._cubature_T[0] is not self._cubature:
             self._cubature_T = (self._cubature, _rows_T(data[0]))
-        return self._element_forces(q, data, weights, False, UT=self._cubature_T[1])[0]
+        if not self._cubature_remainder:
+            return self._element_forces(q, data, weights, False, UT=self._cubature_T[1])[0]
+        Ke, K = self.cubature_rest()
+        return K @ q + self._element_forces(q, data, weights, False, rest=Ke, UT=self._cubature_T[1])[0]
 
     def cubature_rest(self) -> tuple[np.ndarray, np.ndarray]:
         """The cubature elements' rest tangents K_e (E, 18, 18; central differences of the kernel,
-        which is smooth) and the cubature's reduced rest stiffness sum_e w_e U_e^T K_e U_e (r, r),
-        computed once. They split the cubature forces into a linear part and the remainder
-        g_e(v) - K_e v that :class:`ReducedNonlinearSimulator` refreshes a group at a time."""
+        which is smooth) and the cubature's reduced rest stiffness sum_e w_e U_e^T K_e U_e (r, r)
+        (with ``train_cubature(remainder=True)``: the exact U^T K U), computed once. They split the
+        cubature forces into a linear part and the remainder g_e(v) - K_e v that
+        :class:`ReducedNonlinearSimulator` refreshes a group at a time."""
         if getattr(self, "_cubature", None) is None:
             raise ModelError("no cubature yet: call train_cubature() first")
         if getattr(self, "_cubature_rest", None) is None or self._cubature_rest[0] is not self._cubature:
             data, w = self._cubature
-            E = data[0].shape[0]
-            h = 1e-7 * self.system.size  # relative to the organ: truncation and round-off both ~1e-10
-            Ke = np.empty((E, 18, 18))
-            for j in range(18):
-                V = np.zeros((E, 18))
-                V[:, j] = h
-                Ke[:, :, j] = (self._kernel_forces(V, data) - self._kernel_forces(-V, data)) / (2 * h)
-            Ke = 0.5 * (Ke + Ke.transpose(0, 2, 1))  # symmetric at rest (the generalized moments' J = I)
+            Ke = self._rest_tangents(data)
             Ue = data[0]
             K = np.einsum("eir,eij,ejs->rs", Ue * w[:, None, None], Ke, Ue, optimize=True)
             self._cubature_rest = (self._cubature, Ke, 0.5 * (K + K.T))
         return self._cubature_rest[1], self._cubature_rest[2]
+
+    def _rest_tangents(self, data) -> np.ndarray:
+        """The rest tangents K_e (E, 18, 18) of the elements of ``data``, by central differences of
+        the kernel, symmetrized (at rest the generalized moments' J = I)."""
+        E = data[0].shape[0]
+        h = 1e-7 * self.system.size  # relative to the organ: truncation and round-off both ~1e-10
+        Ke = np.empty((E, 18, 18))
+        for j in range(18):
+            V = np.zeros((E, 18))
+            V[:, j] = h
+            Ke[:, :, j] = (self._kernel_forces(V, data) - self._kernel_forces(-V, data)) / (2 * h)
+        return 0.5 * (Ke + Ke.transpose(0, 2, 1))
 
     def _rows(self, nodes: np.ndarray) -> np.ndarray:
         """Positions among the free dofs of the translations of ``nodes`` (3k,), refused if held."""
