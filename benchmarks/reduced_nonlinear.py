@@ -76,11 +76,12 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 8) -> 
     print(f"cubature: {cub['elements'].size} of {cub['of']} elements, training error {cub['training_error']:.3f}, "
           f"{cub['seconds']:.1f} s", flush=True)
     q = np.zeros(red.size)
-    t_cub = []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        red.cubature_forces(q)
-        t_cub.append(time.perf_counter() - t0)
+    t_cub, t_cub32 = [], []
+    for _ in range(50):  # interleaved, so that both see the same machine
+        for single, times in ((False, t_cub), (True, t_cub32)):
+            t0 = time.perf_counter()
+            red.cubature_forces(q, single=single)
+            times.append(time.perf_counter() - t0)
     t_eval = []
     for _ in range(5):
         t0 = time.perf_counter()
@@ -150,21 +151,24 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 8) -> 
         ["reduced forces + tangent, all elements, numpy (median)", fmt_s(statistics.median(t_eval))],
         [f"reduced forces on the {cub['elements'].size} cubature elements, compiled (median)",
          fmt_s(statistics.median(t_cub[5:]))],
+        ["same, basis rows in single precision (median)", fmt_s(statistics.median(t_cub32[5:]))],
         ["ReducedNonlinearSimulator Grasp step (median over the cases)",
          fmt_s(statistics.median(steps_nl)) if steps_nl else "-"],
         [f"same, spread {spread} (median over the cases)",
          fmt_s(statistics.median(steps_spread)) if steps_spread else ("diverged" if rows else "-")]])
     print()
-    runs = [(250, 1), (500, 1), (1000, 1), (1000, 4), (1000, spread)]
+    runs = [(250, 1, "double"), (500, 1, "double"), (1000, 1, "double"), (1000, 1, "single"), (1000, 4, "double"),
+            (1000, spread, "double")]
     print_table(["probe loop on the ReducedNonlinearSimulator (Python ticks)", "result"],
-                [[f"{rate} Hz, spread {k}, 3 s", loop_row(red, node, rate, spread=k)] for rate, k in runs])
+                [[f"{rate} Hz, spread {k}, {p}, 3 s", loop_row(red, node, rate, spread=k, precision=p)]
+                 for rate, k, p in runs])
 
 
-def loop_row(red, node: int, rate: int, seconds: float = 3.0, spread: int = 1) -> str:
+def loop_row(red, node: int, rate: int, seconds: float = 3.0, spread: int = 1, precision: str = "double") -> str:
     mesh = red.model.mesh
     X = np.asarray(mesh.vertices)[node]
     n = mesh.vertex_normals()[node]
-    sim = rt.ReducedNonlinearSimulator(red, 1.0 / rate, rt.Damping(zeta=1.0), spread=spread)
+    sim = rt.ReducedNonlinearSimulator(red, 1.0 / rate, rt.Damping(zeta=1.0), spread=spread, precision=precision)
     probe = rt.Probe(mesh, sim, stiffness=200.0)
     probe.prepare(around=X, radius=0.01)
     device = rt.ScriptedDevice.press(X, n, 0.004, seconds, approach=0.001)
