@@ -466,8 +466,9 @@ class ReducedNonlinearSimulator(ForceInput):
     precision : "double" (default) or "single": the two products with the cubature elements'
         basis rows (13.5 MB in double on the default liver, read twice a step: the step's limit)
         in single precision, the element forces and the integration in double. Half the memory
-        read, 0.52 times the cubature's time (measured side by side); the forces within ~1e-5
-        relative, so the settled state within ~1e-5 of the double one.
+        read: the cubature forces 1.3 against 1.6 ms, the 1 kHz probe tick 0.64 times
+        (benchmarks/reduced_nonlinear.py); the forces within ~1e-6 relative and the settled
+        state within ~1e-6 of the double one (tested to 1e-5).
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T, so Probe and Grasp work as on a
@@ -694,7 +695,7 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
     :class:`ReducedNonlinearSimulator` with ``spread`` element groups (1: every element every
     step, the setting measured stable in every case; see the class for when more is) and the
-    basis rows' ``precision`` ("single" for drawing: 0.64 times the step). Shells only: the
+    basis rows' ``precision`` ("single": 0.64 times the probe tick, the viewer's). Shells only: the
     compiled cubature kernel is the corotational triangle's."""
     check_shell(model)
     derivatives = validate.count(derivatives, "derivatives", 0, 10**4)
