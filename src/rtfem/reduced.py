@@ -301,6 +301,7 @@ class ReducedNonlinearModel:
         if getattr(self, "_cubature", None) is None:
             raise ModelError("no cubature yet: call train_cubature() first")
         data, weights = self._cubature
+        single = single is True or validate.flag(single, "single")
         if getattr(self, "_cubature_T", None) is None or self._cubature_T[0] is not self._cubature:
             self._cubature_T = (self._cubature, _rows_T(data[0]), None)
         if single and self._cubature_T[2] is None:

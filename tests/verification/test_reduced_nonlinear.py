@@ -311,6 +311,8 @@ def test_single_precision_rows_keep_the_forces_and_the_equilibrium(small_liver):
         assert np.abs(settled[key] - ref).max() < 1e-5 * np.abs(ref).max(), key  # measured 6e-7
     with pytest.raises(rt.ModelError, match="precision"):
         ReducedNonlinearSimulator(red, 1e-3, precision="half")
+    with pytest.raises(rt.ModelError, match="single"):
+        red.cubature_forces(q, single="yes")
     with pytest.raises(rt.ModelError, match="cubature=True"):
         ReducedNonlinearSimulator(red, 1e-3, precision="single", cubature=False)
 
