@@ -551,29 +551,22 @@ class ModalSimulator(ForceInput):
         2 cores); relative error ~1e-7. ``out`` (n, 3) of that dtype is filled when given.
         ``device="gpu"``: the product on a CUDA GPU through CuPy (:mod:`rtfem.gpu`; the shapes
         uploaded once per dtype, the field copied back), the static correction on the host."""
-        if device != "cpu":
-            validate.choice(device, "device", ("cpu", "gpu"))
-            if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
-                raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
+        validate.choice(device, "device", ("cpu", "gpu"))
+        if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+            raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
+        flat = None if out is None else out.reshape(-1)
+        if device == "gpu":
             if getattr(self, "_gpu_field", None) is None:
                 from .gpu import Field
 
                 self._gpu_field = Field(self._P)
             u = self._gpu_field.product(self._S[0], dtype, out)
-            if self.static_correction:
-                self._add_correction(u)
-            return u
-        if np.dtype(dtype) == np.float32:
+        elif np.dtype(dtype) == np.float32:
             if getattr(self, "_P32", None) is None:
                 self._P32 = self._P.astype(np.float32)
-            u = np.dot(self._P32, self._S[0].astype(np.float32), out=None if out is None else out.reshape(-1))
-            u = u.reshape(-1, 3)
-            if self.static_correction:
-                self._add_correction(u)
-            return u
-        if np.dtype(dtype) != np.float64:
-            raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
-        u = np.dot(self._P, self._S[0], out=None if out is None else out.reshape(-1)).reshape(-1, 3)
+            u = np.dot(self._P32, self._S[0].astype(np.float32), out=flat).reshape(-1, 3)
+        else:
+            u = np.dot(self._P, self._S[0], out=flat).reshape(-1, 3)
         if self.static_correction:
             self._add_correction(u)
         return u
