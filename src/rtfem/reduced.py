@@ -237,7 +237,7 @@ class ReducedNonlinearModel:
                         U: np.ndarray | None = None) -> np.ndarray:
         """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r).
         ``rest`` (E, 18, 18): subtract each element's rest tangent times its dofs (the nonlinear
-        remainder g_e(v) - K_e v). ``UT``: the basis rows as (r, 18 E) in C order (:func:`_rows_T`),
+        remainder g_e(v) - K_e v). ``UT``: the basis rows as (r, 18 E) in C order (:func:`_projection_rows`),
         for the sum's projection; ``U`` (18 E, r): the rows for the dofs instead of data's. Either
         may be float32 (the products in single precision, the kernel in double)."""
         Ue = data[0] if U is None else U
@@ -302,12 +302,12 @@ class ReducedNonlinearModel:
             raise ModelError("no cubature yet: call train_cubature() first")
         data, weights = self._cubature
         single = single is True or validate.flag(single, "single")
-        if getattr(self, "_cubature_T", None) is None or self._cubature_T[0] is not self._cubature:
-            self._cubature_T = (self._cubature, _rows_T(data[0]), None)
-        if single and self._cubature_T[2] is None:
-            U32 = data[0].reshape(-1, self.size).astype(np.float32)
-            self._cubature_T = (self._cubature, self._cubature_T[1], (U32, np.ascontiguousarray(U32.T)))
-        U, UT = self._cubature_T[2] if single else (None, self._cubature_T[1])
+        if getattr(self, "_cubature_rows", None) is None or self._cubature_rows[0] is not self._cubature:
+            self._cubature_rows = (self._cubature, {})
+        rows = self._cubature_rows[1]
+        if single not in rows:
+            rows[single] = _projection_rows(data[0], single)
+        U, UT = rows[single]
         if not self._cubature_remainder:
             return self._element_forces(q, data, weights, False, UT=UT, U=U)[0]
         Ke, K = self.cubature_rest()
@@ -424,9 +424,14 @@ class ReducedNonlinearModel:
         return q, history, False
 
 
-def _rows_T(Ue: np.ndarray) -> np.ndarray:
-    """Elements' basis rows (E, 18, r) as one (r, 18 E) C-order matrix: U^T F reads it row-major."""
-    return np.ascontiguousarray(Ue.reshape(-1, Ue.shape[2]).T)
+def _projection_rows(Ue: np.ndarray, single: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    """The rows ``_element_forces`` takes for elements' basis rows Ue (E, 18, r): (U, UT), UT the
+    (r, 18 E) C-order copy that U^T F reads row-major; in single precision both float32 (U the
+    (18 E, r) rows), in double U None (Ue itself is used)."""
+    if single:
+        U32 = Ue.reshape(-1, Ue.shape[2]).astype(np.float32)
+        return U32, np.ascontiguousarray(U32.T)
+    return None, np.ascontiguousarray(Ue.reshape(-1, Ue.shape[2]).T)
 
 
 def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:
@@ -530,11 +535,8 @@ class ReducedNonlinearSimulator(ForceInput):
                                  f"{w.size}")
             Ke, self._Kc = reduced.cubature_rest()
             cut = np.linspace(0, w.size, self.spread + 1).astype(int)
-            rows = np.float32 if self.single else float
             self._groups = [(tuple(a[lo:hi] for a in data), w[lo:hi], Ke[lo:hi],
-                             _rows_T(data[0][lo:hi]).astype(rows, copy=False),
-                             data[0][lo:hi].reshape(-1, reduced.size).astype(np.float32) if self.single else None)
-                            for lo, hi in zip(cut[:-1], cut[1:])]
+                             *_projection_rows(data[0][lo:hi], self.single)) for lo, hi in zip(cut[:-1], cut[1:])]
         self.reset()
 
     def _translation_rows(self) -> np.ndarray:
@@ -600,7 +602,7 @@ class ReducedNonlinearSimulator(ForceInput):
 
     def _remainder(self, c: int, q: np.ndarray) -> np.ndarray:
         """Group c's nonlinear remainder sum_e w_e U_e^T (g_e(U_e q) - K_e U_e q)."""
-        data, w, Ke, UT, U = self._groups[c]
+        data, w, Ke, U, UT = self._groups[c]
         return self.reduced._element_forces(q, data, w, False, rest=Ke, UT=UT, U=U)[0]
 
     def _free_step(self):
