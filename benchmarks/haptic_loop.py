@@ -74,14 +74,12 @@ _COLUMNS: dict = {}  # static-correction columns by node, shared by the rows (sa
 
 def loop_row(model, basis, node, rate, seconds, compiled, busy, tool="probe", imap=None):
     X, N = np.asarray(model.mesh.vertices), model.mesh.vertex_normals()
-    sim = rt.ModalSimulator(basis, 1.0 / rate, rt.Damping(alpha=8.0), static_correction=True)
-    sim._D = _COLUMNS
     if tool == "impedance":  # the same press on the quasi-static map's driver
         sim = imap.as_driver(1.0 / rate)
-        handle = rt.Probe(model.mesh, sim)
-        handle.prepare(around=X[node], radius=0.01)
-        device = rt.ScriptedDevice.press(X[node], N[node], 0.004, 1.0, repeat=True)
-    elif tool == "probe":
+    else:
+        sim = rt.ModalSimulator(basis, 1.0 / rate, rt.Damping(alpha=8.0), static_correction=True)
+        sim._D = _COLUMNS
+    if tool in ("impedance", "probe"):
         handle = rt.Probe(model.mesh, sim)
         handle.prepare(around=X[node], radius=0.01)
         device = rt.ScriptedDevice.press(X[node], N[node], 0.004, 1.0, repeat=True)
