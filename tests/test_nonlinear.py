@@ -167,6 +167,30 @@ def test_a_failed_solve_keeps_the_last_equilibrium():
     assert "load factor" in str(info.value)
 
 
+def test_a_solve_stalling_in_ever_shorter_steps_ends_with_the_solver_error(monkeypatch):
+    """Newton that converges only below 60 % of the load (a snap there): each short step near it
+    converges, so the cuts in a row never reach max_cuts while the step halves towards zero. The
+    solve ends with a SolverError holding the last equilibrium (once a ZeroDivisionError from the
+    secant predictor, when the step fell below the load factor's round-off)."""
+    import rtfem.nonlinear as nl
+
+    model = _strip()
+    F = np.zeros((model.n_nodes, 3))
+    F[model.select_nodes("x1"), 2] = 1.0
+    full = np.linalg.norm(model.force_vector(F))
+    calls = []
+
+    def newton(system, conf, Fk, tol, max_iterations):
+        calls.append(np.linalg.norm(Fk) / full)
+        return [1.0] * 8, calls[-1] <= 0.6  # 8 residuals: no doubling of the next step
+
+    monkeypatch.setattr(nl, "_newton", newton)
+    with pytest.raises(rt.SolverError, match="load factor 0.6") as info:
+        nl.solve_static(model, F)
+    assert not info.value.result.converged
+    assert 0.6 - 1e-8 < max(c for c in calls if c <= 0.6) <= 0.6 and len(calls) < 500
+
+
 def test_the_system_follows_the_fixes():
     model = _strip()
     s1 = model.nonlinear()

@@ -227,10 +227,11 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
                 progress(applied, 1.0, f"load factor {applied:.3g}")
             continue
         cuts += 1
-        if cuts > max_cuts:
+        if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
             _fill(result, system, conf, t0, converged=False)
             exc = SolverError(
-                f"Newton did not converge past load factor {applied:.4g} (step halved {max_cuts} times; residual "
+                f"Newton did not converge past load factor {applied:.4g} (step halved {max_cuts} times in a row, or "
+                f"to {step:.2g} of the load; residual "
                 f"{history[-1]:.3g} after {len(history) - 1} iterations): the structure may buckle or snap there, or "
                 "the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
             exc.result = result
@@ -238,6 +239,9 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         step *= 0.5
     _fill(result, system, conf, t0, converged=True)
     return result
+
+
+MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
 
 
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
