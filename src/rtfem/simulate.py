@@ -29,7 +29,7 @@ from .modal import ModalBasis
 from .oscillator import transition
 
 __all__ = ["Driver", "DRIVER_MEMBERS", "as_driver", "displacements_at", "predictions", "step_compliances", "prepare",
-           "ModalSimulator", "newmark_coefficients", "newmark_constants"]
+           "ModalSimulator", "StaticCorrection", "newmark_coefficients", "newmark_constants"]
 
 _NEWMARK_BETA = 0.25  # eta in the paper
 _NEWMARK_GAMMA = 0.5  # delta in the paper
@@ -238,7 +238,121 @@ class ForceInput:
         return idx, F
 
 
-class ModalSimulator(ForceInput):
+class StaticCorrection:
+    """The static correction of a driver on a truncated basis (mode-acceleration method): the
+    displacement the basis cannot hold, D f with D = K^-1 - P G P^T, added quasi-statically for
+    the current loads f. P (3n, r) are the basis rows of the node translations and G (r,) the
+    basis's static compliance (1 / w^2 for mass-normalized modes; 1 for a stiffness-orthonormal
+    basis), so that at small load P q + D f is the exact linear static answer K^-1 f. The driver
+    calls :meth:`_init_correction` and keeps ``_loads`` ({node: f}) or ``_load_array`` ((n, 3))
+    as its last step's loads."""
+
+    static_correction = False
+
+    def _init_correction(self, on: bool, model, rows: np.ndarray, weights: np.ndarray) -> None:
+        self.static_correction = bool(on)
+        self._sc_model, self._sc_rows, self._sc_weights = model, rows, weights
+        self._loads: dict[int, np.ndarray] = {}
+        self._load_array: np.ndarray | None = None
+        self._D: dict[int, np.ndarray] = {}
+        self._patch_rows: tuple | None = None  # (nodes, loaded nodes, their D rows at nodes) of the last patch read
+        self._D_array: dict[bytes, np.ndarray] = {}  # static corrections of (n, 3) loads, last few kept
+
+    def _correction_column(self, node: int) -> np.ndarray:
+        """D for the 3 load directions of ``node``: (n, 3, 3) (displacement, load direction)."""
+        D = self._D.get(node)
+        if D is None:
+            cols = [self._sc_model.unit_load_response(node, k) for k in range(3)]
+            Kinv = np.stack(cols, axis=2)
+            D = Kinv - self._modal_statics(np.array([node]))[0]
+            self._D[node] = D
+        return D
+
+    def _modal_statics(self, nodes: np.ndarray) -> np.ndarray:
+        """P G P^T for unit loads on ``nodes``: (k, n, 3, 3), one matrix product."""
+        P = self._sc_rows
+        Pk = P.reshape(-1, 3, P.shape[1])[nodes].reshape(3 * nodes.size, -1)
+        G = (P * self._sc_weights) @ Pk.T
+        return G.reshape(-1, 3, nodes.size, 3).transpose(2, 0, 1, 3)
+
+    def _array_correction(self, F: np.ndarray) -> np.ndarray:
+        """D F for an (n, 3) load: one static solve per distinct load, kept for the next call
+        (a load schedule repeats a few patterns; haptic loads are dicts on prepared nodes)."""
+        key = F.tobytes()
+        hit = self._D_array.get(key)
+        if hit is None:
+            Kinv_f = self._sc_model.solve_static(F, warn=False)
+            P = self._sc_rows
+            modal = (P @ ((P.T @ F.reshape(-1)) * self._sc_weights)).reshape(-1, 3)
+            if len(self._D_array) >= 8:
+                self._D_array.pop(next(iter(self._D_array)))
+            hit = self._D_array[key] = Kinv_f - modal
+        return hit
+
+    def prepare(self, nodes) -> None:
+        """Precompute the static-correction columns of the nodes that will be loaded (the missing
+        ones together: multi-column solves when the model has ``unit_load_responses``)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        if not self.static_correction:
+            return
+        missing = np.array([n for n in dict.fromkeys(nodes.tolist()) if n not in self._D], dtype=np.int64)
+        batched = getattr(self._sc_model, "unit_load_responses", None)
+        if missing.size < 2 or batched is None:
+            for n in missing.tolist():
+                self._correction_column(n)
+            return
+        Kinv = batched(missing)  # (k, n, 3, 3)
+        modal = self._modal_statics(missing)
+        for i, n in enumerate(missing.tolist()):
+            self._D[n] = Kinv[i] - modal[i]
+
+    def _add_correction(self, u: np.ndarray) -> None:
+        """Add the static correction of the current loads to the field u (n, 3), in place (a
+        float32 field takes each float64 term rounded)."""
+        if self._load_array is not None:
+            u += self._array_correction(self._load_array)
+        for node, f in self._loads.items():
+            u += self._correction_column(node) @ f
+
+    def _correction_at(self, nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """u (k, 3) at ``nodes`` plus the static correction of the current loads there."""
+        if self._load_array is not None:
+            return u + self._array_correction(self._load_array)[nodes]
+        if len(self._loads) > 2:  # a contact patch, asked again about the same nodes next tick
+            G = self._gathered(nodes)
+            return u + (G @ np.array(list(self._loads.values())).reshape(-1)).reshape(-1, 3)
+        for j, f in self._loads.items():
+            u = u + self._correction_column(j)[nodes] @ f
+        return u
+
+    def _correction_block(self, nodes: np.ndarray, loaded: np.ndarray) -> np.ndarray:
+        """D_ab (3k, 3l) for ``nodes`` against ``loaded`` (columns computed the first time, as
+        :meth:`prepare` does)."""
+        if nodes.size < loaded.size and all(v in self._D for v in nodes.tolist()):
+            # D is symmetric (K^-1 minus the basis's part): rows of a few nodes against many loads
+            # are the transposed columns of those few (one gather each, not one per load)
+            return np.concatenate([self._D[j][loaded].reshape(-1, 3) for j in nodes.tolist()], axis=1).T
+        return np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()], axis=1)
+
+    def _gathered(self, nodes: np.ndarray) -> np.ndarray:
+        """The loaded nodes' static-correction columns at ``nodes`` as one (3k, 3 loads) matrix, kept
+        while the loaded nodes and the nodes asked about stay the same (a tool resting on a patch:
+        one matrix-vector product instead of a gather per load each tick)."""
+        keys = tuple(self._loads)
+        hit = self._patch_rows
+        same = hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes)
+        if same and hit[1] == keys:
+            return hit[2]
+        cols = hit[3] if same and len(hit[3]) < 256 else {}  # each load's rows, for the loads to come
+        for j in keys:
+            if j not in cols:
+                cols[j] = self._correction_column(j)[nodes].reshape(-1, 3)
+        G = np.concatenate([cols[j] for j in keys], axis=1)
+        self._patch_rows = (nodes.copy(), keys, G, cols) if G.size <= 4_000_000 else None
+        return G
+
+
+class ModalSimulator(StaticCorrection, ForceInput):
     """Reduced dynamics in modal coordinates (paper section 3).
 
     Parameters
@@ -314,13 +428,9 @@ class ModalSimulator(ForceInput):
         self._fn = np.zeros(r)
         self.time = 0.0
         self.steps = 0
-        self.static_correction = bool(static_correction)
-        self._loads: dict[int, np.ndarray] = {}
-        self._load_array: np.ndarray | None = None
-        self._D: dict[int, np.ndarray] = {}
+        self._init_correction(static_correction, modes.model, self._P,
+                              np.divide(1.0, lam, out=np.zeros_like(lam), where=lam > 0))
         self._shape_rows: tuple | None = None  # (nodes, the shapes there) of the last batched query
-        self._patch_rows: tuple | None = None  # (nodes, loaded nodes, their D rows at nodes) of the last patch read
-        self._D_array: dict[bytes, np.ndarray] = {}  # static corrections of (n, 3) loads, last few kept
         if self.static_correction:
             model = modes.model
             if model is None:
@@ -446,53 +556,6 @@ class ModalSimulator(ForceInput):
         """Modal velocities (r,) (a view)."""
         return self._S[1]
 
-    def _correction_column(self, node: int) -> np.ndarray:
-        """D = K^-1 - Phi Lambda^-1 Phi^T for the 3 load directions of ``node``: (n, 3, 3)."""
-        D = self._D.get(node)
-        if D is None:
-            model = self.modes.model
-            cols = [model.unit_load_response(node, k) for k in range(3)]
-            Kinv = np.stack(cols, axis=2)  # (n, 3, 3): displacement, load direction
-            D = Kinv - self._modal_statics(np.array([node]))[0]
-            self._D[node] = D
-        return D
-
-    def _modal_statics(self, nodes: np.ndarray) -> np.ndarray:
-        """Phi Lambda^-1 Phi^T for unit loads on ``nodes``: (k, n, 3, 3), one matrix product."""
-        n, r = self.n_nodes, self._phi.shape[2]
-        G = (self._phi.reshape(3 * n, r) / self.modes.omega**2) @ self._phi[nodes].reshape(3 * nodes.size, r).T
-        return G.reshape(n, 3, nodes.size, 3).transpose(2, 0, 1, 3)
-
-    def _array_correction(self, F: np.ndarray) -> np.ndarray:
-        """D F for an (n, 3) load: one static solve per distinct load, kept for the next call
-        (a load schedule repeats a few patterns; haptic loads are dicts on prepared nodes)."""
-        key = F.tobytes()
-        hit = self._D_array.get(key)
-        if hit is None:
-            Kinv_f = self.modes.model.solve_static(F, warn=False)
-            modal = (self._P @ ((self._P.T @ F.reshape(-1)) / self.modes.omega**2)).reshape(-1, 3)
-            if len(self._D_array) >= 8:
-                self._D_array.pop(next(iter(self._D_array)))
-            hit = self._D_array[key] = Kinv_f - modal
-        return hit
-
-    def prepare(self, nodes) -> None:
-        """Precompute the static-correction columns of the nodes that will be loaded (the missing
-        ones together: multi-column solves when the model has ``unit_load_responses``)."""
-        nodes = validate.nodes(nodes, self.n_nodes)
-        if not self.static_correction:
-            return
-        missing = np.array([n for n in dict.fromkeys(nodes.tolist()) if n not in self._D], dtype=np.int64)
-        batched = getattr(self.modes.model, "unit_load_responses", None)
-        if missing.size < 2 or batched is None:
-            for n in missing.tolist():
-                self._correction_column(n)
-            return
-        Kinv = batched(missing)  # (k, n, 3, 3)
-        modal = self._modal_statics(missing)
-        for i, n in enumerate(missing.tolist()):
-            self._D[n] = Kinv[i] - modal[i]
-
     def predict(self, node: int) -> np.ndarray:
         """Displacement (3,) of ``node`` after one more step with no new load, O(r).
 
@@ -533,13 +596,7 @@ class ModalSimulator(ForceInput):
         Pa, Pb = self._phi[nodes].reshape(-1, r), self._phi[loaded].reshape(-1, r)
         W = (Pa * self._G1[0]) @ Pb.T
         if self.static_correction and loaded.size:
-            if nodes.size < loaded.size and all(v in self._D for v in nodes.tolist()):
-                # D is symmetric (K^-1 minus the modes' part): rows of a few nodes against many loads
-                # are the transposed columns of those few (one gather each, not one per load)
-                W += np.concatenate([self._D[j][loaded].reshape(-1, 3) for j in nodes.tolist()], axis=1).T
-            else:
-                W += np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()],
-                                    axis=1)
+            W += self._correction_block(nodes, loaded)
         return W
 
     def displacements(self, out: np.ndarray | None = None, *, dtype=np.float64, device: str = "cpu") -> np.ndarray:
@@ -571,14 +628,6 @@ class ModalSimulator(ForceInput):
             self._add_correction(u)
         return u
 
-    def _add_correction(self, u: np.ndarray) -> None:
-        """Add the static correction of the current loads to the field u (n, 3), in place (a
-        float32 field takes each float64 term rounded)."""
-        if self._load_array is not None:
-            u += self._array_correction(self._load_array)
-        for node, f in self._loads.items():
-            u += self._correction_column(node) @ f
-
     def displacement(self, node: int) -> np.ndarray:
         """Displacement (3,) of one node, O(r)."""
         i = node if type(node) is int and 0 <= node < self.n_nodes else self._node(node)
@@ -597,14 +646,7 @@ class ModalSimulator(ForceInput):
         nodes = validate.nodes(nodes, self.n_nodes)
         u = (self._shapes_at(nodes) @ self._S[0]).reshape(-1, 3)
         if self.static_correction:
-            if self._load_array is not None:
-                return self.displacements()[nodes]
-            if len(self._loads) > 2:  # a contact patch, asked again about the same nodes next tick
-                G = self._gathered(nodes)
-                u += (G @ np.array(list(self._loads.values())).reshape(-1)).reshape(-1, 3)
-                return u
-            for j, f in self._loads.items():
-                u = u + self._correction_column(j)[nodes] @ f
+            return self._correction_at(nodes, u)
         return u
 
     def _shapes_at(self, nodes: np.ndarray) -> np.ndarray:
@@ -617,23 +659,6 @@ class ModalSimulator(ForceInput):
         P = self._phi[nodes].reshape(3 * nodes.size, -1)
         self._shape_rows = (nodes.copy(), P) if P.size <= 1_000_000 else None
         return P
-
-    def _gathered(self, nodes: np.ndarray) -> np.ndarray:
-        """The loaded nodes' static-correction columns at ``nodes`` as one (3k, 3 loads) matrix, kept
-        while the loaded nodes and the nodes asked about stay the same (a tool resting on a patch:
-        one matrix-vector product instead of a gather per load each tick)."""
-        keys = tuple(self._loads)
-        hit = self._patch_rows
-        same = hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes)
-        if same and hit[1] == keys:
-            return hit[2]
-        cols = hit[3] if same and len(hit[3]) < 256 else {}  # each load's rows, for the loads to come
-        for j in keys:
-            if j not in cols:
-                cols[j] = self._correction_column(j)[nodes].reshape(-1, 3)
-        G = np.concatenate([cols[j] for j in keys], axis=1)
-        self._patch_rows = (nodes.copy(), keys, G, cols) if G.size <= 4_000_000 else None
-        return G
 
     @property
     def fingerprint(self) -> str:
