@@ -232,19 +232,21 @@ def test_simulate_large_deformation_modal_and_direct(tmp_path, capsys):
 
 
 def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
-    """--method nonlinear: the reduced nonlinear model (modes + modal derivatives, cubature). A
-    2 mm probe is a small deformation, where the reduced nonlinear model is the linear Galerkin
-    (Ritz) model on its basis: stiffer than the organ, whose exact linear stiffness the modal
-    run's static correction gives. So its peak probe force is the larger one (measured 0.0084 N
-    against 0.0065 N). A solid is refused before any precompute, with what to use."""
+    """--method nonlinear: the reduced nonlinear model (modes + modal derivatives, cubature, the
+    static correction). A 2 mm probe is a small deformation, where both it and the modal run
+    (with its static correction) have the organ's linear stiffness: the probe force, averaged
+    over the hold (the light damping leaves it ringing), agrees between them (measured 0.00199
+    and 0.00188 N; the peaks, at the end of the approach, differ with the two models' inertia).
+    A solid is refused before any precompute, with what to use."""
     forces = {}
     for method in ("modal", "nonlinear"):
         rc, out, err = run(capsys, "simulate", gallbladder(), *GB, "-n", 12, "--method", method, "--duration", 0.3,
                            "--alpha", 20, "--depth", 0.002, "--fps", 2, "--out", tmp_path / method)
         assert rc == 0, err
         rows = list(csv.DictReader(open(tmp_path / method / "response.csv")))
-        forces[method] = max(float(r["force"]) for r in rows)
-    assert "reduced nonlinear" in out and "derivatives" in out
-    assert 0.001 < forces["modal"] < forces["nonlinear"]
+        hold = [float(r["force"]) for r in rows if 0.06 < float(r["t"]) < 0.2]
+        forces[method] = sum(hold) / len(hold)
+    assert "reduced nonlinear" in out and "derivatives" in out and "static correction" in out
+    assert forces["modal"] > 0.001 and abs(forces["nonlinear"] / forces["modal"] - 1) < 0.1
     rc, out, err = run(capsys, "simulate", "--solid", "--method", "nonlinear", "--out", tmp_path / "s")
     assert rc == 2 and "shells" in err and "Traceback" not in err

@@ -207,7 +207,7 @@ def test_the_viewer_impedance_method_holds_the_static_field_of_the_grasp_force(o
 
 
 @pytest.mark.parametrize("kind", ["modal", "modal-corrected", "newmark", "central", "map", "large", "warped",
-                                  "warped-corrected", "reduced-nonlinear"])
+                                  "warped-corrected", "reduced-nonlinear", "reduced-nonlinear-corrected"])
 def test_every_driver_keeps_its_one_step_contract(organ, kind):
     """u(k+1) = predict(node) + W f for a force f on that node, for every driver rtfem ships
     (mid-motion, after a few loaded steps), and get_state/set_state replays a step exactly."""
@@ -227,10 +227,10 @@ def test_every_driver_keeps_its_one_step_contract(organ, kind):
     elif kind == "large":
         d = rt.DirectSimulator(model, 1e-3, damping, large_deformation=True, tol=1e-12)
         assert isinstance(d, rt.NonlinearNewmarkSimulator) and isinstance(d, rt.DirectSimulator)
-    elif kind == "reduced-nonlinear":
+    elif kind.startswith("reduced-nonlinear"):
         red = rt.ReducedNonlinearModel(model, rt.modal_analysis(model, 10), 3)
         red.train_cubature(8, tol=0.1)
-        d = rt.ReducedNonlinearSimulator(red, 1e-3, damping)
+        d = rt.ReducedNonlinearSimulator(red, 1e-3, damping, static_correction=kind.endswith("corrected"))
     else:
         d = rt.ImpedanceMap.build(model, damping, nodes=[node], n_modes=10).as_driver()
     other = int(np.argmin(np.asarray(mesh.vertices)[:, 2])) if kind != "map" else node

@@ -430,7 +430,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             sim = reduced_nonlinear_driver(model, modes, args.dt, damping, progress=bar)
         print(f"reduced     {sim.reduced.size} coordinates ({modes.n_modes} modes + {sim.reduced.n_derivatives} "
               f"derivatives), cubature on {sim.reduced.info['cubature']['elements']} of "
-              f"{sim.reduced.info['cubature']['of']} elements")
+              f"{sim.reduced.info['cubature']['of']} elements, static correction")
     else:
         sim = None
     t0 = time.perf_counter()
