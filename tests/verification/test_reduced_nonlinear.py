@@ -398,3 +398,11 @@ def test_bad_arguments_are_refused_and_change_nothing(small_liver):
         sim.set_state({"q": np.zeros(3)})
     with pytest.raises(rt.ModelError):
         red.solve_static(targets={node: (0.0, float("inf"), 0.0)})
+    honest = red.reduced_forces
+    red.reduced_forces = lambda q, tangent=True: (np.full(red.size, np.nan), honest(q, tangent)[1])
+    try:  # forces that turn non-finite: the Newton steps fail and are cut, then the solve says so
+        for sc in (False, True):
+            with pytest.raises(rt.SolverError, match="did not converge"):
+                red.solve_static(targets={node: (0.0, 0.0, 0.01)}, static_correction=sc, max_cuts=1)
+    finally:
+        del red.reduced_forces
