@@ -314,6 +314,15 @@ class StaticCorrection:
         for node, f in self._loads.items():
             u += self._correction_column(node) @ f
 
+    def _point_correction(self, i: int):
+        """The static correction (3,) of the current loads at node i, or None with no loads."""
+        if self._load_array is not None:
+            return self._array_correction(self._load_array)[i]
+        c = None
+        for j, f in self._loads.items():
+            c = self._correction_column(j)[i] @ f if c is None else c + self._correction_column(j)[i] @ f
+        return c
+
     def _correction_at(self, nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
         """u (k, 3) at ``nodes`` plus the static correction of the current loads there."""
         if self._load_array is not None:
@@ -636,10 +645,8 @@ class ModalSimulator(StaticCorrection, ForceInput):
             kernels.point_displacement(self._phi, self._S, i, u)
         else:
             u = self._phi[i] @ self._S[0]
-        if self.static_correction and self._loads:
-            for j, f in self._loads.items():
-                u = u + self._correction_column(j)[i] @ f
-        return u
+        c = self._point_correction(i) if self.static_correction else None
+        return u if c is None else u + c
 
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         """(k, 3) displacements of ``nodes`` (indices), O(k r) plus the static correction of the loads."""

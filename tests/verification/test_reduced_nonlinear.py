@@ -355,6 +355,13 @@ def test_static_correction_is_the_linear_answer_at_small_load_and_the_simulator_
     U = sim.displacements()
     assert np.abs(U - static.displacements).max() < 1e-6 * np.abs(static.displacements).max()  # measured 3e-10
     assert np.abs(plain.displacements - static.displacements).max() > 0.1 * np.abs(static.displacements).max()
+    A = np.zeros((model.n_nodes, 3))
+    A[node] = f
+    sim.step(A)  # an (n, 3) load: its correction is one static solve, in every read
+    field = sim.displacements()
+    assert np.abs(field - static.displacements).max() < 1e-6 * np.abs(static.displacements).max()
+    assert np.abs(sim.displacement(node) - field[node]).max() < 1e-12 * np.abs(field[node]).max()
+    assert np.abs(sim.displacements_at([node, 0]) - field[[node, 0]]).max() < 1e-12 * np.abs(field[node]).max()
     sim.step(None)
     assert np.array_equal(sim.displacements(), red.displacements(sim.get_state()["q"]))  # no load, no correction
 
