@@ -280,6 +280,8 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
             reduced_nonlinear_driver(*args, **kwargs)
     with pytest.raises(rt.ModelError, match="precision"):  # refused before the modes are even looked at
         reduced_nonlinear_driver(model, None, 1e-3, precision="half")
+    with pytest.raises(rt.ModelError, match="static_correction"):  # the same
+        reduced_nonlinear_driver(model, None, 1e-3, static_correction="on")
 
 
 def test_single_precision_rows_keep_the_forces_and_the_equilibrium(small_liver):
@@ -394,6 +396,8 @@ def test_bad_arguments_are_refused_and_change_nothing(small_liver):
     assert all(np.array_equal(state[k], after[k]) for k in state)
     with pytest.raises(rt.ModelError, match="static_correction"):
         ReducedNonlinearSimulator(red, 1e-3, static_correction="yes")
+    with pytest.raises(rt.ModelError, match="static_correction"):
+        red.solve_static({node: (0.0, 0.0, 0.2)}, static_correction="yes")
     sc = ReducedNonlinearSimulator(red, 1e-3, static_correction=True)
     sc.step({node: (0.0, 0.0, 0.2)})
     field = sc.displacements()
