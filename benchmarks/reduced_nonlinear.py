@@ -46,33 +46,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import rtfem as rt  # noqa: E402
 from rtfem.reduced import ReducedNonlinearModel  # noqa: E402
 from _common import fmt_s, print_table  # noqa: E402
-from large_deformation import errors, grasp_node  # noqa: E402
+from large_deformation import errors, grasp_node, settle  # noqa: E402
 
 CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
          "jaw2": (0.01, 0.02), "jaw5": (0.01, 0.05), "lift2": (None, 0.02), "lift5": (None, 0.05)}
-
-
-def settle(sim, mesh, node, target, radius, stiffness, steps=2000, loads=None):
-    """Grasp ``node`` and hold it at ``target`` for ``steps`` steps (or, with ``loads``, step
-    under those dead loads): the field, the held nodes (the node alone under loads), the median
-    step time of the second half and the ripple (the largest range of a held node's
-    displacement over the last 500 steps, relative to the pull)."""
-    grasp = rt.Grasp(mesh, sim, stiffness=stiffness, radius=radius) if loads is None else None
-    held = np.asarray(grasp.grab(node)) if grasp is not None else np.array([node])
-    times, tail = [], []
-    for i in range(steps):
-        t0 = time.perf_counter()
-        if grasp is None:
-            sim.step(loads)
-        else:
-            grasp.update(target)
-        times.append(time.perf_counter() - t0)
-        if i >= steps - 500:
-            tail.append(sim.displacements_at(held))
-    tail = np.array(tail)
-    pull = np.linalg.norm(target - np.asarray(mesh.vertices)[node]) if loads is None else np.abs(tail[-1]).max()
-    ripple = float((tail.max(axis=0) - tail.min(axis=0)).max() / pull)
-    return sim.displacements(), held, statistics.median(times[steps // 2:]), ripple
 
 
 def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> None:
@@ -114,19 +91,18 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> 
     rows, steps_nl, steps_sc, steps_spread = [], [], [], []
     for case in cases:
         radius, d = CASES[case]
-        target = X[node] + d * normal
         loads = None if radius is not None else d * lift
+        target = X[node] + d * normal if loads is None else None
         out = {}
         for warping in (False, True):
             sim = rt.ModalSimulator(modes, 1e-3, rt.Damping(zeta=1.0), static_correction=True, warping=warping)
-            out[warping] = settle(sim, mesh, node, target, radius, k_grasp, loads=loads)
+            out[warping] = settle(sim, mesh, node, target, loads, stiffness=k_grasp, radius=radius)
         for key, kwargs in (("nl", {}), ("sc", {"static_correction": True}),
                             ("spread", {"static_correction": True, "spread": spread, "precision": "single"})):
             sim = rt.ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), **kwargs)
             try:
                 # under the lift's dead load the reduced model creeps to rest (time constant ~0.65 s)
-                out[key] = settle(sim, mesh, node, target, radius, k_grasp, steps=3000 if loads is None else 8000,
-                                  loads=loads)
+                out[key] = settle(sim, mesh, node, target, loads, 3000 if loads is None else 8000, k_grasp, radius)
             except rt.SolverError as exc:
                 out[key] = None
                 print(f"  {kwargs}: {exc}", flush=True)
