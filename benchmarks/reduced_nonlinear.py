@@ -46,15 +46,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import rtfem as rt  # noqa: E402
 from rtfem.reduced import ReducedNonlinearModel  # noqa: E402
 from _common import fmt_s, print_table  # noqa: E402
-from large_deformation import errors, grasp_node, settle  # noqa: E402
+from large_deformation import errors, grasp_node, organs, settle  # noqa: E402
 
 CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
          "jaw2": (0.01, 0.02), "jaw5": (0.01, 0.05), "lift2": (None, 0.02), "lift5": (None, 0.05)}
 
 
-def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> None:
-    mat = rt.Material()
-    model = rt.ShellModel(rt.meshes.liver(4), mat).fix("attachment")
+def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, organ: str = "shell",
+        tol: float = 0.05) -> None:
+    name, model, fresh = organs([organ])[0]
     mesh = model.mesh
     X = np.asarray(mesh.vertices)
     surface = mesh.used_vertices()
@@ -64,9 +64,9 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> 
     t0 = time.perf_counter()
     red = ReducedNonlinearModel(model, modes, n_derivatives)
     t_pre = time.perf_counter() - t0
-    print(f"shell liver: {model.n_nodes:,} nodes, {n_modes} modes; derivatives of {n_derivatives}: "
+    print(f"{name}: {model.n_nodes:,} nodes, {n_modes} modes; derivatives of {n_derivatives}: "
           f"{red.size} coordinates in {t_pre:.1f} s", flush=True)
-    cub = red.train_cubature(16, tol=0.05)
+    cub = red.train_cubature(16, tol=tol)
     print(f"cubature: {cub['elements'].size} of {cub['of']} elements, training error {cub['training_error']:.3f}, "
           f"{cub['seconds']:.1f} s", flush=True)
     q = np.zeros(red.size)
@@ -109,7 +109,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> 
         held = out[False][1]
         t0 = time.perf_counter()
         if loads is None:
-            ref_model = rt.ShellModel(mesh, mat).fix("attachment").fix(held, dofs="xyz")
+            ref_model = fresh().fix("attachment").fix(held, dofs="xyz")
             P = np.zeros((model.n_nodes, 3))
             P[held] = d * normal
             ref = rt.nonlinear.solve_static(ref_model, None, prescribed=P)
@@ -117,7 +117,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4) -> 
             res = red.solve_static(targets=pulls)
             res_sc = red.solve_static(targets=pulls, static_correction=True)
         else:
-            ref = rt.nonlinear.solve_static(rt.ShellModel(mesh, mat).fix("attachment"), loads)
+            ref = rt.nonlinear.solve_static(fresh().fix("attachment"), loads)
             res = red.solve_static(loads)
             res_sc = red.solve_static(loads, static_correction=True)
         t_ref = time.perf_counter() - t0 - res.seconds - res_sc.seconds
@@ -199,8 +199,11 @@ def main() -> None:
     ap.add_argument("--spread", type=int, default=4, help="element groups of the multirate simulator (default 4)")
     ap.add_argument("--cases", nargs="*", default=["jaw2", "jaw5", "point1", "point2", "lift2"], choices=sorted(CASES),
                     help="pulls measured against the full-order reference (none: the cost and loop tables only)")
+    ap.add_argument("--organ", choices=["shell", "solid"], default="shell",
+                    help="the default liver as a shell (level 4, default) or the solid liver (tet4)")
+    ap.add_argument("--tol", type=float, default=0.05, help="the cubature's training error (default 0.05)")
     args = ap.parse_args()
-    run(args.modes, args.derivatives, args.cases, args.spread)
+    run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol)
 
 
 if __name__ == "__main__":

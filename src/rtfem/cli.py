@@ -422,9 +422,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elif args.method == "direct":
         sim = DirectSimulator(model, args.dt, damping, large_deformation=large)
     elif args.method == "nonlinear":
-        from .reduced import check_shell, reduced_nonlinear_driver
+        from .reduced import reduced_nonlinear_driver
 
-        check_shell(model)
         modes = _modes(model, args)
         with progress_bar("modal derivatives", unit="mode") as bar:
             sim = reduced_nonlinear_driver(model, modes, args.dt, damping, progress=bar)
@@ -579,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("modal", "direct", "sldm", "nonlinear"), default="modal",
                    help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
                         "baseline), sldm (Krylov, --load only) or nonlinear (the reduced nonlinear model: the r modes "
-                        "and the modal derivatives of up to 20 of them, cubature forces; large deformation on a shell)")
+                        "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
@@ -624,7 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_options(p)
     p.add_argument("--method", choices=("modal", "impedance", "direct", "nonlinear"), default="modal",
                    help="dynamics (default modal; nonlinear: the reduced nonlinear model, modes + modal derivatives "
-                        "with cubature forces: a shell's large deformation, ~1 ms a step on the default liver)")
+                        "with cubature forces: large deformation of a shell or a solid, ~1 ms a step on the default liver)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")

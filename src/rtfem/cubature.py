@@ -7,11 +7,13 @@ is reproduced on training poses: greedy selection of the element whose contribut
 matches what is left, then non-negative least squares for all the weights so far (An et al.,
 Sec. 4), until the relative error on the training forces is below the tolerance.
 
-The compiled kernel (numba) evaluates the corotational shell triangle's forces (the same
+The compiled kernels (numba) evaluate the corotational shell triangle's forces (the same
 deformational dofs and first derivatives as :class:`rtfem.shell.CorotationalTriangles`, to
-round-off) in one loop that releases the GIL; the element dofs before it and the projection
-after it are BLAS products. Without numba the
-numpy kernel runs on the chosen elements (the same numbers, slower).
+round-off) and the corotated tet's (as :class:`rtfem.solid.CorotationalTets`: the polar rotation
+by Higham's scaled Newton iteration, the SVD for an inverted element) in one loop each that
+releases the GIL; the element dofs before it and the projection after it are BLAS products.
+Without numba the shell's loop runs in Python and the tets are batched in numpy (the same
+numbers, slower).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from scipy.optimize import nnls
 
 from .errors import ModelError
 
-__all__ = ["train", "compiled_forces", "element_forces"]
+__all__ = ["train", "compiled_forces", "element_forces", "compiled_solid_forces", "solid_element_forces"]
 
 # axial(skew(A))_c = (A[p, q] - A[q, p]) / 2 for (p, q) = (2, 1), (0, 2), (1, 0)
 _AP = np.array([2, 0, 1])
@@ -225,6 +227,118 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
             F[e, i] = f[i]
 
 
+def _polar_rotation(Fm, R, Y, Z):
+    """R (3, 3) = the rotation of the polar decomposition F = R S, for det F > 0, by Higham's scaled
+    Newton iteration R <- (g R + R^-T / g) / 2 (quadratic; ~6-8 iterations from F). Returns False
+    when it does not apply (det F <= 0, or no convergence), for an SVD instead. Y, Z (3, 3) scratch."""
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = Fm[i, j]
+    for it in range(30):
+        # Z = R^-T = cof(R) / det R
+        Z[0, 0] = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
+        Z[0, 1] = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
+        Z[0, 2] = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
+        Z[1, 0] = R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2]
+        Z[1, 1] = R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0]
+        Z[1, 2] = R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]
+        Z[2, 0] = R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]
+        Z[2, 1] = R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]
+        Z[2, 2] = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
+        det = R[0, 0] * Z[0, 0] + R[0, 1] * Z[0, 1] + R[0, 2] * Z[0, 2]
+        if not det > 0.0:
+            return False
+        nr = 0.0
+        nz = 0.0
+        for i in range(3):
+            for j in range(3):
+                Z[i, j] /= det
+                nr += R[i, j] * R[i, j]
+                nz += Z[i, j] * Z[i, j]
+        g = (nz / nr) ** 0.25 if it < 4 else 1.0  # scaling speeds the first iterations only
+        change = 0.0
+        for i in range(3):
+            for j in range(3):
+                Y[i, j] = 0.5 * (g * R[i, j] + Z[i, j] / g)
+                change += (Y[i, j] - R[i, j]) ** 2
+                R[i, j] = Y[i, j]
+        if change < 1e-30 * 3.0:
+            return True
+    return False
+
+
+def _solid_element_forces(V, X, G, wdet, lm, F):
+    """F (E, 3k) = the corotated-linear tets' nodal forces (mu |F - R|^2 + lambda/2 tr(S - I)^2, as
+    :class:`rtfem.solid.CorotationalTets`) at element dofs V (E, 3k): X (E, k, 3) rest nodes,
+    G (E, nq, k, 3) the shape gradients and wdet (E, nq) the weights of each quadrature point,
+    lm (E, 2) the Lame constants. f_i = sum_q wdet P G_i with P = 2 mu (F - R) + lambda tr(S - I) R."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = np.zeros((k, 3))
+    Fm = np.zeros((3, 3))
+    R = np.zeros((3, 3))
+    Y = np.zeros((3, 3))
+    Z = np.zeros((3, 3))
+    P = np.zeros((3, 3))
+    for e in range(E):
+        for i in range(k):
+            for c in range(3):
+                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
+                F[e, 3 * i + c] = 0.0
+        lam, mu = lm[e, 0], lm[e, 1]
+        for q in range(nq):
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for i in range(k):
+                        s += x[i, a] * G[e, q, i, b]
+                    Fm[a, b] = s
+            if not _polar_rotation(Fm, R, Y, Z):  # inverted or degenerate: the SVD (a proper R)
+                u, sv, vt = np.linalg.svd(Fm)
+                du = u[0, 0] * (u[1, 1] * u[2, 2] - u[1, 2] * u[2, 1]) - u[0, 1] * (u[1, 0] * u[2, 2] - u[1, 2] * u[2, 0]) \
+                    + u[0, 2] * (u[1, 0] * u[2, 1] - u[1, 1] * u[2, 0])
+                dv = vt[0, 0] * (vt[1, 1] * vt[2, 2] - vt[1, 2] * vt[2, 1]) \
+                    - vt[0, 1] * (vt[1, 0] * vt[2, 2] - vt[1, 2] * vt[2, 0]) \
+                    + vt[0, 2] * (vt[1, 0] * vt[2, 1] - vt[1, 1] * vt[2, 0])
+                if du * dv < 0.0:
+                    for i in range(3):
+                        u[i, 2] = -u[i, 2]
+                for a in range(3):
+                    for b in range(3):
+                        R[a, b] = u[a, 0] * vt[0, b] + u[a, 1] * vt[1, b] + u[a, 2] * vt[2, b]
+            trS = 0.0  # tr S = tr(R^T F)
+            for a in range(3):
+                for b in range(3):
+                    trS += R[a, b] * Fm[a, b]
+            t = lam * (trS - 3.0)
+            for a in range(3):
+                for b in range(3):
+                    P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
+            w = wdet[e, q]
+            for i in range(k):
+                for a in range(3):
+                    s = 0.0
+                    for b in range(3):
+                        s += P[a, b] * G[e, q, i, b]
+                    F[e, 3 * i + a] += w * s
+
+
+def solid_forces_numpy(V, X, G, wdet, lm, F) -> None:
+    """The same forces as :func:`_solid_element_forces`, batched in numpy (the polar decomposition
+    by SVD, as the full-order kernel): the path without numba."""
+    from .solid import polar
+
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = X + V.reshape(E, k, 3)
+    out = np.zeros((E, k, 3))
+    for q in range(nq):
+        Fm = np.einsum("eka,ekb->eab", x, G[:, q])
+        R, S = polar(Fm)
+        trE = np.einsum("eii->e", S) - 3.0
+        P = 2 * lm[:, 1, None, None] * (Fm - R) + (lm[:, 0] * trE)[:, None, None] * R
+        out += wdet[:, q, None, None] * np.einsum("eab,eib->eia", P, G[:, q])
+    F[:] = out.reshape(E, 3 * k)
+
+
 _COMPILED: dict = {}
 
 
@@ -241,6 +355,28 @@ def compiled_forces():
         except Exception:  # pragma: no cover - numba absent or unable to compile here
             _COMPILED["shell"] = None
     return _COMPILED["shell"]
+
+
+def compiled_solid_forces():
+    """The compiled corotated-tet kernel (numba), or None where numba is absent or cannot compile it."""
+    if "solid" not in _COMPILED:
+        try:
+            import numba
+
+            opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+            g = dict(_solid_element_forces.__globals__, _polar_rotation=numba.njit(**opts)(_polar_rotation))
+            fn = type(_solid_element_forces)(_solid_element_forces.__code__, g, "_solid_element_forces")
+            _COMPILED["solid"] = numba.njit(**opts)(fn)
+        except Exception:  # pragma: no cover - numba absent or unable to compile here
+            _COMPILED["solid"] = None
+    return _COMPILED["solid"]
+
+
+def solid_element_forces(V, X, G, wdet, lm, F) -> None:
+    """F (E, 3k) = the corotated tets' forces at element dofs V (E, 3k) (see
+    :func:`_solid_element_forces`): compiled, or batched numpy without numba."""
+    fn = compiled_solid_forces()
+    (solid_forces_numpy if fn is None else fn)(V, X, G, wdet, lm, F)
 
 
 def element_forces(V, X, R0, x2, x3, y3, k, F) -> None:

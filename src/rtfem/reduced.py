@@ -207,42 +207,49 @@ class ReducedNonlinearModel:
 
     # ---------------------------------------------------------------- elements and cubature
     def _element_data(self, elements: np.ndarray | None = None):
-        """The compiled kernel's arguments for ``elements`` (default all): the basis rows of each
-        element's dofs (E, 18, r), the rest corners, frames, local coordinates and stiffnesses."""
-        if self.dpn != 6:
-            raise ModelError("the compiled reduced forces cover shells; a solid evaluates its forces with numpy")
+        """The compiled kernel's arguments for ``elements`` (default all), each indexed by element
+        first: the basis rows of each element's dofs (E, nd, r), then on a shell the rest corners,
+        frames, local coordinates and stiffnesses; on a solid the rest nodes (E, k, 3), the shape
+        gradients (E, nq, k, 3) and weights (E, nq) of the quadrature points and the Lame
+        constants (E, 2)."""
         kern, cells = self.system.kernel, self.system.cells
         idx = np.arange(cells.shape[0]) if elements is None else np.asarray(elements, int)
         pos = np.full(self.model.n_dofs, -1)
         pos[self.free] = np.arange(self.free.size)
         p = pos[self.system.dofs[idx]]
-        Ue = np.zeros((idx.size, 18, self.size))
+        Ue = np.zeros((idx.size, p.shape[1], self.size))
         Ue[p >= 0] = self.basis[p[p >= 0]]
         X = np.ascontiguousarray(np.asarray(self.model.mesh.vertices)[cells[idx]])
+        if self.dpn == 3:
+            G = np.ascontiguousarray(np.stack(kern.G, axis=1)[idx])
+            wdet = np.ascontiguousarray(np.stack(kern.wdet, axis=1)[idx])
+            return Ue, X, G, wdet, np.tile([kern.lam, kern.mu], (idx.size, 1))
         return (Ue, X, np.ascontiguousarray(kern.R0[idx]), np.ascontiguousarray(kern.x2[idx]),
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
                 np.ascontiguousarray(kern.k[idx]))
 
     @staticmethod
     def _kernel_forces(V: np.ndarray, data) -> np.ndarray:
-        """Each element's forces (E, 18) at its dofs V (E, 18) (compiled where numba is)."""
+        """Each element's forces (E, nd) at its dofs V (E, nd) (compiled where numba is): the
+        corotational triangle's or, for data with a solid's five arrays, the corotated tet's."""
         from . import cubature
 
         F = np.empty(V.shape)
-        cubature.element_forces(np.ascontiguousarray(V), *data[1:], F)
+        kernel = cubature.solid_element_forces if len(data) == 5 else cubature.element_forces
+        kernel(np.ascontiguousarray(V), *data[1:], F)
         return F
 
     def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool,
                         rest: np.ndarray | None = None, UT: np.ndarray | None = None,
                         U: np.ndarray | None = None) -> np.ndarray:
         """sum_e w_e U_e^T g_e(U_e q) over the elements of ``data`` ((1, r)), or each term (E, r).
-        ``rest`` (E, 18, 18): subtract each element's rest tangent times its dofs (the nonlinear
-        remainder g_e(v) - K_e v). ``UT``: the basis rows as (r, 18 E) in C order (:func:`_projection_rows`),
-        for the sum's projection; ``U`` (18 E, r): the rows for the dofs instead of data's. Either
+        ``rest`` (E, nd, nd): subtract each element's rest tangent times its dofs (the nonlinear
+        remainder g_e(v) - K_e v). ``UT``: the basis rows as (r, nd E) in C order (:func:`_projection_rows`),
+        for the sum's projection; ``U`` (nd E, r): the rows for the dofs instead of data's. Either
         may be float32 (the products in single precision, the kernel in double)."""
         Ue = data[0] if U is None else U
-        E = data[0].shape[0]
-        V = np.asarray(Ue.reshape(-1, self.size) @ np.asarray(q, dtype=Ue.dtype), dtype=float).reshape(E, 18)
+        E, nd = data[0].shape[:2]
+        V = np.asarray(Ue.reshape(-1, self.size) @ np.asarray(q, dtype=Ue.dtype), dtype=float).reshape(E, nd)
         F = self._kernel_forces(V, data)
         if rest is not None:
             F -= np.einsum("eij,ej->ei", rest, V)
@@ -314,7 +321,7 @@ class ReducedNonlinearModel:
         return K @ q + self._element_forces(q, data, weights, False, rest=Ke, UT=UT, U=U)[0]
 
     def cubature_rest(self) -> tuple[np.ndarray, np.ndarray]:
-        """The cubature elements' rest tangents K_e (E, 18, 18; central differences of the kernel,
+        """The cubature elements' rest tangents K_e (E, nd, nd; central differences of the kernel,
         which is smooth) and the cubature's reduced rest stiffness sum_e w_e U_e^T K_e U_e (r, r)
         (with ``train_cubature(remainder=True)``: the exact U^T K U), computed once. They split the
         cubature forces into a linear part and the remainder g_e(v) - K_e v that
@@ -330,13 +337,13 @@ class ReducedNonlinearModel:
         return self._cubature_rest[1], self._cubature_rest[2]
 
     def _rest_tangents(self, data) -> np.ndarray:
-        """The rest tangents K_e (E, 18, 18) of the elements of ``data``, by central differences of
-        the kernel, symmetrized (at rest the generalized moments' J = I)."""
-        E = data[0].shape[0]
+        """The rest tangents K_e (E, nd, nd) of the elements of ``data``, by central differences of
+        the kernel, symmetrized (at rest a shell's generalized moments' J = I)."""
+        E, nd = data[0].shape[:2]
         h = 1e-7 * self.system.size  # relative to the organ: truncation and round-off both ~1e-10
-        Ke = np.empty((E, 18, 18))
-        for j in range(18):
-            V = np.zeros((E, 18))
+        Ke = np.empty((E, nd, nd))
+        for j in range(nd):
+            V = np.zeros((E, nd))
             V[:, j] = h
             Ke[:, :, j] = (self._kernel_forces(V, data) - self._kernel_forces(-V, data)) / (2 * h)
         return 0.5 * (Ke + Ke.transpose(0, 2, 1))
@@ -453,9 +460,9 @@ class ReducedNonlinearModel:
 
 
 def _projection_rows(Ue: np.ndarray, single: bool) -> tuple[np.ndarray | None, np.ndarray]:
-    """The rows ``_element_forces`` takes for elements' basis rows Ue (E, 18, r): (U, UT), UT the
-    (r, 18 E) C-order copy that U^T F reads row-major; in single precision both float32 (U the
-    (18 E, r) rows), in double U None (Ue itself is used)."""
+    """The rows ``_element_forces`` takes for elements' basis rows Ue (E, nd, r): (U, UT), UT the
+    (r, nd E) C-order copy that U^T F reads row-major; in single precision both float32 (U the
+    (nd E, r) rows), in double U None (Ue itself is used)."""
     if single:
         U32 = Ue.reshape(-1, Ue.shape[2]).astype(np.float32)
         return U32, np.ascontiguousarray(U32.T)
@@ -761,9 +768,8 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     :class:`ReducedNonlinearSimulator` with ``spread`` element groups (1: every element every
     step, stable under any damping; 4 with a zeta damping is the 1 kHz setting, see the class) and the
     basis rows' ``precision`` ("single": 0.64 times the probe tick, the viewer's), with the
-    ``static_correction`` (default on, as the linear modal driver's). Shells only: the compiled
-    cubature kernel is the corotational triangle's."""
-    check_shell(model)
+    ``static_correction`` (default on, as the linear modal driver's). Shells and solids: the
+    compiled cubature kernels are the corotational triangle's and the corotated tet's."""
     derivatives = validate.count(derivatives, "derivatives", 0, 10**4)
     validate.choice(precision, "precision", ("double", "single"))  # before the precompute
     static_correction = validate.flag(static_correction, "static_correction")
@@ -773,9 +779,3 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread, precision=precision,
                                      static_correction=static_correction)
 
-
-def check_shell(model) -> None:
-    """Refuse, before any precompute, a model the reduced nonlinear driver cannot run (a solid)."""
-    if getattr(model, "dofs_per_node", 6) != 6:
-        raise ModelError("the reduced nonlinear model's cubature covers shells; for a solid organ use the warped modal "
-                         "model (--method modal --large) or the corotational full order (--method direct --large)")

@@ -12,7 +12,7 @@ Methods
                A vertex's map is built when it is first grabbed and kept until a rebuild.
 ``direct``     direct Newmark integration of the full model, the paper's baseline: it cannot
                keep up with the clock on a real mesh, and the panel shows by how much.
-``nonlinear``  the reduced nonlinear model (a shell's r modes and their modal derivatives, cubature
+``nonlinear``  the reduced nonlinear model (the r modes and their modal derivatives, cubature
                forces): large deformation without the warped model's error; its precompute
                takes ~20 s on the level-4 liver, and a step ~1 ms there (the panel shows the
                rate it keeps).
@@ -36,7 +36,7 @@ from ..material import Damping, Material
 from ..mesh import TriMesh
 from ..tetmesh import TetMesh
 from ..modal import ModalBasis, modal_analysis
-from ..reduced import check_shell, reduced_nonlinear_driver
+from ..reduced import reduced_nonlinear_driver
 from ..model import make_model
 from .. import gpu
 from ..simulate import ModalSimulator, as_driver, prepare
@@ -155,8 +155,6 @@ class Session:
         """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock)."""
         old = getattr(self, "model", None)
         model = old if old is not None and old.material.E == s.E else self._model(s.E)
-        if s.method == "nonlinear":
-            check_shell(model)  # before the modes
         basis: ModalBasis | None = getattr(self, "modes", None)
         if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
             basis = modal_analysis(model, max(s.n_modes, 40))
