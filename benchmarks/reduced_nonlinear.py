@@ -53,7 +53,7 @@ CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
 
 
 def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, organ: str = "shell",
-        tol: float = 0.05) -> None:
+        tol: float = 0.05, local: float | None = None) -> None:
     name, model, fresh = organs([organ])[0]
     mesh = model.mesh
     X = np.asarray(mesh.vertices)
@@ -69,6 +69,14 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
     cub = red.train_cubature(16, tol=tol)
     print(f"cubature: {cub['elements'].size} of {cub['of']} elements, training error {cub['training_error']:.3f}, "
           f"{cub['seconds']:.1f} s", flush=True)
+    loc = None
+    if local:
+        t0 = time.perf_counter()
+        loc = red.localize([node], local)
+        cub_loc = loc.train_cubature(16, tol=tol)
+        print(f"localized: {loc.info['local']['nodes']} nodes within {local * 100:g} cm, {loc.size} coordinates; cubature "
+              f"{cub_loc['elements'].size} elements ({cub_loc['pinned']} of the patch), "
+              f"{time.perf_counter() - t0:.1f} s", flush=True)
     q = np.zeros(red.size)
     t_cub, t_cub32 = [], []
     for _ in range(50):  # interleaved, so that both see the same machine
@@ -88,7 +96,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
     lift = np.zeros((model.n_nodes, 3))
     lift[near, 2] = 1.0
     lift /= model.solve_static(lift)[node, 2]  # the linear lift of the vertex: 1 m
-    rows, steps_nl, steps_sc, steps_spread = [], [], [], []
+    rows, steps_nl, steps_sc, steps_spread, steps_loc = [], [], [], [], []
     for case in cases:
         radius, d = CASES[case]
         loads = None if radius is not None else d * lift
@@ -106,6 +114,14 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
             except rt.SolverError as exc:
                 out[key] = None
                 print(f"  {kwargs}: {exc}", flush=True)
+        if loc is not None:
+            sim = rt.ReducedNonlinearSimulator(loc, 1e-3, rt.Damping(zeta=1.0), static_correction=True, spread=spread,
+                                               precision="single")
+            try:
+                out["loc"] = settle(sim, mesh, node, target, loads, 3000 if loads is None else 8000, k_grasp, radius)
+            except rt.SolverError as exc:
+                out["loc"] = None
+                print(f"  localized: {exc}", flush=True)
         held = out[False][1]
         t0 = time.perf_counter()
         if loads is None:
@@ -116,23 +132,27 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
             pulls = {int(h): d * normal for h in held}
             res = red.solve_static(targets=pulls)
             res_sc = red.solve_static(targets=pulls, static_correction=True)
+            res_loc = loc.solve_static(targets=pulls, static_correction=True) if loc is not None else None
         else:
             ref = rt.nonlinear.solve_static(fresh().fix("attachment"), loads)
             res = red.solve_static(loads)
             res_sc = red.solve_static(loads, static_correction=True)
-        t_ref = time.perf_counter() - t0 - res.seconds - res_sc.seconds
+            res_loc = loc.solve_static(loads, static_correction=True) if loc is not None else None
+        t_ref = time.perf_counter() - t0 - res.seconds - res_sc.seconds - (res_loc.seconds if res_loc else 0.0)
         e = {key: errors(u, ref.displacements, surface, d) for key, u in
              (("linear", out[False][0]), ("warped", out[True][0]), ("static", res.displacements),
               ("static sc", res_sc.displacements))}
-        for key, times in (("nl", steps_nl), ("sc", steps_sc), ("spread", steps_spread)):
-            if out[key] is not None:
+        if res_loc is not None:
+            e["loc static"] = errors(res_loc.displacements, ref.displacements, surface, d)
+        for key, times in (("nl", steps_nl), ("sc", steps_sc), ("spread", steps_spread), ("loc", steps_loc)):
+            if out.get(key) is not None:
                 e[key] = errors(out[key][0], ref.displacements, surface, d)
                 times.append(out[key][2])
 
         def cell(key):
             if key not in e:
-                return "diverged"
-            ripple = f" (ripple {out[key][3]:.0e})" if key in ("nl", "sc", "spread") else ""
+                return "-" if key.startswith("loc") and loc is None else "diverged"
+            ripple = f" (ripple {out[key][3]:.0e})" if key in ("nl", "sc", "spread", "loc") else ""
             return f"{e[key][0] * 100:.0f} % / {e[key][1] * 100:.0f} %{ripple}"
 
         def ratio(key):
@@ -141,8 +161,8 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
         what = "lobe lift (3 cm)" if loads is not None else f"jaw r {radius * 100:g} cm ({held.size} nodes)" \
             if radius else "vertex"
         rows.append([what, f"{d * 100:g} cm", f"{t_ref:.0f} s", *map(cell, ("linear", "warped", "static", "static sc",
-                                                                            "nl", "sc", "spread")),
-                     *map(ratio, ("warped", "static", "static sc", "nl", "spread")),
+                                                                            "nl", "sc", "spread", "loc static", "loc")),
+                     *map(ratio, ("warped", "static", "static sc", "nl", "spread", "loc")),
                      f"{res_sc.seconds:.1f} s ({res_sc.iterations} its)"])
         print(f"  {what} {d * 100:g} cm: " + ", ".join(f"{k} {v[0]:.3f}" for k, v in e.items()), flush=True)
     print()
@@ -150,9 +170,12 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
         print_table(["pulled", "pull", "reference", "linear error max / rms", "warped error max / rms",
                      f"reduced nonlinear static (r {n_modes} + {red.size - n_modes}) max / rms",
                      "same + static correction", "ReducedNonlinearSimulator settled (spread 1)",
-                     "same + static correction", f"same, spread {spread}, single", "warped / linear",
+                     "same + static correction", f"same, spread {spread}, single",
+                     f"localized ({local * 100 if local else 0:g} cm patch) static, corrected",
+                     f"localized simulator, corrected, spread {spread}, single", "warped / linear",
                      "reduced nl static / linear", "+ static correction / linear", "simulator / linear",
-                     f"simulator, correction, spread {spread} / linear", "reduced static solve (corrected)"], rows)
+                     f"simulator, correction, spread {spread} / linear", "localized simulator / linear",
+                     "reduced static solve (corrected)"], rows)
         print()
     print_table(["cost", "time"], [
         ["derivatives precompute", f"{t_pre:.1f} s"],
@@ -166,13 +189,19 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
          fmt_s(statistics.median(steps_nl)) if steps_nl else "-"],
         ["same, static correction", fmt_s(statistics.median(steps_sc)) if steps_sc else ("diverged" if rows else "-")],
         [f"same, static correction, spread {spread}, single",
-         fmt_s(statistics.median(steps_spread)) if steps_spread else ("diverged" if rows else "-")]])
+         fmt_s(statistics.median(steps_spread)) if steps_spread else ("diverged" if rows else "-")],
+        [f"localized, static correction, spread {spread}, single",
+         fmt_s(statistics.median(steps_loc)) if steps_loc else ("diverged" if rows and loc is not None else "-")]])
     print()
     runs = [(500, 1, "double", False), (1000, 1, "double", False)] + \
         [(1000, k, "single", True) for k in sorted({1, 2, 4, spread})]
-    print_table(["probe loop on the ReducedNonlinearSimulator (Python ticks)", "result"],
-                [[f"{rate} Hz, spread {k}, {p}{', static correction' if sc else ''}, 3 s",
-                  loop_row(red, node, rate, spread=k, precision=p, static_correction=sc)] for rate, k, p, sc in runs])
+    loops = [[f"{rate} Hz, spread {k}, {p}{', static correction' if sc else ''}, 3 s",
+              loop_row(red, node, rate, spread=k, precision=p, static_correction=sc)] for rate, k, p, sc in runs]
+    if loc is not None:
+        loops += [[f"localized, 1000 Hz, spread {k}, single, static correction, 3 s",
+                   loop_row(loc, node, 1000, spread=k, precision="single", static_correction=True)]
+                  for k in sorted({4, 8, spread})]
+    print_table(["probe loop on the ReducedNonlinearSimulator (Python ticks)", "result"], loops)
 
 
 def loop_row(red, node: int, rate: int, seconds: float = 3.0, spread: int = 1, precision: str = "double",
@@ -202,8 +231,10 @@ def main() -> None:
     ap.add_argument("--organ", choices=["shell", "solid"], default="shell",
                     help="the default liver as a shell (level 4, default) or the solid liver (tet4)")
     ap.add_argument("--tol", type=float, default=0.05, help="the cubature's training error (default 0.05)")
+    ap.add_argument("--local", type=float, default=None, metavar="RADIUS",
+                    help="also the localized model: every dof within RADIUS m of the grasped vertex added to the basis")
     args = ap.parse_args()
-    run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol)
+    run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol, args.local)
 
 
 if __name__ == "__main__":

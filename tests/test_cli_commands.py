@@ -258,3 +258,8 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
         forces[method] = sum(hold) / len(hold)
     assert "reduced nonlinear" in out and "10 modes + 55 derivatives" in out
     assert forces["modal"] > 0.01 and abs(forces["nonlinear"] / forces["modal"] - 1) < 0.1
+    rc, out, err = run(capsys, "simulate", "--solid", "-n", 10, "--method", "nonlinear", "--local", 15, "--duration",
+                       0.05, "--out", tmp_path / "solid-local")
+    assert rc == 0 and "of a 15 mm patch" in out, err
+    rc, out, err = run(capsys, "simulate", "--local", 15, "--out", tmp_path / "bad")
+    assert rc == 2 and "--method nonlinear" in err and "Traceback" not in err

@@ -417,6 +417,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if large and args.method == "sldm":
         raise RtfemError("--large: SLDM superposes linear responses; use --method modal (modal warping) or direct (the "
                          "corotational full order)")
+    if getattr(args, "local", None) and args.method != "nonlinear":
+        raise RtfemError("--local adds a patch to the reduced nonlinear model's basis: use it with --method nonlinear")
     if args.method == "modal":
         sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True, warping=large)
     elif args.method == "direct":
@@ -424,12 +426,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elif args.method == "nonlinear":
         from .reduced import reduced_nonlinear_driver
 
+        local = None
+        if args.local:  # the patch around the probed vertex, or the loaded nodes
+            local = (schedule.nodes if schedule is not None else [_probe_point(model, args.at)], args.local * 1e-3)
         modes = _modes(model, args)
         with progress_bar("modal derivatives", unit="mode") as bar:
-            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, progress=bar)
+            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar)
+        info = sim.reduced.info
+        patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
+                                                f"({info['local']['nodes']} nodes)")
         print(f"reduced     {sim.reduced.size} coordinates ({modes.n_modes} modes + {sim.reduced.n_derivatives} "
-              f"derivatives), cubature on {sim.reduced.info['cubature']['elements']} of "
-              f"{sim.reduced.info['cubature']['of']} elements, static correction")
+              f"derivatives{patch}), cubature on {info['cubature']['elements']} of "
+              f"{info['cubature']['of']} elements, static correction")
     else:
         sim = None
     t0 = time.perf_counter()
@@ -579,6 +587,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
                         "baseline), sldm (Krylov, --load only) or nonlinear (the reduced nonlinear model: the r modes "
                         "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
+    p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
+                   "probed (or loaded) vertex in the basis, for pulls of centimetres (see README)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "

@@ -75,6 +75,8 @@ class ReducedNonlinearModel:
     holds the sizes and the time split.
     """
 
+    local = None  # a localized copy's patch (see :meth:`localize`)
+
     def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
                  progress: Callable[[int, int, str], None] | None = None) -> None:
         from .modal import ModalBasis
@@ -205,6 +207,47 @@ class ReducedNonlinearModel:
         g, K = self.forces(U @ q, tangent)
         return U.T @ g, (None if K is None else U.T @ (K @ U))
 
+    # ---------------------------------------------------------------- local enrichment
+    def localize(self, nodes, radius: float) -> "ReducedNonlinearModel":
+        """A copy whose basis also holds every free dof of the nodes within ``radius`` (m) of
+        ``nodes`` (a grasped vertex or jaw): the modes and derivatives carry the organ's global
+        motion, the patch's own dofs the strongly nonlinear dent under the grasp, which a basis of
+        global shapes cannot hold (a subspace with local deformations, after Harmon & Zorin,
+        ACM TOG 32 (2013) 129: theirs are added at contacts at run time, these are the patch's
+        nodal dofs). The basis stays stiffness-orthonormal; the cubature is not copied: call
+        :meth:`train_cubature`, which then keeps every element touching the patch exactly
+        (weight 1) and fits the others, and :class:`ReducedNonlinearSimulator` refreshes those
+        elements every step. Measured on the solid liver, a vertex pulled 2 / 5 cm, the exact
+        reduced static error against the corotational full order falls from 0.115 / 0.152 of the
+        pull (40 modes + derivatives of 20, static correction) to 0.029 / 0.050 with a 2 cm patch
+        (18 nodes, 54 more coordinates) and 0.007 / 0.013 with 3 cm (42 nodes)."""
+        n = self.model.n_nodes
+        nodes = validate.nodes(nodes, n)
+        radius = validate.positive(radius, "radius", "a distance in m such as 0.02")
+        X = np.asarray(self.model.mesh.vertices)
+        d = np.min(np.linalg.norm(X[:, None, :] - X[nodes][None], axis=2), axis=1)
+        near = np.flatnonzero(d <= radius)
+        pos = np.full(self.model.n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        rows = pos[(self.dpn * near[:, None] + np.arange(self.dpn)).ravel()]
+        rows = rows[rows >= 0]
+        if rows.size == 0:
+            raise ModelError(f"no free node lies within {radius:g} m of nodes {nodes.tolist()}: pick a free node or a "
+                             "larger radius")
+        parent = self if self.local is None else self.local["parent"]
+        E = np.zeros((self.free.size, rows.size))
+        E[rows, np.arange(rows.size)] = 1.0
+        out = object.__new__(type(self))
+        out.__dict__.update({k: v for k, v in parent.__dict__.items() if not k.startswith("_cubature")})
+        out.basis = parent._orthonormal(parent.basis, E, None)
+        elements = np.flatnonzero(np.isin(self.system.cells, near).any(axis=1))
+        out.local = {"parent": parent, "nodes": near, "radius": radius, "columns": parent.size,
+                     "elements": elements}
+        out.info = dict(parent.info, size=out.basis.shape[1],
+                        local={"nodes": int(near.size), "radius": radius, "coordinates": out.basis.shape[1] - parent.size,
+                               "elements": int(elements.size)})
+        return out
+
     # ---------------------------------------------------------------- elements and cubature
     def _element_data(self, elements: np.ndarray | None = None):
         """The compiled kernel's arguments for ``elements`` (default all), each indexed by element
@@ -290,14 +333,24 @@ class ReducedNonlinearModel:
             scale = 1.0 / np.linalg.norm(b)
             rows.append(per.T * scale)
             targets.append(b * scale)
-        elements, weights, error = cubature.train(np.vstack(rows), np.concatenate(targets), tol)
+        A, b = np.vstack(rows), np.concatenate(targets)
+        pinned = np.zeros(0, int) if self.local is None else self.local["elements"]
+        if pinned.size:  # a localized model: the patch's elements exact, the others fitted to the rest
+            others = np.setdiff1d(np.arange(E), pinned)
+            chosen, w, _ = cubature.train(A[:, others], b - A[:, pinned].sum(axis=1), tol * np.linalg.norm(b) /
+                                          max(np.linalg.norm(b - A[:, pinned].sum(axis=1)), 1e-300))
+            elements, weights = np.concatenate([pinned, others[chosen]]), np.concatenate([np.ones(pinned.size), w])
+            error = float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
+        else:
+            elements, weights, error = cubature.train(A, b, tol)
+        self._cubature_pinned = int(pinned.size)
         self._cubature = (self._element_data(elements), weights)
         if remainder:
             K = self.basis.T @ (self._K0 @ self.basis)
             self._cubature_rest = (self._cubature, Ke[elements], 0.5 * (K + K.T))
         self._cubature_remainder = remainder
         self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
-                                 "remainder": remainder, "seconds": time.perf_counter() - t0}
+                                 "remainder": remainder, "pinned": int(pinned.size), "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
 
     def cubature_forces(self, q: np.ndarray, *, single: bool = False) -> np.ndarray:
@@ -524,6 +577,17 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         the default liver's pulls (``benchmarks/reduced_nonlinear.py``) it cuts the error against
         the corotational full order by 1.4-6 times; ``reduced_nonlinear_driver`` turns it on.
         Three sparse solves per loaded vertex the first time (``prepare`` does them ahead).
+    stiffening : on a localized model (:meth:`ReducedNonlinearModel.localize`), the factor on the
+        patch coordinates' rest stiffness in the step's linearization (default 10; ignored
+        otherwise). The step linearizes about the predictor with a constant tangent and takes the
+        rest of the forces explicitly; for a stiff, light coordinate that is a fixed-point
+        iteration, which converges only while the true tangent stays below twice the one used.
+        A patch node pulled centimetres stiffens far more than that (its elements stretched, a
+        strong geometric stiffness), so the patch coordinates are linearized with an over-stiff
+        reference: stable while the true tangent stays below 2 x stiffening times the rest one,
+        the same equilibrium, and still affine in the loads. Measured on the solid liver with a
+        2 cm patch, a vertex jumped 5 cm under a stiff Grasp: factor 3 diverged, 10 and 30
+        settled, both within 1 % of the final field after 150 steps (as the model without a patch).
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T (+ D_ii), so Probe and Grasp work
@@ -535,7 +599,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
-                 static_correction: bool = False) -> None:
+                 static_correction: bool = False, stiffening: float = 10.0) -> None:
         from .simulate import check_dt
 
         if not isinstance(reduced, ReducedNonlinearModel):
@@ -571,24 +635,35 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         c = damping.alpha * mu + damping.beta + 2.0 * zeta * np.sqrt(mu)  # alpha_i mu_i (finite as mu -> 0)
         self._C = L @ (V * c) @ V.T @ L.T
         h = self.dt
-        S = self._M + 0.5 * h * self._C + 0.25 * h * h * self._K0r
+        local = reduced.local
+        self.stiffening = 1.0 if local is None else validate.number(stiffening, "stiffening")
+        if not 1.0 <= self.stiffening <= 1e6:
+            raise ModelError(f"stiffening={validate.show(stiffening)} must be a factor from 1 to 1e6 (default 10)")
+        Kref = self._K0r.copy()
+        if local is not None:  # the patch's coordinates linearized with an over-stiff reference (see the class)
+            c = local["columns"]
+            Kref[c:, c:] *= self.stiffening
+        S = self._M + 0.5 * h * self._C + 0.25 * h * h * Kref
         self._Sinv = np.linalg.inv(0.5 * (S + S.T))
         self._trans = self._translation_rows()
         self._init_correction(validate.flag(static_correction, "static_correction"), model,
                               self._trans.reshape(-1, U.shape[1]), np.ones(U.shape[1]))
         self.spread = validate.count(spread, "spread", 1, 1024)
-        self._groups = []
+        self._groups, self._always = [], None
         if self.spread > 1:
             if not self.cubature:
                 raise ModelError("spread > 1 refreshes the cubature forces a group at a time: it needs cubature=True")
             data, w = reduced._cubature
-            if self.spread > w.size:
-                raise ModelError(f"spread={self.spread} is more than the {w.size} cubature elements: pass at most "
-                                 f"{w.size}")
             Ke, self._Kc = reduced.cubature_rest()
-            cut = np.linspace(0, w.size, self.spread + 1).astype(int)
+            p = getattr(reduced, "_cubature_pinned", 0)  # a localized model's patch elements: every step
+            if self.spread > w.size - p:
+                raise ModelError(f"spread={self.spread} is more than the {w.size - p} cubature elements outside the "
+                                 f"patch: pass at most {w.size - p}")
+            cut = np.linspace(p, w.size, self.spread + 1).astype(int)
             self._groups = [(tuple(a[lo:hi] for a in data), w[lo:hi], Ke[lo:hi],
                              *_projection_rows(data[0][lo:hi], self.single)) for lo, hi in zip(cut[:-1], cut[1:])]
+            if p:
+                self._always = (tuple(a[:p] for a in data), w[:p], Ke[:p], *_projection_rows(data[0][:p], self.single))
         self.reset()
 
     def _translation_rows(self) -> np.ndarray:
@@ -654,8 +729,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         return red.cubature_forces(q, single=self.single) if self.cubature else red.reduced_forces(q, tangent=False)[0]
 
     def _remainder(self, c: int, q: np.ndarray) -> np.ndarray:
-        """Group c's nonlinear remainder sum_e w_e U_e^T (g_e(U_e q) - K_e U_e q)."""
-        data, w, Ke, U, UT = self._groups[c]
+        """Group c's nonlinear remainder sum_e w_e U_e^T (g_e(U_e q) - K_e U_e q) (c = -1: the
+        patch elements of a localized model, refreshed every step)."""
+        data, w, Ke, U, UT = self._always if c < 0 else self._groups[c]
         return self.reduced._element_forces(q, data, w, False, rest=Ke, UT=UT, U=U)[0]
 
     def _free_step(self):
@@ -671,6 +747,8 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 c = self.steps % self.spread
                 fresh = (c, self._remainder(c, qs))
                 g = self._Kc @ qs + (self._lag.sum(axis=0) - self._lag[c] + fresh[1])
+                if self._always is not None:
+                    g += self._remainder(-1, qs)
             a0 = self._Sinv @ (-(self._C @ vs) - g)
             if not np.isfinite(a0).all():
                 raise SolverError(f"the reduced nonlinear simulation diverged at step {self.steps} (t = {self.time:g} s): "
@@ -761,20 +839,28 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
 def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,
                              spread: int = 1, precision: str = "double", static_correction: bool = True,
-                             progress: Callable[[int, int, str], None] | None = None):
+                             local: tuple | None = None, progress: Callable[[int, int, str], None] | None = None):
     """The reduced nonlinear Driver in one call, as ``rtfem simulate --method nonlinear`` and the
     viewer build it: a :class:`ReducedNonlinearModel` on ``modes`` and the modal derivatives of the
     lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
     :class:`ReducedNonlinearSimulator` with ``spread`` element groups (1: every element every
     step, stable under any damping; 4 with a zeta damping is the 1 kHz setting, see the class) and the
     basis rows' ``precision`` ("single": 0.64 times the probe tick, the viewer's), with the
-    ``static_correction`` (default on, as the linear modal driver's). Shells and solids: the
-    compiled cubature kernels are the corotational triangle's and the corotated tet's."""
+    ``static_correction`` (default on, as the linear modal driver's). ``local`` = (nodes, radius):
+    the basis also holds every dof within radius (m) of those nodes (:meth:`ReducedNonlinearModel.localize`:
+    where a grasp or probe will pull far; its cubature keeps the patch's elements exact). Shells
+    and solids: the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
+    if local is not None:
+        if not isinstance(local, (tuple, list)) or len(local) != 2:
+            raise ModelError(f"local={validate.show(local)} must be (nodes, radius in m), e.g. ([node], 0.02)")
+        local = (validate.nodes(local[0], model.n_nodes), validate.positive(local[1], "local radius", "a distance in m"))
     derivatives = validate.count(derivatives, "derivatives", 0, 10**4)
     validate.choice(precision, "precision", ("double", "single"))  # before the precompute
     static_correction = validate.flag(static_correction, "static_correction")
     red = ReducedNonlinearModel(model, modes, min(derivatives, getattr(modes, "n_modes", derivatives)),
                                 progress=progress)
+    if local is not None:
+        red = red.localize(*local)
     red.train_cubature(16, tol=0.05)
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread, precision=precision,
                                      static_correction=static_correction)
