@@ -1,34 +1,42 @@
 """Organ pulls: linear, warped and reduced-nonlinear (modes + modal derivatives) models against the
 corotational full order.
 
-The default liver as a shell (level 4, the attachment fixed). A jaw of radius 1 cm (the nodes
-within it held together) or a single vertex on the free edge of the right lobe is pulled 1, 2 or
-5 cm along its outward normal, or the lobe is lifted by an upward dead load on the nodes within
-3 cm of that vertex, scaled so that its linear lift is 2 or 5 cm (as in large_deformation.py;
-the models then step under the load instead of a grasp). The reference is the geometrically nonlinear static equilibrium
-with the held nodes moved there (``rt.nonlinear.solve_static``). The linear and warped modal
-models (r modes, static correction) are settled by an ``rt.Grasp`` (1e5 times stiffer than the
-organ at the vertex, 2,000 steps at 1 kHz, critical damping); the reduced nonlinear model
-(:class:`rtfem.reduced.ReducedNonlinearModel`: the r modes and the modal derivatives of the lowest
-d) is solved for its static equilibrium with the held nodes moved exactly, without and with the
-static correction (the static response D f, D = K^-1 - U U^T, that the basis cannot hold, for the
-held nodes' reactions f: ``static_correction=True``). Errors: max and RMS of the surface
-displacement error, relative to the pull. Costs, in the same run: the precompute of
-the derivatives, the Grasp step of the linear and warped models, one evaluation of the reduced
-forces and tangent on all elements (numpy), and the reduced forces on the cubature elements
-(An, Kim & James 2008; 16 random training poses, 5 % training error) with the compiled kernel:
-the per-step cost of a reduced explicit or semi-implicit step. The
-:class:`rtfem.ReducedNonlinearSimulator` is settled under the same Grasp (3,000 steps; 8,000 under
-the lift, where it creeps to rest with a time constant of ~0.65 s), three ways: with every cubature element each step (spread 1) and no correction; with the static
-correction and spread 1; with the static correction, ``spread`` (one of that many element groups
-refreshed per step, the others' nonlinear remainders kept from their last evaluation) and the
-basis rows in single precision, the setting for a 1 kHz loop. The grasp spring is 1e5 times
-the organ's stiffness at the vertex for every model, so that the stiffening nonlinear model also
-reaches the pull. Last, a probe loop on the simulator: at 500 Hz and 1 kHz with spread 1 and no
+The default liver as a shell (level 4, the attachment fixed; ``--organ solid``: the solid liver
+of tet4, meshed once per machine). A jaw of radius 1 cm (the nodes within it held together) or a
+single vertex on the free edge of the right lobe is pulled 1, 2 or 5 cm along its outward
+normal, or the lobe is lifted by an upward dead load on the nodes within 3 cm of that vertex,
+scaled so that its linear lift is 2 or 5 cm (as in large_deformation.py; the models then step
+under the load instead of a grasp). The reference is the geometrically nonlinear static
+equilibrium with the held nodes moved there (``rt.nonlinear.solve_static``). The linear and
+warped modal models (r modes, static correction) are settled by an ``rt.Grasp`` (1e5 times
+stiffer than the organ at the vertex, 2,000 steps at 1 kHz, critical damping); the reduced
+nonlinear model (:class:`rtfem.reduced.ReducedNonlinearModel`: the r modes and the modal
+derivatives of the lowest d) is solved for its static equilibrium with the held nodes moved
+exactly, without and with the static correction (the static response D f, D = K^-1 - U U^T,
+that the basis cannot hold, for the held nodes' reactions f: ``static_correction=True``).
+Errors: max and RMS of the surface displacement error, relative to the pull. Costs, in the same
+run: the precompute of the derivatives, the Grasp step of the linear and warped models, one
+evaluation of the reduced forces and tangent on all elements (numpy), and the reduced forces on
+the cubature elements (An, Kim & James 2008; 16 random training poses, ``--tol`` training error)
+with the compiled kernel: the per-step cost of a reduced explicit or semi-implicit step. The
+:class:`rtfem.ReducedNonlinearSimulator` is settled under the same Grasp (3,000 steps; 8,000
+under the lift, where it creeps to rest with a time constant of ~0.65 s), three ways: with
+every cubature element each step (spread 1) and no correction; with the static correction and
+spread 1; with the static correction, ``spread`` (one of that many element groups refreshed per
+step, the others' nonlinear remainders kept from their last evaluation) and the basis rows in
+single precision, the setting for a 1 kHz loop. ``--local RADIUS``: also the localized model
+(``red.localize(held nodes, RADIUS)``: every dof within RADIUS of the held nodes added to the
+basis, its cubature keeping the patch's elements exact; ``--local-remainder``: a cubature of the
+nonlinear remainder only), its static solve and its
+simulator in the 1 kHz setting, built per case. The grasp spring is 1e5 times the organ's
+stiffness at the vertex for every model, so that the stiffening nonlinear model also reaches
+the pull. Last, a probe loop on the simulator: at 500 Hz and 1 kHz with spread 1 and no
 correction (the previous setting), and at 1 kHz with the correction, single precision and
-spread 1, 2, 4 and ``spread``.
+spread 1, 2, 4 and ``spread`` (with ``--local``: the localized model around the vertex at
+spread 4, 8 and ``spread``).
 
-    python benchmarks/reduced_nonlinear.py [--modes 40] [--derivatives 20] [--spread 4] [--cases jaw2 jaw5 point1 point2 lift2]
+    python benchmarks/reduced_nonlinear.py [--organ shell|solid] [--modes 40] [--derivatives 20] [--spread 4]
+        [--tol 0.05] [--local RADIUS [--local-remainder]] [--cases jaw2 jaw5 point1 point2 lift2]
 """
 
 from __future__ import annotations
@@ -53,7 +61,7 @@ CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
 
 
 def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, organ: str = "shell",
-        tol: float = 0.05, local: float | None = None) -> None:
+        tol: float = 0.05, local: float | None = None, local_remainder: bool = False) -> None:
     name, model, fresh = organs([organ])[0]
     mesh = model.mesh
     X = np.asarray(mesh.vertices)
@@ -69,14 +77,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
     cub = red.train_cubature(16, tol=tol)
     print(f"cubature: {cub['elements'].size} of {cub['of']} elements, training error {cub['training_error']:.3f}, "
           f"{cub['seconds']:.1f} s", flush=True)
-    loc = None
-    if local:
-        t0 = time.perf_counter()
-        loc = red.localize([node], local)
-        cub_loc = loc.train_cubature(16, tol=tol)
-        print(f"localized: {loc.info['local']['nodes']} nodes within {local * 100:g} cm, {loc.size} coordinates; cubature "
-              f"{cub_loc['elements'].size} elements ({cub_loc['pinned']} of the patch), "
-              f"{time.perf_counter() - t0:.1f} s", flush=True)
+    loc_info = []
     q = np.zeros(red.size)
     t_cub, t_cub32 = [], []
     for _ in range(50):  # interleaved, so that both see the same machine
@@ -114,7 +115,17 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
             except rt.SolverError as exc:
                 out[key] = None
                 print(f"  {kwargs}: {exc}", flush=True)
-        if loc is not None:
+        held = out[False][1]
+        loc = None
+        if local:  # the patch: every node within `local` of the held ones (the lift: of the vertex)
+            t1 = time.perf_counter()
+            loc = red.localize(held, local)
+            c = loc.train_cubature(16, tol=tol, remainder=local_remainder)
+            loc_info.append(f"{case}: {loc.info['local']['nodes']} nodes within {local * 100:g} cm of the "
+                            f"{held.size} held, {loc.size} coordinates; {'remainder ' if local_remainder else ''}cubature "
+                            f"{c['elements'].size} elements "
+                            f"({c['pinned']} of the patch), {time.perf_counter() - t1:.1f} s")
+            print("  " + loc_info[-1], flush=True)
             sim = rt.ReducedNonlinearSimulator(loc, 1e-3, rt.Damping(zeta=1.0), static_correction=True, spread=spread,
                                                precision="single")
             try:
@@ -122,7 +133,6 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
             except rt.SolverError as exc:
                 out["loc"] = None
                 print(f"  localized: {exc}", flush=True)
-        held = out[False][1]
         t0 = time.perf_counter()
         if loads is None:
             ref_model = fresh().fix("attachment").fix(held, dofs="xyz")
@@ -151,7 +161,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
 
         def cell(key):
             if key not in e:
-                return "-" if key.startswith("loc") and loc is None else "diverged"
+                return "-" if key.startswith("loc") and not local else "diverged"
             ripple = f" (ripple {out[key][3]:.0e})" if key in ("nl", "sc", "spread", "loc") else ""
             return f"{e[key][0] * 100:.0f} % / {e[key][1] * 100:.0f} %{ripple}"
 
@@ -191,16 +201,20 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
         [f"same, static correction, spread {spread}, single",
          fmt_s(statistics.median(steps_spread)) if steps_spread else ("diverged" if rows else "-")],
         [f"localized, static correction, spread {spread}, single",
-         fmt_s(statistics.median(steps_loc)) if steps_loc else ("diverged" if rows and loc is not None else "-")]])
+         fmt_s(statistics.median(steps_loc)) if steps_loc else ("diverged" if rows and local else "-")]])
     print()
     runs = [(500, 1, "double", False), (1000, 1, "double", False)] + \
         [(1000, k, "single", True) for k in sorted({1, 2, 4, spread})]
     loops = [[f"{rate} Hz, spread {k}, {p}{', static correction' if sc else ''}, 3 s",
               loop_row(red, node, rate, spread=k, precision=p, static_correction=sc)] for rate, k, p, sc in runs]
-    if loc is not None:
-        loops += [[f"localized, 1000 Hz, spread {k}, single, static correction, 3 s",
+    if local:
+        loc = red.localize([node], local)
+        loc.train_cubature(16, tol=tol, remainder=local_remainder)
+        loops += [[f"localized ({loc.info['local']['nodes']} nodes), 1000 Hz, spread {k}, single, static correction, 3 s",
                    loop_row(loc, node, 1000, spread=k, precision="single", static_correction=True)]
                   for k in sorted({4, 8, spread})]
+    for line in loc_info:
+        print(line)
     print_table(["probe loop on the ReducedNonlinearSimulator (Python ticks)", "result"], loops)
 
 
@@ -233,8 +247,10 @@ def main() -> None:
     ap.add_argument("--tol", type=float, default=0.05, help="the cubature's training error (default 0.05)")
     ap.add_argument("--local", type=float, default=None, metavar="RADIUS",
                     help="also the localized model: every dof within RADIUS m of the grasped vertex added to the basis")
+    ap.add_argument("--local-remainder", action="store_true",
+                    help="the localized models' cubature fits the nonlinear remainder only (train_cubature(remainder=True))")
     args = ap.parse_args()
-    run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol, args.local)
+    run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol, args.local, args.local_remainder)
 
 
 if __name__ == "__main__":

@@ -210,17 +210,19 @@ class ReducedNonlinearModel:
     # ---------------------------------------------------------------- local enrichment
     def localize(self, nodes, radius: float) -> "ReducedNonlinearModel":
         """A copy whose basis also holds every free dof of the nodes within ``radius`` (m) of
-        ``nodes`` (a grasped vertex or jaw): the modes and derivatives carry the organ's global
-        motion, the patch's own dofs the strongly nonlinear dent under the grasp, which a basis of
-        global shapes cannot hold (a subspace with local deformations, after Harmon & Zorin,
-        ACM TOG 32 (2013) 129: theirs are added at contacts at run time, these are the patch's
-        nodal dofs). The basis stays stiffness-orthonormal; the cubature is not copied: call
-        :meth:`train_cubature`, which then keeps every element touching the patch exactly
-        (weight 1) and fits the others, and :class:`ReducedNonlinearSimulator` refreshes those
-        elements every step. Measured on the solid liver, a vertex pulled 2 / 5 cm, the exact
-        reduced static error against the corotational full order falls from 0.115 / 0.152 of the
-        pull (40 modes + derivatives of 20, static correction) to 0.029 / 0.050 with a 2 cm patch
-        (18 nodes, 54 more coordinates) and 0.007 / 0.013 with 3 cm (42 nodes)."""
+        ``nodes`` (a grasped vertex, or all of a jaw's held nodes): the modes and derivatives
+        carry the organ's global motion, the patch's own dofs the strongly nonlinear dent under
+        the grasp, which a basis of global shapes cannot hold (a subspace with local deformations,
+        after Harmon & Zorin, ACM TOG 32 (2013) 129: theirs are added at contacts at run time,
+        these are the patch's nodal dofs). The basis stays stiffness-orthonormal; the cubature is
+        not copied: call :meth:`train_cubature` (``remainder=True`` measured best: the patch
+        exact, the rest exact to first order), which then keeps every element touching the patch
+        exactly (weight 1) and fits the others, and :class:`ReducedNonlinearSimulator` refreshes
+        those elements every step. Measured on the solid liver, a vertex pulled 2 / 5 cm, the
+        exact reduced static error against the corotational full order falls from 0.115 / 0.152
+        of the pull (40 modes + derivatives of 20, static correction) to 0.029 / 0.050 with a
+        2 cm patch (18 nodes, 54 more coordinates) and 0.007 / 0.013 with 3 cm (42 nodes)
+        (``benchmarks/reduced_nonlinear.py --organ solid --local 0.02``)."""
         n = self.model.n_nodes
         nodes = validate.nodes(nodes, n)
         radius = validate.positive(radius, "radius", "a distance in m such as 0.02")
@@ -578,16 +580,20 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         the corotational full order by 1.4-6 times; ``reduced_nonlinear_driver`` turns it on.
         Three sparse solves per loaded vertex the first time (``prepare`` does them ahead).
     stiffening : on a localized model (:meth:`ReducedNonlinearModel.localize`), the factor on the
-        patch coordinates' rest stiffness in the step's linearization (default 10; ignored
+        patch coordinates' rest stiffness in the step's linearization (default 100; ignored
         otherwise). The step linearizes about the predictor with a constant tangent and takes the
         rest of the forces explicitly; for a stiff, light coordinate that is a fixed-point
         iteration, which converges only while the true tangent stays below twice the one used.
-        A patch node pulled centimetres stiffens far more than that (its elements stretched, a
-        strong geometric stiffness), so the patch coordinates are linearized with an over-stiff
-        reference: stable while the true tangent stays below 2 x stiffening times the rest one,
-        the same equilibrium, and still affine in the loads. Measured on the solid liver with a
-        2 cm patch, a vertex jumped 5 cm under a stiff Grasp: factor 3 diverged, 10 and 30
-        settled, both within 1 % of the final field after 150 steps (as the model without a patch).
+        A patch pulled centimetres stiffens far more than that (its elements stretched: a strong
+        geometric stiffness), so the patch coordinates are linearized with an over-stiff
+        reference: stable while their true tangent stays below 2 x stiffening times the rest one,
+        the same equilibrium, and still affine in the loads. Measured on the solid liver under a
+        stiff Grasp (spread 4): a vertex jumped 5 cm with a 2 cm patch diverged with factor 3 and
+        settled with 10-30; a 1 cm jaw (4 nodes) with the patch within 2 cm of it kept a ripple of
+        6e-5 of the pull at 2 cm with 10-30 and diverged at 5 cm, and settled with 100 (ripple
+        5e-11). The price is a slower patch where it does not stiffen: with 100 a 200 N/m probe
+        and a 1 mm pull settle as fast as without a patch (1 % of the final field after 455 / 180
+        steps), the 2 cm jaw pull in 295 steps against 185 (300: the same, 0.1 % later).
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T (+ D_ii), so Probe and Grasp work
@@ -599,7 +605,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
-                 static_correction: bool = False, stiffening: float = 10.0) -> None:
+                 static_correction: bool = False, stiffening: float = 100.0) -> None:
         from .simulate import check_dt
 
         if not isinstance(reduced, ReducedNonlinearModel):

@@ -537,7 +537,7 @@ def test_localized_basis_adds_the_patch_dofs_and_its_simulator_keeps_the_contrac
     assert np.array_equal(np.sort(info["elements"][:p]), local.local["elements"]) and np.all(info["weights"][:p] == 1)
     f = {tip: (0.0, 0.0, 3.0)}
     sim = ReducedNonlinearSimulator(local, 1e-3, rt.Damping(zeta=1.0), spread=3, static_correction=True)
-    assert sim.stiffening == 10.0
+    assert sim.stiffening == 100.0
     sim.run(f, 20)
     W = sim.step_compliance(tip)
     u = sim.predict(tip) + W @ np.asarray(f[tip])
