@@ -342,34 +342,29 @@ def solid_forces_numpy(V, X, G, wdet, lm, F) -> None:
 _COMPILED: dict = {}
 
 
-def compiled_forces():
-    """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
-    if "shell" not in _COMPILED:
+def _compiled(key: str, kernel, helper):
+    """``kernel`` compiled by numba with its one helper function compiled too (cached), or None
+    where numba is absent or cannot compile it."""
+    if key not in _COMPILED:
         try:
             import numba
 
             opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            g = dict(_shell_element_forces.__globals__, _exp_series=numba.njit(**opts)(_exp_series))
-            fn = type(_shell_element_forces)(_shell_element_forces.__code__, g, "_shell_element_forces")
-            _COMPILED["shell"] = numba.njit(**opts)(fn)
+            g = dict(kernel.__globals__, **{helper.__name__: numba.njit(**opts)(helper)})
+            _COMPILED[key] = numba.njit(**opts)(type(kernel)(kernel.__code__, g, kernel.__name__))
         except Exception:  # pragma: no cover - numba absent or unable to compile here
-            _COMPILED["shell"] = None
-    return _COMPILED["shell"]
+            _COMPILED[key] = None
+    return _COMPILED[key]
+
+
+def compiled_forces():
+    """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
+    return _compiled("shell", _shell_element_forces, _exp_series)
 
 
 def compiled_solid_forces():
     """The compiled corotated-tet kernel (numba), or None where numba is absent or cannot compile it."""
-    if "solid" not in _COMPILED:
-        try:
-            import numba
-
-            opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            g = dict(_solid_element_forces.__globals__, _polar_rotation=numba.njit(**opts)(_polar_rotation))
-            fn = type(_solid_element_forces)(_solid_element_forces.__code__, g, "_solid_element_forces")
-            _COMPILED["solid"] = numba.njit(**opts)(fn)
-        except Exception:  # pragma: no cover - numba absent or unable to compile here
-            _COMPILED["solid"] = None
-    return _COMPILED["solid"]
+    return _compiled("solid", _solid_element_forces, _polar_rotation)
 
 
 def solid_element_forces(V, X, G, wdet, lm, F) -> None:

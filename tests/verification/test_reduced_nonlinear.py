@@ -281,6 +281,9 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
         reduced_nonlinear_driver(model, None, 1e-3, precision="half")
     with pytest.raises(rt.ModelError, match="static_correction"):  # the same
         reduced_nonlinear_driver(model, None, 1e-3, static_correction="on")
+    for bad in (0.02, ([0], -1.0), ([10**7], 0.02)):  # the same
+        with pytest.raises(rt.ModelError, match="local|node|radius"):
+            reduced_nonlinear_driver(model, None, 1e-3, local=bad)
 
 
 def test_single_precision_rows_keep_the_forces_and_the_equilibrium(small_liver):
@@ -547,8 +550,9 @@ def test_localized_basis_adds_the_patch_dofs_and_its_simulator_keeps_the_contrac
     static = local.solve_static(f, cubature=True, max_iterations=60, static_correction=True).displacements
     assert np.abs(sim.displacements() - static).max() < 1e-5 * np.abs(static).max()
     for bad in ({"stiffening": 0.5}, {"stiffening": "x"}):
-        with pytest.raises(rt.ModelError, match="stiffening"):
-            ReducedNonlinearSimulator(local, 1e-3, **bad)
+        for r in (local, red):  # refused on a model without a patch too (where it has no effect)
+            with pytest.raises(rt.ModelError, match="stiffening"):
+                ReducedNonlinearSimulator(r, 1e-3, cubature=False, **bad)
     for args in (([tip], -1.0), ([10**6], 0.1), ([int(model.select_nodes("x0")[0])], 1e-6)):
         with pytest.raises(rt.ModelError):
             red.localize(*args)
