@@ -246,7 +246,7 @@ def main() -> None:
                     help="the default liver as a shell (level 4, default) or the solid liver (tet4)")
     ap.add_argument("--tol", type=float, default=0.05, help="the cubature's training error (default 0.05)")
     ap.add_argument("--local", type=float, default=None, metavar="RADIUS",
-                    help="also the localized model: every dof within RADIUS m of the grasped vertex added to the basis")
+                    help="also the localized model: every dof within RADIUS m of each case's held nodes added to the basis")
     ap.add_argument("--local-remainder", action="store_true",
                     help="the localized models' cubature fits the nonlinear remainder only (train_cubature(remainder=True))")
     args = ap.parse_args()
