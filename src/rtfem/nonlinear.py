@@ -6,8 +6,14 @@ tangent (shell triangles: :class:`rtfem.shell.CorotationalTriangles`; tets:
 :class:`rtfem.solid.CorotationalTets`) over a :class:`Configuration` (nodal translations and, on a
 shell, nodal rotation matrices updated by spins). :func:`solve_static` is Newton's method with
 adaptive load stepping (Crisfield, Non-linear Finite Element Analysis of Solids and Structures,
-vol. 1, ch. 9): dead loads, supports held or moved to prescribed positions. The dynamic reference
-(Newton inside implicit Newmark) is :class:`rtfem.fullorder.NonlinearNewmarkSimulator`.
+vol. 1, ch. 9): dead loads, supports held or moved to prescribed positions. Where Newton stalls
+(a thin shell pulled into a tent, whose tangent turns near-singular and indefinite on the way),
+a load step falls back on a trust-region minimization of the total potential (a Newton step
+shifted by mu diag(H) until the shifted Hessian is positive definite, mu adapted to the ratio
+of actual to predicted decrease: Nocedal & Wright, Numerical Optimization, 2nd ed., ch. 4 and
+10.3); it ends at a stable equilibrium (positive definite Hessian), quadratically once the shift
+is zero. The dynamic reference (Newton inside implicit Newmark) is
+:class:`rtfem.fullorder.NonlinearNewmarkSimulator`.
 """
 
 from __future__ import annotations
@@ -86,6 +92,7 @@ class NonlinearSystem:
         indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
         self._pattern = (indices, indptr, nf)
         self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
+        self.turned = 0.0  # the largest local rotation (degrees) a solve refused
 
     def expand(self, values: np.ndarray) -> np.ndarray:
         """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
@@ -114,11 +121,31 @@ class NonlinearSystem:
         """The strain energy of a configuration."""
         return self.evaluate(conf, tangent=False)[2]
 
-    def solver(self, K: sp.csr_matrix, what: str):
+    def local_rotation(self, conf: Configuration) -> float:
+        """The largest rotation (degrees) of a shell's nodal triad relative to an element's
+        corotated frame (0 on a solid, whose polar decomposition has no such limit)."""
+        if not self.rotations:
+            return 0.0
+        X = np.asarray(self.model.mesh.vertices)
+        return float(self.kernel.local_rotations((X + conf.u)[self.cells], conf.Q[self.cells]).max())
+
+    def within_limit(self, conf: Configuration) -> bool:
+        """Whether no shell triad has turned :data:`LOCAL_ROTATION_LIMIT` degrees from an element
+        frame; the largest such turn refused is kept in ``turned`` (for the error message)."""
+        angle = self.local_rotation(conf)
+        if angle >= LOCAL_ROTATION_LIMIT:
+            self.turned = max(self.turned, angle)
+            return False
+        return True
+
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
         """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
-        rest), LU otherwise (a shell's spin tangent off equilibrium)."""
-        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
+        rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
+        SolverError (a symmetric matrix that must be positive definite)."""
         order = lambda: self.model.dof_order(self.free)  # noqa: E731
+        if spd_only:
+            return factorize(K, spd=True, what=what, order=order)
+        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
         if sym:
             try:
                 return factorize(K, spd=True, what=what, order=order)
@@ -135,7 +162,10 @@ class NonlinearResult:
     ``reactions`` (n, 3): the internal forces at the held dofs (the supports' forces on the
     model, with sign: minus the load they carry); ``load_factors``: the converged load steps;
     ``residuals``: per load step, the free-dof residual norm before each Newton iteration and
-    after the last; ``converged``; ``energy``: the strain energy; ``seconds``.
+    after the last; ``local_rotation``: a shell's largest nodal rotation relative to an element
+    frame, in degrees (the element's rotation measure, sin(angle), is first-order exact, 10 %
+    soft at 45 degrees; past 90 no step is accepted); ``methods``: per load step, "newton" or "trust-region" (the step Newton could
+    not converge, minimized instead); ``converged``; ``energy``: the strain energy; ``seconds``.
     """
 
     displacements: np.ndarray
@@ -143,6 +173,8 @@ class NonlinearResult:
     reactions: np.ndarray
     load_factors: list[float] = field(default_factory=list)
     residuals: list[list[float]] = field(default_factory=list)
+    methods: list[str] = field(default_factory=list)
+    local_rotation: float = 0.0
     converged: bool = True
     energy: float = 0.0
     seconds: float = 0.0
@@ -172,8 +204,12 @@ def _prescribed(model, prescribed) -> np.ndarray:
     return P
 
 
+METHODS = ("auto", "newton", "trust-region")
+
+
 def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: float = 1e-9,
-                 max_iterations: int = 30, max_cuts: int = 12, progress=None) -> NonlinearResult:
+                 max_iterations: int = 30, max_cuts: int = 12, method: str = "auto",
+                 progress=None) -> NonlinearResult:
     """Geometrically nonlinear static equilibrium f_int(x) = F by Newton's method with load steps.
 
     Parameters
@@ -187,6 +223,12 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         is halved (at most ``max_cuts`` times in a row) and retried from the last equilibrium.
     tol : convergence: free-dof residual <= tol * (|lambda F| + |f_int|) (or a correction below
         1e-12 of the model's size, for a motion with no force to measure against).
+    method : "newton" (each load step by Newton's method), "trust-region" (each load step by the
+        trust-region minimization of the total potential, up to 5 * ``max_iterations``
+        iterations: slower per step, but it cannot stall on an indefinite or near-singular
+        tangent) or "auto" (Newton, and the trust region on a step Newton does not converge,
+        before the step is halved). The trust region needs a potential: dead forces, no
+        moments (a dead moment does no path-independent work on finite rotations).
     progress : callback(done, total, message) per converged load step.
 
     Raises SolverError when a load step cannot be halved further; the error's ``result`` holds
@@ -194,13 +236,19 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     """
     t0 = time.perf_counter()
     system = model.nonlinear()
+    system.turned = 0.0
     F = model.force_vector(forces if forces is not None else np.zeros((model.n_nodes, 3)))
     P = _prescribed(model, prescribed)
     steps = validate.count(steps, "steps", 1, 10**6)
     tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
     max_iterations = validate.count(max_iterations, "max_iterations", 1, 1000)
     max_cuts = validate.count(max_cuts, "max_cuts", 0, 60)
+    method = validate.choice(method, "method", METHODS)
     n, dpn = model.n_nodes, model.dofs_per_node
+    conservative = dpn == 3 or not F.reshape(n, dpn)[:, 3:].any()
+    if method == "trust-region" and not conservative:
+        raise ModelError("method='trust-region' minimizes the total potential, which dead moments do not have on finite "
+                         "rotations: apply the moments as force couples, or use method='newton'")
     fixed_mask = model.fixed
     conf = Configuration.rest(n, dpn == 6)
     applied = 0.0  # load factor of the last equilibrium
@@ -214,13 +262,21 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         if previous is not None:  # secant predictor: continue the last step's motion
             _extrapolate(trial, previous[0], (target - applied) / previous[1])
         _move_supports(trial, P, fixed_mask, applied, target)
-        history, ok = _newton(system, trial, target * F, tol, max_iterations)
+        used = "newton" if method != "trust-region" else "trust-region"
+        if used == "newton":
+            start = trial.copy() if method == "auto" and conservative else None
+            history, ok = _newton(system, trial, target * F, tol, max_iterations)
+            if not ok and start is not None:  # Newton stalled or diverged: minimize from the same start
+                used, trial = "trust-region", start
+        if used == "trust-region":
+            history, ok = _minimize(system, trial, target * F, tol, 5 * max_iterations)
         if ok:
             previous = (conf, target - applied)
             conf, applied = trial, target
             result.load_factors.append(target)
             result.residuals.append(history)
-            if cuts == 0 and len(history) <= 6:
+            result.methods.append(used)
+            if cuts == 0 and len(history) <= (6 if used == "newton" else 12):
                 step *= 2.0  # easy going: longer steps
             cuts = 0
             if progress is not None:
@@ -229,11 +285,15 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         cuts += 1
         if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
             _fill(result, system, conf, t0, converged=False)
+            turned = system.turned
+            limit = (f"; steps were refused where a shell triad turned {turned:.0f} degrees from an element's frame, past the "
+                     f"{LOCAL_ROTATION_LIMIT:.0f} the corotational shell describes: a kink sharper than the mesh can "
+                     "turn, as at a vertex pulled alone; spread the load over more nodes") if turned >= LOCAL_ROTATION_LIMIT else ""
             exc = SolverError(
-                f"Newton did not converge past load factor {applied:.4g} (step halved {max_cuts} times in a row, or "
-                f"to {step:.2g} of the load; residual "
-                f"{history[-1]:.3g} after {len(history) - 1} iterations): the structure may buckle or snap there, or "
-                "the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
+                f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
+                f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
+                f"{history[-1]:.3g} after {len(history) - 1} iterations{limit}): the structure may buckle or snap "
+                "there, or the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
             exc.result = result
             raise exc
         step *= 0.5
@@ -242,6 +302,10 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
 
 
 MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
+# a shell triad may turn at most this far (degrees) from an element's corotated frame: the
+# element's rotational deformation is the skew part, sin(angle), which turns back past 90 degrees
+# (its energy falls to zero at a flipped triad, 180); an equilibrium beyond is not accepted
+LOCAL_ROTATION_LIMIT = 90.0
 
 
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
@@ -274,23 +338,108 @@ def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: fl
     iteration, and the last) and whether it converged."""
     free = system.free
     history: list[float] = []
+
+    def failed():
+        system.within_limit(conf)  # records a shell triad turned past the limit, for the error message
+        return history, False
+
     for _ in range(max_iterations):
         f, K, _ = system.evaluate(conf)
         r = f[free] - F[free]
         rn = float(np.linalg.norm(r))
         history.append(rn)
         if not np.isfinite(rn) or (len(history) > 3 and rn > 1e3 * history[0]):
-            return history, False
+            return failed()
         if rn <= tol * (float(np.linalg.norm(F)) + float(np.linalg.norm(f))):
-            return history, True
+            return history, system.within_limit(conf)
         try:
             delta = -system.solver(K, "the tangent stiffness").solve(r)
         except SolverError:
-            return history, False
+            return failed()
         full = system.expand(delta)
         conf.update(full)
         if np.abs(full[:, :3]).max() <= 1e-12 * system.size:
             f, _, _ = system.evaluate(conf, tangent=False)
+            history.append(float(np.linalg.norm(f[free] - F[free])))
+            return history, system.within_limit(conf)
+    return failed()
+
+
+def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
+              max_iterations: int) -> tuple[list[float], bool]:
+    """Trust-region minimization of the total potential Pi = E(x) - F . u from ``conf`` (changed
+    in place), by Levenberg-Marquardt shifted Newton steps: (H + mu D) p = -r with H the
+    symmetric Hessian (the symmetric part of the spin tangent: its skew part, -1/2 [m]x, is the
+    multiplicative update's and vanishes at equilibrium), D = |diag H| at the start, and mu
+    raised until H + mu D is positive definite (a Cholesky factorization) and the step decreases
+    Pi by at least 1e-4 of the quadratic model's prediction; mu shrinks by 4 after a step the
+    model predicted well (ratio > 0.75) and is dropped below 1e-6, where the steps are Newton's
+    (Nocedal & Wright, ch. 4; Conn, Gould & Toint, Trust-Region Methods, 7.3). The potential
+    never rises, so the iterates cannot run off along a negative curvature as Newton's do, and
+    the end is a minimum: a stable equilibrium. Returns the residual norms (as :func:`_newton`)
+    and whether it converged."""
+    free = system.free
+    n, dpn = system.model.n_nodes, system.dpn
+    load = F.reshape(n, dpn)[:, :3]  # dead forces; no moments (checked by the caller)
+
+    def potential(c: Configuration, energy: float) -> float:
+        return energy - float(np.sum(load * c.u))
+
+    f, K, energy = system.evaluate(conf)
+    pi = potential(conf, energy)
+    scale = float(np.linalg.norm(F))
+    history: list[float] = []
+    if not system.within_limit(conf):  # a start the shell cannot describe: a shorter step
+        return [float(np.linalg.norm(f[free] - F[free]))], False
+    mu, D = 0.0, None
+    for _ in range(max_iterations):
+        r = f[free] - F[free]
+        rn = float(np.linalg.norm(r))
+        history.append(rn)
+        if not np.isfinite(rn):
+            return history, False
+        if rn <= tol * (scale + float(np.linalg.norm(f))):
+            return history, True
+        H = (0.5 * (K + K.T)).tocsr()
+        if D is None:
+            D = np.abs(H.diagonal())
+            D = np.maximum(D, 1e-12 * D.max())
+        while True:  # shift until the step is a descent the quadratic model predicts
+            if mu > 1e12:
+                return history, False  # no decrease even along the scaled gradient: a non-smooth potential
+            A = H + sp.diags(mu * D) if mu > 0 else H
+            try:
+                p = -system.solver(A, "the shifted Hessian", spd_only=True).solve(r)
+            except SolverError:  # not positive definite: shift more
+                mu = max(4.0 * mu, 1e-6)
+                continue
+            predicted = -(r @ p + 0.5 * p @ (H @ p))
+            if not (-r @ p > 0 and predicted > 0):  # not a descent direction: indefinite after all
+                mu = max(4.0 * mu, 1e-6)
+                continue
+            trial = conf.copy()
+            full = system.expand(p)
+            trial.update(full)
+            if not system.within_limit(trial):  # would turn a triad past the limit: a shorter step
+                mu = max(4.0 * mu, 1e-6)
+                continue
+            ft, Kt, et = system.evaluate(trial)
+            pt = potential(trial, et)
+            ratio = (pi - pt) / predicted
+            # near the end the decrease is below the round-off of Pi: judge by the residual there
+            tiny = predicted <= 1e-12 * (abs(pi) + abs(energy)) and \
+                float(np.linalg.norm(ft[free] - F[free])) < rn
+            if np.isfinite(pt) and (ratio > 1e-4 or tiny):
+                break
+            mu = max(4.0 * mu, 1e-6)
+        conf.u, conf.Q = trial.u, trial.Q
+        f, K, energy, pi = ft, Kt, et, pt
+        newton = mu == 0.0
+        if ratio > 0.75 or tiny:
+            mu = mu / 4.0 if mu > 1e-6 else 0.0
+        elif ratio < 0.25:
+            mu = max(4.0 * mu, 1e-6)
+        if newton and np.abs(full[:, :3]).max() <= 1e-12 * system.size:  # a Newton step that moved nothing
             history.append(float(np.linalg.norm(f[free] - F[free])))
             return history, True
     return history, False
@@ -304,6 +453,7 @@ def _fill(result: NonlinearResult, system: NonlinearSystem, conf: Configuration,
     result.rotations = conf.rotation_vectors()
     result.reactions = reactions
     result.energy = energy
+    result.local_rotation = system.local_rotation(conf)
     result.converged = converged
     result.seconds = time.perf_counter() - t0
     result.configuration = conf

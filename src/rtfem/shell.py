@@ -422,6 +422,19 @@ class CorotationalTriangles:
                 d[:, 6 * i + 3 + c] = 0.5 * (A[:, p, q] - A[:, q, p])
         return d
 
+    def local_rotations(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """The angles (E, 3), in degrees, of each corner's rotation relative to the element frame
+        (R Q_i R0^T). The element takes the skew part of that rotation, sin(angle) about its
+        axis, as its rotational deformation: exact to first order, softening past 45 degrees and
+        turning back past 90, where the rotational energy falls again to zero at a flipped
+        triad (180 degrees), a state the formulation does not describe."""
+        R, _, _ = local_frames(x)
+        out = np.empty((x.shape[0], 3))
+        for i in range(3):
+            A = R @ Q[:, i] @ self.R0.transpose(0, 2, 1)
+            out[:, i] = np.degrees(np.arccos(np.clip((np.trace(A, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+        return out
+
     def energy(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Strain energy per element (E,)."""
         d = self.deformational(x, Q)

@@ -197,3 +197,85 @@ def test_undamped_nonlinear_dynamics_keeps_its_energy_bounded():
     # the average-acceleration rule with a step that resolves the motion keeps it within 0.2 %
     e, _ = _swing(0.0025, numerical_damping=0.0)
     assert (e.max() - e.min()) < 5e-3 * e.mean()
+
+
+def test_trust_region_reaches_newtons_equilibrium_on_the_elastica():
+    """The trust-region minimization of the potential (method="trust-region") and Newton solve
+    the same equations: the same strip equilibrium (and the elastica), its last iterations
+    quadratic (the shift is dropped near the answer and the steps are Newton's)."""
+    model = _strip()
+    EI = 1.2e6 * 1.0 * 0.1**3 / 12
+    F = _edge_load(model, 2 * EI / 100.0)
+    newton = rt.nonlinear.solve_static(model, F, tol=1e-12, method="newton")
+    trust = rt.nonlinear.solve_static(model, F, tol=1e-12, method="trust-region")
+    assert trust.converged and set(trust.methods) == {"trust-region"} and set(newton.methods) == {"newton"}
+    scale = np.abs(newton.displacements).max()
+    assert np.abs(trust.displacements - newton.displacements).max() < 1e-8 * scale  # measured 2e-11
+    tip = _tip(model, trust.displacements)
+    assert abs(-tip[0] - ELASTICA[2][0]) < 5e-4 and abs(tip[2] - ELASTICA[2][1]) < 5e-4
+    # the potential falls every iteration, the residual need not; the last iteration above the
+    # round-off floor is a Newton step from r < 0.05 down by its square (measured 8e-3 -> 5e-9)
+    r = np.asarray(trust.residuals[-1]) / np.linalg.norm(F)
+    j = np.flatnonzero(r > 10 * r.min())[-1]
+    assert r[j] < 0.05 and r[j + 1] <= 100 * r[j] ** 2, r
+
+
+def _tent(n=8, pull=0.03):
+    """A clamped 10 cm square of soft 2 mm shell whose centre vertex is pulled out of plane: a
+    tent, whose tangent turns near-singular on the way (Newton in two load steps fails), and
+    whose apex kinks ever more sharply (past 3.3 cm, a triad there turns 90 degrees from its
+    elements' frames)."""
+    m = rt.meshes.plate(0.1, 0.1, nx=n, ny=n)
+    model = rt.ShellModel(m, rt.Material(E=3e4, nu=0.45, thickness=2e-3))
+    for edge in ("x0", "x1", "y0", "y1"):
+        model.fix(edge)
+    X = np.asarray(m.vertices)
+    centre = int(np.argmin(np.linalg.norm(X[:, :2] - 0.05, axis=1)))
+    model.fix([centre], dofs="xyz")
+    P = np.zeros((model.n_nodes, 3))
+    P[centre, 2] = pull
+    return model, P
+
+
+def test_a_shell_pulled_into_a_tent_needs_the_trust_region():
+    from rtfem.nonlinear import Configuration
+
+    model, P = _tent()
+    with pytest.raises(rt.SolverError, match="did not converge"):
+        rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=2, max_cuts=1)
+    res = rt.nonlinear.solve_static(model, None, prescribed=P, steps=2, max_cuts=1)  # "auto"
+    assert res.converged and res.methods[0] == "trust-region"
+    # the equilibrium Newton reaches in 8 load steps, a path it can follow (measured 1e-11 of the pull)
+    newton = rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=8)
+    assert set(newton.methods) == {"newton"}
+    assert np.abs(res.displacements - newton.displacements).max() < 1e-8 * 0.03
+    # an equilibrium: the free-dof residual, evaluated afresh from the returned displacements and
+    # rotations, vanishes; and a stable one: the symmetric Hessian there is positive definite
+    system = model.nonlinear()
+    conf = Configuration(res.displacements.copy(), Rotation.from_rotvec(res.rotations).as_matrix())
+    f, K, _ = system.evaluate(conf)
+    assert np.linalg.norm(f[system.free]) < 1e-8 * np.linalg.norm(f)
+    assert np.linalg.eigvalsh(0.5 * (K + K.T).toarray()).min() > 0
+    assert np.abs(res.reactions).max() > 0.01  # the pull is carried: a real load
+    assert 45 < res.local_rotation < 90  # measured 63 degrees at the apex
+
+
+def test_a_kink_past_the_shells_rotation_limit_is_refused():
+    """Pulled 3.5 cm, the tent's apex triad would turn past 90 degrees from its elements' frames,
+    where the corotational shell's rotation measure (the skew part, sin(angle)) turns back and a
+    flipped triad costs nothing: no step there is accepted, and the error says why."""
+    model, P = _tent(pull=0.035)
+    with pytest.raises(rt.SolverError, match="turned [0-9]+ degrees from an element.s frame, past the 90") as info:
+        rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=8, max_cuts=4)
+    assert info.value.result.local_rotation < 90 and 0.8 < info.value.result.load_factors[-1] < 1.0
+
+
+def test_trust_region_refuses_dead_moments():
+    model = _strip(10)
+    F = np.zeros((model.n_nodes, 6))
+    F[model.select_nodes("x1"), 4] = 0.1
+    with pytest.raises(rt.ModelError, match="potential"):
+        rt.nonlinear.solve_static(model, F, method="trust-region")
+    with pytest.raises(rt.ModelError, match="method"):
+        rt.nonlinear.solve_static(model, F, method="arc-length")
+    assert rt.nonlinear.solve_static(model, 1e-3 * F).converged  # "auto" runs Newton alone there
