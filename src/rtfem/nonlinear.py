@@ -164,8 +164,8 @@ class NonlinearResult:
     ``residuals``: per load step, the free-dof residual norm before each Newton iteration and
     after the last; ``local_rotation``: a shell's largest nodal rotation relative to an element
     frame, in degrees (the element's rotation measure, sin(angle), is first-order exact, 10 %
-    soft at 45 degrees; past 90 no step is accepted); ``methods``: per load step, "newton" or "trust-region" (the step Newton could
-    not converge, minimized instead); ``converged``; ``energy``: the strain energy; ``seconds``.
+    soft at 45 degrees; past 90 no step is accepted); ``methods``: per load step, "newton" or
+    "trust-region" (the step Newton could not converge, minimized instead); ``converged``; ``energy``: the strain energy; ``seconds``.
     """
 
     displacements: np.ndarray
@@ -236,7 +236,6 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     """
     t0 = time.perf_counter()
     system = model.nonlinear()
-    system.turned = 0.0
     F = model.force_vector(forces if forces is not None else np.zeros((model.n_nodes, 3)))
     P = _prescribed(model, prescribed)
     steps = validate.count(steps, "steps", 1, 10**6)
@@ -249,6 +248,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     if method == "trust-region" and not conservative:
         raise ModelError("method='trust-region' minimizes the total potential, which dead moments do not have on finite "
                          "rotations: apply the moments as force couples, or use method='newton'")
+    system.turned = 0.0  # the arguments are checked: this solve's refused turns only
     fixed_mask = model.fixed
     conf = Configuration.rest(n, dpn == 6)
     applied = 0.0  # load factor of the last equilibrium
@@ -392,6 +392,10 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
     if not system.within_limit(conf):  # a start the shell cannot describe: a shorter step
         return [float(np.linalg.norm(f[free] - F[free]))], False
     mu, D = 0.0, None
+
+    def more(mu: float) -> float:  # the shift after a refused step
+        return max(4.0 * mu, 1e-6)
+
     for _ in range(max_iterations):
         r = f[free] - F[free]
         rn = float(np.linalg.norm(r))
@@ -411,17 +415,17 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
             try:
                 p = -system.solver(A, "the shifted Hessian", spd_only=True).solve(r)
             except SolverError:  # not positive definite: shift more
-                mu = max(4.0 * mu, 1e-6)
+                mu = more(mu)
                 continue
             predicted = -(r @ p + 0.5 * p @ (H @ p))
             if not (-r @ p > 0 and predicted > 0):  # not a descent direction: indefinite after all
-                mu = max(4.0 * mu, 1e-6)
+                mu = more(mu)
                 continue
             trial = conf.copy()
             full = system.expand(p)
             trial.update(full)
             if not system.within_limit(trial):  # would turn a triad past the limit: a shorter step
-                mu = max(4.0 * mu, 1e-6)
+                mu = more(mu)
                 continue
             ft, Kt, et = system.evaluate(trial)
             pt = potential(trial, et)
@@ -431,14 +435,14 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
                 float(np.linalg.norm(ft[free] - F[free])) < rn
             if np.isfinite(pt) and (ratio > 1e-4 or tiny):
                 break
-            mu = max(4.0 * mu, 1e-6)
+            mu = more(mu)
         conf.u, conf.Q = trial.u, trial.Q
         f, K, energy, pi = ft, Kt, et, pt
         newton = mu == 0.0
         if ratio > 0.75 or tiny:
             mu = mu / 4.0 if mu > 1e-6 else 0.0
         elif ratio < 0.25:
-            mu = max(4.0 * mu, 1e-6)
+            mu = more(mu)
         if newton and np.abs(full[:, :3]).max() <= 1e-12 * system.size:  # a Newton step that moved nothing
             history.append(float(np.linalg.norm(f[free] - F[free])))
             return history, True

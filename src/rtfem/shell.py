@@ -416,8 +416,7 @@ class CorotationalTriangles:
         d[:, 6] = np.linalg.norm(a, axis=1) - self.x2
         d[:, 12] = np.einsum("ej,ej->e", R[:, 0], b) - self.x3
         d[:, 13] = np.einsum("ej,ej->e", R[:, 1], b) - self.y3
-        for i in range(3):
-            A = R @ Q[:, i] @ self.R0.transpose(0, 2, 1)
+        for i, A in enumerate(self._relative(R, Q)):
             for c, (p, q) in enumerate(_AXIAL):
                 d[:, 6 * i + 3 + c] = 0.5 * (A[:, p, q] - A[:, q, p])
         return d
@@ -429,11 +428,13 @@ class CorotationalTriangles:
         turning back past 90, where the rotational energy falls again to zero at a flipped
         triad (180 degrees), a state the formulation does not describe."""
         R, _, _ = local_frames(x)
-        out = np.empty((x.shape[0], 3))
-        for i in range(3):
-            A = R @ Q[:, i] @ self.R0.transpose(0, 2, 1)
-            out[:, i] = np.degrees(np.arccos(np.clip((np.trace(A, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
-        return out
+        return np.stack([np.degrees(np.arccos(np.clip((np.trace(A, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+                         for A in self._relative(R, Q)], axis=1)
+
+    def _relative(self, R: np.ndarray, Q: np.ndarray):
+        """Each corner's rotation relative to the element frame, R Q_i R0^T (E, 3, 3), for the
+        deformed frames R (E, 3, 3) and corner rotations Q (E, 3, 3, 3)."""
+        return (R @ Q[:, i] @ self.R0.transpose(0, 2, 1) for i in range(3))
 
     def energy(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """Strain energy per element (E,)."""
