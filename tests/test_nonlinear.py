@@ -62,6 +62,30 @@ def test_shell_kernel_forces_and_tangent_against_differences():
     assert np.abs(K[0] - K[0].T).max() > 1e-6 * np.abs(K).max()  # the spin term is really there
 
 
+@pytest.mark.parametrize("degrees", [5.0, 40.0, 89.0, 120.0, 170.0])
+def test_shell_rotation_measure_is_the_rotation_vector(degrees):
+    """A corner turned alone (the element undeformed) by theta about an axis: its deformational
+    rotation is the rotation vector of R0 Q R0^T (scipy's log map, an independent route), so the
+    rotational energy is exactly quadratic in theta up to 170 degrees. The skew part alone
+    (sin theta) softened by 10 % at 45 degrees and turned back past 90."""
+    X = _triangle()
+    el = shell.CorotationalTriangles(X, SHELL_MAT)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    Q = np.tile(np.eye(3), (1, 3, 1, 1))
+    Q[0, 1] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+    d = el.deformational(X, Q)[0]
+    ref = Rotation.from_matrix(el.R0[0] @ Q[0, 1] @ el.R0[0].T).as_rotvec()
+    np.testing.assert_allclose(d[9:12], ref, rtol=0, atol=1e-13)
+    assert np.abs(np.delete(d, [9, 10, 11])).max() < 1e-13
+    np.testing.assert_allclose(np.degrees(np.linalg.norm(d[9:12])), degrees, rtol=1e-12)
+    assert abs(el.local_rotations(X, Q)[0, 1] - degrees) < 1e-6
+    e = []  # energy / theta^2 at theta and at 1 degree
+    for t in (1.0, degrees):
+        Q[0, 1] = Rotation.from_rotvec(np.radians(t) * axis).as_matrix()
+        e.append(el.energy(X, Q)[0] / t**2)
+    assert abs(e[1] / e[0] - 1.0) < 1e-10
+
+
 def test_shell_kernel_energy_is_rotation_invariant():
     X = _triangle()
     el = shell.CorotationalTriangles(X, SHELL_MAT)

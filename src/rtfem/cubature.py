@@ -61,6 +61,42 @@ def _exp_series(t, th, sn, cs, jacobian, K, out):
             out[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
 
 
+def _rotation_vector(y, th, D):
+    """th (3) = the rotation vector theta n of a rotation A from y = (axial(skew(A)), (tr A - 1)/2),
+    and D (3, 4) its derivatives over y: th = 2 G(v) s / (r + c), r = sqrt(|s|^2 + c^2),
+    v = |s|^2 / (r + c)^2, G(v) = atan(sqrt v) / sqrt v (as :func:`rtfem.shell._rotation_vector`,
+    whose derivatives come from forward differentiation; these are written out)."""
+    u = y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+    c = y[3]
+    r = np.sqrt(u + c * c)
+    den = r + c
+    v = u / (den * den)
+    if v < 0.05:
+        G = 1.0  # the series sum (-v)^j / (2j + 1) and its derivative
+        G1 = 0.0
+        p = 1.0  # v^(j-1)
+        for j in range(1, 16):
+            coef = (1.0 if j % 2 == 0 else -1.0) / (2 * j + 1)
+            G1 += coef * j * p
+            p *= v
+            G += coef * p
+    else:
+        sv = np.sqrt(v)
+        G = np.arctan(sv) / sv
+        G1 = (1.0 / (1.0 + v) - G) / (2.0 * v)
+    k = 2.0 * G / den
+    dden_u, dden_c = 0.5 / r, c / r + 1.0
+    dv_u = 1.0 / (den * den) - u / (r * den * den * den)
+    dv_c = -2.0 * u / (den * den * den) * dden_c
+    dk_u = 2.0 * G1 * dv_u / den - 2.0 * G / (den * den) * dden_u
+    dk_c = 2.0 * G1 * dv_c / den - 2.0 * G / (den * den) * dden_c
+    for a in range(3):
+        th[a] = k * y[a]
+        for b in range(3):
+            D[a, b] = 2.0 * y[a] * y[b] * dk_u + (k if a == b else 0.0)
+        D[a, 3] = y[a] * dk_c
+
+
 def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
     """F (E, 18) = g_e(V_e), the generalized forces of corotational triangles at element dofs V
     (E, 18) (V_e = U_e q: one BLAS product before; the projection U_e^T F_e is one after).
@@ -91,6 +127,10 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
     n = np.zeros(3)
     t = np.zeros(3)
     em = np.zeros(3)
+    yv = np.zeros(4)
+    th3 = np.zeros(3)
+    Dphi = np.zeros((3, 3, 4))  # each corner's rotation vector's derivatives over its y
+    gy = np.zeros(4)
     for e in range(E):
         for i in range(18):
             v[i] = V[e, i]
@@ -168,7 +208,11 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
                         acc += R[p, m] * C[i, m, s_]
                     A[p, s_] = acc
             for c in range(3):
-                d[6 * i + 3 + c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
+                yv[c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
+            yv[3] = 0.5 * (A[0, 0] + A[1, 1] + A[2, 2] - 1.0)
+            _rotation_vector(yv, th3, Dphi[i])
+            for c in range(3):
+                d[6 * i + 3 + c] = th3[c]
         for i in range(18):
             s = 0.0
             for j in range(18):
@@ -198,8 +242,21 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
                         for u in range(3):
                             acc += dR[p, u, m] * C[i, u, s_]
                         dA[p, s_, m] = acc
+            for m in range(4):  # the weights on y = (axial(skew(A)), (tr A - 1)/2): D^T g
+                acc = 0.0
+                for c in range(3):
+                    acc += g[6 * i + 3 + c] * Dphi[i, c, m]
+                gy[m] = acc
+            for m in range(6):
+                fz[m] += gy[3] * 0.5 * (dA[0, 0, m] + dA[1, 1, m] + dA[2, 2, m])
+            for ll in range(3):
+                l1, l2 = (ll + 1) % 3, (ll + 2) % 3
+                acc = 0.0
+                for p in range(3):
+                    acc += R[p, l2] * C[i, l1, p] - R[p, l1] * C[i, l2, p]
+                fz[6 + 3 * i + ll] += gy[3] * 0.5 * acc
             for c in range(3):
-                gi = g[6 * i + 3 + c]
+                gi = gy[c]
                 p, qq = AP[c], AQ[c]
                 for m in range(6):
                     fz[m] += gi * 0.5 * (dA[p, qq, m] - dA[qq, p, m])
@@ -342,15 +399,15 @@ def solid_forces_numpy(V, X, G, wdet, lm, F) -> None:
 _COMPILED: dict = {}
 
 
-def _compiled(key: str, kernel, helper):
-    """``kernel`` compiled by numba with its one helper function compiled too (cached), or None
+def _compiled(key: str, kernel, *helpers):
+    """``kernel`` compiled by numba with its helper functions compiled too (cached), or None
     where numba is absent or cannot compile it."""
     if key not in _COMPILED:
         try:
             import numba
 
             opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            g = dict(kernel.__globals__, **{helper.__name__: numba.njit(**opts)(helper)})
+            g = dict(kernel.__globals__, **{h.__name__: numba.njit(**opts)(h) for h in helpers})
             _COMPILED[key] = numba.njit(**opts)(type(kernel)(kernel.__code__, g, kernel.__name__))
         except Exception:  # pragma: no cover - numba absent or unable to compile here
             _COMPILED[key] = None
@@ -359,7 +416,7 @@ def _compiled(key: str, kernel, helper):
 
 def compiled_forces():
     """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
-    return _compiled("shell", _shell_element_forces, _exp_series)
+    return _compiled("shell", _shell_element_forces, _exp_series, _rotation_vector)
 
 
 def compiled_solid_forces():

@@ -163,8 +163,8 @@ class NonlinearResult:
     model, with sign: minus the load they carry); ``load_factors``: the converged load steps;
     ``residuals``: per load step, the free-dof residual norm before each Newton iteration and
     after the last; ``local_rotation``: a shell's largest nodal rotation relative to an element
-    frame, in degrees (the element's rotation measure, sin(angle), is first-order exact, 10 %
-    soft at 45 degrees; past 90 no step is accepted); ``methods``: per load step, "newton" or
+    frame, in degrees (the element's rotation measure, the rotation vector, is exact to 180
+    degrees; past :data:`LOCAL_ROTATION_LIMIT` no step is accepted); ``methods``: per load step, "newton" or
     "trust-region" (the step Newton could not converge, minimized instead); ``converged``; ``energy``: the strain energy; ``seconds``.
     """
 
@@ -303,9 +303,10 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
 
 MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
 # a shell triad may turn at most this far (degrees) from an element's corotated frame: the
-# element's rotational deformation is the skew part, sin(angle), which turns back past 90 degrees
-# (its energy falls to zero at a flipped triad, 180); an equilibrium beyond is not accepted
-LOCAL_ROTATION_LIMIT = 90.0
+# element's rotational deformation is the rotation vector (log map) of that turn, exact up to 180
+# degrees, where its axis flips and a turn beyond costs less than it should (its derivatives grow
+# without bound on the way); an equilibrium beyond is not accepted
+LOCAL_ROTATION_LIMIT = 150.0
 
 
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:

@@ -310,8 +310,11 @@ def element_mass(area: np.ndarray, material: Material, rotary_inertia: bool = Fa
 # side-aligned frame as :func:`local_frames`); the linear 18x18 local stiffness acts on the
 # deformational dofs measured in it (Rankin & Brogan 1986; Felippa & Haugen, CMAME 194 (2005)
 # 2285-2335): local translations of corners 2 and 3 relative to corner 1, and corner rotations
-# axial(skew(R_e Q_i R0^T)) (the nodal rotation Q_i relative to the rotation of the element
-# frame from R0 to R_e; equal to the rotation vector up to O(theta^3), small by construction).
+# log(R_e Q_i R0^T), the rotation vector of the nodal rotation Q_i relative to the rotation of
+# the element frame from R0 to R_e (Felippa & Haugen's choice; its skew part axial(skew(.)),
+# sin(theta) n, equal to it up to O(theta^3), softens past 45 degrees and turns back past 90, which
+# let a pulled vertex's triads run away: a vertex of the shell liver pulled 2 cm stalled at 1.81
+# cm with them, and goes through with the rotation vector at 46 degrees).
 # The energy is 1/2 d^T k d; its gradient and exact Hessian come from second-order forward
 # differentiation of d (:class:`_Jet`), with the nodal rotations varied by spins w_i
 # (Q_i <- exp([w_i]x) Q_i): the consistent tangent, so Newton converges quadratically.
@@ -375,6 +378,54 @@ class _Jet:
     def __truediv__(self, o):
         return self * (o.reciprocal() if isinstance(o, _Jet) else 1.0 / np.asarray(o))
 
+    def atan_ratio(self) -> "_Jet":
+        """atan(sqrt(v)) / sqrt(v) of v >= 0 (1 at 0), with its derivatives: the series below
+        v = 0.05, the closed forms above."""
+        f, d1, d2 = atan_ratio(self.v)
+        return self._chain(f, d1, d2)
+
+
+def atan_ratio(v: np.ndarray):
+    """G(v) = atan(sqrt(v)) / sqrt(v) and its first two derivatives, for v >= 0 (arrays): the
+    closed forms G' = (1/(1+v) - G) / 2v, G'' = -(1/(1+v)^2 + 3 G') / 2v, and for v < 0.05 the
+    series sum (-v)^k / (2k+1) (16 terms: round-off accurate, where the closed forms cancel)."""
+    v = np.asarray(v, float)
+    small = v < 0.05
+    vs = np.where(small, v, 0.0)
+    f = np.zeros_like(v)
+    d1 = np.zeros_like(v)
+    d2 = np.zeros_like(v)
+    for k in range(16):
+        c = (-1.0) ** k / (2 * k + 1)
+        f += c * vs**k
+        if k >= 1:
+            d1 += c * k * vs ** (k - 1)
+        if k >= 2:
+            d2 += c * k * (k - 1) * vs ** (k - 2)
+    vb = np.where(small, 1.0, v)
+    rb = np.sqrt(vb)
+    fb = np.arctan(rb) / rb
+    g1 = (1.0 / (1.0 + vb) - fb) / (2.0 * vb)
+    g2 = -(1.0 / (1.0 + vb) ** 2 + 3.0 * g1) / (2.0 * vb)
+    return np.where(small, f, fb), np.where(small, d1, g1), np.where(small, d2, g2)
+
+
+def _rotation_vector(y):
+    """The rotation vector theta n (log map) of a rotation A from y = (s, c) (jets or arrays):
+    s = axial(skew(A)) = sin(theta) n, c = (tr A - 1) / 2 = cos(theta), as
+    theta n = 2 G(v) s / (r + c), r = sqrt(|s|^2 + c^2) (1 on rotations), v = |s|^2 / (r + c)^2
+    (tan^2(theta/2)): smooth from theta = 0 (where theta / sin(theta) is 0/0) to below 180
+    degrees, and a smooth function of (s, c) off the rotations too, so that its derivatives
+    composed with those of s and c are those of the rotation vector."""
+    s, c = y[:3], y[3]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a diverged iterate: NaN, refused by the solver
+        u = _jdot(s, s)
+        den = (u + c * c).sqrt() + c if isinstance(c, _Jet) else np.sqrt(u + c * c) + c
+        v = u / (den * den)
+        G = v.atan_ratio() if isinstance(v, _Jet) else atan_ratio(v)[0]
+        k = 2.0 * G / den
+        return [k * si for si in s]
+
 
 def _jdot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -417,16 +468,15 @@ class CorotationalTriangles:
         d[:, 12] = np.einsum("ej,ej->e", R[:, 0], b) - self.x3
         d[:, 13] = np.einsum("ej,ej->e", R[:, 1], b) - self.y3
         for i, A in enumerate(self._relative(R, Q)):
-            for c, (p, q) in enumerate(_AXIAL):
-                d[:, 6 * i + 3 + c] = 0.5 * (A[:, p, q] - A[:, q, p])
+            y = [0.5 * (A[:, p, q] - A[:, q, p]) for p, q in _AXIAL] + [0.5 * (np.trace(A, axis1=1, axis2=2) - 1.0)]
+            d[:, 6 * i + 3:6 * i + 6] = np.stack(_rotation_vector(y), axis=1)
         return d
 
     def local_rotations(self, x: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """The angles (E, 3), in degrees, of each corner's rotation relative to the element frame
-        (R Q_i R0^T). The element takes the skew part of that rotation, sin(angle) about its
-        axis, as its rotational deformation: exact to first order, softening past 45 degrees and
-        turning back past 90, where the rotational energy falls again to zero at a flipped
-        triad (180 degrees), a state the formulation does not describe."""
+        (R Q_i R0^T), whose rotation vector the element takes as its rotational deformation: exact
+        up to 180 degrees, where the axis flips (a turn beyond is measured as a smaller one the
+        other way)."""
         R, _, _ = local_frames(x)
         return np.stack([np.degrees(np.arccos(np.clip((np.trace(A, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
                          for A in self._relative(R, Q)], axis=1)
@@ -474,12 +524,22 @@ class CorotationalTriangles:
             dA_ab = np.einsum("epqk,eqs->epsk", Rg, C)
             dA_w = np.einsum("eprl,ers->epsl", RX, C)
             w = slice(6 + 3 * i, 9 + 3 * i)
+            # y = (axial(skew(A)), (tr A - 1)/2) and its gradient Jy over z; d = theta(y)
+            y = np.zeros((E, 4))
+            Jy = np.zeros((E, 4, 15))
             for c, (p, q) in enumerate(_AXIAL):
-                r = 6 * i + 3 + c
-                d[:, r] = 0.5 * (A[:, p, q] - A[:, q, p])
-                Jz[:, r, :6] = 0.5 * (dA_ab[:, p, q] - dA_ab[:, q, p])
-                Jz[:, r, w] = 0.5 * (dA_w[:, p, q] - dA_w[:, q, p])
-            rot.append((C, w))
+                y[:, c] = 0.5 * (A[:, p, q] - A[:, q, p])
+                Jy[:, c, :6] = 0.5 * (dA_ab[:, p, q] - dA_ab[:, q, p])
+                Jy[:, c, w] = 0.5 * (dA_w[:, p, q] - dA_w[:, q, p])
+            y[:, 3] = 0.5 * (np.trace(A, axis1=1, axis2=2) - 1.0)
+            Jy[:, 3, :6] = 0.5 * np.einsum("eppk->ek", dA_ab)
+            Jy[:, 3, w] = 0.5 * np.einsum("eppl->el", dA_w)
+            theta = _rotation_vector([_Jet.variable(y[:, j], j, 4) for j in range(4)])
+            r = slice(6 * i + 3, 6 * i + 6)
+            d[:, r] = np.stack([t.v for t in theta], axis=1)
+            Dt = np.stack([t.g for t in theta], axis=1)  # (E, 3, 4)
+            Jz[:, r] = Dt @ Jy
+            rot.append((C, w, Jy, Dt, np.stack([t.h for t in theta], axis=1)))
         g = np.einsum("eij,ej->ei", self.k, d)  # local forces k d
         energy = 0.5 * np.einsum("ei,ei->e", g, d)
         J = Jz @ _P
@@ -489,13 +549,17 @@ class CorotationalTriangles:
 
         Hz = np.zeros((E, 15, 15))
         Hz[:, :6, :6] = sum(g[:, row, None, None] * jet.h for row, jet in trans.items())
-        for i, (C, w) in enumerate(rot):
+        for i, (C, w, Jy, Dt, Ht) in enumerate(rot):
             gi = g[:, 6 * i + 3:6 * i + 6]  # (E, 3)
-            # sum_c g_c d^2 axial_c(A): the contraction of A's Hessian with the skew weights
+            # sum_c g_c d^2 theta_c = Jy^T (sum_c g_c d^2 theta_c / dy^2) Jy + sum_k gy_k d^2 y_k,
+            # gy = Dt^T g: the second part is A's Hessian contracted with weights Wt
+            Hz += np.einsum("eak,eab,ebl->ekl", Jy, np.einsum("ec,ecab->eab", gi, Ht), Jy, optimize=True)
+            gy = np.einsum("eca,ec->ea", Dt, gi)
             Wt = np.zeros((E, 3, 3))
             for c, (p, q) in enumerate(_AXIAL):
-                Wt[:, p, q] += 0.5 * gi[:, c]
-                Wt[:, q, p] -= 0.5 * gi[:, c]
+                Wt[:, p, q] += 0.5 * gy[:, c]
+                Wt[:, q, p] -= 0.5 * gy[:, c]
+            Wt += 0.5 * gy[:, 3, None, None] * np.eye(3)
             RC = np.einsum("eps,eqs->epq", Wt, C)  # sum_ps Wt_ps (R M C)_ps = sum_pqr RC_pr R_pq M_qr
             Hz[:, :6, :6] += np.einsum("epq,epqkl->ekl", RC, Rh)
             mixed = np.einsum("epr,epqk,lqr->ekl", RC, Rg, _SPIN, optimize=True)  # sum Wt (R_k [e_l]x C)

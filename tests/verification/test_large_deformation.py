@@ -220,11 +220,11 @@ def test_trust_region_reaches_newtons_equilibrium_on_the_elastica():
     assert r[j] < 0.05 and r[j + 1] <= 100 * r[j] ** 2, r
 
 
-def _tent(n=8, pull=0.03):
+def _tent(n=8, pull=0.04):
     """A clamped 10 cm square of soft 2 mm shell whose centre vertex is pulled out of plane: a
-    tent, whose tangent turns near-singular on the way (Newton in two load steps fails), and
-    whose apex kinks ever more sharply (past 3.3 cm, a triad there turns 90 degrees from its
-    elements' frames)."""
+    tent, whose tangent turns near-singular on the way (Newton in two load steps fails past 3
+    cm), and whose apex kinks ever more sharply (a triad there turns 49 / 69 / 111 degrees from
+    its elements' frames at 3 / 4 / 5 cm, 150 at 5.7 cm)."""
     m = rt.meshes.plate(0.1, 0.1, nx=n, ny=n)
     model = rt.ShellModel(m, rt.Material(E=3e4, nu=0.45, thickness=2e-3))
     for edge in ("x0", "x1", "y0", "y1"):
@@ -245,10 +245,10 @@ def test_a_shell_pulled_into_a_tent_needs_the_trust_region():
         rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=2, max_cuts=1)
     res = rt.nonlinear.solve_static(model, None, prescribed=P, steps=2, max_cuts=1)  # "auto"
     assert res.converged and res.methods[0] == "trust-region"
-    # the equilibrium Newton reaches in 8 load steps, a path it can follow (measured 1e-11 of the pull)
+    # the equilibrium Newton reaches in 8 load steps, a path it can follow
     newton = rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=8)
     assert set(newton.methods) == {"newton"}
-    assert np.abs(res.displacements - newton.displacements).max() < 1e-8 * 0.03
+    assert np.abs(res.displacements - newton.displacements).max() < 1e-8 * 0.04
     # an equilibrium: the free-dof residual, evaluated afresh from the returned displacements and
     # rotations, vanishes; and a stable one: the symmetric Hessian there is positive definite
     system = model.nonlinear()
@@ -257,17 +257,17 @@ def test_a_shell_pulled_into_a_tent_needs_the_trust_region():
     assert np.linalg.norm(f[system.free]) < 1e-8 * np.linalg.norm(f)
     assert np.linalg.eigvalsh(0.5 * (K + K.T).toarray()).min() > 0
     assert np.abs(res.reactions).max() > 0.01  # the pull is carried: a real load
-    assert 45 < res.local_rotation < 90  # measured 63 degrees at the apex
+    assert 60 < res.local_rotation < 80  # measured 69 degrees at the apex
 
 
 def test_a_kink_past_the_shells_rotation_limit_is_refused():
-    """Pulled 3.5 cm, the tent's apex triad would turn past 90 degrees from its elements' frames,
-    where the corotational shell's rotation measure (the skew part, sin(angle)) turns back and a
-    flipped triad costs nothing: no step there is accepted, and the error says why."""
-    model, P = _tent(pull=0.035)
-    with pytest.raises(rt.SolverError, match="turned [0-9]+ degrees from an element.s frame, past the 90") as info:
+    """Pulled 6 cm, the tent's apex triad would turn past 150 degrees from its elements' frames,
+    near the 180 where the rotation vector's axis flips and a turn beyond would be measured as a
+    smaller one: no step there is accepted, and the error says why."""
+    model, P = _tent(pull=0.06)
+    with pytest.raises(rt.SolverError, match="turned [0-9]+ degrees from an element.s frame, past the 150") as info:
         rt.nonlinear.solve_static(model, None, prescribed=P, method="newton", steps=8, max_cuts=4)
-    assert info.value.result.local_rotation < 90 and 0.8 < info.value.result.load_factors[-1] < 1.0
+    assert info.value.result.local_rotation < 150 and 0.8 < info.value.result.load_factors[-1] < 1.0
 
 
 def test_trust_region_refuses_dead_moments():

@@ -144,6 +144,37 @@ def test_compiled_element_forces_equal_the_numpy_kernel(small_liver):
         assert np.abs(F - Fc).max() < 1e-12 * np.abs(F).max()
 
 
+def test_compiled_element_forces_at_large_local_rotations():
+    """The compiled kernel against the numpy one on triangles whose corners turn 20-160 degrees
+    from the element frame (the rotation vector's closed form, past its series): forces on the
+    translations equal, and on the rotation vectors J(theta)^T m of the numpy kernel's moments m
+    about the spins (J the left Jacobian of SO(3), Choi & Ko's integrated rotation)."""
+    from rtfem import cubature, shell
+    from rtfem.rotations import integrated_rotation, rotation
+
+    rng = np.random.default_rng(3)
+    X = np.array([[[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.3, 0.8, 0.1]]]).repeat(6, axis=0)
+    X += 0.05 * rng.standard_normal(X.shape)
+    el = shell.CorotationalTriangles(X, rt.Material(E=1e5, nu=0.3, thickness=0.01))
+    V = np.zeros((6, 18))
+    V.reshape(6, 3, 6)[:, :, :3] = 0.1 * rng.standard_normal((6, 3, 3))
+    axes = rng.standard_normal((6, 3, 3))
+    angles = np.radians(np.linspace(20.0, 160.0, 18)).reshape(6, 3)
+    V.reshape(6, 3, 6)[:, :, 3:] = angles[..., None] * axes / np.linalg.norm(axes, axis=2, keepdims=True)
+    x = X + V.reshape(6, 3, 6)[:, :, :3]
+    Q = rotation(V.reshape(6, 3, 6)[:, :, 3:])
+    assert el.local_rotations(x, Q).max() > 120.0
+    f, _, _ = el.evaluate(x, Q, tangent=False)
+    ref = f.reshape(6, 3, 6).copy()
+    ref[:, :, 3:] = np.einsum("eimc,eim->eic", integrated_rotation(V.reshape(6, 3, 6)[:, :, 3:]), ref[:, :, 3:])
+    args = (X, el.R0, el.x2, el.x3, el.y3, el.k, cubature._AP, cubature._AQ)
+    kernels = [cubature._shell_element_forces] + ([cubature.compiled_forces()] if cubature.compiled_forces() else [])
+    for kernel in kernels:
+        F = np.empty((6, 18))
+        kernel(V, *args, F)
+        np.testing.assert_allclose(F, ref.reshape(6, 18), rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
 def test_cubature_reproduces_held_out_forces(small_liver):
     red = small_liver
     rng = np.random.default_rng(11)
