@@ -38,7 +38,7 @@ spread 1, 2, 4 and ``spread`` (with ``--local``: the localized model around the 
 spread 4, 8 and ``spread``).
 
     python benchmarks/reduced_nonlinear.py [--organ shell|solid] [--modes 40] [--derivatives 20] [--spread 4]
-        [--tol 0.05] [--local RADIUS [--local-remainder]] [--cases jaw2 jaw5 point1 lift2 lift5]
+        [--tol 0.05] [--local RADIUS [--local-remainder]] [--cases jaw2 jaw5 point1 point2 point5 lift2 lift5]
         [--reference-seconds 600]
 """
 
@@ -253,7 +253,7 @@ def main() -> None:
     ap.add_argument("--modes", type=int, default=40)
     ap.add_argument("--derivatives", type=int, default=20)
     ap.add_argument("--spread", type=int, default=4, help="element groups of the multirate simulator (default 4)")
-    ap.add_argument("--cases", nargs="*", default=["jaw2", "jaw5", "point1", "lift2", "lift5"], choices=sorted(CASES),
+    ap.add_argument("--cases", nargs="*", default=["jaw2", "jaw5", "point1", "point2", "point5", "lift2", "lift5"], choices=sorted(CASES),
                     help="pulls measured against the full-order reference (none: the cost and loop tables only)")
     ap.add_argument("--organ", choices=["shell", "solid"], default="shell",
                     help="the default liver as a shell (level 4, default) or the solid liver (tet4)")

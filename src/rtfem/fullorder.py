@@ -551,12 +551,22 @@ class NonlinearNewmarkSimulator(DirectSimulator):
             ref = np.linalg.norm(Ff) + np.linalg.norm(f) + np.linalg.norm(self._M @ a) + 1e-300
             return self._M @ a + (1 + al) * g - al * self._g, g, K, ref
 
+        def converged(conf, u, g, fac):
+            if not self.system.within_limit(conf):  # a shell triad turned past what the element measures
+                from .nonlinear import LOCAL_ROTATION_LIMIT
+
+                raise SolverError(f"step {self.steps + 1} would turn a shell triad {self.system.turned:.0f} degrees from "
+                                  f"an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the corotational shell "
+                                  "describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
+                                  "the load over more nodes or refine the mesh there (the state is unchanged)")
+            return conf, u, g, fac
+
         r, g, K, ref = residual(conf, u, True)
         for it in range(self.max_iterations):
             rn = np.linalg.norm(r)
             if rn <= self.tol * ref and it > 0:
                 self.iterations = it
-                return conf, u, g, fac
+                return converged(conf, u, g, fac)
             fac = self.system.solver((self._dyn + (1 + al) * K).tocsr(), "the Newmark tangent")
             delta = -fac.solve(r)
             full = self.system.expand(delta)
@@ -564,7 +574,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
                 conf.update(full)
                 u = u + delta
                 self.iterations = it + 1
-                return conf, u, residual(conf, u, False)[1], fac
+                return converged(conf, u, residual(conf, u, False)[1], fac)
             # backtracking line search on the residual norm: a point load on a thin shell can
             # make the full Newton correction overshoot and cycle; each trial is evaluated with
             # its tangent, which the accepted one (nearly always the first) passes to the next
