@@ -203,3 +203,43 @@ def test_session_reduced_nonlinear_method_on_a_solid():
     U = s.driver.displacements()
     assert U[node, 2] > 0.05  # a large motion of the 1 m beam
     assert np.abs(U - static.displacements).max() < 1e-4 * np.abs(U).max()
+
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.06])
+def test_a_grasp_carried_to_a_simulator_localized_mid_pull(radius):
+    """Grasp.transferred(driver): the same jaw, closed on the same vertices with the same grip
+    references, on another driver in the same state; here the reduced nonlinear simulator
+    localized around the held vertices mid-pull (ReducedNonlinearSimulator.localized). Settled,
+    the beam is where a grasp on the localized model from the start, closed at rest on the same
+    vertex and dragged to the same point, settles (re-grabbing at the deformed state instead
+    would have moved the jaw's references, and the equilibrium)."""
+    from rtfem.reduced import ReducedNonlinearSimulator, reduced_nonlinear_driver
+
+    mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
+    model = rt.SolidModel(mesh, rt.Material(E=1e5, nu=0.3, density=10.0)).fix("x0")
+    sim = reduced_nonlinear_driver(model, rt.modal_analysis(model, 12), 1e-3, rt.Damping(zeta=1.0))
+    X = np.asarray(mesh.vertices)
+    node = int(np.flatnonzero(np.isclose(X[:, 0], 1.0))[0])
+    target = X[node] + np.array([0.0, 0.0, 0.1])
+    grasp = rt.Grasp(mesh.surface, sim, stiffness=50.0, radius=radius)
+    held = grasp.grab(node)
+    for _ in range(100):
+        grasp.update(target)
+    loc = sim.localized(held, 0.25)
+    moved = grasp.transferred(loc)
+    assert moved.driver is loc and np.array_equal(moved.nodes, held) and moved.node == node
+    assert np.array_equal(moved.force, grasp.force)
+    for _ in range(3000):
+        moved.update(target)
+    ref_sim = ReducedNonlinearSimulator(loc.reduced, 1e-3, rt.Damping(zeta=1.0), static_correction=True)
+    ref = rt.Grasp(mesh.surface, ref_sim, stiffness=50.0, radius=radius)
+    ref.grab(node)
+    for _ in range(3100):
+        ref.update(target)
+    U, R = loc.displacements(), ref_sim.displacements()
+    assert U[node, 2] > 0.05
+    assert np.abs(U - R).max() < 1e-6 * np.abs(R).max()
+    assert np.abs(moved.force - ref.force).max() < 1e-6 * np.abs(ref.force).max()
+    free = rt.Grasp(mesh.surface, loc, stiffness=50.0, radius=radius)
+    assert free.transferred(sim).node is None  # an open jaw stays open

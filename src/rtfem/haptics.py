@@ -275,6 +275,26 @@ class Grasp:
         self._jaw = x
         return nodes
 
+    def transferred(self, driver) -> "Grasp":
+        """This grasp on another Driver of the same mesh in the same state (a driver swapped in
+        mid-pull, e.g. :meth:`rtfem.reduced.ReducedNonlinearSimulator.localized`): the same springs,
+        the jaw closed on the same vertices with the same grip references, so that the pull goes
+        on where it was. The held vertices are prepared on ``driver`` here."""
+        g = Grasp(self.mesh, driver, stiffness=self.stiffness, max_force=self.max_force, radius=self.radius,
+                  grip=self.grip)
+        if self.node is not None:
+            nodes = self.nodes.copy()
+            if nodes.size == 1:
+                g.compliance(int(nodes[0]))
+            else:
+                prepare(g.driver, nodes)
+                W = step_compliances(g.driver, nodes)
+                g._block = None if getattr(g.driver, "compliance_changes", False) else W
+            g.node, g.nodes = self.node, nodes
+            g._hold, g._jaw = self._hold.copy(), self._jaw.copy()
+            g.force, g.forces = self.force.copy(), self.forces.copy()
+        return g
+
     def replay(self, targets, *, compiled: bool | None = None) -> np.ndarray:
         """Run :meth:`update` at each of the hand's ``targets`` (k, 3) back to back, offline (no
         clock), with the jaw as it is now: the total forces (k, 3), and the state where it ends.

@@ -646,6 +646,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         if not 1.0 <= factor <= 1e6:
             raise ModelError(f"stiffening={validate.show(stiffening)} must be a factor from 1 to 1e6 (default 100)")
         self.stiffening = 1.0 if local is None else factor
+        self._stiffening, self.damping = factor, damping  # as given: for localized()
         Kref = self._K0r.copy()
         if local is not None:  # the patch's coordinates linearized with an over-stiff reference (see the class)
             c = local["columns"]
@@ -723,6 +724,51 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self.steps = steps
         self.time = steps * self.dt
         self._free = None
+
+    def localized(self, nodes, radius: float, *, tol: float = 0.05) -> "ReducedNonlinearSimulator":
+        """This simulator on its model localized around ``nodes`` (:meth:`ReducedNonlinearModel.localize`:
+        every dof within ``radius`` m of them added to the basis, a new cubature trained to ``tol``;
+        seconds: 20 s on the solid liver), with the same settings and continuing from this one's
+        state (:meth:`continue_from`): what a grab far from the last patch needs. Nothing of this
+        simulator changes."""
+        red = self.reduced.localize(nodes, radius)
+        if self.cubature:
+            red.train_cubature(16, tol=tol)
+        new = ReducedNonlinearSimulator(red, self.dt, self.damping, cubature=self.cubature, spread=self.spread,
+                                        precision="single" if self.single else "double",
+                                        static_correction=self.static_correction, stiffening=self._stiffening)
+        new.continue_from(self)
+        return new
+
+    def continue_from(self, other: "ReducedNonlinearSimulator") -> None:
+        """Take over the state of ``other``, a simulator of the same model on another basis (one
+        localized around other nodes, or not): the displacement (with the static correction of
+        its current loads), velocity and acceleration projected on this basis in the stiffness
+        inner product (both bases are stiffness-orthonormal), its loads, step count and time.
+        Exact (the displacement field unchanged) where this basis holds the other one's, as a
+        localized basis holds its parent's; from another patch, the old patch's share this basis
+        cannot hold is dropped (the closest field in the energy norm)."""
+        if not isinstance(other, ReducedNonlinearSimulator) or other.reduced.model is not self.reduced.model:
+            raise ModelError(f"other={validate.show(other)} must be a ReducedNonlinearSimulator of the same model")
+        if other.static_correction != self.static_correction:
+            raise ModelError("continue_from needs both simulators with the static correction or both without (the "
+                             "field of one cannot be matched by the other's without a full solve)")
+        red = self.reduced
+        P = self._U.T @ (red._K0 @ other._U)  # (r, r_other): this basis's coordinates of the other's columns
+        q = P @ other._q
+        loads = {int(k): np.array(f, float) for k, f in other._loads.items()}
+        load_array = None if other._load_array is None else other._load_array.copy()
+        if self.static_correction:
+            # the corrections differ by (U_o U_o^T - U U^T) f: U q' + D f = U_o q_o + D_o f for
+            # q' = P q_o + U^T f - P U_o^T f (the translation rows give U^T f on the loaded nodes)
+            def reduced_load(rows):
+                if load_array is not None:
+                    return np.einsum("nir,ni->r", rows, load_array)
+                return sum((rows[k].T @ f for k, f in loads.items()), np.zeros(rows.shape[2]))
+
+            q += reduced_load(self._trans) - P @ reduced_load(other._trans)
+        self.set_state({"q": q, "qdot": P @ other._v, "qddot": P @ other._a, "steps": other.steps})
+        self._loads, self._load_array = (loads, load_array) if self.static_correction else ({}, None)
 
     @property
     def fingerprint(self) -> str:

@@ -587,3 +587,44 @@ def test_localized_basis_adds_the_patch_dofs_and_its_simulator_keeps_the_contrac
     for args in (([tip], -1.0), ([10**6], 0.1), ([int(model.select_nodes("x0")[0])], 1e-6)):
         with pytest.raises(rt.ModelError):
             red.localize(*args)
+
+
+@pytest.mark.parametrize("spread", [1, 3])
+def test_a_simulator_localized_mid_pull_continues_the_same_field(solid_beam, spread):
+    """sim.localized(nodes, radius): the same simulator on the basis localized there, in the
+    same state. From the plain basis (which the localized one holds) the field, with the static
+    correction of the current loads, is unchanged to round-off (the patch's coordinates take over
+    what the correction held); the new simulator then settles to its own static equilibrium
+    under the same loads. From one patch to another the field is projected (energy norm): close,
+    not exact. A simulator without the correction cannot continue one with it."""
+    from rtfem.reduced import ReducedNonlinearSimulator
+
+    red = solid_beam
+    if getattr(red, "_cubature", None) is None:
+        red.train_cubature(16, tol=0.05)
+    model = red.model
+    X = np.asarray(model.mesh.vertices)
+    tip = int(np.flatnonzero(np.isclose(X[:, 0], 1.0))[0])
+    mid = int(np.argmin(np.linalg.norm(X - [0.5, 0.1, 0.1], axis=1)))
+    f = {tip: (0.0, 0.0, 3.0)}
+    sim = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread, static_correction=True)
+    sim.run(f, 150)  # mid-swing: a velocity and an acceleration to carry over
+    U0 = sim.displacements()
+    loc = sim.localized([tip], 0.25, tol=0.02)  # (at 0.05 the cubature's static solve, linear at the
+    assert loc.reduced.local is not None            # cubature's error rate, did not converge in 60) and loc.steps == sim.steps and loc.spread == spread
+    assert loc.static_correction and loc.damping is sim.damping
+    assert np.abs(loc.displacements() - U0).max() < 1e-10 * np.abs(U0).max()
+    for key in ("qdot", "qddot"):  # the velocity and acceleration fields carried over exactly
+        old, new = red.basis @ sim.get_state()[key], loc.reduced.basis @ loc.get_state()[key]
+        assert np.abs(new - old).max() < 1e-10 * np.abs(old).max()
+    assert np.array_equal(sim.displacements(), U0)  # the original is untouched
+    loc.run(f, 8000)
+    static = loc.reduced.solve_static(f, cubature=True, max_iterations=60, static_correction=True).displacements
+    assert np.abs(loc.displacements() - static).max() < 1e-5 * np.abs(static).max()
+    other = loc.localized([mid], 0.25, tol=0.02)  # another patch: the tip's patch coordinates projected away
+    assert other.reduced.local["parent"] is red
+    change = np.abs(other.displacements() - loc.displacements()).max() / np.abs(static).max()
+    assert 1e-8 < change < 0.05, change  # measured 0.0027
+    plain = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread)
+    with pytest.raises(rt.ModelError, match="static correction"):
+        plain.continue_from(loc)
