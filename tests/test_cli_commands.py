@@ -138,6 +138,7 @@ def test_every_command_rejects_a_broken_file(tmp_path, command):
     (["simulate", "--at", "1,2"], "three finite numbers"),
     (["modes", "-n", "0"], "at least one mode"),
     (["view", "--dt", "5"], "time step"),
+    (["view", "--local", "20"], "use it with --method nonlinear"),
 ])
 def test_bad_options_exit_2_with_a_message(capsys, argv, words):
     rc, out, err = run(capsys, *argv)

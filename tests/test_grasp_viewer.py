@@ -243,3 +243,49 @@ def test_a_grasp_carried_to_a_simulator_localized_mid_pull(radius):
     assert np.abs(moved.force - ref.force).max() < 1e-6 * np.abs(ref.force).max()
     free = rt.Grasp(mesh.surface, loc, stiffness=50.0, radius=radius)
     assert free.transferred(sim).node is None  # an open jaw stays open
+
+
+def test_session_localizes_the_nonlinear_basis_per_grab():
+    """Settings(local=r): each grab localizes the reduced nonlinear basis around the held vertices
+    in a background thread and swaps it in mid-pull with the grasp carried over. Settled (the
+    patch's modes damped: patch_zeta, under the viewer's alpha), the beam is where a session
+    running the localized model from the start settles; a second grab elsewhere localizes again
+    from the global basis. The CLI refuses --local without --method nonlinear."""
+    from rtfem.reduced import ReducedNonlinearSimulator
+
+    mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
+    mat = rt.Material(E=1e5, nu=0.3, density=10.0)
+    kw = dict(method="nonlinear", n_modes=12, alpha=20.0, grasp_stiffness=50.0, grab_radius=0.0)
+    s = Session(mesh, mat, fixed="x0", settings=Settings(local=0.25, **kw))
+    assert "localized per grab (250 mm)" in s.settings.label
+    X = np.asarray(mesh.vertices)
+    node = int(np.flatnonzero(np.isclose(X[:, 0], 1.0))[0])
+    target = X[node] + np.array([0.0, 0.0, 0.1])
+    plain = s.driver
+    s.grab(X[node])
+    s.drag(target)
+    for _ in range(100):  # the pull goes on while the patch is trained
+        s.step()
+    s.localizing.join(120)
+    assert s.driver is not plain and s.driver.reduced.local is not None
+    assert node in s.driver.reduced.local["nodes"] and s.local_status.startswith("localized: ")
+    assert s.grasp.driver is s.driver and s.grasp.node == node
+    for _ in range(3000):
+        s.step()
+    ref = Session(mesh, mat, fixed="x0", settings=Settings(**kw))
+    ref.use_driver(ReducedNonlinearSimulator(s.driver.reduced, s.driver.dt, s.driver.damping, spread=1,
+                                             precision="single", static_correction=True))
+    ref.grab(X[node])
+    ref.drag(target)
+    for _ in range(3100):
+        ref.step()
+    U, R = s.driver.displacements(), ref.driver.displacements()
+    assert U[node, 2] > 0.05
+    assert np.abs(U - R).max() < 1e-5 * np.abs(R).max()
+    s.release()
+    other = int(np.argmin(np.linalg.norm(X - [0.5, 0.1, 0.1], axis=1)))
+    s.grab(X[other])
+    s.localizing.join(120)
+    assert other in s.driver.reduced.local["nodes"] and s.driver.reduced.local["parent"] is plain.reduced
+    with pytest.raises(rt.ModelError, match="local"):
+        Settings(local=-0.01).check()

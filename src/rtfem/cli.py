@@ -522,9 +522,13 @@ def cmd_view(args: argparse.Namespace) -> int:
     from .viewer.session import Settings
 
     check_address(args.host, args.port)
+    if args.local and args.method != "nonlinear":
+        raise RtfemError("--local adds a patch to the reduced nonlinear model's basis at each grab: use it with --method "
+                         "nonlinear")
     model = build_model(args)
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
-                        grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large).check()
+                        grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
+                        local=(args.local or 0.0) * 1e-3).check()
     print("precomputing ...", flush=True)
     mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
     serve(mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host,
@@ -637,6 +641,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")
+    p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: each grab adds every dof within MM "
+                   "mm of the held vertices to the basis (trained in the background, seconds; then swapped in mid-pull)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")

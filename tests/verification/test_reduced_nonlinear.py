@@ -628,3 +628,35 @@ def test_a_simulator_localized_mid_pull_continues_the_same_field(solid_beam, spr
     plain = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread)
     with pytest.raises(rt.ModelError, match="static correction"):
         plain.continue_from(loc)
+
+
+def test_patch_modes_are_damped_under_mass_proportional_damping():
+    """patch_zeta (default 1): on a localized model, the reduced modes mostly in the patch's
+    coordinates are damped at least critically. With alpha damping alone they ring: a grasp's
+    force (0.6 N) on the localized beam keeps a ripple of 0.04-0.06 N over the last 1,000 of
+    3,000 steps (measured), 7e-6 N with them damped (the first such mode is at 177 Hz; the twelve
+    lowest carry none of the patch, so their damping is the one given). A model without a patch
+    ignores it."""
+    from rtfem.reduced import ReducedNonlinearSimulator, reduced_nonlinear_driver
+
+    mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
+    model = rt.SolidModel(mesh, rt.Material(E=1e5, nu=0.3, density=10.0)).fix("x0")
+    X = np.asarray(mesh.vertices)
+    node = int(np.flatnonzero(np.isclose(X[:, 0], 1.0))[0])
+    sim = reduced_nonlinear_driver(model, rt.modal_analysis(model, 12), 1e-3, rt.Damping(alpha=20.0), precision="single")
+    red = sim.reduced.localize([node], 0.25)
+    red.train_cubature(16, tol=0.05)
+    ripple = {}
+    for pz in (0.0, 1.0):
+        loc = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(alpha=20.0), static_correction=True, precision="single",
+                                        patch_zeta=pz)
+        g = rt.Grasp(mesh.surface, loc, stiffness=50.0)
+        g.grab(node)
+        F = np.array([g.update(X[node] + [0.0, 0.0, 0.1]).copy() for _ in range(3000)])
+        ripple[pz] = np.ptp(F[-1000:], axis=0).max()
+    assert ripple[0.0] > 1e-2 and ripple[1.0] < 1e-4, ripple
+    a = ReducedNonlinearSimulator(sim.reduced, 1e-3, rt.Damping(alpha=20.0), patch_zeta=0.0)
+    b = ReducedNonlinearSimulator(sim.reduced, 1e-3, rt.Damping(alpha=20.0), patch_zeta=3.0)
+    assert np.array_equal(a._C, b._C)
+    with pytest.raises(rt.ModelError, match="patch_zeta"):
+        ReducedNonlinearSimulator(sim.reduced, 1e-3, patch_zeta=-1.0)

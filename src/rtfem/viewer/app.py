@@ -334,6 +334,8 @@ class Viewer:
             f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
             f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm); field drawn on the {s.field_on.upper()}",
         ]
+        if s.local_status:
+            lines.append(s.local_status)
         if s.error:
             lines.append(f"**error:** {s.error}")
         self.stats_md.content = "  \n".join(lines)

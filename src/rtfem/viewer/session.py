@@ -59,6 +59,7 @@ class Settings:
     grab_radius: float = 0.01  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
     max_force: float = 2.0  # N
     large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
+    local: float = 0.0  # m: each grab adds every dof within this of the held nodes to the basis (0: off; method "nonlinear" only)
 
     def check(self) -> "Settings":
         """Validate every field; returns a checked copy (numbers as floats, n_modes as an int)."""
@@ -72,13 +73,15 @@ class Settings:
             grab_radius=validate.in_range(self.grab_radius, "grab_radius", 0.0, 1.0, what="the grab radius in m"),
             max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
             large=_large(self.method, self.large),
+            local=validate.in_range(self.local, "local", 0.0, 1.0, what="the radius in m of the patch a grab adds"),
         )
 
     @property
     def label(self) -> str:
         """The method in words, with the large-deformation variant when on."""
         if self.method == "nonlinear":
-            return "reduced nonlinear (modes + derivatives)"
+            patch = f", localized per grab ({self.local * 1e3:g} mm)" if self.local > 0 else ""
+            return f"reduced nonlinear (modes + derivatives{patch})"
         if not self.large:
             return self.method
         return {"modal": "modal (warped)", "direct": "direct (corotational)"}.get(self.method, self.method)
@@ -132,6 +135,9 @@ class Session:
         self.stats = Stats()
         self.target: np.ndarray | None = None
         self.error: str | None = None
+        self.local_status = ""  # what the per-grab localization is doing (settings.local > 0)
+        self.localizing: threading.Thread | None = None
+        self._local_gen = 0
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
@@ -212,7 +218,42 @@ class Session:
             self.grasp.grab(node)
             self.node = node
             self.target = self.X[node] + self.driver.displacement(node)
+        if self.settings.method == "nonlinear" and self.settings.local > 0:
+            self._localize(node)
         return node
+
+    def _localize(self, node: int) -> None:
+        """Localize the reduced nonlinear basis around the held vertices in a background thread
+        (:meth:`ReducedNonlinearSimulator.localized`: the patch's dofs added, a new cubature:
+        seconds), while the running basis goes on; then swap it in, in the state the running one
+        has reached, with the grasp carried over (:meth:`Grasp.transferred`). A later grab, a
+        rebuild or another driver meanwhile discards it."""
+        with self._lock:
+            self._local_gen += 1
+            gen, driver, nodes, radius = self._local_gen, self.driver, self.grasp.nodes.copy(), self.settings.local
+        if not hasattr(driver, "localized") or nodes.size == 0:
+            return
+        self.local_status = f"localizing: the dofs within {radius * 1e3:g} mm of vertex {node} ..."
+
+        def work() -> None:
+            try:
+                new = driver.localized(nodes, radius)
+                prepare(new, nodes)  # the held vertices' columns, outside the lock
+                with self._lock:
+                    if gen != self._local_gen or self.driver is not driver:
+                        return
+                    new.continue_from(driver)
+                    self.grasp = self.grasp.transferred(new)
+                    self.driver = new
+                info = new.reduced.info["local"]
+                self.local_status = (f"localized: {info['nodes']} nodes within {radius * 1e3:g} mm of vertex {node}, "
+                                     f"+{info['coordinates']} coordinates")
+            except Exception as exc:  # shown in the panel; the running basis goes on
+                self.local_status = ""
+                self.error = f"localizing failed ({type(exc).__name__}: {exc}); the running basis goes on"
+
+        self.localizing = threading.Thread(target=work, name="rtfem-viewer-localize", daemon=True)
+        self.localizing.start()
 
     def drag(self, target) -> None:
         t = validate.point(target, "drag target")
