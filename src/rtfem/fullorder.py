@@ -553,12 +553,10 @@ class NonlinearNewmarkSimulator(DirectSimulator):
 
         def converged(conf, u, g, fac):
             if not self.system.within_limit(conf):  # a shell triad turned past what the element measures
-                from .nonlinear import LOCAL_ROTATION_LIMIT
+                from .nonlinear import turn_refused
 
-                raise SolverError(f"step {self.steps + 1} would turn a shell triad {self.system.turned:.0f} degrees from "
-                                  f"an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the corotational shell "
-                                  "describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
-                                  "the load over more nodes or refine the mesh there (the state is unchanged)")
+                raise SolverError(f"step {self.steps + 1} was refused: a {turn_refused(self.system.turned)} (the state "
+                                  "is unchanged)")
             return conf, u, g, fac
 
         r, g, K, ref = residual(conf, u, True)

@@ -286,9 +286,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
             _fill(result, system, conf, t0, converged=False)
             turned = system.turned
-            limit = (f"; steps were refused where a shell triad turned {turned:.0f} degrees from an element's frame, past the "
-                     f"{LOCAL_ROTATION_LIMIT:.0f} the corotational shell describes: a kink sharper than the mesh can "
-                     "turn, as at a vertex pulled alone; spread the load over more nodes") if turned >= LOCAL_ROTATION_LIMIT else ""
+            limit = f"; steps were refused where a {turn_refused(turned)}" if turned >= LOCAL_ROTATION_LIMIT else ""
             exc = SolverError(
                 f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
                 f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
@@ -307,6 +305,14 @@ MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends 
 # degrees, where its axis flips and a turn beyond costs less than it should (its derivatives grow
 # without bound on the way); an equilibrium beyond is not accepted
 LOCAL_ROTATION_LIMIT = 150.0
+
+
+def turn_refused(turned: float) -> str:
+    """Why a step that turns a shell triad ``turned`` degrees is refused, and what to do (the static
+    solver's and the corotational Newmark simulator's messages)."""
+    return (f"shell triad turned {turned:.0f} degrees from an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the "
+            "corotational shell describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
+            "the load over more nodes or refine the mesh there")
 
 
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
