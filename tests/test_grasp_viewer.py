@@ -287,5 +287,7 @@ def test_session_localizes_the_nonlinear_basis_per_grab():
     s.grab(X[other])
     s.localizing.join(120)
     assert other in s.driver.reduced.local["nodes"] and s.driver.reduced.local["parent"] is plain.reduced
+    s.configure(alpha=30.0)  # a rebuild: the patch's status goes with its driver
+    assert s.local_status == "" and s.driver.reduced.local is None
     with pytest.raises(rt.ModelError, match="local"):
         Settings(local=-0.01).check()

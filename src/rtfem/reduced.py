@@ -599,8 +599,8 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         lie mostly in the patch's coordinates (more than half of their stiffness norm; default 1,
         ignored otherwise). Linearized over-stiff (``stiffening``), those light, stiff modes are
         integrated without numerical damping, and mass-proportional damping (``alpha``, the
-        viewer's) leaves them nearly free: a grasp's force on a localized beam kept ringing at 1 %
-        (alpha 20, zeta 0), settled to 7e-6 with them damped critically. On that beam the first
+        viewer's) leaves them nearly free: a grasp's 0.6 N on a localized beam kept a ripple of
+        0.04-0.06 N (alpha 20, zeta 0), 7e-6 N with them damped critically. On that beam the first
         such mode is at 177 Hz and the twelve lowest carry none of the patch, so the organ's
         swing keeps the damping given.
 

@@ -171,6 +171,7 @@ class Session:
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
             self.reduced = modes
             self.driver = driver
+            self.local_status = ""  # a patch of the driver replaced, or one still training (discarded)
             self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
                                radius=s.grab_radius)
             self.node: int | None = None
@@ -187,6 +188,7 @@ class Session:
                       radius=self.settings.grab_radius)
         with self._lock:
             self.driver, self.grasp = driver, grasp
+            self.local_status = ""
             self.node, self.target = None, None
             self.stats.steps, self.stats.sim_time = 0, 0.0
             self.stats.forces.clear()
@@ -240,7 +242,9 @@ class Session:
                 new = driver.localized(nodes, radius)
                 prepare(new, nodes)  # the held vertices' columns, outside the lock
                 with self._lock:
-                    if gen != self._local_gen or self.driver is not driver:
+                    if gen != self._local_gen or self.driver is not driver:  # a later grab says its own
+                        if gen == self._local_gen:
+                            self.local_status = ""
                         return
                     new.continue_from(driver)
                     self.grasp = self.grasp.transferred(new)
