@@ -23,7 +23,9 @@ rate needs the forces on a cubature subset of the elements (An, Kim & James 2008
 
 from __future__ import annotations
 
+import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
@@ -394,14 +396,42 @@ class ReducedNonlinearModel:
     def _rest_tangents(self, data) -> np.ndarray:
         """The rest tangents K_e (E, nd, nd) of the elements of ``data``, by central differences of
         the kernel, symmetrized (at rest a shell's generalized moments' J = I)."""
-        E, nd = data[0].shape[:2]
-        h = 1e-7 * self.system.size  # relative to the organ: truncation and round-off both ~1e-10
+        return self._element_tangents(np.zeros(data[0].shape[:2]), data)
+
+    def _element_tangents(self, V: np.ndarray, data, central: bool = True) -> np.ndarray:
+        """The tangents K_e (E, nd, nd) of the elements of ``data`` at their dofs V (E, nd), by
+        differences of the kernel (smooth), symmetrized (the forces are an energy's gradient):
+        central with a step of 1e-7 of the organ's size (truncation and round-off both ~1e-10
+        relative), or forward (half the kernel calls; ~1e-7 relative, for a step's linearization,
+        which sets no equilibrium)."""
+        E, nd = V.shape
+        h = 1e-7 * self.system.size
         Ke = np.empty((E, nd, nd))
+        P = np.array(V, dtype=float)
+        F0 = None if central else self._kernel_forces(P, data)
         for j in range(nd):
-            V = np.zeros((E, nd))
-            V[:, j] = h
-            Ke[:, :, j] = (self._kernel_forces(V, data) - self._kernel_forces(-V, data)) / (2 * h)
+            P[:, j] = V[:, j] + h
+            Fp = self._kernel_forces(P, data)
+            if central:
+                P[:, j] = V[:, j] - h
+                Ke[:, :, j] = (Fp - self._kernel_forces(P, data)) / (2 * h)
+            else:
+                Ke[:, :, j] = (Fp - F0) / h
+            P[:, j] = V[:, j]
         return 0.5 * (Ke + Ke.transpose(0, 2, 1))
+
+    def tangent_change(self, q: np.ndarray, data, weights: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """sum_e w_e U_e^T (K_e(U_e q) - K_e(0)) U_e (r, r): how far the tangent of the elements of
+        ``data`` (weights ``weights``, rest tangents ``rest``) has moved from rest at q. Added to the
+        cubature's rest stiffness (:meth:`cubature_rest`) it is the cubature forces' tangent at q,
+        which :class:`ReducedNonlinearSimulator` linearizes its step about."""
+        Ue = data[0]
+        E, nd, r = Ue.shape
+        V = (Ue.reshape(-1, r) @ np.asarray(q, float)).reshape(E, nd)
+        dK = (self._element_tangents(V, data, central=False) - rest) * np.asarray(weights, float)[:, None, None]
+        X = np.matmul(dK, Ue).reshape(-1, r)  # (E nd, r)
+        T = Ue.reshape(-1, r).T @ X
+        return 0.5 * (T + T.T)
 
     def _rows(self, nodes: np.ndarray) -> np.ndarray:
         """Positions among the free dofs of the translations of ``nodes`` (3k,), refused if held."""
@@ -614,7 +644,8 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
-                 static_correction: bool = False, stiffening: float = 100.0, patch_zeta: float = 1.0) -> None:
+                 static_correction: bool = False, stiffening: float = 100.0, patch_zeta: float = 1.0,
+                 tangent: str = "current", refresh: int = 1, background: bool = False) -> None:
         from .simulate import check_dt
 
         if not isinstance(reduced, ReducedNonlinearModel):
@@ -661,14 +692,18 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         factor = validate.number(stiffening, "stiffening")
         if not 1.0 <= factor <= 1e6:
             raise ModelError(f"stiffening={validate.show(stiffening)} must be a factor from 1 to 1e6 (default 100)")
-        self.stiffening = 1.0 if local is None else factor
+        self.tangent = validate.choice(tangent, "tangent", ("current", "rest"))
+        self.refresh = validate.count(refresh, "refresh", 1, 10**6)
+        self.background = validate.flag(background, "background")
+        if self.background and self.tangent == "rest":
+            raise ModelError("background=True refreshes the step's tangent on a thread: it needs tangent='current'")
+        self.compliance_changes = self.tangent == "current"  # W follows the tangent: consumers must not cache it
+        self.stiffening = 1.0 if local is None or self.tangent == "current" else factor
         self._stiffening, self.damping = factor, damping  # as given: for localized()
         Kref = self._K0r.copy()
-        if local is not None:  # the patch's coordinates linearized with an over-stiff reference (see the class)
+        if self.stiffening != 1.0:  # the patch's coordinates linearized with an over-stiff reference (see the class)
             c = local["columns"]
             Kref[c:, c:] *= self.stiffening
-        S = self._M + 0.5 * h * self._C + 0.25 * h * h * Kref
-        self._Sinv = np.linalg.inv(0.5 * (S + S.T))
         self._trans = self._translation_rows()
         self._init_correction(validate.flag(static_correction, "static_correction"), model,
                               self._trans.reshape(-1, U.shape[1]), np.ones(U.shape[1]))
@@ -688,7 +723,75 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                              *_projection_rows(data[0][lo:hi], self.single)) for lo, hi in zip(cut[:-1], cut[1:])]
             if p:
                 self._always = (tuple(a[:p] for a in data), w[:p], Ke[:p], *_projection_rows(data[0][:p], self.single))
+        elif self.cubature and self.tangent == "current":
+            self._Kc = reduced.cubature_rest()[1]
+        self._worker = None
+        # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
+        self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
+                                                             else Kref))
         self.reset()
+
+    def _use_rest(self) -> None:
+        """The linearization about rest (the state reset() leaves), and no refresh in flight."""
+        if self._worker is not None:
+            self._worker.forget()
+        self._dK, self._Sinv = self._rest_linearization
+
+    def _step_inverse(self, K: np.ndarray) -> np.ndarray | None:
+        """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K (None where it is singular
+        or not finite: a tangent past a limit point at this dt)."""
+        h = self.dt
+        S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
+        try:
+            Sinv = np.linalg.inv(0.5 * (S + S.T))
+        except np.linalg.LinAlgError:
+            return None
+        return Sinv if np.isfinite(Sinv).all() else None
+
+    def _linearization(self, q: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The step's linearization about the force model's tangent at q: (each group's change of
+        tangent (spread > 1, to carry its lagged remainder from where it was evaluated; else None),
+        the step matrix's inverse (None where singular)). The tangent is the cubature's (every
+        element's with ``cubature=False``). Reads nothing that a step changes (the worker thread's
+        work)."""
+        red = self.reduced
+        dK = None
+        if not self.cubature:
+            T = red.reduced_forces(q)[1]
+            T = 0.5 * (T + T.T)
+        elif self.spread == 1:
+            data, w = red._cubature
+            Ke, _ = red.cubature_rest()
+            T = self._Kc + red.tangent_change(q, data, w, Ke)
+        else:
+            dK = np.stack([red.tangent_change(q, data, w, Ke) for data, w, Ke, _, _ in self._groups])
+            T = self._Kc + dK.sum(axis=0)
+            if self._always is not None:
+                data, w, Ke, _, _ = self._always
+                T = T + red.tangent_change(q, data, w, Ke)
+        return dK, self._step_inverse(T)
+
+    def _use(self, linearization) -> None:
+        dK, Sinv = linearization
+        if Sinv is not None:  # else the last good one stays: the step is still consistent, only less implicit
+            self._dK, self._Sinv = dK, Sinv
+
+    def _refresh_tangent(self, qs: np.ndarray) -> None:
+        """Before a step (at its predictor qs): refresh the linearization every ``refresh`` steps,
+        here, or with ``background`` take the worker's newest and ask it for the next."""
+        due = self._tangent_step is None or self.steps - self._tangent_step >= self.refresh
+        if not self.background:
+            if due:
+                self._use(self._linearization(qs))
+                self._tangent_step = self.steps
+            return
+        if self._worker is None:
+            self._worker = _TangentWorker(self)
+        done = self._worker.take()
+        if done is not None:
+            self._use(done)
+        if due and self._worker.ask(qs):
+            self._tangent_step = self.steps
 
     def _translation_rows(self) -> np.ndarray:
         """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
@@ -704,13 +807,16 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self.time = 0.0
         self.steps = 0
         self._lag = np.zeros((self.spread, r))  # each group's remainder, as last evaluated (zero at rest)
+        self._lag_q = np.zeros((self.spread, r))  # and the coordinates it was evaluated at
+        self._tangent_step = None  # the step the tangent was last refreshed at (None: at the next step)
+        self._use_rest()
         self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*)), (group, its new remainder)) of the next step
         self._loads, self._load_array = {}, None
 
     def get_state(self) -> dict:
         state = {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
         if self.spread > 1:
-            state["lag"] = self._lag.copy()
+            state["lag"], state["lag_q"] = self._lag.copy(), self._lag_q.copy()
         return state
 
     def set_state(self, state) -> None:
@@ -726,17 +832,23 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
             arrays[key] = a.copy()
         steps = state.get("steps", 0)
         steps = validate.count(steps[()] if isinstance(steps, np.ndarray) else steps, "state['steps']", 0)
-        lag = None
+        lag = lag_q = None
         if self.spread > 1 and state.get("lag") is not None:
             lag = validate.real_array(state["lag"], "state['lag']", 2)
-            if lag.shape != (self.spread, r):
-                raise ModelError(f"state['lag'] must have shape ({self.spread}, {r}) (one remainder per group), got "
-                                 f"{lag.shape}")
+            lag_q = validate.real_array(state.get("lag_q", np.tile(arrays["q"], (self.spread, 1))), "state['lag_q']", 2)
+            for key, a in (("lag", lag), ("lag_q", lag_q)):
+                if a.shape != (self.spread, r):
+                    raise ModelError(f"state[{key!r}] must have shape ({self.spread}, {r}) (one row per group), got "
+                                     f"{a.shape}")
         elif self.spread > 1:  # no lags saved: every group evaluated at q
             lag = np.stack([self._remainder(c, arrays["q"]) for c in range(self.spread)])
+            lag_q = np.tile(arrays["q"], (self.spread, 1))
         self._q, self._v, self._a = arrays["q"], arrays["qdot"], arrays["qddot"]
         if lag is not None:
-            self._lag = lag.copy()
+            self._lag, self._lag_q = lag.copy(), lag_q.copy()
+        self._tangent_step = None
+        if self._worker is not None:
+            self._worker.forget()
         self.steps = steps
         self.time = steps * self.dt
         self._free = None
@@ -753,7 +865,8 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         new = ReducedNonlinearSimulator(red, self.dt, self.damping, cubature=self.cubature, spread=self.spread,
                                         precision="single" if self.single else "double",
                                         static_correction=self.static_correction, stiffening=self._stiffening,
-                                        patch_zeta=self.patch_zeta)
+                                        patch_zeta=self.patch_zeta, tangent=self.tangent, refresh=self.refresh,
+                                        background=self.background)
         new.continue_from(self)
         return new
 
@@ -811,12 +924,18 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
             qs = self._q + h * self._v + 0.25 * h * h * self._a
             vs = self._v + 0.5 * h * self._a
             fresh = None
+            if self.tangent == "current":
+                self._refresh_tangent(qs)
             if self.spread == 1:
                 g = self._forces_at(qs)
             else:  # one group refreshed at the predictor, the others as last evaluated
                 c = self.steps % self.spread
-                fresh = (c, self._remainder(c, qs))
+                fresh = (c, self._remainder(c, qs), qs)
                 g = self._Kc @ qs + (self._lag.sum(axis=0) - self._lag[c] + fresh[1])
+                if self._dK is not None:  # the lagged remainders carried to qs along their tangents
+                    dq = qs - self._lag_q
+                    dq[c] = 0.0
+                    g += np.einsum("grs,gs->r", self._dK, dq)
                 if self._always is not None:
                     g += self._remainder(-1, qs)
             a0 = self._Sinv @ (-(self._C @ vs) - g)
@@ -843,7 +962,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 load_array = A.copy() if self.static_correction and A.any() else None
         _, qs, vs, a0, fresh = self._free_step()
         if fresh is not None:
-            self._lag[fresh[0]] = fresh[1]
+            self._lag[fresh[0]], self._lag_q[fresh[0]] = fresh[1], fresh[2]
         a = a0 if Fr is None else a0 + self._Sinv @ Fr
         h = self.dt
         self._q = qs + 0.25 * h * h * a
@@ -896,6 +1015,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     def step_compliances(self, nodes, loaded=None) -> np.ndarray:
         nodes = validate.nodes(nodes, self.n_nodes)
         loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        self._free_step()  # the next step's tangent
         Ua = self._trans[nodes].reshape(-1, self.reduced.size)
         Ub = self._trans[loaded].reshape(-1, self.reduced.size)
         W = 0.25 * self.dt**2 * (Ua @ self._Sinv @ Ub.T)
@@ -907,9 +1027,79 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         return self.step_compliances(np.array([self._node(node)]))
 
 
+class _TangentWorker:
+    """A simulator's linearizations computed on a background thread (``background=True``): the
+    step asks with its predictor and takes the newest result at a later step, never waiting. The
+    thread holds BLAS to the cores the step leaves, ends after a second with nothing to do and
+    starts again on the next request; ``forget`` drops a result from before a reset or set_state."""
+
+    def __init__(self, sim: "ReducedNonlinearSimulator") -> None:
+        self._sim = weakref.ref(sim)  # the thread must not keep a dropped simulator alive
+        self._cv = threading.Condition()
+        self._request = None  # (epoch, q) waiting
+        self._result = None  # (epoch, linearization) done
+        self._busy = False
+        self._epoch = 0
+        self._thread = None
+        self.failed: BaseException | None = None
+        self.done = 0  # linearizations computed (for tests and benchmarks)
+
+    def ask(self, q: np.ndarray) -> bool:
+        """Ask for the linearization at q unless one is in flight; True when asked."""
+        if self.failed is not None:
+            raise SolverError(f"the background tangent refresh failed: {self.failed}") from self.failed
+        with self._cv:
+            if self._busy or self._request is not None:
+                return False
+            self._request = (self._epoch, np.array(q, dtype=float))
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="rtfem-tangent", daemon=True)
+                self._thread.start()
+            self._cv.notify()
+        return True
+
+    def take(self):
+        """The newest finished linearization of this epoch, once; else None."""
+        with self._cv:
+            done, self._result = self._result, None
+        return done[1] if done is not None and done[0] == self._epoch else None
+
+    def forget(self) -> None:
+        with self._cv:
+            self._epoch += 1
+            self._request = self._result = None
+
+    def _run(self) -> None:
+        from .threads import blas_limits, usable_cores
+
+        with blas_limits(max(1, usable_cores() - 1)):
+            while True:
+                with self._cv:
+                    if self._request is None and not self._cv.wait_for(lambda: self._request is not None, timeout=1.0):
+                        return
+                    (epoch, q), self._request, self._busy = self._request, None, True
+                try:
+                    sim = self._sim()
+                    if sim is None:
+                        return
+                    out = sim._linearization(q)
+                    del sim
+                except BaseException as exc:  # noqa: BLE001 - the next step raises it
+                    self.failed = exc
+                    return
+                finally:
+                    with self._cv:
+                        self._busy = False
+                with self._cv:
+                    if epoch == self._epoch:
+                        self._result = (epoch, out)
+                    self.done += 1
+
+
 def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,
                              spread: int = 1, precision: str = "double", static_correction: bool = True,
-                             local: tuple | None = None, progress: Callable[[int, int, str], None] | None = None):
+                             local: tuple | None = None, refresh: int = 20, background: bool = False,
+                             progress: Callable[[int, int, str], None] | None = None):
     """The reduced nonlinear Driver in one call, as ``rtfem simulate --method nonlinear`` and the
     viewer build it: a :class:`ReducedNonlinearModel` on ``modes`` and the modal derivatives of the
     lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
@@ -918,8 +1108,11 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     basis rows' ``precision`` ("single": 0.64 times the probe tick, the viewer's), with the
     ``static_correction`` (default on, as the linear modal driver's). ``local`` = (nodes, radius):
     the basis also holds every dof within radius (m) of those nodes (:meth:`ReducedNonlinearModel.localize`:
-    where a grasp or probe will pull far; its cubature keeps the patch's elements exact). Shells
-    and solids: the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
+    where a grasp or probe will pull far; its cubature keeps the patch's elements exact). The step is
+    linearized about the cubature's tangent, refreshed every ``refresh`` steps (20: reproducible,
+    for offline runs; on the default liver a refresh costs ~35 ms) or, with ``background``, on a
+    thread so that the step never waits (the real-time setting: the viewer's). Shells and solids:
+    the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
     if local is not None:
         if not isinstance(local, (tuple, list)) or len(local) != 2:
             raise ModelError(f"local={validate.show(local)} must be (nodes, radius in m), e.g. ([node], 0.02)")
@@ -927,11 +1120,13 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     derivatives = validate.count(derivatives, "derivatives", 0, 10**4)
     validate.choice(precision, "precision", ("double", "single"))  # before the precompute
     static_correction = validate.flag(static_correction, "static_correction")
+    refresh = validate.count(refresh, "refresh", 1, 10**6)
+    background = validate.flag(background, "background")
     red = ReducedNonlinearModel(model, modes, min(derivatives, getattr(modes, "n_modes", derivatives)),
                                 progress=progress)
     if local is not None:
         red = red.localize(*local)
     red.train_cubature(16, tol=0.05)
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread, precision=precision,
-                                     static_correction=static_correction)
+                                     static_correction=static_correction, refresh=refresh, background=background)
 

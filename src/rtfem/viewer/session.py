@@ -154,7 +154,8 @@ class Session:
         if s.method == "modal":
             return ModalSimulator(modes, s.dt, damping, static_correction=True, warping=s.large)
         if s.method == "nonlinear":  # every cubature element each step: spread > 1 needs the high modes damped (zeta)
-            return reduced_nonlinear_driver(model, modes, s.dt, damping, spread=1, precision="single")
+            return reduced_nonlinear_driver(model, modes, s.dt, damping, spread=1, precision="single",
+                                            background=True)
         return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
