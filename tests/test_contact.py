@@ -217,7 +217,12 @@ def test_contact_operator_equals_the_matrix_products_and_the_solve_needs_only_pr
         A, full = np.empty((3 * m, 3 * m)), np.zeros(m, dtype=bool)
         for d in range(m):
             contact._column(W, Bi, Bv, F, inv_k, d, A, full)
-        ref = Fd.T @ (B3 @ W @ B3.T + inv_k * np.tile(np.eye(3), (m, m))) @ Fd
+        C = B3 @ W @ B3.T + inv_k * np.tile(np.eye(3), (m, m))
+        ref = Fd.T @ C @ Fd
+        # and the tangential diagonal's 1e-9 of each point's compliance (a held direction stays invertible)
+        eps = 1e-9 * np.einsum("cii->c", C.reshape(m, 3, m, 3)[np.arange(m), :, np.arange(m), :])
+        ref[3 * np.arange(m) + 1, 3 * np.arange(m) + 1] += eps
+        ref[3 * np.arange(m) + 2, 3 * np.arange(m) + 2] += eps
         np.testing.assert_allclose(A, ref, rtol=0, atol=1e-14 * np.abs(ref).max())
         b = np.zeros(3 * (nv + nf))
         b[::3] = rng.normal(size=nv + nf) * 1e-5 + 2e-6  # some points pressed, most apart

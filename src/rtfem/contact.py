@@ -17,11 +17,17 @@ The tool is coupled to the device by a virtual spring of stiffness k (``coupling
 (r_c = F_c^T f_c) the gap and the tangential slip of the step are
 
     w = b + A r,   A_cd = F_c^T (B W_SS B^T + 1/k)_cd F_d,
-    b_c = [d0_c;  T_c^T ((y_free,c - y_c(k)) - (x_d(k+1) - x_t(k)))],
+    b_c = [d0_c - n_c . (x_d(k+1) - x_e);  T_c^T ((y_free,c - y_c(k)) - (x_d(k+1) - x_t(k)))],
 
-(the gaps d0 and frames are evaluated with the tool where it was, x_t(k), and its move to
-x_d(k+1) enters linearly, -n . (x_d(k+1) - x_t(k)): the tool moves little per step, while a soft
-coupling may leave it millimetres from the device), with the Signorini conditions w_n >= 0, r_n >= 0, w_n r_n = 0 and Coulomb's law |r_t| <= mu r_n
+The contact points are found with the tool where it was, x_t(k) (a point stuck to the tool is
+found at the same material point again), and their gaps d0 and frames F are evaluated against
+the tool where it will end the step with last step's force, x_e = x_d(k+1) + (1/k) f_hand(k) (the
+device itself for a constraint), so that the friction directions do not lag a step behind a
+large quasi-static move; the coupling's change over the step is linear through A, and the slip
+takes the tool's whole move over the step, x_d(k+1) - x_t(k). A direction the supports hold has
+no compliance; the tangential diagonal gets 1e-9 of the point's compliance, so that the tool
+slides on such a point with friction (the supports take the force) instead of dividing by zero.
+With the Signorini conditions w_n >= 0, r_n >= 0, w_n r_n = 0 and Coulomb's law |r_t| <= mu r_n
 (stick: w_t = 0; slip: r_t opposes w_t at |r_t| = mu r_n). This is solved by projected
 Gauss-Seidel over the 3x3 contact blocks (the normal by its row, the tangential pair by its 2x2
 block, a sliding pair on the friction circle opposite its slip), warm-started from the previous
@@ -500,6 +506,12 @@ def _block(W, Bi, Bv, F, inv_k, c, d, A):
         x2 = m20 * F[d, 0, be] + m21 * F[d, 1, be] + m22 * F[d, 2, be]
         for al in range(3):
             A[3 * c + al, 3 * d + be] = F[c, 0, al] * x0 + F[c, 1, al] * x1 + F[c, 2, al] * x2
+    if c == d:  # a direction the supports hold (a point on a symmetry plane under a rigid tool) has no
+        # compliance, and its tangential block would be singular: 1e-9 of the point's compliance there
+        # makes it a rigid surface, on which the tool slides with friction (the supports take it)
+        eps = 1e-9 * (m00 + m11 + m22)
+        A[3 * c + 1, 3 * c + 1] += eps
+        A[3 * c + 2, 3 * c + 2] += eps
 
 
 def _column(W, Bi, Bv, F, inv_k, d, A, have):
@@ -586,12 +598,12 @@ def _closest_on_triangle(p, A, B, C, out, bary):
         out[i] = bary[0] * A[i] + bary[1] * B[i] + bary[2] * C[i]
 
 
-def _faces(Y, Yf, local, c, R, half, radius, iters, reach, margin, same, V, bary, n, gaps, keep):
+def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, bary, n, gaps, keep):
     """The ring's face contacts (every face of the ring is a contact of its own: where the probe
     sits in its own dent, a concave crease, the closest point would jump across the crease, while
     the set of faces' points moves continuously): for each triangle
-    (corners ``local``, rows of Y) the point closest to the tool's core (``iters`` alternating
-    projections), its weights ``bary``, push direction ``n`` and gap (``gaps``, linearized to the
+    (corners ``local``, rows of Y) the point closest to the tool's core at ``c`` (``iters`` alternating
+    projections), its weights ``bary``, push direction ``n`` and gap against the tool at ``cg`` (``gaps``, linearized to the
     free positions Yf); kept (``keep``, the count returned) when inside the face or on an edge
     (once per edge, judged by the edge's mean normal and its cone), its gap below ``reach`` before
     and ``margin`` after the linearization, and not within ``same`` of a vertex contact (rows of V)
@@ -651,7 +663,7 @@ def _faces(Y, Yf, local, c, R, half, radius, iters, reach, margin, same, V, bary
         spread[k] = math.sqrt(max(1.0 - cos * cos, 0.0)) / max(cos, 1e-3)
         outward[k, 0], outward[k, 1], outward[k, 2] = u0, u1, u2
         ok[k] = first
-    _gaps(P, P, outward, spread, c, R, half, radius, gaps, n)
+    _gaps(P, P, outward, spread, cg, R, half, radius, gaps, n)
     kept = 0
     for k in range(f):
         if not ok[k] or not gaps[k] < reach:
@@ -724,14 +736,15 @@ def _points(g, n, Y, Yf, verts, margin, loc, bw, nf, df, fid, pos, S, Bi, Bv, F,
     return m, s
 
 
-def _rhs(F, gaps, y_free, y_now, move, ids, warm_ids, warm_r, b, r):
+def _rhs(F, gaps, y_free, y_now, move, slide, ids, warm_ids, warm_r, b, r):
     """b (m, 3) of the solve (see the module's docstring: the gap and the slip in each point's
-    frame, the tool's move ``move`` since its last position linear), and the warm start r (m, 3):
+    frame; ``move`` the device from where the geometry was evaluated, linear in the gap; ``slide``
+    the tool's move over the step, x_d(k+1) - x_t(k), in the slip), and the warm start r (m, 3):
     last step's forces at the points (by id) still here."""
     for c in range(gaps.shape[0]):
-        s0 = y_free[c, 0] - y_now[c, 0] - move[0]
-        s1 = y_free[c, 1] - y_now[c, 1] - move[1]
-        s2 = y_free[c, 2] - y_now[c, 2] - move[2]
+        s0 = y_free[c, 0] - y_now[c, 0] - slide[0]
+        s1 = y_free[c, 1] - y_now[c, 1] - slide[1]
+        s2 = y_free[c, 2] - y_now[c, 2] - slide[2]
         b[c, 0] = gaps[c] - (F[c, 0, 0] * move[0] + F[c, 1, 0] * move[1] + F[c, 2, 0] * move[2])
         b[c, 1] = F[c, 0, 1] * s0 + F[c, 1, 1] * s1 + F[c, 2, 1] * s2
         b[c, 2] = F[c, 0, 2] * s0 + F[c, 1, 2] * s1 + F[c, 2, 2] * s2
@@ -807,14 +820,14 @@ try:  # compiled when numba is present (the same code)
     _closest_on_triangle = _numba.njit(**_opts)(_closest_on_triangle)
     _gaps = _numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8, f8[::1], "
                         "f8[:, ::1])", **_opts)(_gaps)
-    _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, f8, "
-                         "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
+    _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, "
+                         "f8, f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
     _frame_into = _numba.njit(**_opts)(_frame_into)
     _points = _numba.njit("UniTuple(i8, 2)(f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8, i8[:, ::1], "
                           "f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1], i8[:, ::1], f8[:, ::1], "
                           "f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], i8[::1])", **_opts)(_points)
-    _rhs = _numba.njit("void(f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1], i8[::1], f8[:, ::1], "
-                       "f8[:, ::1], f8[:, ::1])", **_opts)(_rhs)
+    _rhs = _numba.njit("void(f8[:, :, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], i8[::1], i8[::1], "
+                       "f8[:, ::1], f8[:, ::1], f8[:, ::1])", **_opts)(_rhs)
     _after = _numba.njit("void(f8[:, ::1], i8[::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[:, ::1], f8[:, ::1], "
                          "f8[:, ::1], f8[:, ::1], f8[:, ::1])", **_opts)(_after)
 except Exception:  # pragma: no cover - numba absent
@@ -1018,7 +1031,7 @@ class ToolContact:
             raise ModelError(f"tool={validate.show(tool)} must be an rt.Tool (Tool.sphere, Tool.capsule, Tool.jaw)")
         self.coupling = validate.choice(coupling, "coupling", ("spring", "constraint"))
         self.stiffness = validate.positive(stiffness, "stiffness", "the coupling stiffness in N/m")
-        self.friction = validate.nonnegative(friction, "friction", "Coulomb's friction coefficient")
+        self.friction = friction
         self.surface_point = validate.flag(surface_point, "surface_point")
         self.max_sweeps = validate.count(max_sweeps, "max_sweeps", 1, 10**6)
         self.tol = validate.positive(tol, "tol", "a relative tolerance")
@@ -1054,6 +1067,16 @@ class ToolContact:
         self.contact_forces = np.zeros((0, 3))  # and the force on the organ at each (N)
         self.contact_normals = np.zeros((0, 3))  # and the direction the tool pushes at each
 
+    @property
+    def friction(self) -> float:
+        """Coulomb's coefficient mu (0: frictionless); may be changed between steps, mid-contact
+        (checked: a finite number from 0 to 10, else ModelError and the old value kept)."""
+        return self._friction
+
+    @friction.setter
+    def friction(self, mu) -> None:
+        self._friction = validate.in_range(mu, "friction", 0.0, 10.0, what="Coulomb's friction coefficient")
+
     # ---------------------------------------------------------------- preparation
     def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
         """Compute what contacts at these vertices will need (static-correction columns, compliance
@@ -1079,10 +1102,11 @@ class ToolContact:
             self._cand, self._cand_at = verts, at
         return self._cand
 
-    def _contact_set(self, c: np.ndarray):
-        """Contact points near the tool at ``c``: (nodes S, corners Bi (m, 3) (rows of S) and
-        weights Bv, frames (m, 3, 3), gaps (m,), free positions (m, 3), current positions (m, 3),
-        ids (m,)), or None."""
+    def _contact_set(self, c: np.ndarray, ahead: np.ndarray):
+        """Contact points near the tool at ``c`` (where it was: a stuck face point is found at the
+        same material point again), their gaps and frames against the tool at ``ahead`` (where it
+        will end the step): (nodes S, corners Bi (m, 3) (rows of S) and weights Bv, frames
+        (m, 3, 3), gaps (m,), free positions (m, 3), current positions (m, 3), ids (m,)), or None."""
         verts = self._candidates(c)
         if verts.size == 0:
             return None
@@ -1102,19 +1126,19 @@ class ToolContact:
         loc = np.searchsorted(verts, corners)
         if np.any(verts[np.minimum(loc, k - 1)] != corners):  # the ring reaches past the candidates
             self._cand = np.union1d(verts, corners)
-            return self._contact_set(c)
+            return self._contact_set(c, ahead)
         u_free = predictions(self.driver, verts)
         u_now = displacements_at(self.driver, verts)
         self._offset = u_now.mean(axis=0)
         # the geometry of the surface now (continuous from step to step), its free motion linearly
         Y, Yf = X + u_now, X + u_free
-        _gaps(Y, Y, O, np.zeros(k), c, R, half, radius, d, n)
+        _gaps(Y, Y, O, np.zeros(k), ahead, R, half, radius, d, n)
         g = d + np.einsum("ki,ki->k", n, Yf - Y)  # each gap moved on to the free position, linearly
         f = ring.size if self.surface_point else 0
         bw, nf, df, keep = np.empty((f, 3)), np.empty((f, 3)), np.empty(f), np.empty(f, dtype=np.int64)
         if f:  # a face point within 1e-3 edge of a vertex contact or of another kept point is the
             # same contact twice (a probe sitting on a vertex): dropped
-            kept = _faces(Y, Yf, loc, c, R, half, radius, 1 if not half.any() else 4,
+            kept = _faces(Y, Yf, loc, c, ahead, R, half, radius, 1 if not half.any() else 4,
                           self.margin + 2 * self.edge, self.margin, 1e-3 * self.edge, Y[g < self.margin], bw, nf, df,
                           keep)
             keep = keep[:kept]
@@ -1136,11 +1160,16 @@ class ToolContact:
     def update(self, position) -> np.ndarray:
         """One step with the device at ``position``; returns the force on the device (N)."""
         c = validate.point(position, "tool position")
-        proxy = c if self.proxy is None or self.coupling == "constraint" else self.proxy
+        inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
+        # the geometry (gaps, frames) where the tool will end the step with last step's force (at the
+        # device for a constraint), so that large steps bring no lag in the friction directions; the
+        # coupling's change over the step is linear in the solve, and the slip takes the tool's whole
+        # move over the step, x_d(k+1) - x_t(k)
+        ahead = c + inv_k * self.force
+        last = c if self.proxy is None else self.proxy
         if self.lookahead > 0 and self._ahead:
             self._look_ahead(c)
-        found = self._contact_set(proxy)  # the geometry where the tool is; its move to c is linear below
-        inv_k = 1.0 / self.stiffness if self.coupling == "spring" else 0.0
+        found = self._contact_set(last, ahead)
         if found is None:
             return self._apart(c)
         S, Bi, Bv, F, gaps, y_free, y_now, ids = found
@@ -1160,7 +1189,7 @@ class ToolContact:
                 m = gaps.size
                 A = self._operator(m)
         b, r = np.empty((m, 3)), np.empty((m, 3))
-        _rhs(F, gaps, y_free, y_now, c - proxy, ids, self._warm_ids, self._warm_r, b, r)
+        _rhs(F, gaps, y_free, y_now, c - ahead, c - last, ids, self._warm_ids, self._warm_r, b, r)
         r, sweeps = _solve(A, np.zeros(m, dtype=bool), W, Bs, Bv, F, inv_k, b.reshape(-1), np.full(m, self.friction),
                            r.reshape(-1), self.max_sweeps, self.tol)
         r = r.reshape(m, 3)
