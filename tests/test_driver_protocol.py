@@ -207,7 +207,7 @@ def test_the_viewer_impedance_method_holds_the_static_field_of_the_grasp_force(o
 
 
 @pytest.mark.parametrize("kind", ["modal", "modal-corrected", "newmark", "central", "map", "large", "warped",
-                                  "warped-corrected", "reduced-nonlinear", "reduced-nonlinear-corrected"])
+                                  "warped-corrected", "reduced-nonlinear", "reduced-nonlinear-corrected", "static"])
 def test_every_driver_keeps_its_one_step_contract(organ, kind):
     """u(k+1) = predict(node) + W f for a force f on that node, for every driver rtfem ships
     (mid-motion, after a few loaded steps), and get_state/set_state replays a step exactly."""
@@ -231,6 +231,8 @@ def test_every_driver_keeps_its_one_step_contract(organ, kind):
         red = rt.ReducedNonlinearModel(model, rt.modal_analysis(model, 10), 3)
         red.train_cubature(8, tol=0.1)
         d = rt.ReducedNonlinearSimulator(red, 1e-3, damping, static_correction=kind.endswith("corrected"))
+    elif kind == "static":
+        d = rt.StaticDriver(model, {node: (0.0, 0.0, 0.05)})
     else:
         d = rt.ImpedanceMap.build(model, damping, nodes=[node], n_modes=10).as_driver()
     other = int(np.argmin(np.asarray(mesh.vertices)[:, 2])) if kind != "map" else node

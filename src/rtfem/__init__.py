@@ -19,6 +19,7 @@ from .meshing import tetrahedralize
 from .selection import select_nodes
 from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator, NonlinearNewmarkSimulator
 from .simulate import Driver, ModalSimulator
+from .staticdriver import StaticDriver
 from .sldm import SLDM
 from . import nonlinear
 from .reduced import ReducedNonlinearModel, ReducedNonlinearSimulator
@@ -60,6 +61,7 @@ __all__ = [
     "RtfemWarning",
     "ShellModel",
     "SolidModel",
+    "StaticDriver",
     "TetMesh",
     "tetrahedralize",
     "SLDM",
