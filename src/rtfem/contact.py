@@ -1036,16 +1036,17 @@ class ToolContact:
         self.max_sweeps = validate.count(max_sweeps, "max_sweeps", 1, 10**6)
         self.tol = validate.positive(tol, "tol", "a relative tolerance")
         self.mesh, self.driver = mesh, driver
-        self.X = np.asarray(mesh.vertices, dtype=float)
-        self.normals = mesh.vertex_normals()
-        self._touchable = mesh.used_vertices()
+        touched = mesh.contact_surface()  # quadratic faces: their corner and mid-edge triangles
+        self.X = np.asarray(touched.vertices, dtype=float)
+        self.normals = touched.vertex_normals()
+        self._touchable = touched.used_vertices()
         self._tree = cKDTree(self.X[self._touchable])
-        T = np.asarray(mesh.triangles, dtype=np.int64)
+        T = np.asarray(touched.triangles, dtype=np.int64)
         self._tri = T  # vertex -> triangles (CSR): _vt_tris[_vt_start[v]:_vt_start[v + 1]]
         order = np.argsort(T.reshape(-1), kind="stable")
         self._vt_tris = order // 3
         self._vt_start = np.searchsorted(T.reshape(-1)[order], np.arange(self.X.shape[0] + 1))
-        edges = mesh.edges()
+        edges = touched.edges()
         self.edge = float(np.median(np.linalg.norm(self.X[edges[:, 0]] - self.X[edges[:, 1]], axis=1)))
         self.margin = 0.25 * self.edge if margin is None else validate.nonnegative(margin, "margin", "a distance in m")
         self.lookahead = 2 * self.edge if lookahead is None else validate.nonnegative(lookahead, "lookahead",

@@ -101,7 +101,12 @@ class TriMesh:
     Raises
     ------
     MeshError : empty mesh, non-finite coordinates, out-of-range indices, non-manifold edges.
+
+    ``mid_nodes`` ((m, 3) or None): on the surface of a 10-node tet mesh, each triangle's mid-edge
+    nodes (edges 01, 12, 20): its 6-node face, which contact touches (:meth:`contact_surface`).
     """
+
+    mid_nodes: np.ndarray | None = None
 
     def __init__(
         self,
@@ -137,6 +142,20 @@ class TriMesh:
             self.groups[name] = np.unique(mapped[mapped >= 0])
         self._cache: dict[str, object] = {}
         report.min_angle_deg = float(np.degrees(self.angles().min()))
+
+    def contact_surface(self) -> "TriMesh":
+        """The surface contact touches: this mesh, or where its triangles are 6-node faces
+        (``mid_nodes``) each split into its 4 corner and mid-edge triangles, so that the mid-edge
+        nodes are contact points and a point on a face moves and is loaded through the same
+        weights (over the same node numbering)."""
+        if self.mid_nodes is None:
+            return self
+        if "contact" not in self._cache:
+            (c0, c1, c2), (m01, m12, m20) = self._triangles.T, self.mid_nodes.T
+            sub = np.stack([np.column_stack(t) for t in ((c0, m01, m20), (m01, c1, m12), (m20, m12, c2),
+                                                         (m01, m12, m20))], axis=1).reshape(-1, 3)
+            self._cache["contact"] = TriMesh(self._vertices, sub, repair=False, groups=self.groups)
+        return self._cache["contact"]  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ arrays
     @property

@@ -222,9 +222,18 @@ class TetMesh:
         10-node tets, mid-edge nodes are vertices no triangle uses). What is drawn and touched."""
         if "surface" not in self._cache:
             try:
-                self._cache["surface"] = TriMesh(self._vertices, self.boundary_faces, repair=False, groups=self.groups)
+                S = TriMesh(self._vertices, self.boundary_faces, repair=False, groups=self.groups)
             except MeshError as exc:
                 raise MeshError(f"the boundary of the tet mesh is not a usable surface: {exc}") from None
+            if self.order == 2:  # each triangle's mid-edge nodes (edges 01, 12, 20): its 6-node face
+                e = np.sort(self._tets[:, TET10_EDGES].reshape(-1, 2), axis=1)
+                n = self.n_vertices
+                keys, first = np.unique(e[:, 0] * n + e[:, 1], return_index=True)
+                mids = self._tets[:, 4:].ravel()[first]
+                T = S.triangles
+                a, b = T, np.roll(T, -1, axis=1)
+                S.mid_nodes = mids[np.searchsorted(keys, np.minimum(a, b) * n + np.maximum(a, b))]
+            self._cache["surface"] = S
         return self._cache["surface"]  # type: ignore[return-value]
 
     def surface_nodes(self) -> np.ndarray:
