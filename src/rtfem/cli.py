@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from . import validate
-from .errors import RtfemError
+from .errors import ModelError, RtfemError
 
 
 # ---------------------------------------------------------------- shared pieces
@@ -411,6 +411,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     n_steps, frame_every = _check_simulate(args)
     model = build_model(args)
+    if not args.load and args.depth > 0.5 * model.mesh.diagonal():  # before any precompute
+        raise ModelError(f"--depth {args.depth:g} m is more than half the organ's size ({model.mesh.diagonal():.3g} m "
+                         "across): the probe would pass through it. Give the indentation in m, e.g. 0.005")
     schedule = LoadSchedule.from_csv(args.load, model.n_nodes) if args.load else None
     damping = damping_of(args)
     large = getattr(args, "large", False)

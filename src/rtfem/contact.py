@@ -75,6 +75,9 @@ class Tool:
 
     def __init__(self, radius: float, half_extents=(0.0, 0.0), orientation=None, *, kind: str = "tool") -> None:
         self.radius = validate.nonnegative(radius, "radius", "the tool's radius in m")
+        if isinstance(half_extents, (str, bytes)) or np.ndim(half_extents) != 1 or len(half_extents) != 2:
+            raise ModelError(f"half_extents={validate.show(half_extents)} must be two half-lengths (a, b) in m: the "
+                             "core's segment (b = 0) or rectangle (0, 0: a point)")
         a, b = (validate.nonnegative(v, n, "a half-length in m") for v, n in zip(half_extents, ("a", "b")))
         self.half_extents = np.array([a, b, 0.0])
         self.orientation = np.ascontiguousarray(np.eye(3) if orientation is None else _rotation_matrix(orientation), dtype=float)

@@ -20,7 +20,7 @@ from . import validate
 from .errors import ModelError, SolverError
 from .linalg import factorize
 from .material import Damping
-from .model import check_model, require_lumped_mass
+from .model import check_model, check_supports, require_lumped_mass
 from .simulate import ForceInput, check_damping, check_dt, newmark_constants, newmark_velocity
 
 __all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator", "NonlinearNewmarkSimulator"]
@@ -79,9 +79,13 @@ class DirectSimulator(ForceInput):
         self.damping = check_damping(damping)
         self.n_nodes = model.n_nodes
         model.check_restrained()
+        self._supports = getattr(model, "supports_version", 0)
         self.time = 0.0
         self.steps = 0
         self._fingerprint: str | None = None
+
+    def _check_supports(self) -> None:
+        check_supports(self.model, self._supports, type(self).__name__)
 
     def run(self, forces, n_steps: int) -> None:
         """``n_steps`` steps under the same forces."""
@@ -328,6 +332,7 @@ class NewmarkSimulator(DirectSimulator):
 
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` act at the end of the step."""
+        self._check_supports()
         c0, c2, c3 = self._c[0], self._c[2], self._c[3]
         u, v, a = self._u, self._v, self._a
         un = self._superposed(forces)
@@ -435,6 +440,7 @@ class CentralDifferenceSimulator(DirectSimulator):
 
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` act at the start of the step."""
+        self._check_supports()
         F = self.model.force_vector(self._as_array(forces), warn=False)
         un = self._free_update() + self._gain * F[self._solved]
         self._u_old, self._u = self._u, un
@@ -651,6 +657,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
 
     def step(self, forces=None) -> None:
         """Advance one step; ``forces`` (dead loads) act at the end of the step."""
+        self._check_supports()
         F = self.model.force_vector(self._as_array(forces), warn=False)
         if np.array_equal(F, self._held):
             conf, u, g = self._free_step()[1:4]

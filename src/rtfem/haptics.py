@@ -256,8 +256,11 @@ class Grasp:
             return self._grab(node, radius)
 
     def _grab(self, node: int, radius: float | None) -> np.ndarray:
-        nodes = self.patch(node, radius)
         node = validate.node(node, self.X.shape[0])
+        if not np.isin(node, self._touchable):
+            raise ModelError(f"node {node} is not on the surface (an interior node of a solid): grab a surface vertex, "
+                             "e.g. the nearest with model.nearest_free_node(point)")
+        nodes = self.patch(node, radius)
         x = self.X[node] + self.driver.displacement(node)
         if nodes.size == 1:
             self.compliance(node)
@@ -539,6 +542,7 @@ class HapticLoop:
         self.spin = spin
         self.stats = LoopStats()
         self._stop = threading.Event()
+        self._owned: list[int] = []  # ids of the probe and its driver while this loop runs them
         self._ctl = np.zeros(1, dtype=np.int64)  # the compiled loop's flag: 1 stop, 2 pause
         self._paused, self._resume = threading.Event(), threading.Event()
         self._pause_lock = threading.Lock()
@@ -610,9 +614,7 @@ class HapticLoop:
             self.error = exc
         finally:
             st.seconds = time.perf_counter() - t0
-            with _OWNERS_LOCK:
-                if _OWNERS.get(id(self.probe)) is self:
-                    del _OWNERS[id(self.probe)]
+            self._disown()
 
     def _run_compiled(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
         """The loop with every tick in compiled code (kernels.loop_kernels): the GIL is released
@@ -650,9 +652,14 @@ class HapticLoop:
             self.error = exc
         finally:
             stats.seconds = stats.seconds or time.perf_counter() - t0
-            with _OWNERS_LOCK:
-                if _OWNERS.get(id(self.probe)) is self:
-                    del _OWNERS[id(self.probe)]
+            self._disown()
+
+    def _disown(self) -> None:
+        """Let go of the probe and its driver (see :meth:`start`)."""
+        with _OWNERS_LOCK:
+            for key in self._owned:
+                if _OWNERS.get(key) is self:
+                    del _OWNERS[key]
 
     def _keep(self, stats: LoopStats, late, comp, forces, slots, scripted) -> None:
         """Move compiled-loop records into the statistics (and a scripted device's force log)."""
@@ -668,8 +675,9 @@ class HapticLoop:
     def start(self, max_steps: int | None = None, *, seconds: float | None = None) -> "HapticLoop":
         """Start the loop on its own thread (fresh statistics); stop with :meth:`stop`.
 
-        One loop per probe: a second loop on a probe that is already driven is refused (two
-        loops would step the same simulator twice per tick).
+        One loop per probe and per simulator: a second loop on a probe, or on another probe or tool
+        of the same simulator, that is already driven is refused (two loops would step the same
+        simulator twice per tick).
         """
         if max_steps is not None:
             max_steps = validate.count(max_steps, "max_steps", 1)
@@ -686,11 +694,17 @@ class HapticLoop:
             if self._required:
                 raise ModelError(f"compiled=True: {_foreign_loads(self.probe)}")
             compiled = False
+        driver = getattr(self.probe, "driver", None)
+        owned = [(id(self.probe), "probe")] + ([] if driver is None else [(id(driver), "probe's simulator")])
         with _OWNERS_LOCK:
-            owner = _OWNERS.get(id(self.probe))
-            if owner is not None and owner is not self:
-                raise ModelError("this probe is already driven by another running HapticLoop; stop that one first")
-            _OWNERS[id(self.probe)] = self
+            for key, what in owned:
+                owner = _OWNERS.get(key)
+                if owner is not None and owner is not self:
+                    raise ModelError(f"this {what} is already driven by another running HapticLoop (it would step twice "
+                                     "per tick); stop that one first")
+            for key, _ in owned:
+                _OWNERS[key] = self
+        self._owned = [key for key, _ in owned]
         self._stop.clear()
         self._ctl[0] = 0
         self._paused.clear()

@@ -37,6 +37,9 @@ class Material:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "E", finite_positive("E", self.E, "Young's modulus in Pa"))
+        if not 1e-6 <= self.E <= 1e13:
+            raise ModelError(f"Material E={self.E!r} Pa is outside 1e-6 .. 1e13 Pa (soft tissue: 1e3 .. 1e6 Pa, steel "
+                             "2e11): give Young's modulus in pascals")
         object.__setattr__(
             self, "thickness", finite_positive("thickness", self.thickness, "the shell thickness in m")
         )
@@ -49,6 +52,10 @@ class Material:
                 f"Material nu={self.nu!r} is outside (-1, 0.5): an isotropic elastic material "
                 "needs -1 < nu < 0.5 (soft tissue: 0.45 .. 0.49)."
             )
+        if nu > 0.4999:
+            raise ModelError(f"Material nu={self.nu!r} is within 1e-4 of 0.5: the bulk modulus is then "
+                             f"{1 / (3 * (1 - 2 * nu)):.3g} times E and the stiffness singular to working precision. "
+                             "Give nu <= 0.4999 (soft tissue: 0.45 .. 0.49, with element='tet10')")
         object.__setattr__(self, "nu", nu)
 
     @property

@@ -14,6 +14,8 @@ import contextlib
 import hashlib
 import importlib.util
 import os
+import shutil
+import signal
 import tempfile
 import threading
 from functools import lru_cache
@@ -64,13 +66,44 @@ def _scratch_directory():
     copy of its envelope) into the current directory, which would litter, or overwrite a file of
     that name in, the user's folder. The working directory is process-wide: meshing calls are
     serialized, and another thread's relative paths would see the scratch folder meanwhile."""
-    with _CWD_LOCK, tempfile.TemporaryDirectory(prefix="rtfem-tetwild-") as scratch:
+    _remove_stale_scratch()
+    with _CWD_LOCK, tempfile.TemporaryDirectory(prefix=f"rtfem-tetwild-{os.getpid()}-") as scratch:
         old = os.getcwd()
         os.chdir(scratch)
         try:
             yield
         finally:
             os.chdir(old)
+
+
+def _remove_stale_scratch() -> None:
+    """Remove the scratch folders of meshing processes that are gone (a process killed mid-mesh,
+    e.g. by fTetWild's own Ctrl-C handler, cannot remove its own)."""
+    for path in Path(tempfile.gettempdir()).glob("rtfem-tetwild-*-*"):
+        try:
+            pid = int(path.name.split("-")[2])
+            os.kill(pid, 0)  # alive (or not ours to signal): leave it
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (ValueError, IndexError, PermissionError, OSError):
+            continue
+
+
+@contextlib.contextmanager
+def _python_sigint():
+    """Keep Python's Ctrl-C handler: fTetWild installs its own, which outlives the call and would
+    make a later Ctrl-C kill the process instead of raising KeyboardInterrupt (losing finished
+    work)."""
+    main = threading.current_thread() is threading.main_thread()
+    handler = signal.getsignal(signal.SIGINT) if main else None
+    try:
+        yield
+    finally:
+        if main and handler is not None and signal.getsignal(signal.SIGINT) is not handler:
+            signal.signal(signal.SIGINT, handler)
+
+
+MAX_TETS = 3_000_000  # about what fTetWild meshes within this machine's memory (24 GB, a few kB a tet)
 
 
 def mesher_available() -> bool:
@@ -108,6 +141,7 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
                             "give 0.001 .. 0.5 of it")
     epsilon = validate.in_range(epsilon, "epsilon", 1e-5, 0.1, what="a fraction of the diagonal", error=MeshError)
     threads = int(validate.count(threads, "threads", 0, 1024))
+    optimize = validate.flag(optimize, "optimize", error=MeshError)
     if not surface.report.closed:
         raise MeshError(f"the surface has {surface.report.n_boundary_edges} boundary edges (holes): a volume needs a "
                         "closed surface. Close the holes (e.g. MeshLab's 'Close Holes', Blender's 'Fill') and try again")
@@ -117,11 +151,20 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
     wrapper = _wrapper()
     if wrapper is None:
         raise MeshError(f"rt.tetrahedralize needs the fTetWild mesher: {_EXTRA}")
-    V = np.array(surface.vertices, dtype=np.float64, order="C")
+    volume = abs(surface.volume())
+    estimate = 8.5 * volume / (fac * diag) ** 3  # regular tets of the target edge: l^3 / (6 sqrt 2) each
+    if estimate > MAX_TETS:
+        least = (8.5 * volume / MAX_TETS) ** (1 / 3)
+        raise MeshError(f"an edge length of {fac * diag:.3g} m would make about {estimate:.3g} tets in this "
+                        f"{volume:.3g} m^3 volume, more than the {MAX_TETS:,} the mesher can hold in memory here: give "
+                        f"edge_length >= {least:.2g} m")
+    # the mesher works in absolute units (its tolerances fail on a body of micrometres): at unit size
+    centre = 0.5 * (np.min(surface.vertices, axis=0) + np.max(surface.vertices, axis=0))
+    V = np.array((np.asarray(surface.vertices) - centre) / diag, dtype=np.float64, order="C")
     F = np.array(surface.triangles, dtype=np.uint32, order="C")
     try:
-        with _scratch_directory():
-            X, T = wrapper.tetrahedralize_mesh(V, F, bool(optimize), False, float(fac), 0.0, float(epsilon), 10.0,
+        with _scratch_directory(), _python_sigint():
+            X, T = wrapper.tetrahedralize_mesh(V, F, optimize, False, float(fac), 0.0, float(epsilon), 10.0,
                                                False, threads, 80, 6, True, False, False, np.zeros((0, 3)),
                                                np.zeros((0, 4), np.int32), np.zeros(0))
     except Exception as exc:  # the mesher's own failures come as RuntimeError or its own types
@@ -129,7 +172,7 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
     if T is None or len(T) == 0:
         raise MeshError("fTetWild produced no tets: the surface encloses no volume the mesher could find "
                         "(is it flat, or made of sheets?)")
-    mesh = TetMesh(np.asarray(X, dtype=float), np.asarray(T, dtype=np.int64))
+    mesh = TetMesh(np.asarray(X, dtype=float) * diag + centre, np.asarray(T, dtype=np.int64))
     return _carry_groups(surface, mesh)
 
 

@@ -206,6 +206,14 @@ def modal_analysis(
     else:
         sigma = _default_shift(model, K, M) if sigma is None else sigma
         omega, phi, method = _shift_invert_modes(model, K, M, dofs, n_modes, sigma, tol, solver, report, timing)
+    if model.fixed.any():  # a held model has no zero-frequency mode: one is a part moving freely
+        d, m = K.diagonal(), M.diagonal()
+        scale = float(np.max(d[m > 0] / m[m > 0])) if np.any(m > 0) else 1.0
+        free = int(np.count_nonzero(omega**2 <= 1e-10 * scale))
+        if free:
+            raise ModelError(f"{free} of the modes have zero frequency although the model is held: the fixes cannot "
+                             "hold it, a part can move freely (a mechanism, e.g. pieces joined at a single vertex or "
+                             "edge). Fix more nodes, or join the pieces")
     shapes = _nodal_shapes(model, phi, dofs)
     elapsed = time.perf_counter() - t_start
     report.done(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")

@@ -95,6 +95,15 @@ def check_model(model, what: str = "model"):
     return model
 
 
+def check_supports(model, version: int, what: str) -> None:
+    """Refuse to go on with ``what`` (a driver) built on ``model`` when its ``supports_version``
+    was ``version``: it would answer for the old supports (a user's model without the counter:
+    nothing to check)."""
+    if getattr(model, "supports_version", 0) != version:
+        raise ModelError(f"the model's supports changed (model.fix or release) since this {what} was built on it: "
+                         "build a new one for the new supports")
+
+
 def make_model(mesh, material: Material, **options):
     """The model of ``mesh``: a :class:`ShellModel` for a triangle surface, a
     :class:`~rtfem.SolidModel` for a :class:`~rtfem.TetMesh` (``element``, ``mass`` among the
@@ -256,8 +265,7 @@ class FEModel:
             raise ModelError("fix() was given no nodes")
         mask = self._dof_mask(dofs)
         self.fixed[np.ix_(idx, np.flatnonzero(mask))] = True
-        self._factor = None
-        self._condensation = None
+        self._supports_changed()
         return self
 
     def release(self, nodes=None, dofs: str | Sequence = "all") -> "FEModel":
@@ -265,9 +273,15 @@ class FEModel:
         idx = np.arange(self.n_nodes) if nodes is None else self.select_nodes(nodes)
         mask = self._dof_mask(dofs)
         self.fixed[np.ix_(idx, np.flatnonzero(mask))] = False
+        self._supports_changed()
+        return self
+
+    def _supports_changed(self) -> None:
         self._factor = None
         self._condensation = None
-        return self
+        self.supports_version = getattr(self, "supports_version", 0) + 1
+
+    supports_version = 0  # counts fix() and release() calls: what a driver built on the old supports checks
 
     @property
     def held_nodes(self) -> np.ndarray:

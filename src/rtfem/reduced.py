@@ -23,6 +23,7 @@ rate needs the forces on a cubature subset of the elements (An, Kim & James 2008
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import weakref
@@ -83,7 +84,11 @@ class ReducedNonlinearModel:
                  progress: Callable[[int, int, str], None] | None = None) -> None:
         from .modal import ModalBasis
 
+        from .model import check_model
+
         t0 = time.perf_counter()
+        check_model(model, "model")
+        progress = validate.progress(progress)
         if not isinstance(modes, ModalBasis):
             raise ModelError(f"modes={validate.show(modes)} must be an rt.ModalBasis (from rt.modal_analysis(model, r))")
         if modes.fingerprint != mesh_fingerprint(model.mesh) or modes.shapes.shape[0] != model.n_nodes:
@@ -324,6 +329,7 @@ class ReducedNonlinearModel:
         tol = validate.positive(tol, "tol", "a relative error such as 0.05")
         reach = validate.positive(reach, "reach", "a fraction of the model's size such as 0.1")
         remainder = validate.flag(remainder, "remainder")
+        seed = validate.count(seed, "seed", 0, 2**63 - 1)
         data = self._element_data()
         E = data[0].shape[0]
         Ke = self._rest_tangents(data) if remainder else None
@@ -457,6 +463,10 @@ class ReducedNonlinearModel:
         U q + D f together."""
         t0 = time.perf_counter()
         static_correction = validate.flag(static_correction, "static_correction")
+        cubature = validate.flag(cubature, "cubature")
+        tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
+        max_iterations = validate.count(max_iterations, "max_iterations", 1, 1000)
+        max_cuts = validate.count(max_cuts, "max_cuts", 0, 60)
         if cubature and getattr(self, "_cubature", None) is None:
             raise ModelError("no cubature yet: call train_cubature() first")
         U = self.basis
@@ -650,6 +660,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
         if not isinstance(reduced, ReducedNonlinearModel):
             raise ModelError(f"reduced={validate.show(reduced)} must be a ReducedNonlinearModel")
+        cubature = validate.flag(cubature, "cubature")
         if cubature and getattr(reduced, "_cubature", None) is None:
             raise ModelError("the reduced model has no cubature yet: call reduced.train_cubature() first, or pass "
                              "cubature=False (every element each step: exact, slow)")
@@ -726,6 +737,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         elif self.cubature and self.tangent == "current":
             self._Kc = reduced.cubature_rest()[1]
         self._worker = None
+        self._last_compliances = None  # (Sinv, nodes, loaded, W): W changes only with the tangent
         # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
         self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
                                                              else Kref))
@@ -774,7 +786,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     def _use(self, linearization) -> None:
         dK, Sinv = linearization
         if Sinv is not None:  # else the last good one stays: the step is still consistent, only less implicit
-            self._dK, self._Sinv = dK, Sinv
+            # the groups' tangents side by side (r, groups r): their sum over the lags in one product
+            self._dK = None if dK is None else np.ascontiguousarray(dK.transpose(1, 0, 2).reshape(dK.shape[1], -1))
+            self._Sinv = Sinv
 
     def _refresh_tangent(self, qs: np.ndarray) -> None:
         """Before a step (at its predictor qs): refresh the linearization every ``refresh`` steps,
@@ -935,7 +949,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 if self._dK is not None:  # the lagged remainders carried to qs along their tangents
                     dq = qs - self._lag_q
                     dq[c] = 0.0
-                    g += np.einsum("grs,gs->r", self._dK, dq)
+                    g += self._dK @ dq.reshape(-1)
                 if self._always is not None:
                     g += self._remainder(-1, qs)
             a0 = self._Sinv @ (-(self._C @ vs) - g)
@@ -1016,12 +1030,17 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         nodes = validate.nodes(nodes, self.n_nodes)
         loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
         self._free_step()  # the next step's tangent
+        key = (self._Sinv, nodes.tobytes(), loaded.tobytes())
+        last = self._last_compliances
+        if last is not None and last[0] is key[0] and last[1:3] == key[1:]:  # the same tangent and nodes
+            return last[3].copy()
         Ua = self._trans[nodes].reshape(-1, self.reduced.size)
         Ub = self._trans[loaded].reshape(-1, self.reduced.size)
         W = 0.25 * self.dt**2 * (Ua @ self._Sinv @ Ub.T)
         if self.static_correction and loaded.size:
             W += self._correction_block(nodes, loaded)
-        return W
+        self._last_compliances = (*key, W)
+        return W.copy()
 
     def step_compliance(self, node: int) -> np.ndarray:
         return self.step_compliances(np.array([self._node(node)]))
@@ -1072,6 +1091,10 @@ class _TangentWorker:
     def _run(self) -> None:
         from .threads import blas_limits, usable_cores
 
+        try:  # the lowest priority (Linux: per thread): it takes only the time the loop leaves
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except (AttributeError, OSError):  # pragma: no cover - other systems
+            pass
         with blas_limits(max(1, usable_cores() - 1)):
             while True:
                 with self._cv:

@@ -620,6 +620,10 @@ class ModalSimulator(StaticCorrection, ForceInput):
         validate.choice(device, "device", ("cpu", "gpu"))
         if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
             raise ModelError(f"dtype={validate.show(dtype)}: displacements come as float64 or float32")
+        if out is not None and (not isinstance(out, np.ndarray) or out.shape != (self.n_nodes, 3)
+                                or out.dtype != np.dtype(dtype) or not out.flags.c_contiguous):
+            raise ModelError(f"out={validate.show(out)} must be a C-contiguous ({self.n_nodes}, 3) array of "
+                             f"{np.dtype(dtype).name} (the dtype asked for), or None")
         flat = None if out is None else out.reshape(-1)
         if device == "gpu":
             if getattr(self, "_gpu_field", None) is None:

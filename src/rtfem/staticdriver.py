@@ -52,7 +52,7 @@ class StaticDriver(ForceInput):
         self.model = model
         self.n_nodes = int(model.n_nodes)
         self.dt = check_dt(dt)
-        self._supports = np.array(model.fixed, copy=True)
+        self._supports = getattr(model, "supports_version", 0)
         model.check_restrained()
         self._columns: dict[int, np.ndarray] = {}  # node -> (n, 3, 3): [displaced node, axis, load axis]
         self.hold(loads)
@@ -74,10 +74,9 @@ class StaticDriver(ForceInput):
         return F
 
     def _check_supports(self) -> None:
-        fixed = np.asarray(self.model.fixed)
-        if fixed.shape != self._supports.shape or not np.array_equal(fixed, self._supports):
-            raise ModelError("the model's supports changed since this StaticDriver was built (model.fix or release): "
-                             "build a new rt.StaticDriver(model) for the new supports")
+        from .model import check_supports
+
+        check_supports(self.model, self._supports, "StaticDriver")
 
     def prepare(self, nodes) -> None:
         """Solve the three columns of K^-1 of each of ``nodes`` not yet solved (multi-column solves)."""

@@ -161,12 +161,20 @@ def vector(value: Any, name: str, size: int | Sequence[int] = 3, *, error: type 
     return arr
 
 
+POINT_LIMIT = 1e6  # m: a coordinate beyond it is a unit mistake (squares overflow near 1e154)
+
+
 def point(value: Any, name: str = "point", *, error: type = ModelError) -> np.ndarray:
-    """A point (or a vector) in 3-D: three finite numbers (a float (3,) array is returned as is)."""
+    """A point (or a vector) in 3-D: three finite numbers within 1e6 m of the origin (a float
+    (3,) array is returned as is)."""
     if type(value) is np.ndarray and value.shape == (3,) and value.dtype == np.float64 \
-            and math.isfinite(value[0]) and math.isfinite(value[1]) and math.isfinite(value[2]):
-        return value  # the haptic loop's fast path: no conversion, no copy
-    return vector(value, name, 3, error=error)
+            and abs(value[0]) <= POINT_LIMIT and abs(value[1]) <= POINT_LIMIT and abs(value[2]) <= POINT_LIMIT:
+        return value  # the haptic loop's fast path: no conversion, no copy (NaN fails the comparisons)
+    v = vector(value, name, 3, error=error)
+    if np.abs(v).max() > POINT_LIMIT:
+        raise error(f"{_label(name, value)} lies more than {POINT_LIMIT:g} m from the origin: positions are in "
+                    "metres (scale millimetres by 1e-3)")
+    return v
 
 
 def choice(value: Any, name: str, options: Iterable[str], *, error: type = ModelError) -> str:

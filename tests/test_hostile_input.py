@@ -1,0 +1,131 @@
+"""Hostile input, as a new user meets it on the newer parts (issue 36, item 8): each case gets a
+specific RtfemError that says what to do, and nothing already computed is changed."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.reduced import ReducedNonlinearModel, ReducedNonlinearSimulator
+
+
+@pytest.fixture(scope="module")
+def beam():
+    model = rt.SolidModel(rt.meshes.box(1.0, 0.1, 0.1, nx=6, ny=2, nz=2), rt.Material(E=1e5, nu=0.3, density=10.0))
+    model.fix("x0")
+    modes = rt.modal_analysis(model, 6)
+    red = ReducedNonlinearModel(model, modes, 2)
+    red.train_cubature(4, tol=0.1)
+    return model, modes, red
+
+
+def test_unvalidated_arguments_are_refused_by_name(beam):
+    model, modes, red = beam
+    tip = int(model.select_nodes("x1")[0])
+    load = {tip: (0.0, 0.0, 0.01)}
+    cases = [
+        ("cubature", lambda: red.solve_static(load, cubature="no")),
+        ("max_cuts", lambda: red.solve_static(load, max_cuts=-5)),
+        ("tol", lambda: red.solve_static(load, tol=float("nan"))),
+        ("max_iterations", lambda: red.solve_static(load, max_iterations=0)),
+        ("seed", lambda: red.train_cubature(4, seed="abc")),
+        ("progress", lambda: ReducedNonlinearModel(model, modes, 2, progress=5)),
+        ("cubature", lambda: ReducedNonlinearSimulator(red, 1e-3, cubature="no")),
+        ("not a model", lambda: ReducedNonlinearModel("model", modes, 2)),
+        ("out", lambda: rt.ModalSimulator(modes, 1e-3).displacements(out=np.zeros((3, 3)))),
+        ("half_extents", lambda: rt.Tool(0.01, (0.01, 0.02, 0.03))),
+        ("metres", lambda: rt.ToolContact(model.mesh, rt.ModalSimulator(modes, 1e-3)).update([1e300, 0.0, 0.0])),
+        ("metres", lambda: rt.Probe(model.mesh, rt.ModalSimulator(modes, 1e-3)).update([1e300, 0.0, 0.0])),
+        ("0.5", lambda: rt.Material(E=1e4, nu=0.5 - 1e-12)),
+        ("pascals", lambda: rt.Material(E=1e-300, nu=0.3)),
+    ]
+    for match, call in cases:
+        with pytest.raises(rt.RtfemError, match=match):
+            call()
+    assert red.info["cubature"]["elements"] > 0  # the cubature trained before is kept
+
+
+def test_a_mechanism_has_no_silent_zero_frequency_modes():
+    """Two tets joined at a vertex, one of them held: the static solve refuses it, and so does
+    the modal analysis now (it returned three zero frequencies)."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1.0]])
+    model = rt.SolidModel(rt.TetMesh(V, np.array([[0, 1, 2, 3], [0, 4, 6, 5]])), rt.Material(E=1e3, nu=0.3, density=1.0))
+    model.fix([1, 2, 3])
+    with pytest.raises(rt.ModelError, match="mechanism"):
+        rt.modal_analysis(model, 3)
+    with pytest.raises(rt.ModelError, match="mechanism"):
+        model.solve_static({4: (0.0, 0.0, 1.0)})
+
+
+def test_a_driver_built_on_old_supports_refuses_to_step(beam):
+    model0 = beam[0]
+    model = rt.SolidModel(model0.tetmesh, model0.material).fix("x0")
+    sim = rt.DirectSimulator(model, 1e-3)
+    tip = int(model.select_nodes("x1")[0])
+    sim.step({tip: (0.0, 0.0, 1.0)})
+    state = sim.get_state()
+    model.fix("x1")
+    with pytest.raises(rt.ModelError, match="supports changed"):
+        sim.step({tip: (0.0, 0.0, 1.0)})
+    assert all(np.array_equal(v, state[k]) for k, v in sim.get_state().items())
+
+
+def test_a_grasp_of_an_interior_node_is_refused(beam):
+    model, modes, _ = beam
+    interior = np.setdiff1d(np.arange(model.n_nodes), model.mesh.used_vertices())
+    assert interior.size
+    g = rt.Grasp(model.mesh, rt.ModalSimulator(modes, 1e-3))
+    with pytest.raises(rt.ModelError, match="not on the surface"):
+        g.grab(int(interior[0]))
+    assert g.node is None
+
+
+def test_two_loops_on_one_simulator_are_refused(beam):
+    """Two probes (or a probe and a tool) on the same simulator would step it twice per tick."""
+    model, modes, _ = beam
+    sim = rt.ModalSimulator(modes, 1e-3)
+    x = np.asarray(model.mesh.vertices)[int(model.select_nodes("x1")[0])] + [0.0, 0.0, 0.05]
+    first = rt.HapticLoop(rt.Probe(model.mesh, sim), rt.ScriptedDevice(lambda t: x), compiled=False).start()
+    try:
+        for other in (rt.Probe(model.mesh, sim), rt.ToolContact(model.mesh, sim)):
+            with pytest.raises(rt.ModelError, match="already driven"):
+                rt.HapticLoop(other, rt.ScriptedDevice(lambda t: x), compiled=False).start()
+    finally:
+        first.stop()
+    second = rt.HapticLoop(rt.Probe(model.mesh, sim), rt.ScriptedDevice(lambda t: x), compiled=False)
+    second.start()  # once the first has stopped, another may drive it
+    second.stop()
+
+
+def test_the_cli_refuses_a_depth_through_the_organ(tmp_path):
+    from rtfem.cli import main
+
+    t0 = time.perf_counter()
+    assert main(["simulate", "--depth", "1e9", "--duration", "0.01", "--out", str(tmp_path / "o")]) == 2
+    assert time.perf_counter() - t0 < 30  # before the modes are computed
+    assert not (tmp_path / "o").exists()
+
+
+def test_tetrahedralize_checks_its_flag_estimates_its_size_and_keeps_ctrl_c():
+    import signal
+
+    from rtfem.meshing import mesher_available
+
+    surface = rt.meshes.liver(3)
+    with pytest.raises(rt.MeshError, match="optimize"):
+        rt.tetrahedralize(surface, optimize="no")
+    with pytest.raises(rt.MeshError, match="edge_length >="):  # ~6e7 tets: refused before meshing
+        rt.tetrahedralize(surface, edge_length=1.01e-3 * surface.diagonal())
+    if not mesher_available():
+        pytest.skip("the fTetWild mesher (rtfem[mesh]) is not installed")
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers live on the main thread")
+    handler = signal.getsignal(signal.SIGINT)
+    tiny = rt.TriMesh(np.asarray(surface.vertices) * 1e-7, surface.triangles)  # fTetWild crashed at this scale
+    tets = rt.tetrahedralize(tiny, optimize=False)
+    assert signal.getsignal(signal.SIGINT) is handler  # fTetWild's own handler is not left behind
+    assert tets.n_tets > 100 and np.abs(np.asarray(tets.vertices)).max() < 1e-6
+    assert abs(tets.volume() / (surface.volume() * 1e-21) - 1) < 0.01  # the same body, at its own scale
+    assert tets.surface.n_vertices > 100
