@@ -124,8 +124,113 @@ def test_tetrahedralize_checks_its_flag_estimates_its_size_and_keeps_ctrl_c():
         pytest.skip("signal handlers live on the main thread")
     handler = signal.getsignal(signal.SIGINT)
     tiny = rt.TriMesh(np.asarray(surface.vertices) * 1e-7, surface.triangles)  # fTetWild crashed at this scale
-    tets = rt.tetrahedralize(tiny, optimize=False)
+    tets = rt.tetrahedralize(tiny)
     assert signal.getsignal(signal.SIGINT) is handler  # fTetWild's own handler is not left behind
     assert tets.n_tets > 100 and np.abs(np.asarray(tets.vertices)).max() < 1e-6
     assert abs(tets.volume() / (surface.volume() * 1e-21) - 1) < 0.01  # the same body, at its own scale
     assert tets.surface.n_vertices > 100
+
+
+def _write_vtu_with(tmp_path, extra_cell):
+    """A unit cube of 6 tets (VTU) plus one more cell of another kind."""
+    import meshio
+
+    box = rt.meshes.box(1.0, 1.0, 1.0, 1, 1, 1)
+    P = np.vstack([np.asarray(box.vertices), np.asarray(box.vertices) + [2.0, 0.0, 0.0]])
+    cells = [("tetra", np.asarray(box.tets))] + ([extra_cell(np.arange(8) + 8)] if extra_cell else [])
+    path = tmp_path / "mixed.vtu"
+    meshio.write_points_cells(str(path), P, cells)
+    return path
+
+
+def test_volume_files_with_other_cells_than_tets_are_refused(tmp_path):
+    """A hexahedron beside the tets (VTU; an INP C3D8 or Gmsh type 5 reads the same way) was
+    dropped with half the volume, without a word."""
+    hexed = _write_vtu_with(tmp_path, lambda idx: ("hexahedron", idx[None, [0, 1, 3, 2, 4, 5, 7, 6]]))
+    with pytest.raises(rt.MeshError, match="hexahedron.*tetrahedra"):
+        rt.load_mesh(hexed)
+    assert isinstance(rt.load_mesh(_write_vtu_with(tmp_path, None)), rt.TetMesh)  # tets alone load
+
+
+def test_pipes_devices_and_inflating_files_are_refused(tmp_path):
+    import os
+    import zipfile
+
+    fifo = tmp_path / "pipe.stl"
+    os.mkfifo(fifo)
+    for call in (lambda: rt.load_mesh(fifo), lambda: rt.load_mesh("/dev/zero"),
+                 lambda: rt.ModalBasis.load("/dev/zero")):
+        with pytest.raises(rt.RtfemError, match="not a regular file"):
+            call()  # (they hung, or read until memory ran out)
+    bomb = tmp_path / "bomb.npz"  # 400 MB of zeros in a few hundred kB
+    with zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        with z.open("omega.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (50_000_000,)})
+            block = bytes(2**20)
+            for _ in range(400):
+                fh.write(block)
+    assert bomb.stat().st_size < 5e6
+    with pytest.raises(rt.ModelError, match="inflates"):
+        rt.ModalBasis.load(bomb)
+
+
+def test_tampered_bases_and_bases_of_other_supports_are_refused(tmp_path, beam):
+    import json
+
+    model, modes, _ = beam
+    path = modes.save(tmp_path / "b.npz")
+    z = dict(np.load(path))
+
+    def tampered(**change):
+        out = dict(z, **change)
+        out = {k: v for k, v in out.items() if v is not None}
+        p = tmp_path / f"t{len(list(tmp_path.iterdir()))}.npz"
+        np.savez(p, **out)
+        return p
+
+    sums = json.loads(str(z["checksums"]))
+    cases = {
+        "no checksums": tampered(checksums=None),
+        "has no checksum": tampered(checksums=np.array(json.dumps({k: v for k, v in sums.items() if k != "omega"}))),
+        "format version": tampered(version=np.array(-1)),
+        "checksums": tampered(checksums=np.array(json.dumps(list(sums.values())))),
+    }
+    for match, p in cases.items():
+        with pytest.raises(rt.ModelError, match=match):
+            rt.ModalBasis.load(p, model)
+    other = rt.SolidModel(model.tetmesh, model.material).fix("x0").fix("x1")
+    with pytest.raises(rt.ModelError, match="other supports"):
+        rt.ModalBasis.load(path, other)
+    with pytest.raises(rt.ModelError, match="other supports"):
+        ReducedNonlinearModel(other, modes, 2)
+    assert rt.ModalBasis.load(path, rt.SolidModel(model.tetmesh, model.material).fix("x0")).n_modes == modes.n_modes
+
+
+def test_a_killed_save_leaves_nothing_that_later_saves_keep(tmp_path, beam):
+    modes = beam[1]
+    dead = tmp_path / ".b.npz.999999999.abcd.tmp.npz"  # named after a process that is gone
+    dead.write_bytes(b"partial")
+    alive = tmp_path / f".b.npz.{__import__('os').getpid()}.efgh.tmp.npz"  # a save running now
+    alive.write_bytes(b"partial")
+    modes.save(tmp_path / "b.npz")
+    assert not dead.exists() and alive.exists()
+
+
+def test_tangled_duplicated_and_non_conforming_tet_meshes_are_refused():
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.3, 0.3, 0.3]], float)
+    folded = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])  # node 4 inside the first tet: the second folds back over it
+    with pytest.raises(rt.MeshError, match="tangled"):  # it re-oriented the folded tet and simulated it
+        rt.TetMesh(V, folded, repair=True)
+    with pytest.raises(rt.MeshError, match="inverted"):
+        rt.TetMesh(V, folded, repair=False)
+    V2 = np.vstack([V[:4], V[:1]])  # node 4 on node 0
+    with pytest.raises(rt.MeshError, match="coincide"):
+        rt.TetMesh(V2, np.array([[0, 1, 2, 3], [4, 2, 1, 3 + 0]])[:1].tolist() + [[4, 1, 3, 2]], repair=False)
+    q = rt.meshes.box(1.0, 1.0, 1.0, 1, 1, 1).quadratic()
+    T = np.array(q.tets)
+    P = np.vstack([np.asarray(q.vertices), np.asarray(q.vertices)[T[1, 4]]])
+    T[1, 4] = P.shape[0] - 1  # the second tet's first mid-edge node: a copy not shared with its neighbour
+    shared = rt.TetMesh(P, T, repair=True)  # repair merges the copy back: conforming again
+    assert shared.n_vertices == q.n_vertices
+    with pytest.raises(rt.MeshError, match="not conforming|coincide"):
+        rt.TetMesh(P, T, repair=False)

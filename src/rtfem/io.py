@@ -109,7 +109,10 @@ def atomic_target(path: str | os.PathLike, what: str = "file") -> Iterator[Path]
     parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=parent)
+        for old in parent.glob(f".{path.name}.*.tmp{path.suffix}"):  # left by a save that was killed
+            if process_gone(old.name[len(path.name) + 2:].split(".")[0]):
+                old.unlink(missing_ok=True)
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=parent)
     except OSError as exc:
         raise ModelError(f"cannot write the {what} {str(path)!r}: {exc.strerror or exc}") from None
     os.close(fd)
@@ -175,6 +178,21 @@ def save_versioned(path: str | os.PathLike, kind: str, version: int, arrays: dic
     return path
 
 
+def process_gone(pid) -> bool:
+    """Whether ``pid`` (an int, or its text) names no running process: what a temporary file or
+    folder named after its writer's pid is kept for (a killed process cannot remove its own)."""
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except (ValueError, TypeError, OverflowError, PermissionError, OSError):
+        return False  # not a pid, or another user's process: leave it
+    return False
+
+
+MAX_INFLATION = 20  # rtfem stores its arrays uncompressed; a member inflating more is not its own
+
+
 def _checksum(a: np.ndarray) -> int:
     """CRC-32 of an array's dtype, shape and bytes (catches a field altered after saving)."""
     a = np.ascontiguousarray(a)
@@ -221,6 +239,10 @@ def _read_npz(path: Path, what: str, max_bytes: int | None) -> dict[str, np.ndar
                 raise ModelError(f"{where}: field {field!r} holds Python objects (pickled data), which rtfem files "
                                  "never do; the file was altered or not written by rtfem, and is not opened")
             nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            if m.file_size > MAX_INFLATION * max(m.compress_size, 1024):
+                raise ModelError(f"{where}: field {field!r} inflates from {_size(m.compress_size)} to {_size(m.file_size)}: "
+                                 "rtfem saves its arrays uncompressed, so this file was not written by rtfem (or was "
+                                 "altered), and is not opened")
             if nbytes > m.file_size - header:
                 raise ModelError(f"{where}: field {field!r} declares shape {tuple(shape)} ({_size(nbytes)}) but holds "
                                  f"{_size(max(m.file_size - header, 0))}: the file is damaged or altered")
@@ -282,6 +304,9 @@ def load_versioned(path: str | os.PathLike, kind: str, version: int, names: list
         raise ModelError(f"{what} file {str(path)!r} does not exist")
     if path.is_dir():
         raise ModelError(f"{str(path)!r} is a directory, not a {what} file")
+    if not path.is_file():
+        raise ModelError(f"{str(path)!r} is not a regular file (a pipe, a device or a socket, which may never end): "
+                         f"give a {what} file on disk")
     z = _read_npz(path, what, max_bytes)
     fmt = z.get("format")
     if fmt is None or fmt.dtype.kind != "U" or str(fmt) != kind:
@@ -292,18 +317,26 @@ def load_versioned(path: str | os.PathLike, kind: str, version: int, names: list
         raise ModelError(f"{str(path)!r}: field 'version' is missing or damaged") from None
     if v > version:
         raise ModelError(f"{str(path)!r} has format version {v}; this rtfem reads up to {version}: upgrade rtfem")
+    if v < 1:
+        raise ModelError(f"{str(path)!r} has format version {v}, which no rtfem writes: the file is damaged or altered")
     missing = [n for n in names if n not in z]
     if missing:
         raise ModelError(f"{str(path)!r} lacks {', '.join(missing)}: the file is damaged")
-    if "checksums" in z:  # files of rtfem >= 0.2
-        try:
-            sums = json.loads(str(z["checksums"]))
-        except ValueError:
-            raise ModelError(f"{str(path)!r}: field 'checksums' is damaged") from None
-        for n in names:
-            if n in sums and sums[n] != _checksum(z[n]):
-                raise ModelError(f"{str(path)!r}: field {n!r} does not match the checksum saved with it: the file was "
-                                 "altered or damaged after saving; restore it or compute it again")
+    try:  # every field's checksum, as every save writes them
+        sums = json.loads(str(z["checksums"]))
+        if not isinstance(sums, dict):
+            raise ValueError("not a mapping")
+    except KeyError:
+        raise ModelError(f"{str(path)!r} has no checksums: it was altered, or saved by an rtfem before they were kept; "
+                         "compute it again") from None
+    except ValueError:
+        raise ModelError(f"{str(path)!r}: field 'checksums' is damaged or altered") from None
+    for n in names:
+        if n not in sums:
+            raise ModelError(f"{str(path)!r}: field {n!r} has no checksum: the file was altered; compute it again")
+        if sums[n] != _checksum(z[n]):
+            raise ModelError(f"{str(path)!r}: field {n!r} does not match the checksum saved with it: the file was "
+                             "altered or damaged after saving; restore it or compute it again")
     try:
         if "info_json" in z:
             info = json.loads(str(z["info_json"]))

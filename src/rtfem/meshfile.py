@@ -46,6 +46,9 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
         raise MeshError(f"mesh file {str(p)!r} does not exist")
     if p.is_dir():
         raise MeshError(f"{str(p)!r} is a directory, not a mesh file")
+    if not p.is_file():
+        raise MeshError(f"{str(p)!r} is not a regular file (a pipe, a device or a socket, which may never end): give "
+                        "a mesh file on disk")
     points, triangles, tets, groups = _read(p)
     if tets is not None:
         mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups)
@@ -127,9 +130,19 @@ def _with_no_tets(read: tuple) -> tuple:
 
 
 def _tets_from_cells(cells: list[tuple[str, np.ndarray]], p: Path) -> np.ndarray | None:
-    """The tets of a volume file (4- or 10-node, not mixed), or None when it has none."""
+    """The tets of a volume file (4- or 10-node, not mixed), or None when it has none; a file with
+    other volume cells (hexahedra, wedges, pyramids, tets of other orders) is refused, with or
+    without tets beside them: dropping them would lose part of the volume, loading only its
+    boundary triangles would make a shell of it."""
     linear = [d for c, d in cells if c == "tetra"]
     quadratic = [d for c, d in cells if c == "tetra10"]
+    other = sorted({c for c, _ in cells if c.startswith(("hexahedron", "wedge", "pyramid"))
+                    or (c.startswith("tetra") and c not in ("tetra", "tetra10"))})
+    if other:
+        raise MeshError(f"{str(p)!r} holds volume cells rtfem cannot use ({', '.join(other)}"
+                        f"{', beside its tetrahedra' if linear or quadratic else ''}): its volumes are 4- or 10-node "
+                        "tetrahedra. Convert the file to tets (e.g. Gmsh: mesh the volume with tetrahedra), or load "
+                        "the boundary surface alone and fill it with rt.tetrahedralize")
     if linear and quadratic:
         raise MeshError(f"{str(p)!r} mixes 4-node and 10-node tets; rtfem needs one kind (convert the file, e.g. "
                         "in Gmsh with SetOrder 1 or 2)")
@@ -309,7 +322,8 @@ def _vtk_typed_cells(p: Path, cells_conn, types: np.ndarray) -> tuple[list[np.nd
     if cells_conn is None or len(cells_conn) != types.size:
         raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
     cells = []
-    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra", 24: "tetra10"}.items():
+    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra", 24: "tetra10", 12: "hexahedron", 13: "wedge",
+                    14: "pyramid", 25: "hexahedron20", 26: "wedge15", 27: "pyramid13", 29: "hexahedron27"}.items():
         sel = [np.asarray(cells_conn[i]) for i in np.flatnonzero(types == t)]
         if sel and name != "polygon":
             cells.append((name, np.array(sel)))

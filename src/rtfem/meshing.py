@@ -25,7 +25,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import validate
-from .errors import MeshError
+from .errors import MeshError, RtfemError
+from .io import load_versioned, save_versioned
 from .mesh import TriMesh
 from .tetmesh import TetMesh
 
@@ -79,14 +80,11 @@ def _scratch_directory():
 def _remove_stale_scratch() -> None:
     """Remove the scratch folders of meshing processes that are gone (a process killed mid-mesh,
     e.g. by fTetWild's own Ctrl-C handler, cannot remove its own)."""
+    from .io import process_gone
+
     for path in Path(tempfile.gettempdir()).glob("rtfem-tetwild-*-*"):
-        try:
-            pid = int(path.name.split("-")[2])
-            os.kill(pid, 0)  # alive (or not ours to signal): leave it
-        except ProcessLookupError:
+        if process_gone(path.name.split("-")[2]):
             shutil.rmtree(path, ignore_errors=True)
-        except (ValueError, IndexError, PermissionError, OSError):
-            continue
 
 
 @contextlib.contextmanager
@@ -212,22 +210,20 @@ def cached_tetrahedralize(surface: TriMesh, edge_length: float | None = None) ->
     h.update(np.ascontiguousarray(surface.vertices).tobytes())
     h.update(np.ascontiguousarray(surface.triangles, dtype=np.int64).tobytes())
     h.update(repr(edge_length).encode())
-    path = cache_dir() / f"tets-{h.hexdigest()[:20]}.npz"
-    if path.exists():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                groups = {k[6:]: z[k] for k in z.files if k.startswith("group:")}
+    key = h.hexdigest()
+    path = cache_dir() / f"tets-{key[:20]}.npz"
+    if path.is_file():
+        try:  # checksummed, and made from this surface (a file swapped in from another key is not)
+            z, info = load_versioned(path, "rtfem.TetCache", 1, ["vertices", "tets"], "tet mesh cache")
+            if info.get("key") == key:
+                groups = {g: np.asarray(info["groups"][g], dtype=np.int64) for g in info.get("groups", {})}
                 return TetMesh(z["vertices"], z["tets"], repair=False, groups=groups)
-        except Exception:  # noqa: BLE001 - a broken cache file is regenerated, whatever broke it
+        except RtfemError:  # a broken, altered or foreign cache file is regenerated
             pass
     mesh = tetrahedralize(surface, edge_length)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz")
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, vertices=mesh.vertices, tets=mesh.tets,
-                                **{f"group:{k}": v for k, v in mesh.groups.items()})
-        os.replace(tmp, path)
-    except OSError:
+        save_versioned(path, "rtfem.TetCache", 1, {"vertices": mesh.vertices, "tets": mesh.tets},
+                       {"key": key, "groups": {k: np.asarray(v).tolist() for k, v in mesh.groups.items()}})
+    except RtfemError:
         pass  # a read-only home: the mesh is still returned, only not kept
     return mesh

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import time
 from pathlib import Path
@@ -39,6 +40,26 @@ SOLVERS = ("auto", "block", "arpack")
 _BLOCK = 8  # right-hand sides per block solve (benchmarks/eigen.py: 4, 8, 12, 16 measured)
 _BLOCK_TOL = 1e-10  # the block method's relative Ritz residual
 _DENSE_ALL = 3000  # "all" modes through a dense eigensolver up to this many massed dofs
+
+
+def model_key(model) -> str:
+    """A hash of what a basis depends on besides the mesh: the supports (which dofs are fixed), the
+    material and the model's kind (:attr:`metadata`). A saved basis records it, so that it does not
+    load onto the same mesh held or made otherwise."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(np.asarray(model.fixed, dtype=bool)).tobytes())
+    material = getattr(model, "material", None)
+    h.update(repr(tuple(float(getattr(material, k, 0.0)) for k in ("E", "nu", "thickness", "density"))).encode())
+    h.update(json.dumps(getattr(model, "metadata", {}), sort_keys=True, default=str).encode())
+    return h.hexdigest()[:32]
+
+
+def check_model_key(info: dict, model, what: str) -> None:
+    """Refuse ``model`` when ``info`` (a basis's) records another :func:`model_key`."""
+    key = info.get("model_key")
+    if key is not None and key != model_key(model):
+        raise ModelError(f"{what} was computed for this mesh with other supports, material or model settings than "
+                         "the model given: recompute it with rt.modal_analysis(model, ...) (or fix the model as it was)")
 
 
 def mesh_fingerprint(mesh: TriMesh) -> str:
@@ -151,6 +172,8 @@ class ModalBasis:
                     f"fingerprint {fp[:8]}) than the one given ({target.n_vertices} nodes, "
                     f"fingerprint {mesh_fingerprint(target)[:8]}); recompute it with rt.modal_analysis"
                 )
+        if model is not None:
+            check_model_key(info, model, repr(str(path)))
         basis.model = model
         return basis
 
@@ -218,6 +241,7 @@ def modal_analysis(
     elapsed = time.perf_counter() - t_start
     report.done(f"{omega.size} modes in {elapsed:.2f} s: {omega[0] / 2 / np.pi:.4g} .. {omega[-1] / 2 / np.pi:.4g} Hz")
     info = {"method": method, "seconds": elapsed, "sigma": float(sigma) if sigma is not None else 0.0,
+            "model_key": model_key(model),
             **timing, **model.metadata}
     return ModalBasis(omega, np.ascontiguousarray(shapes), mesh_fingerprint(model.mesh), model, info)
 

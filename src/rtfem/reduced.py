@@ -36,7 +36,7 @@ import scipy.sparse as sp
 from . import validate
 from .errors import ModelError, SolverError
 from .material import Damping
-from .modal import mesh_fingerprint
+from .modal import check_model_key, mesh_fingerprint
 from .nonlinear import MIN_LOAD_STEP, Configuration
 from .rotations import integrated_rotation, rotation
 from .simulate import ForceInput, StaticCorrection
@@ -94,6 +94,7 @@ class ReducedNonlinearModel:
         if modes.fingerprint != mesh_fingerprint(model.mesh) or modes.shapes.shape[0] != model.n_nodes:
             raise ModelError("these modes were computed for another mesh: pass the model they came from, or "
                              "recompute them with rt.modal_analysis(model, ...)")
+        check_model_key(modes.info, model, "these modes")
         n_modes = modes.omega.size
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
         self.model = model

@@ -209,6 +209,48 @@ class TetMesh:
                 f"{sorted(F[k].tolist())}, belongs to tets {_listing(tets)}. Re-mesh the volume "
                 "(rt.tetrahedralize) or remove the overlapping tets")
         self.report.n_boundary_faces = int(np.sum(count == 1))
+        self._check_folds(F, inverse, count)
+        if self.order == 2:
+            self._check_conforming()
+
+    def _check_folds(self, F: np.ndarray, inverse: np.ndarray, count: np.ndarray) -> None:
+        """Refuse a tangled mesh: two tets on the same side of the face they share (a fold, which
+        re-orienting the inverted tets cannot undo: they then overlap). Each face's outward
+        normal from one tet must be opposite to the one from the other."""
+        inner = np.flatnonzero(count[inverse] == 2)
+        if not inner.size:
+            return
+        order = inner[np.argsort(inverse[inner], kind="stable")]
+        a, b = order[0::2], order[1::2]  # the two sides of each interior face
+        V = self._vertices
+
+        def normal(k):
+            P = V[F[k]]
+            return np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+
+        na, nb = normal(a), normal(b)
+        size = np.linalg.norm(na, axis=1) * np.linalg.norm(nb, axis=1)
+        same = np.einsum("ij,ij->i", na, nb) > 1e-9 * size
+        if same.any():
+            k = int(np.flatnonzero(same)[0])
+            raise MeshError(f"the mesh is tangled: at {int(same.sum())} interior faces both tets lie on the same side "
+                            f"(a fold), e.g. tets {int(a[k] // 4)} and {int(b[k] // 4)} at the face of nodes "
+                            f"{sorted(F[a[k]].tolist())}. Re-orienting cannot undo a fold (the tets would overlap): "
+                            "re-mesh the volume (rt.tetrahedralize) or untangle it in the mesher")
+
+    def _check_conforming(self) -> None:
+        """Refuse 10-node tets that share a corner edge but not its mid-edge node."""
+        e = np.sort(self._tets[:, TET10_EDGES].reshape(-1, 2), axis=1)
+        mids = self._tets[:, 4:].reshape(-1)
+        keys = e[:, 0] * self.n_vertices + e[:, 1]
+        order = np.lexsort((mids, keys))
+        k, m = keys[order], mids[order]
+        bad = np.flatnonzero((k[1:] == k[:-1]) & (m[1:] != m[:-1]))
+        if bad.size:
+            i, j = order[bad[0]], order[bad[0] + 1]
+            raise MeshError(f"the 10-node tets are not conforming: tets {int(i // 6)} and {int(j // 6)} share the corner "
+                            f"edge {e[i].tolist()} but not its mid-edge node ({int(mids[i])} and {int(mids[j])}), so the "
+                            "mesh would tear there. Export the mesh again, or rebuild it: mesh.linear().quadratic()")
 
     @property
     def boundary_faces(self) -> np.ndarray:
@@ -361,6 +403,12 @@ def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: TetReport, r
         T = merge[T]
     else:
         merge = np.arange(n_in)
+        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        same = _merge_classes(V, merge_tol * (diag if diag > 0 else 1.0)) if merge_tol > 0 else merge
+        if np.any(same != merge):
+            i = int(np.flatnonzero(same != merge)[0])
+            raise MeshError(f"nodes {int(same[i])} and {i} coincide (within {merge_tol:g} of the mesh's size): the tets "
+                            "on each would not be joined; pass repair=True to merge them")
     deg = _degenerate(V, T)
     if deg.any():
         if not repair:
