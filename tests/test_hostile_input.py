@@ -234,3 +234,68 @@ def test_tangled_duplicated_and_non_conforming_tet_meshes_are_refused():
     assert shared.n_vertices == q.n_vertices
     with pytest.raises(rt.MeshError, match="not conforming|coincide"):
         rt.TetMesh(P, T, repair=False)
+
+
+def test_a_haptic_loop_refuses_a_bad_device_at_start_and_does_not_hang_on_a_blocked_one(beam):
+    model, modes, _ = beam
+    x = np.asarray(model.mesh.vertices)[int(model.select_nodes("x1")[0])] + [0.0, 0.0, 0.05]
+    probe = rt.Probe(model.mesh, rt.ModalSimulator(modes, 1e-3))
+    text = rt.CallbackDevice(lambda: "1, 2, 3", lambda f: None)
+    with pytest.raises(rt.ModelError, match="device's position"):  # (it failed only at stop())
+        rt.HapticLoop(probe, text, compiled=False).start()
+    release = threading.Event()
+    calls = []
+
+    def read():
+        calls.append(1)
+        if len(calls) > 3:
+            release.wait()  # a device read that blocks
+        return x
+
+    loop = rt.HapticLoop(probe, rt.CallbackDevice(read, lambda f: None), compiled=False).start()
+    time.sleep(0.05)
+    t0 = time.perf_counter()
+    with pytest.raises(rt.SolverError, match="did not stop"):
+        loop.stop(timeout=0.2)  # (it waited forever)
+    assert time.perf_counter() - t0 < 2.0
+    release.set()
+    loop._thread.join(2.0)
+    assert not loop._thread.is_alive()
+
+
+def test_an_hour_of_a_scripted_device_is_not_sampled_in_advance(beam):
+    model, modes, _ = beam
+    x = np.asarray(model.mesh.vertices)[int(model.select_nodes("x1")[0])] + [0.0, 0.0, 0.05]
+    loop = rt.HapticLoop(rt.Probe(model.mesh, rt.ModalSimulator(modes, 1e-3)), rt.ScriptedDevice(lambda t: x),
+                         rate=10_000)
+    t0 = time.perf_counter()
+    loop.start(seconds=3600.0)
+    time.sleep(0.05)
+    stats = loop.stop()
+    assert time.perf_counter() - t0 < 5.0 and not stats.compiled  # Python ticks, started at once
+    with pytest.raises(rt.ModelError, match="in advance"):
+        rt.HapticLoop(rt.Probe(model.mesh, rt.ModalSimulator(modes, 1e-3)), rt.ScriptedDevice(lambda t: x),
+                      rate=10_000, compiled=True).start(seconds=3600.0)
+
+
+def test_a_tool_jumped_deep_into_the_organ_is_refused_without_a_step():
+    """A sphere placed at the liver's centroid (engulfing much of it) took 2-10 s a tick with
+    hundreds of contacts and forces of hundreds of newtons; a sphere jumped 4 cm into a block
+    had no meaningful answer either. Both are refused before the solve, the state unchanged."""
+    liver = rt.meshes.liver(3)
+    model = rt.ShellModel(liver, rt.Material()).fix("attachment")
+    sim = rt.ModalSimulator(rt.modal_analysis(model, 6), 1e-3, static_correction=True)
+    centre = np.asarray(liver.vertices).mean(axis=0)
+    for R in (0.05, 1.0):
+        tc = rt.ToolContact(liver, sim, rt.Tool.sphere(R))
+        t0 = time.perf_counter()
+        with pytest.raises(rt.ModelError, match="inside the organ at once"):
+            tc.update(centre)
+        assert time.perf_counter() - t0 < 1.0 and sim.steps == 0
+    block = rt.SolidModel(rt.meshes.box(0.2, 0.1, 0.1, nx=8, ny=4, nz=4), rt.Material(E=1e4, nu=0.3)).fix("x0")
+    d = rt.StaticDriver(block)
+    tc = rt.ToolContact(block.mesh, d, rt.Tool.sphere(0.01), coupling="constraint")
+    tc.update([0.12, 0.05, 0.12])
+    with pytest.raises(rt.ModelError, match="in steps"):
+        tc.update([0.12, 0.05, 0.11 - 0.04])
+    assert d.steps == 1 and np.abs(d.displacements()).max() == 0.0

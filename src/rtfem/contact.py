@@ -1177,6 +1177,12 @@ class ToolContact:
         if found is None:
             return self._apart(c)
         S, Bi, Bv, F, gaps, y_free, y_now, ids = found
+        deepest = -float(gaps.min())
+        if deepest > max(self.tool.radius, self.edge):  # nothing stepped: the state is as it was
+            raise ModelError(f"the tool would be {deepest * 1e3:.3g} mm inside the organ at once, more than its radius "
+                             f"({self.tool.radius * 1e3:.3g} mm) and an edge ({1e3 * self.edge:.3g} mm): a jump of the "
+                             "device (or a tool placed inside the organ) has no contact answer. Move it there in steps "
+                             "from outside")
         m = gaps.size
         W, slots = self._block.block(S)
         Bs = slots[Bi]  # the points' corners as the pool's slots

@@ -41,7 +41,7 @@ from scipy.linalg import lu_factor, lu_solve
 from scipy.spatial import cKDTree
 
 from . import validate
-from .errors import ModelError
+from .errors import ModelError, SolverError
 from .mesh import TriMesh
 from .contact import hold_patch, nodes_to_prepare, patch_system
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
@@ -474,7 +474,7 @@ class CallbackDevice:
         self._get, self._set = get_position, set_force
 
     def position(self, t: float) -> np.ndarray:
-        return np.asarray(self._get(), dtype=float)
+        return validate.point(self._get(), "the device's position (get_position())")
 
     def set_force(self, t: float, force: np.ndarray) -> None:
         self._set(force)
@@ -502,6 +502,9 @@ class SharedDevice:
 
     def set_force(self, t: float, force: np.ndarray) -> None:
         self.mailbox[3:6] = force
+
+
+MAX_PRESAMPLED = 2_000_000  # ticks of a ScriptedDevice a compiled loop samples in advance (48 MB)
 
 
 class HapticLoop:
@@ -690,6 +693,16 @@ class HapticLoop:
             if self._required:
                 raise ModelError("a compiled loop samples a ScriptedDevice in advance: give seconds= (or compiled=False)")
             compiled = False  # an open-ended scripted run: the Python ticks (stats.compiled says so)
+        if compiled and type(self.device) is ScriptedDevice and seconds * self.rate > MAX_PRESAMPLED:
+            if self._required:  # (an hour at 10 kHz would be 36 million positions sampled before the first tick)
+                raise ModelError(f"a compiled loop samples a ScriptedDevice in advance: {seconds * self.rate:.3g} ticks is "
+                                 f"more than {MAX_PRESAMPLED:,}; run it in parts, or pass compiled=False")
+            compiled = False
+        try:  # the device's first answer, here: a device giving text or NaN fails now, not at stop()
+            validate.point(self.device.position(0.0), "the device's position")
+        except ModelError as exc:
+            raise ModelError(f"{exc} (from {type(self.device).__name__}.position(0.0)); the loop was not started") \
+                from None
         if compiled and _foreign_loads(self.probe):
             if self._required:
                 raise ModelError(f"compiled=True: {_foreign_loads(self.probe)}")
@@ -745,12 +758,20 @@ class HapticLoop:
                 elif self._ctl[0] == 2:
                     self._ctl[0] = 0
 
-    def stop(self) -> LoopStats:
+    def stop(self, timeout: float = 5.0) -> LoopStats:
+        """Stop the loop and return its statistics (raising what stopped it, if anything). A loop
+        that does not end within ``timeout`` s (a device whose position() never returns) is left
+        to end by itself and a SolverError says so, instead of waiting forever."""
+        timeout = validate.positive(timeout, "timeout", "seconds to wait for the loop's thread")
         self._stop.set()
         self._ctl[0] = 1
         self._resume.set()  # a loop waiting for a grab or release goes on to stop
         if self._thread is not None:
-            self._thread.join()
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                raise SolverError(f"the haptic loop did not stop within {timeout:g} s: its tick is blocked, most likely "
+                                  f"in {type(self.device).__name__}.position() (a device read that never returns); it "
+                                  "stops at its next tick. Make the device's read return (or time out)")
         if self.error is not None:
             err, self.error = self.error, None
             raise err

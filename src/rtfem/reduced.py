@@ -751,12 +751,23 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self._dK, self._Sinv = self._rest_linearization
 
     def _step_inverse(self, K: np.ndarray) -> np.ndarray | None:
-        """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K (None where it is singular
-        or not finite: a tangent past a limit point at this dt)."""
+        """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K, kept positive definite: a
+        tangent with negative eigenvalues (compressed, past a limit point: a grasp jumping
+        centimetres passes through such states) has them clipped at zero, since the step's fixed
+        point does not depend on this matrix, only its stability does, and an indefinite one made
+        the one-step compliances (and a stiff grasp's force) blow up. None where it is not finite."""
         h = self.dt
+        K = 0.5 * (K + K.T)
         S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
+        S = 0.5 * (S + S.T)
         try:
-            Sinv = np.linalg.inv(0.5 * (S + S.T))
+            np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            lam, V = np.linalg.eigh(K)
+            S = self._M + 0.5 * h * self._C + 0.25 * h * h * ((V * np.maximum(lam, 0.0)) @ V.T)
+            S = 0.5 * (S + S.T)
+        try:
+            Sinv = np.linalg.inv(S)
         except np.linalg.LinAlgError:
             return None
         return Sinv if np.isfinite(Sinv).all() else None
