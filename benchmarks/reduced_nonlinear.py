@@ -59,6 +59,10 @@ from rtfem.reduced import ReducedNonlinearModel  # noqa: E402
 from _common import fmt_s, print_table  # noqa: E402
 from large_deformation import _budget, _OverBudget, errors, grasp_node, organs, settle  # noqa: E402
 
+# the step as a real-time loop runs it: linearized about the cubature's tangent, refreshed on a
+# background thread (--tangent rest: the step before, linearized about the rest tangent)
+STEP = {"tangent": "current", "background": True}
+
 CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
          "jaw2": (0.01, 0.02), "jaw5": (0.01, 0.05), "lift2": (None, 0.02), "lift5": (None, 0.05)}
 
@@ -112,7 +116,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
             out[warping] = settle(sim, mesh, node, target, loads, stiffness=k_grasp, radius=radius)
         for key, kwargs in (("nl", {}), ("sc", {"static_correction": True}),
                             ("spread", {"static_correction": True, "spread": spread, "precision": "single"})):
-            sim = rt.ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), **kwargs)
+            sim = rt.ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), **kwargs, **STEP)
             try:
                 # under the lift's dead load the reduced model creeps to rest (time constant ~0.65 s)
                 out[key] = settle(sim, mesh, node, target, loads, 3000 if loads is None else 8000, k_grasp, radius)
@@ -131,7 +135,7 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
                             f"({c['pinned']} of the patch), {time.perf_counter() - t1:.1f} s")
             print("  " + loc_info[-1], flush=True)
             sim = rt.ReducedNonlinearSimulator(loc, 1e-3, rt.Damping(zeta=1.0), static_correction=True, spread=spread,
-                                               precision="single")
+                                               precision="single", **STEP)
             try:
                 out["loc"] = settle(sim, mesh, node, target, loads, 3000 if loads is None else 8000, k_grasp, radius)
             except rt.SolverError as exc:
@@ -220,6 +224,10 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
         [(1000, k, "single", True) for k in sorted({1, 2, 4, spread})]
     loops = [[f"{rate} Hz, spread {k}, {p}{', static correction' if sc else ''}, 3 s",
               loop_row(red, node, rate, spread=k, precision=p, static_correction=sc)] for rate, k, p, sc in runs]
+    if STEP["tangent"] == "current":  # the baseline in the same run: the step about the rest tangent
+        loops += [[f"1000 Hz, spread {k}, single, static correction, 3 s, tangent 'rest' (the step before)",
+                   loop_row(red, node, 1000, spread=k, precision="single", static_correction=True, tangent="rest")]
+                  for k in sorted({1, spread})]
     if local:
         loc = red.localize([node], local)
         loc.train_cubature(16, tol=tol, remainder=local_remainder)
@@ -232,20 +240,23 @@ def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, org
 
 
 def loop_row(red, node: int, rate: int, seconds: float = 3.0, spread: int = 1, precision: str = "double",
-             static_correction: bool = False) -> str:
+             static_correction: bool = False, tangent: str | None = None) -> str:
     mesh = red.model.mesh
     X = np.asarray(mesh.vertices)[node]
     n = mesh.vertex_normals()[node]
+    step = STEP if tangent is None else {"tangent": tangent, "background": tangent == "current"}
     sim = rt.ReducedNonlinearSimulator(red, 1.0 / rate, rt.Damping(zeta=1.0), spread=spread, precision=precision,
-                                       static_correction=static_correction)
+                                       static_correction=static_correction, **step)
     probe = rt.Probe(mesh, sim, stiffness=200.0)
     probe.prepare(around=X, radius=0.01)
     device = rt.ScriptedDevice.press(X, n, 0.004, seconds, approach=0.001)
     stats = rt.HapticLoop(probe, device, rate=rate).run(seconds)
     c = np.asarray(stats.compute) * 1e6
     late = np.asarray(stats.lateness) * 1e6
+    done = sim._worker.done if getattr(sim, "_worker", None) is not None else 0
     return (f"{stats.steps} ticks, {stats.missed} skipped, compute p50 {np.median(c):.0f} / p99 "
-            f"{np.percentile(c, 99):.0f} us, lateness p99 {np.percentile(late, 99):.0f} us")
+            f"{np.percentile(c, 99):.0f} us, lateness p99 {np.percentile(late, 99):.0f} us"
+            + (f", {done} tangents" if done else ""))
 
 
 def main() -> None:
@@ -264,7 +275,11 @@ def main() -> None:
                     help="the localized models' cubature fits the nonlinear remainder only (train_cubature(remainder=True))")
     ap.add_argument("--reference-seconds", type=float, default=600.0,
                     help="a full-order reference not converged in this long is reported and its row left out (600)")
+    ap.add_argument("--tangent", choices=["current", "rest"], default="current",
+                    help="the simulator's step: linearized about the cubature's tangent refreshed in the background "
+                         "(default) or about the rest tangent (the step before)")
     args = ap.parse_args()
+    STEP.update(tangent=args.tangent, background=args.tangent == "current")
     run(args.modes, args.derivatives, args.cases, args.spread, args.organ, args.tol, args.local, args.local_remainder,
         args.reference_seconds)
 

@@ -1058,11 +1058,19 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         return self.step_compliances(np.array([self._node(node)]))
 
 
+_BLAS = None  # the tangent workers' shared BLAS limit (threads.SharedLimit), made on first use
+
+
 class _TangentWorker:
-    """A simulator's linearizations computed on a background thread (``background=True``): the
-    step asks with its predictor and takes the newest result at a later step, never waiting. The
-    thread holds BLAS to the cores the step leaves, ends after a second with nothing to do and
-    starts again on the next request; ``forget`` drops a result from before a reset or set_state."""
+    """A simulator's linearizations computed on a low-priority background thread
+    (``background=True``): the step asks with its predictor and takes the newest result at a
+    later step, never waiting. While any worker lives, BLAS is held to the cores a step leaves,
+    by one limit the workers share (entered on the stepping thread when the first starts, left
+    when the last ends: never changed under a running step). A worker ends after 5 s with
+    nothing to do and starts again on the next request; ``forget`` drops a result from before a
+    reset or set_state."""
+
+    IDLE = 5.0  # s without a request before the thread ends
 
     def __init__(self, sim: "ReducedNonlinearSimulator") -> None:
         self._sim = weakref.ref(sim)  # the thread must not keep a dropped simulator alive
@@ -1084,6 +1092,12 @@ class _TangentWorker:
                 return False
             self._request = (self._epoch, np.array(q, dtype=float))
             if self._thread is None or not self._thread.is_alive():
+                global _BLAS
+                if _BLAS is None:
+                    from .threads import SharedLimit, usable_cores
+
+                    _BLAS = SharedLimit(max(1, usable_cores() - 1))
+                _BLAS.acquire()  # here, on the stepping thread: no BLAS call of its runs meanwhile
                 self._thread = threading.Thread(target=self._run, name="rtfem-tangent", daemon=True)
                 self._thread.start()
             self._cv.notify()
@@ -1101,34 +1115,38 @@ class _TangentWorker:
             self._request = self._result = None
 
     def _run(self) -> None:
-        from .threads import blas_limits, usable_cores
+        try:
+            self._work()
+        finally:
+            _BLAS.release()
 
+    def _work(self) -> None:
         try:  # the lowest priority (Linux: per thread): it takes only the time the loop leaves
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         except (AttributeError, OSError):  # pragma: no cover - other systems
             pass
-        with blas_limits(max(1, usable_cores() - 1)):
-            while True:
-                with self._cv:
-                    if self._request is None and not self._cv.wait_for(lambda: self._request is not None, timeout=1.0):
-                        return
-                    (epoch, q), self._request, self._busy = self._request, None, True
-                try:
-                    sim = self._sim()
-                    if sim is None:
-                        return
-                    out = sim._linearization(q)
-                    del sim
-                except BaseException as exc:  # noqa: BLE001 - the next step raises it
-                    self.failed = exc
+        while True:
+            with self._cv:
+                if self._request is None and not self._cv.wait_for(lambda: self._request is not None,
+                                                                   timeout=self.IDLE):
                     return
-                finally:
-                    with self._cv:
-                        self._busy = False
+                (epoch, q), self._request, self._busy = self._request, None, True
+            try:
+                sim = self._sim()
+                if sim is None:
+                    return
+                out = sim._linearization(q)
+                del sim
+            except BaseException as exc:  # noqa: BLE001 - the next step raises it
+                self.failed = exc
+                return
+            finally:
                 with self._cv:
-                    if epoch == self._epoch:
-                        self._result = (epoch, out)
-                    self.done += 1
+                    self._busy = False
+            with self._cv:
+                if epoch == self._epoch:
+                    self._result = (epoch, out)
+                self.done += 1
 
 
 def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,

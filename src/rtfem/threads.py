@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 
-__all__ = ["blas_limits", "usable_cores"]
+__all__ = ["blas_limits", "usable_cores", "SharedLimit"]
 
 
 def usable_cores() -> int:
@@ -34,3 +35,31 @@ def blas_limits(threads: int, internal_api: str | None = None):
     if internal_api is not None:
         controller = controller.select(internal_api=internal_api)
     return controller.limit(limits=int(threads))
+
+
+class SharedLimit:
+    """One BLAS limit held while any of its holders needs it: the first :meth:`acquire` enters it,
+    the last :meth:`release` restores the pools. Changing OpenBLAS's thread count while another
+    thread is inside a BLAS call stalled that call for 0.5-2.7 s (a haptic loop's step, when a
+    background thread's limit was entered or left beside it), so background workers that come
+    and go share one limit instead of each setting and restoring it."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = int(threads)
+        self._lock = threading.Lock()
+        self._count = 0
+        self._held = None
+
+    def acquire(self) -> None:
+        with self._lock:
+            if self._count == 0:
+                self._held = blas_limits(self.threads)
+                self._held.__enter__()
+            self._count += 1
+
+    def release(self) -> None:
+        with self._lock:
+            self._count -= 1
+            if self._count == 0 and self._held is not None:
+                self._held.__exit__(None, None, None)
+                self._held = None
