@@ -299,3 +299,18 @@ def test_a_tool_jumped_deep_into_the_organ_is_refused_without_a_step():
     with pytest.raises(rt.ModelError, match="in steps"):
         tc.update([0.12, 0.05, 0.11 - 0.04])
     assert d.steps == 1 and np.abs(d.displacements()).max() == 0.0
+
+
+def test_a_static_correction_refuses_to_solve_on_changed_supports(beam):
+    """The correction's columns are solved with the model's current supports; its modes were
+    computed on the old ones: a new column (or load pattern) is refused once the supports change."""
+    model0, _, _ = beam
+    model = rt.SolidModel(model0.tetmesh, model0.material).fix("x0")
+    sim = rt.ModalSimulator(rt.modal_analysis(model, 4), 1e-3, static_correction=True)
+    tip = model.select_nodes("x1")
+    sim.step({int(tip[0]): (0.0, 0.0, 1.0)})
+    model.fix("x1")
+    for call in (lambda: sim.prepare(tip[2:5]), lambda: sim.prepare(tip[1:2]),
+                 lambda: (sim.step({int(tip[1]): (0.0, 0.0, 1.0)}), sim.displacements())):  # (the field needs its column)
+        with pytest.raises(rt.ModelError, match="supports changed"):
+            call()

@@ -83,7 +83,6 @@ class ReducedNonlinearModel:
     def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
                  progress: Callable[[int, int, str], None] | None = None) -> None:
         from .modal import ModalBasis
-
         from .model import check_model
 
         t0 = time.perf_counter()
@@ -575,12 +574,15 @@ def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:
 
 class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     """A Driver on a :class:`ReducedNonlinearModel`: its reduced coordinates integrated by the
-    average-acceleration Newmark rule, linearized once per step about the predictor with the rest
-    tangent (a semi-implicit step: one cubature force evaluation and one r x r solve, no Newton
-    iterations). At rest the state is the reduced nonlinear equilibrium exactly; in motion the
-    nonlinearity is integrated explicitly, stable while the tangent stiffening over one step is
-    small against the step's mass term (checked on the organ pulls of
-    ``benchmarks/reduced_nonlinear.py``).
+    average-acceleration Newmark rule, linearized once per step about the predictor (one cubature
+    force evaluation and one r x r product, no Newton iterations: a linearly implicit step). At
+    rest the state is the reduced nonlinear equilibrium exactly, whatever the linearization. By
+    default the linearization is the cubature forces' tangent at a recent state (``tangent``,
+    ``refresh``, ``background``): the step is then implicit in the reduced coordinates to first
+    order, stable wherever the tangent changes little between refreshes (a tet10 cantilever swung
+    to 60 % of its length at 1 kHz, tests/verification/test_reduced_nonlinear.py). Linearized about
+    the rest tangent (``tangent="rest"``, the step before) the nonlinearity is explicit, stable
+    only while the true tangent stays near the rest one: that cantilever diverged at 60 %.
 
     Parameters
     ----------
@@ -620,9 +622,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         the default liver's pulls (``benchmarks/reduced_nonlinear.py``) it cuts the error against
         the corotational full order by 1.4-6 times; ``reduced_nonlinear_driver`` turns it on.
         Three sparse solves per loaded vertex the first time (``prepare`` does them ahead).
-    stiffening : on a localized model (:meth:`ReducedNonlinearModel.localize`), the factor on the
-        patch coordinates' rest stiffness in the step's linearization (default 100; ignored
-        otherwise). The step linearizes about the predictor with a constant tangent and takes the
+    stiffening : with ``tangent="rest"``, on a localized model (:meth:`ReducedNonlinearModel.localize`),
+        the factor on the patch coordinates' rest stiffness in the step's linearization (default
+        100; ignored otherwise). The step linearizes about the predictor with a constant tangent and takes the
         rest of the forces explicitly; for a stiff, light coordinate that is a fixed-point
         iteration, which converges only while the true tangent stays below twice the one used.
         A patch pulled centimetres stiffens far more than that (its elements stretched: a strong
@@ -645,9 +647,25 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         such mode is at 177 Hz and the twelve lowest carry none of the patch, so the organ's
         swing keeps the damping given.
 
+    tangent : "current" (default): the step's matrix S = M + dt/2 C + dt^2/4 T with T the
+        cubature forces' tangent (element tangents by forward differences of the compiled kernel,
+        projected on the basis; every element's with ``cubature=False``) at the predictor of the
+        step it was refreshed at, kept positive definite (negative eigenvalues clipped: only the
+        step's stability depends on it); with ``spread`` > 1 each group's lagged remainder is also
+        carried to the predictor along the group's tangent (nearly second order in the lag). On a
+        localized model the patch then needs no over-stiff reference (``stiffening`` is for
+        "rest"). "rest": T the rest stiffness, fixed.
+    refresh : steps between tangent refreshes (default 1; a refresh costs ~35 ms on the default
+        liver: element tangents and an r x r projection). Synchronous, in the step: reproducible.
+    background : refresh on a low-priority thread instead (the real-time setting): the step asks
+        with its predictor every ``refresh`` steps and takes the newest result at a later step,
+        never waiting; all such threads hold BLAS to the cores a step leaves, through one shared
+        limit. Results then depend on the timing (the equilibrium does not).
+
     The step is affine in the loads: ``predict(node)`` is the no-load step and
-    ``step_compliance(node)`` the constant dt^2/4 U_i S^-1 U_i^T (+ D_ii), so Probe and Grasp work
-    as on a linear driver. Loads are dead forces on the translations.
+    ``step_compliance(node)`` dt^2/4 U_i S^-1 U_i^T (+ D_ii), constant between tangent refreshes
+    (``compliance_changes`` is True with the current tangent), so Probe and Grasp work as on a
+    linear driver. Loads are dead forces on the translations.
     """
 
     compliance_changes = False
@@ -700,7 +718,6 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
             zeta = np.where(share > 0.5, np.maximum(zeta, self.patch_zeta), zeta)
         c = damping.alpha * mu + damping.beta + 2.0 * zeta * np.sqrt(mu)  # alpha_i mu_i (finite as mu -> 0)
         self._C = L @ (V * c) @ V.T @ L.T
-        h = self.dt
         factor = validate.number(stiffening, "stiffening")
         if not 1.0 <= factor <= 1e6:
             raise ModelError(f"stiffening={validate.show(stiffening)} must be a factor from 1 to 1e6 (default 100)")

@@ -252,6 +252,7 @@ class StaticCorrection:
     def _init_correction(self, on: bool, model, rows: np.ndarray, weights: np.ndarray) -> None:
         self.static_correction = bool(on)
         self._sc_model, self._sc_rows, self._sc_weights = model, rows, weights
+        self._sc_supports = getattr(model, "supports_version", 0)  # the supports the basis was computed on
         self._loads: dict[int, np.ndarray] = {}
         self._load_array: np.ndarray | None = None
         self._D: dict[int, np.ndarray] = {}
@@ -262,11 +263,19 @@ class StaticCorrection:
         """D for the 3 load directions of ``node``: (n, 3, 3) (displacement, load direction)."""
         D = self._D.get(node)
         if D is None:
+            self._check_correction_supports()
             cols = [self._sc_model.unit_load_response(node, k) for k in range(3)]
             Kinv = np.stack(cols, axis=2)
             D = Kinv - self._modal_statics(np.array([node]))[0]
             self._D[node] = D
         return D
+
+    def _check_correction_supports(self) -> None:
+        """The correction's solves use the model's current supports: refuse them once the model
+        was fixed otherwise than the basis was computed on (the two would not match)."""
+        from .model import check_supports
+
+        check_supports(self._sc_model, self._sc_supports, f"{type(self).__name__}'s static correction")
 
     def _modal_statics(self, nodes: np.ndarray) -> np.ndarray:
         """P G P^T for unit loads on ``nodes``: (k, n, 3, 3), one matrix product."""
@@ -281,6 +290,7 @@ class StaticCorrection:
         key = F.tobytes()
         hit = self._D_array.get(key)
         if hit is None:
+            self._check_correction_supports()
             Kinv_f = self._sc_model.solve_static(F, warn=False)
             P = self._sc_rows
             modal = (P @ ((P.T @ F.reshape(-1)) * self._sc_weights)).reshape(-1, 3)
@@ -301,6 +311,7 @@ class StaticCorrection:
             for n in missing.tolist():
                 self._correction_column(n)
             return
+        self._check_correction_supports()
         Kinv = batched(missing)  # (k, n, 3, 3)
         modal = self._modal_statics(missing)
         for i, n in enumerate(missing.tolist()):
