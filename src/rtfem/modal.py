@@ -231,7 +231,8 @@ def modal_analysis(
         omega, phi, method = _shift_invert_modes(model, K, M, dofs, n_modes, sigma, tol, solver, report, timing)
     if model.fixed.any():  # a held model has no zero-frequency mode: one is a part moving freely
         d, m = K.diagonal(), M.diagonal()
-        scale = float(np.max(d[m > 0] / m[m > 0])) if np.any(m > 0) else 1.0
+        use = (m > 0) & ~np.asarray(model.fixed).reshape(-1)[dofs]  # (penalty constraints: not the held dofs)
+        scale = float(np.max(d[use] / m[use])) if use.any() else 1.0
         free = int(np.count_nonzero(omega**2 <= 1e-10 * scale))
         if free:
             raise ModelError(f"{free} of the modes have zero frequency although the model is held: the fixes cannot "

@@ -655,8 +655,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         carried to the predictor along the group's tangent (nearly second order in the lag). On a
         localized model the patch then needs no over-stiff reference (``stiffening`` is for
         "rest"). "rest": T the rest stiffness, fixed.
-    refresh : steps between tangent refreshes (default 1; a refresh costs ~35 ms on the default
-        liver: element tangents and an r x r projection). Synchronous, in the step: reproducible.
+    refresh : steps between tangent refreshes (default 10; a refresh costs ~35 ms on the default
+        liver: element tangents and an r x r projection; the swung cantilever of the tests settles
+        to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
     background : refresh on a low-priority thread instead (the real-time setting): the step asks
         with its predictor every ``refresh`` steps and takes the newest result at a later step,
         never waiting; all such threads hold BLAS to the cores a step leaves, through one shared
@@ -674,7 +675,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
                  static_correction: bool = False, stiffening: float = 100.0, patch_zeta: float = 1.0,
-                 tangent: str = "current", refresh: int = 1, background: bool = False) -> None:
+                 tangent: str = "current", refresh: int = 10, background: bool = False) -> None:
         from .simulate import check_dt
 
         if not isinstance(reduced, ReducedNonlinearModel):
@@ -766,6 +767,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         if self._worker is not None:
             self._worker.forget()
         self._dK, self._Sinv = self._rest_linearization
+        self._tangent_q = None  # where the linearization was computed (None: rest)
 
     def _step_inverse(self, K: np.ndarray) -> np.ndarray | None:
         """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K, kept positive definite: a
@@ -812,12 +814,13 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 T = T + red.tangent_change(q, data, w, Ke)
         return dK, self._step_inverse(T)
 
-    def _use(self, linearization) -> None:
+    def _use(self, linearization, q: np.ndarray) -> None:
+        """Step from now on with ``linearization`` (:meth:`_linearization` at coordinates q)."""
         dK, Sinv = linearization
         if Sinv is not None:  # else the last good one stays: the step is still consistent, only less implicit
             # the groups' tangents side by side (r, groups r): their sum over the lags in one product
             self._dK = None if dK is None else np.ascontiguousarray(dK.transpose(1, 0, 2).reshape(dK.shape[1], -1))
-            self._Sinv = Sinv
+            self._Sinv, self._tangent_q = Sinv, np.array(q, dtype=float)
 
     def _refresh_tangent(self, qs: np.ndarray) -> None:
         """Before a step (at its predictor qs): refresh the linearization every ``refresh`` steps,
@@ -825,14 +828,14 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         due = self._tangent_step is None or self.steps - self._tangent_step >= self.refresh
         if not self.background:
             if due:
-                self._use(self._linearization(qs))
+                self._use(self._linearization(qs), qs)
                 self._tangent_step = self.steps
             return
         if self._worker is None:
             self._worker = _TangentWorker(self)
         done = self._worker.take()
         if done is not None:
-            self._use(done)
+            self._use(done[1], done[0])
         if due and self._worker.ask(qs):
             self._tangent_step = self.steps
 
@@ -860,6 +863,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         state = {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
         if self.spread > 1:
             state["lag"], state["lag_q"] = self._lag.copy(), self._lag_q.copy()
+        if self.tangent == "current":  # the linearization, as where it was computed and its age: a replay is exact
+            state["tangent_q"] = np.zeros(0) if self._tangent_q is None else self._tangent_q.copy()
+            state["tangent_age"] = np.array(-1 if self._tangent_step is None else self.steps - self._tangent_step)
         return state
 
     def set_state(self, state) -> None:
@@ -886,12 +892,20 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         elif self.spread > 1:  # no lags saved: every group evaluated at q
             lag = np.stack([self._remainder(c, arrays["q"]) for c in range(self.spread)])
             lag_q = np.tile(arrays["q"], (self.spread, 1))
+        tangent_q, age = None, -1
+        if self.tangent == "current" and state.get("tangent_q") is not None:
+            tangent_q = validate.real_array(state["tangent_q"], "state['tangent_q']", 1)
+            if tangent_q.shape not in ((0,), (r,)):
+                raise ModelError(f"state['tangent_q'] must have shape ({r},) or (0,) (rest), got {tangent_q.shape}")
+            a = state.get("tangent_age", -1)
+            age = int(validate.number(a[()] if isinstance(a, np.ndarray) else a, "state['tangent_age']"))
         self._q, self._v, self._a = arrays["q"], arrays["qdot"], arrays["qddot"]
         if lag is not None:
             self._lag, self._lag_q = lag.copy(), lag_q.copy()
-        self._tangent_step = None
-        if self._worker is not None:
-            self._worker.forget()
+        self._use_rest()  # (and no refresh in flight)
+        if tangent_q is not None and tangent_q.size:
+            self._use(self._linearization(tangent_q), tangent_q)
+        self._tangent_step = steps - age if tangent_q is not None and age >= 0 else None
         self.steps = steps
         self.time = steps * self.dt
         self._free = None
@@ -1121,7 +1135,7 @@ class _TangentWorker:
         return True
 
     def take(self):
-        """The newest finished linearization of this epoch, once; else None."""
+        """The newest finished (coordinates, linearization) of this epoch, once; else None."""
         with self._cv:
             done, self._result = self._result, None
         return done[1] if done is not None and done[0] == self._epoch else None
@@ -1162,7 +1176,7 @@ class _TangentWorker:
                     self._busy = False
             with self._cv:
                 if epoch == self._epoch:
-                    self._result = (epoch, out)
+                    self._result = (epoch, (q, out))
                 self.done += 1
 
 

@@ -266,7 +266,7 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
     f = 0.8 * model.mesh.vertex_normals()[node]  # ~1.2 cm at this vertex: nonlinear
 
     def transient(spread, tangent):
-        sim = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread, tangent=tangent)
+        sim = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread, tangent=tangent, refresh=1)
         out = []
         for i in range(300):
             sim.step({node: f} if i < 50 else None)
@@ -752,6 +752,10 @@ def test_background_tangent_refresh_settles_where_the_synchronous_one_does(tet10
             fresh.step(F)
             u = fresh.displacements()  # (to round-off: the worker's BLAS limit may change a sum's order)
             assert np.abs(sim.displacements() - u).max() < 1e-12 * np.abs(u).max()
+            state = sim.get_state()
+            with pytest.raises(rt.ModelError, match="tangent_q"):
+                sim.set_state(dict(state, tangent_q=np.zeros(3)))
+            assert all(np.array_equal(v, state[k]) for k, v in sim.get_state().items())
     scale = np.abs(fields[1][tip]).max()
     assert np.abs(fields[0] - fields[1]).max() < 1e-3 * scale
     for kwargs in ({"tangent": "implicit"}, {"refresh": 0}, {"background": "yes"},
