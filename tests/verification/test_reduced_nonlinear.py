@@ -695,7 +695,9 @@ def test_a_solid_swung_to_30_and_60_percent_settles_at_1khz(tet10_cantilever, lo
     is within half the linear model's error (measured 0.004 of it), at the reduced static
     equilibrium of the cubature forces (measured 4e-5 / 1e-3 of the tip motion: the last creep of
     the slowest mode). The step linearized about the rest tangent (tangent="rest", the step
-    before) settled 1.8 times the linear error away at 30 % and diverged at 60 %."""
+    before) settled 1.3-1.8 times the linear error away at 30 % and at 60 % diverged, or settled
+    0.74 of it away (two BLAS threads or one: a chaotic case, so the test asks that it fails the
+    bar, either way)."""
     from rtfem.reduced import ReducedNonlinearSimulator
 
     red = tet10_cantilever
@@ -719,9 +721,12 @@ def test_a_solid_swung_to_30_and_60_percent_settles_at_1khz(tet10_cantilever, lo
     U = settle(refresh=50)  # the tangent refreshed at 20 Hz, synchronously: reproducible
     assert np.abs(U - full).max() / scale < 0.5 * linear
     assert np.abs(U - static).max() < 5e-3 * scale
-    if load == 3.0:
-        with pytest.raises(rt.SolverError, match="diverged"):
-            settle(tangent="rest")
+    try:  # the step about the rest tangent fails the same bar: it diverges, or settles elsewhere
+        old = np.abs(settle(tangent="rest") - full).max() / scale
+    except rt.SolverError as exc:
+        assert "diverged" in str(exc)
+    else:
+        assert not old < 0.5 * linear, old  # measured 1.28-1.82 of the linear error at 30 %, 0.74 at 60 %
 
 
 def test_background_tangent_refresh_settles_where_the_synchronous_one_does(tet10_cantilever):
