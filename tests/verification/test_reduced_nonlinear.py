@@ -320,6 +320,9 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
         reduced_nonlinear_driver(model, None, 1e-3, precision="half")
     with pytest.raises(rt.ModelError, match="static_correction"):  # the same
         reduced_nonlinear_driver(model, None, 1e-3, static_correction="on")
+    for bad in ({"refresh": 0}, {"refresh": 1.5}, {"background": "yes"}):  # the same
+        with pytest.raises(rt.ModelError, match="refresh|background"):
+            reduced_nonlinear_driver(model, None, 1e-3, **bad)
     for bad in (0.02, ([0], -1.0), ([10**7], 0.02)):  # the same
         with pytest.raises(rt.ModelError, match="local|node|radius"):
             reduced_nonlinear_driver(model, None, 1e-3, local=bad)
