@@ -1,5 +1,8 @@
 import subprocess
 import sys
+import numpy as np
+
+import rtfem as rt
 
 from rtfem.cli import main
 from conftest import organ
@@ -24,3 +27,28 @@ def test_broken_file_exit_code_2_no_traceback(tmp_path):
     assert "Traceback" not in r.stderr and r.stderr.startswith("rtfem: error:") and "vertex 1" in r.stderr
     r = subprocess.run([sys.executable, "-m", "rtfem.cli", "info", str(tmp_path / "missing.stl")], capture_output=True, text=True)
     assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+def test_no_help_text_prints_a_doubled_percent_sign(capsys):
+    """argparse %-formats help= strings but prints descriptions as written: `rtfem simulate
+    --help` printed "20 %%"."""
+    import argparse
+
+    from rtfem.cli import build_parser, main
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name in sub.choices:
+        assert main([name, "--help"]) == 0
+        assert "%%" not in capsys.readouterr().out, name
+
+
+def test_info_gives_the_extent_in_metres_and_says_when_it_looks_like_millimetres(tmp_path, capsys):
+    from rtfem.cli import main
+
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    assert " m (x, y, z" in out and "m^2" in out and "--scale 1e-3" not in out
+    path = tmp_path / "mm.stl"
+    rt.save_mesh(rt.TriMesh(np.asarray(rt.meshes.liver(2).vertices) * 1e3, rt.meshes.liver(2).triangles), path)
+    assert main(["info", str(path)]) == 0
+    assert "--scale 1e-3" in capsys.readouterr().out

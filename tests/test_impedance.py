@@ -127,3 +127,23 @@ def test_bad_input(setup):
         rt.ImpedanceMap.build(model, damping, nodes=[a], times=[0.1, 0.05])
     with pytest.raises(rt.ModelError, match="method"):
         rt.ImpedanceMap.build(model, damping, nodes=[a], method="fem")
+
+
+def test_the_size_estimate_is_what_the_build_holds_and_the_cli_asks_before_a_large_map(tmp_path, capsys):
+    """ImpedanceMap.estimate_bytes, before any work, against the map built with the same settings
+    (exact for up to 20 loaded nodes, which it samples all); `rtfem impedance` prints it first and
+    refuses a map past 1 GiB without --allow-large (the README's old example wrote 567 MiB
+    unannounced; every free node with no radius would be ~3.6 GB)."""
+    from rtfem.cli import main
+
+    model = rt.ShellModel(rt.meshes.liver(2), rt.Material()).fix("attachment")
+    nodes = model.mesh.used_vertices()[::40][:12]
+    est = rt.ImpedanceMap.estimate_bytes(model, nodes=nodes, radius=0.03, times=[0.01, 0.1])
+    imap = rt.ImpedanceMap.build(model, rt.Damping(alpha=8.0), nodes=nodes, radius=0.03, times=[0.01, 0.1],
+                                 n_modes=10)
+    assert est["loaded"] == imap.loaded.size and est["samples"] == 3
+    assert est["bytes"] == imap.responses.nbytes
+    out = tmp_path / "big.map.npz"
+    assert main(["impedance", "-o", str(out)]) == 2
+    said = capsys.readouterr()
+    assert "estimate" in said.out and "--allow-large" in said.err and not out.exists()

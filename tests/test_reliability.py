@@ -170,7 +170,7 @@ def test_impedance_ctrl_c_exits_130_keeps_the_old_map_and_says_what_was_kept(tmp
                         capture_output=True, text=True, timeout=300)
     assert rc.returncode == 0
     before = out.read_bytes()
-    p = subprocess.Popen([PY, "-m", "rtfem.cli", "impedance", "--modes", "10", "-o", str(out)],
+    p = subprocess.Popen([PY, "-m", "rtfem.cli", "impedance", "--modes", "10", "--allow-large", "-o", str(out)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.time()

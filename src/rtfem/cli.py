@@ -282,9 +282,13 @@ def cmd_info(args: argparse.Namespace) -> int:
         print("surface     (the boundary, drawn and touched)")
     lo, hi = mesh.bounds()
     print(f"size        {mesh.used_vertices().size} vertices, {mesh.n_triangles} triangles, {mesh.edges().shape[0]} edges")
-    print(f"extent      {np.array2string(hi - lo, precision=4)} (x, y, z), surface area {mesh.areas().sum():.4g}")
+    ext = hi - lo
+    print(f"extent      {ext[0]:.4g} x {ext[1]:.4g} x {ext[2]:.4g} m (x, y, z; coordinates read as metres), surface area "
+          f"{mesh.areas().sum():.4g} m^2")
+    if ext.max() > 5.0:
+        print(f"            an organ {ext.max():.3g} m across: if the file is in millimetres, give --scale 1e-3")
     if mesh.is_closed():
-        print(f"volume      {mesh.volume():.4g}")
+        print(f"volume      {mesh.volume():.4g} m^3")
     print("check       " + str(mesh.report).replace("\n", "\n            "))
     if mesh.groups:
         print("groups      " + ", ".join(f"{k} ({len(v)} vertices)" for k, v in sorted(mesh.groups.items())))
@@ -464,6 +468,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+LARGE_MAP = 2**30  # bytes: an impedance map past this needs --allow-large
+
+
 def cmd_impedance(args: argparse.Namespace) -> int:
     from .impedance import ImpedanceMap
 
@@ -478,6 +485,15 @@ def cmd_impedance(args: argparse.Namespace) -> int:
               n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30)
     if times is not None:
         kw["times"] = times
+    size = ImpedanceMap.estimate_bytes(model, nodes=nodes, radius=args.radius, metric=args.metric,
+                                       **({"times": times} if times is not None else {}))
+    print(f"estimate    about {size['bytes'] / 2**20:,.0f} MiB to write ({size['loaded']:,} loaded nodes, "
+          f"{size['kept_per_node']:,.0f} kept per node, {size['samples']} samples each"
+          f"{'; --threshold keeps fewer' if args.threshold else ''})", flush=True)
+    if size["bytes"] > LARGE_MAP and not args.allow_large:
+        raise RtfemError(f"the map would be about {size['bytes'] / 2**30:.1f} GiB, more than {LARGE_MAP / 2**30:g} GiB: "
+                         "pass --allow-large to write it, or give a smaller --radius, a --threshold, fewer --times or "
+                         "--nodes")
     with progress_bar("impedance", unit="nodes") as bar:
         imap = ImpedanceMap.build(model, damping_of(args), progress=bar, **kw)
     if not imap.info.get("complete", True):
@@ -587,7 +603,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="headless run: a scripted probe (default) or a load file; writes .pvd + .csv",
                        description="A point probe presses the organ along the inward normal (1 mm approach, press to "
-                       "--depth over 20 %% of the run, hold to 60 %%, release by 80 %%), or the loads of --load act. "
+                       "--depth over 20 % of the run, hold to 60 %, release by 80 %), or the loads of --load act. "
                        "Writes response.pvd (+ frames) and response.csv to --out.")
     add_model_options(p)
     p.add_argument("--method", choices=("modal", "direct", "sldm", "nonlinear"), default="modal",
@@ -619,6 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--workers", type=count, default=1, help="threads (default 1)")
     p.add_argument("--memory-limit", type=positive, default=4.0, help="refuse maps above this many GiB (default 4)")
+    p.add_argument("--allow-large", action="store_true", help="write a map estimated past 1 GiB (refused otherwise)")
     p.set_defaults(func=cmd_impedance)
 
     p = sub.add_parser("bench", help="time per step of the modal simulator against direct integration, measured now")

@@ -218,6 +218,21 @@ class ImpedanceMap:
                    np.array([r[3] for r in results]), mesh_fingerprint(model.mesh), info)
 
     # ---------------------------------------------------------------- sizes
+    @staticmethod
+    def estimate_bytes(model, *, nodes=None, radius: float | None = None, metric: str = "euclidean",
+                       times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)) -> dict:
+        """What :meth:`build` with these settings would hold (and :meth:`save` write), before
+        any work: ``{"bytes", "loaded", "kept_per_node", "samples"}`` (the kept neighbourhoods
+        sampled at 20 loaded nodes; a ``threshold`` keeps fewer)."""
+        check_model(model)
+        t = validate.times(times, "times")
+        validate.choice(metric, "metric", ("euclidean", "geodesic"))
+        if radius is not None:
+            radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
+        loaded, _ = _loaded_nodes(model, nodes)
+        nbytes, kept = _estimate(loaded, _NeighbourFinder(model.mesh, radius, metric), t.size)
+        return {"bytes": nbytes, "loaded": int(loaded.size), "kept_per_node": kept, "samples": int(t.size + 1)}
+
     @property
     def nbytes(self) -> int:
         return int(self.responses.nbytes + self.point.nbytes + self.neighbours.nbytes + self.offsets.nbytes)
@@ -395,12 +410,17 @@ def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
     return loaded, held
 
 
-def _check_memory(loaded: np.ndarray, within, n_times: int, memory_limit: float) -> None:
-    """Refuse before starting when the map would exceed ``memory_limit`` (kept neighbourhoods
-    sampled at 20 loaded nodes)."""
+def _estimate(loaded: np.ndarray, within, n_times: int) -> tuple[float, float]:
+    """(bytes, mean kept nodes per loaded node) of a map's responses, its kept neighbourhoods
+    sampled at 20 loaded nodes (before any threshold, which keeps fewer)."""
     sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
-    mean_kept = np.mean([within(j).size for j in sample])
-    estimate = loaded.size * mean_kept * (n_times + 1) * 9 * 8
+    mean_kept = float(np.mean([within(j).size for j in sample]))
+    return loaded.size * mean_kept * (n_times + 1) * 9 * 8, mean_kept
+
+
+def _check_memory(loaded: np.ndarray, within, n_times: int, memory_limit: float) -> None:
+    """Refuse before starting when the map would exceed ``memory_limit``."""
+    estimate, mean_kept = _estimate(loaded, within, n_times)
     if estimate > memory_limit:
         raise ModelError(
             f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
