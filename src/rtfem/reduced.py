@@ -1030,15 +1030,6 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self.time = self.steps * self.dt
         self._free = None
 
-    def _parse_loads(self, forces: Mapping) -> tuple[np.ndarray, np.ndarray]:
-        """{node: f} as (nodes, (k, 3)): in one pass where it can (a grasp loads tens of nodes per
-        tick), else entry by entry, which names a bad entry."""
-        parsed = self._load_arrays(forces)
-        if parsed is not None:
-            return parsed
-        items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
-        return np.array([i for i, _ in items], dtype=np.int64), np.array([f for _, f in items]).reshape(-1, 3)
-
     def run(self, forces, n_steps: int) -> None:
         for _ in range(self._n_steps(n_steps)):
             self.step(forces)
@@ -1107,7 +1098,7 @@ class _TangentWorker:
         self._sim = weakref.ref(sim)  # the thread must not keep a dropped simulator alive
         self._cv = threading.Condition()
         self._request = None  # (epoch, q) waiting
-        self._result = None  # (epoch, linearization) done
+        self._result = None  # (epoch, (q, linearization)) done
         self._busy = False
         self._epoch = 0
         self._thread = None

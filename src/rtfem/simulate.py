@@ -221,6 +221,15 @@ class ForceInput:
     def _n_steps(n_steps) -> int:
         return validate.count(n_steps, "n_steps", 0, 10**9)
 
+    def _parse_loads(self, forces: Mapping) -> tuple[np.ndarray, np.ndarray]:
+        """{node: f} as (nodes, (k, 3)): in one pass where it can (a grasp loads tens of nodes per
+        tick), else entry by entry, which names a bad entry."""
+        parsed = self._load_arrays(forces)
+        if parsed is not None:
+            return parsed
+        items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
+        return np.array([i for i, _ in items], dtype=np.int64), np.array([f for _, f in items]).reshape(-1, 3)
+
     def _load_arrays(self, forces: Mapping):
         """A {node: f} mapping as (nodes (k,), forces (k, 3)) in one pass, when every key is a plain
         int node on the mesh and every value three finite numbers (a contact patch's or a grasp's

@@ -62,16 +62,14 @@ class StaticDriver(ForceInput):
         """Hold ``loads`` ((n, 3), {node: f} or None) from now on and go to their equilibrium (the
         step's own loads of the last step are dropped, as after reset)."""
         self._check_supports()
-        F = self._as_array(loads) if not isinstance(loads, Mapping) else self._dict_array(loads)
-        held = self.model.solve_static(F) if F.any() else np.zeros((self.n_nodes, 3))
-        self._held_forces, self._held = F, held
+        if isinstance(loads, Mapping):
+            nodes, P = self._parse_loads(loads)
+            F = np.zeros((self.n_nodes, 3))
+            np.add.at(F, nodes, P)
+        else:
+            F = self._as_array(loads)
+        self._held = self.model.solve_static(F) if F.any() else np.zeros((self.n_nodes, 3))
         self.reset()
-
-    def _dict_array(self, forces: Mapping) -> np.ndarray:
-        F = np.zeros((self.n_nodes, 3))
-        for k, f in forces.items():
-            F[self._node(k)] += self._vec(k, f)
-        return F
 
     def _check_supports(self) -> None:
         from .model import check_supports
@@ -94,11 +92,7 @@ class StaticDriver(ForceInput):
         if forces is None:
             nodes, P = np.zeros(0, np.int64), np.zeros((0, 3))
         elif isinstance(forces, Mapping):
-            parsed = self._load_arrays(forces)
-            if parsed is None:
-                items = [(self._node(k), self._vec(k, f)) for k, f in forces.items()]
-                parsed = (np.array([i for i, _ in items], dtype=np.int64), np.array([f for _, f in items]).reshape(-1, 3))
-            nodes, P = parsed
+            nodes, P = self._parse_loads(forces)
         else:
             A = self._as_array(forces)
             nodes = np.flatnonzero(A.any(axis=1))
