@@ -178,6 +178,15 @@ def corotated_stress(F: np.ndarray, lam: float, mu: float, tangent: bool = True)
     return P, psi, dP.transpose(0, 3, 4, 1, 2)  # -> [a, b, c, d]
 
 
+def _tangent_point(G: np.ndarray, dP: np.ndarray) -> np.ndarray:
+    """G_ib dP_abcd G_jd -> (m, i, a, j, c) as two batched matrix products (np.einsum's loop over
+    the five free indices took 3 s a tangent of the 4,633-tet10 liver, 30 times longer)."""
+    m, k = G.shape[:2]
+    T = G @ dP.transpose(0, 2, 1, 3, 4).reshape(m, 3, 27)  # [m, i, (a, c, d)]
+    K = T.reshape(m, k * 9, 3) @ G.transpose(0, 2, 1)  # [m, (i, a, c), j]
+    return K.reshape(m, k, 3, 3, k).transpose(0, 1, 2, 4, 3)
+
+
 class CorotationalTets:
     """The corotational tets of one mesh: reference shape gradients and weights per
     quadrature point, kept once; :meth:`evaluate` gives element forces, tangents, energies."""
@@ -206,5 +215,5 @@ class CorotationalTets:
             f += wdet[:, None, None] * np.einsum("mab,mib->mia", P, G)
             energy += wdet * psi
             if tangent:
-                K += wdet[:, None, None, None, None] * np.einsum("mib,mabcd,mjd->miajc", G, dP, G)
+                K += wdet[:, None, None, None, None] * _tangent_point(G, dP)
         return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy
