@@ -1,6 +1,8 @@
 """Hostile input, as a new user meets it on the newer parts (issue 36, item 8): each case gets a
 specific RtfemError that says what to do, and nothing already computed is changed."""
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -128,6 +130,14 @@ def test_tetrahedralize_checks_its_flag_estimates_its_size_and_keeps_ctrl_c():
     assert signal.getsignal(signal.SIGINT) is handler  # fTetWild's own handler is not left behind
     assert tets.n_tets > 100 and np.abs(np.asarray(tets.vertices)).max() < 1e-6
     assert abs(tets.volume() / (surface.volume() * 1e-21) - 1) < 0.01  # the same body, at its own scale
+    # getsignal reports Python's table, not the C-level handler fTetWild replaces: a real Ctrl-C after
+    # meshing must still raise KeyboardInterrupt (it killed `rtfem view organ.stl` with -2 instead)
+    code = ("import os, signal, time, rtfem as rt\n"
+            "rt.tetrahedralize(rt.meshes.liver(2))\n"
+            "try:\n    os.kill(os.getpid(), signal.SIGINT); time.sleep(5)\n"
+            "except KeyboardInterrupt:\n    print('interrupted')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "interrupted" in r.stdout, (r.returncode, r.stderr[-500:])
     assert tets.surface.n_vertices > 100
 
 

@@ -91,13 +91,15 @@ def _remove_stale_scratch() -> None:
 def _python_sigint():
     """Keep Python's Ctrl-C handler: fTetWild installs its own, which outlives the call and would
     make a later Ctrl-C kill the process instead of raising KeyboardInterrupt (losing finished
-    work)."""
+    work). Re-installed always: fTetWild replaces the C-level handler behind Python's back, so
+    ``signal.getsignal`` still reports Python's (the README's ``rtfem view organ.stl`` then died
+    of a Ctrl-C with -2 instead of exiting 130)."""
     main = threading.current_thread() is threading.main_thread()
     handler = signal.getsignal(signal.SIGINT) if main else None
     try:
         yield
     finally:
-        if main and handler is not None and signal.getsignal(signal.SIGINT) is not handler:
+        if main and handler is not None:
             signal.signal(signal.SIGINT, handler)
 
 
