@@ -59,7 +59,7 @@ from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
-from .threads import blas_limits, usable_cores
+from .threads import runtime
 
 __all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch", "nodes_to_prepare"]
 
@@ -921,9 +921,10 @@ class _Preparer:
             self._cv.notify()
 
     def _run(self) -> None:
-        # BLAS and MKL keep a core free for the loop while this thread lives: their worker threads
-        # (spinning after each call) took the loop's core on 2 cores, p99 of the slide 1.7 -> 4.8 ms
-        with blas_limits(max(1, usable_cores() - 1)):
+        # BLAS and MKL held to one thread while this thread lives (the run-time limit the loops
+        # share): their worker threads (spinning after each call) took the loop's core on 2 cores,
+        # p99 of the slide 1.7 -> 4.8 ms
+        with runtime():
             while True:
                 with self._cv:
                     if not self._pending.size and not self._cv.wait_for(lambda: self._pending.size > 0, timeout=1.0):

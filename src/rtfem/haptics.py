@@ -202,7 +202,8 @@ class Grasp:
     k (target - X - u_free). Drivers: a ModalSimulator (linear or warped), a DirectSimulator
     (linear or large-deformation), an ImpedanceMap (quasi-static: W = static compliances,
     u_free = 0) or any Driver. ``max_force`` caps the total force (N), for a mouse that can be
-    dragged anywhere.
+    dragged anywhere; ``clipped`` says whether the last step's force was capped and ``demand`` is
+    the force the spring asked for (N).
     """
 
     def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None,
@@ -224,6 +225,8 @@ class Grasp:
         self.nodes = np.zeros(0, dtype=np.int64)  # the held vertices
         self.force = np.zeros(3)  # total force on the organ (N); the hand feels -force
         self.forces = np.zeros((0, 3))  # the force on each held vertex (N)
+        self.demand = 0.0  # |force| the spring asked for in the last step, before the cap (N)
+        self.clipped = False  # whether the last step's force was capped at max_force
         self._W: dict[int, np.ndarray] = {}
         self._block = None
         self._patch_lu = None
@@ -328,6 +331,7 @@ class Grasp:
         if self.node is None or c is None:
             d.step(None)
             self.force, self.forces = np.zeros(3), np.zeros((0, 3))
+            self.demand, self.clipped = 0.0, False
             return self.force
         k = self.stiffness
         if self.nodes.size == 1:
@@ -343,11 +347,11 @@ class Grasp:
             else:
                 f, _ = hold_patch(step_compliances(d, self.nodes), h, k * (c - self._jaw), k, self.grip)
         total = f.sum(axis=0)
-        if self.max_force is not None:
-            mag = float(np.linalg.norm(total))
-            if mag > self.max_force:
-                f = f * (self.max_force / mag)
-                total = f.sum(axis=0)
+        self.demand = mag = float(np.linalg.norm(total))
+        self.clipped = self.max_force is not None and mag > self.max_force
+        if self.clipped:
+            f = f * (self.max_force / mag)
+            total = f.sum(axis=0)
         d.step({int(v): (float(g[0]), float(g[1]), float(g[2])) for v, g in zip(self.nodes.tolist(), f)})
         self.force, self.forces = total, f
         return total
@@ -576,6 +580,10 @@ class HapticLoop:
         return None
 
     def _run(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
+        with _spare_core():
+            self._ticks(stats, max_steps, seconds)
+
+    def _ticks(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
         st = stats
         t0 = time.perf_counter()
         deadline = None if seconds is None else t0 + seconds
@@ -980,13 +988,14 @@ def _compiled_loop():
 
 
 def _spare_core():
-    """While a compiled loop runs, BLAS (numpy's and MKL's thread pools) gets one core fewer than
-    the machine has, so that a drawing thread's field product cannot take the loop's core: on 2
-    cores a two-thread product pre-empted the loop for 5 ms at a time (benchmarks/haptic_loop.py,
-    "busy viewer"). Needs threadpoolctl (rtfem[fast]); without it, nothing is limited."""
-    from .threads import blas_limits, usable_cores
+    """While a loop runs, BLAS (numpy's and MKL's thread pools) is held to one thread
+    (:func:`rtfem.threads.runtime`), so that a drawing thread's field product cannot take the
+    loop's core: on 2 cores a two-thread product pre-empted the loop for 5 ms at a time
+    (benchmarks/haptic_loop.py, "busy viewer"). Needs threadpoolctl (rtfem[fast]); without it,
+    nothing is limited."""
+    from .threads import runtime
 
-    return blas_limits(max(1, usable_cores() - 1))
+    return runtime()
 
 
 def _is_impedance(driver) -> bool:

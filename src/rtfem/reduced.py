@@ -33,7 +33,7 @@ from typing import Callable, Mapping
 import numpy as np
 import scipy.sparse as sp
 
-from . import validate
+from . import threads, validate
 from .errors import ModelError, SolverError
 from .material import Damping
 from .modal import check_model_key, mesh_fingerprint
@@ -1080,15 +1080,13 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         return self.step_compliances(np.array([self._node(node)]))
 
 
-_BLAS = None  # the tangent workers' shared BLAS limit (threads.SharedLimit), made on first use
-
-
 class _TangentWorker:
     """A simulator's linearizations computed on a low-priority background thread
     (``background=True``): the step asks with its predictor and takes the newest result at a
-    later step, never waiting. While any worker lives, BLAS is held to the cores a step leaves,
-    by one limit the workers share (entered on the stepping thread when the first starts, left
-    when the last ends: never changed under a running step). A worker ends after 5 s with
+    later step, never waiting. While any worker lives, BLAS is held to one thread by the
+    limit every run-time loop shares (:func:`rtfem.threads.runtime`; entered on the stepping
+    thread when the first worker starts, left when the last ends: never changed under a running
+    step). A worker ends after 5 s with
     nothing to do and starts again on the next request; ``forget`` drops a result from before a
     reset or set_state."""
 
@@ -1114,12 +1112,7 @@ class _TangentWorker:
                 return False
             self._request = (self._epoch, np.array(q, dtype=float))
             if self._thread is None or not self._thread.is_alive():
-                global _BLAS
-                if _BLAS is None:
-                    from .threads import SharedLimit, usable_cores
-
-                    _BLAS = SharedLimit(max(1, usable_cores() - 1))
-                _BLAS.acquire()  # here, on the stepping thread: no BLAS call of its runs meanwhile
+                threads._RUNTIME.acquire()  # here, on the stepping thread: no BLAS call of its runs meanwhile
                 self._thread = threading.Thread(target=self._run, name="rtfem-tangent", daemon=True)
                 self._thread.start()
             self._cv.notify()
@@ -1140,7 +1133,7 @@ class _TangentWorker:
         try:
             self._work()
         finally:
-            _BLAS.release()
+            threads._RUNTIME.release()
 
     def _work(self) -> None:
         try:  # the lowest priority (Linux: per thread): it takes only the time the loop leaves

@@ -5,6 +5,14 @@ call, and MKL (PARDISO's solves, the fast extra) runs its own threads: on a 2-co
 100-mode eigen-solve of the OpenHELP liver spends 3.3 s in PARDISO solves beside spinning
 OpenBLAS threads and 2.1 s without them (benchmarks/eigen.py). The limits need threadpoolctl
 (part of rtfem[fast]); without it nothing is limited.
+
+At run time (a simulator stepped in real time, a haptic loop, the viewer's session, ``rtfem
+simulate`` and ``rtfem bench``) every product is small (a few hundred rows) or drawn at a frame
+rate, and BLAS threads only hurt: with another process busy on a 2-core machine, OpenBLAS's
+two-thread products of the reduced nonlinear step took 15 ms instead of 1.1-2 ms, the r = 100
+modal step 8-16 ms instead of 0.11 ms. :func:`runtime` holds every BLAS pool to
+:data:`RUNTIME_THREADS` (one) while any run-time loop of the process runs
+(benchmarks/runtime_load.py measures each path quiet and beside a busy process).
 """
 
 from __future__ import annotations
@@ -13,7 +21,7 @@ import contextlib
 import os
 import threading
 
-__all__ = ["blas_limits", "usable_cores", "SharedLimit"]
+__all__ = ["blas_limits", "usable_cores", "SharedLimit", "runtime", "RUNTIME_THREADS"]
 
 
 def usable_cores() -> int:
@@ -63,3 +71,32 @@ class SharedLimit:
             if self._count == 0 and self._held is not None:
                 self._held.__exit__(None, None, None)
                 self._held = None
+
+
+def _runtime_threads() -> int:
+    """RTFEM_RUNTIME_THREADS (default 1; 0: no limit, BLAS's own thread count, the comparison
+    benchmarks/runtime_load.py measures against)."""
+    text = os.environ.get("RTFEM_RUNTIME_THREADS", "1").strip()
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"RTFEM_RUNTIME_THREADS={text!r}: give a whole number of threads (0: no limit)") from None
+    if value < 0:
+        raise ValueError(f"RTFEM_RUNTIME_THREADS={text!r}: give a whole number >= 0 (0: no limit)")
+    return value
+
+
+RUNTIME_THREADS = _runtime_threads()
+_RUNTIME = SharedLimit(RUNTIME_THREADS or usable_cores())
+
+
+@contextlib.contextmanager
+def runtime():
+    """Hold BLAS to :data:`RUNTIME_THREADS` while the block runs (shared by every run-time loop
+    and background worker of the process: the pools change only when the first enters and the
+    last leaves, never under a running step)."""
+    _RUNTIME.acquire()
+    try:
+        yield
+    finally:
+        _RUNTIME.release()
