@@ -138,7 +138,9 @@ def test_every_command_rejects_a_broken_file(tmp_path, command):
     (["simulate", "--at", "1,2"], "three finite numbers"),
     (["modes", "-n", "0"], "at least one mode"),
     (["view", "--dt", "5"], "time step"),
-    (["view", "--local", "20"], "use it with --method nonlinear"),
+    (["view", "--method", "modal", "--local", "20"], "use it with --method nonlinear"),
+    (["view", "--shell", "--solid"], "contradict"),
+    (["view", "--max-force", "0"], "max-force"),
 ])
 def test_bad_options_exit_2_with_a_message(capsys, argv, words):
     rc, out, err = run(capsys, *argv)
@@ -152,7 +154,8 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli", "view", gallbladder(), *GB, "--port", str(port)],
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli", "view", gallbladder(), *GB, "--shell", "--method", "modal",
+                          "--port", str(port)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = wait_for_viewer_address(p)
@@ -185,15 +188,14 @@ TET_FIX = ["--fix", "y<-0.045"]
 def test_info_modes_simulate_impedance_bench_on_a_tet_file(tet_file, tmp_path, capsys):
     rc, out, _ = run(capsys, "info", tet_file)
     assert rc == 0 and "volume mesh" in out and "radius ratio" in out
-    rc, out, _ = run(capsys, "modes", tet_file, *TET_FIX, "-n", 10, "-o", tmp_path / "m.npz")
+    rc, out, _ = run(capsys, "modes", tet_file, *TET_FIX, "--element", "tet4", "-n", 10, "-o", tmp_path / "m.npz")
     assert rc == 0 and "tet4 tets" in out
     mesh = rt.load_mesh(tet_file)
     model = rt.SolidModel(mesh, rt.Material()).fix("y<-0.045")
     basis = rt.ModalBasis.load(tmp_path / "m.npz", model=model)
     np.testing.assert_allclose(basis.omega, rt.modal_analysis(model, 10).omega, rtol=1e-8)
-    rc, out, _ = run(capsys, "simulate", tet_file, *TET_FIX, "--element", "tet10", "--duration", 0.05,
-                     "--out", tmp_path / "run")
-    assert rc == 0 and "tet10 tets" in out
+    rc, out, _ = run(capsys, "simulate", tet_file, *TET_FIX, "--duration", 0.05, "--out", tmp_path / "run")
+    assert rc == 0 and "tet10 tets" in out  # the default element: tet10 does not lock at nu = 0.45
     import meshio
 
     frame = meshio.read(sorted((tmp_path / "run").glob("frame_*.vtu"))[-1])
@@ -224,7 +226,7 @@ def test_simulate_large_deformation_modal_and_direct(tmp_path, capsys):
         rows = list(csv.DictReader(open(tmp_path / f"m{len(extra)}" / "response.csv")))
         forces[bool(extra)] = float(rows[-1]["force"])
     assert forces[True] == pytest.approx(forces[False], rel=0.05)
-    rc, out, err = run(capsys, "simulate", "--solid", "--method", "direct", "--large", "--duration", 0.005,
+    rc, out, err = run(capsys, "simulate", "--solid", "--element", "tet4", "--method", "direct", "--large", "--duration", 0.005,
                        "--out", tmp_path / "d")
     assert rc == 0 and "direct, corotational" in out, err
     (tmp_path / "loads.csv").write_text("t,node,fx,fy,fz\n0,885,0,0,-0.1\n")
@@ -238,7 +240,7 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
     (with its static correction) have the organ's linear stiffness: the probe force, averaged
     over the hold (the light damping leaves it ringing), agrees between them (measured 0.00199
     and 0.00188 N; the peaks, at the end of the approach, differ with the two models' inertia).
-    The same on the solid liver (10 modes and their derivatives)."""
+    The same on the solid liver (the default element, tet10; 10 modes and their derivatives)."""
     forces = {}
     for method in ("modal", "nonlinear"):
         rc, out, err = run(capsys, "simulate", gallbladder(), *GB, "-n", 12, "--method", method, "--duration", 0.3,
@@ -259,7 +261,7 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
         forces[method] = sum(hold) / len(hold)
     assert "reduced nonlinear" in out and "10 modes + 55 derivatives" in out
     assert forces["modal"] > 0.01 and abs(forces["nonlinear"] / forces["modal"] - 1) < 0.1
-    rc, out, err = run(capsys, "simulate", "--solid", "-n", 10, "--method", "nonlinear", "--local", 15, "--duration",
+    rc, out, err = run(capsys, "simulate", "--solid", "--element", "tet4", "-n", 10, "--method", "nonlinear", "--local", 15, "--duration",
                        0.05, "--out", tmp_path / "solid-local")
     assert rc == 0 and "of a 15 mm patch" in out, err
     rc, out, err = run(capsys, "simulate", "--local", 15, "--out", tmp_path / "bad")

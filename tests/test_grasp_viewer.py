@@ -291,3 +291,28 @@ def test_session_localizes_the_nonlinear_basis_per_grab():
     assert s.local_status == "" and s.driver.reduced.local is None
     with pytest.raises(rt.ModelError, match="local"):
         Settings(local=-0.01).check()
+
+
+def test_a_patch_that_arrives_after_the_release_or_too_slow_is_not_swapped_in(monkeypatch):
+    """A patch still training when the hand lets go is dropped (it was for that grab: swapped in
+    after the release it left a bigger model stepping at 1 % of real time); a patch whose free
+    step would take more than 0.9 of the time step is not swapped in either, and the panel says
+    why."""
+    import rtfem.viewer.session as session_module
+
+    mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
+    mat = rt.Material(E=1e5, nu=0.3, density=10.0)
+    kw = dict(method="nonlinear", n_modes=12, alpha=20.0, grasp_stiffness=50.0, grab_radius=0.0, local=0.25)
+    s = Session(mesh, mat, fixed="x0", settings=Settings(**kw))
+    X = np.asarray(mesh.vertices)
+    node = int(np.flatnonzero(np.isclose(X[:, 0], 1.0))[0])
+    plain = s.driver
+    s.grab(X[node])
+    s.release()  # before the patch (seconds of training) is ready
+    assert "dropped" in s.local_status
+    s.localizing.join(120)
+    assert s.driver is plain and s.grasp.driver is plain
+    monkeypatch.setattr(session_module, "_step_cost", lambda driver: 5e-3)  # a 5 ms step against dt = 1 ms
+    s.grab(X[node])
+    s.localizing.join(120)
+    assert s.driver is plain and "kept the running basis" in s.local_status and "5.00 ms" in s.local_status

@@ -638,7 +638,7 @@ def test_progress_and_results_of_a_save_keep_their_types(small, tmp_path):
 def _view(*extra) -> subprocess.Popen:
     gb = str(organ("sofa_env_gallbladder_collision.stl"))
     return subprocess.Popen([PY, "-m", "rtfem.cli", "view", gb, "--scale", "1e-3", "--fix", "bottom:0.2", "-n", "8",
-                             *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--shell", "--method", "modal", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def test_view_warns_loudly_when_serving_the_network_and_exits_130_on_ctrl_c():

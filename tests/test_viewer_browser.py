@@ -58,32 +58,31 @@ def _pixels(png: bytes) -> np.ndarray:
     return np.asarray(Image.open(BytesIO(png)).convert("RGB"), dtype=float)
 
 
-@pytest.fixture(scope="module", params=["shell", "solid-vtu"])
-def viewer(request, tmp_path_factory):
-    """The default liver as a shell, and as a tetrahedral organ file (VTU) loaded the way
-    ``rtfem view organ.vtu`` loads it: the solid is drawn and touched on its boundary."""
+@pytest.fixture(scope="module", params=["default", "shell"])
+def viewer(request):
+    """The scene of ``rtfem view`` and ``make demo`` (the liver as a solid of tet10 with the
+    reduced nonlinear model: drawn and touched on its boundary), and the liver as a linear modal
+    shell (``--shell --method modal``, a hollow organ's model)."""
     import rtfem as rt
     from rtfem.viewer.app import Viewer
-    from rtfem.viewer.session import Session
+    from rtfem.viewer.session import Session, default_session
 
-    fixed = "attachment"
-    if request.param == "shell":
-        mesh = rt.meshes.liver()
-    else:
-        fixed = "y<-0.045"  # a file carries no groups: the CLI's --fix; here the posterior face, near the attachment
+    if request.param == "default":
         if not rt.meshing.mesher_available():
             pytest.skip("the mesh extra (pytetwild) is not installed")
-        path = tmp_path_factory.mktemp("organ") / "liver.vtu"
-        rt.save_mesh(rt.meshes.liver(solid=True), path)
-        mesh = rt.load_mesh(path)
-        assert isinstance(mesh, rt.TetMesh)
-    v = Viewer(Session(mesh, fixed=fixed), port=_free_port()).start()
+        session = default_session()
+        assert session.kind == "solid (tet10)" and session.settings.method == "nonlinear"
+    else:
+        session = Session(rt.meshes.liver(), fixed="attachment")
+    v = Viewer(session, port=_free_port()).start()
     v.kind = request.param
     yield v
     v.stop()
 
 
 def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
+    import rtfem as rt
+
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     exe = _chromium()
     with playwright_api.sync_playwright() as p:
@@ -100,7 +99,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
             plot_before = _pixels(plot.screenshot())
             before_png = page.screenshot(path=str(ARTIFACTS / f"1_before_{viewer.kind}.png"))
             before = viewer.state()
-            assert before["max_displacement"] == 0.0 and before["force"] == 0.0
+            assert before["max_displacement"] < 1e-12 and before["force"] == 0.0  # m: at rest, to roundoff
 
             # the camera looks at the organ's centre, which is the canvas centre
             canvas = page.locator("canvas").first.bounding_box()
@@ -132,10 +131,18 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     # organ, settled with the mouse still for 2 s, shows the static response to the forces on them
     model = viewer.session.model
     assert held.size > 1 and not model.held_nodes[held].any(), held
-    static = model.solve_static({int(v): f for v, f in zip(held, held_forces)})
-    reference = float(np.linalg.norm(static, axis=1).max())
+    loads = {int(v): f for v, f in zip(held, held_forces)}
+    linear = float(np.linalg.norm(model.solve_static(loads), axis=1).max())
     assert during["max_displacement"] > 1e-3, during  # m: visible
-    assert abs(during["max_displacement"] - reference) < 0.05 * reference, (during, reference)
+    if viewer.kind == "default":
+        # the reduced nonlinear model (40 modes + derivatives of 10) against the full order's nonlinear
+        # equilibrium under the same held forces: settled 3 cm pulls of the probe vertex measured 5.9-6.9 %
+        # (derivatives of 20 / 10); here after a 2 s hold, so 15 %; and nearer it than the linear model is
+        reference = float(np.linalg.norm(rt.nonlinear.solve_static(model, loads, steps=2).displacements, axis=1).max())
+        assert abs(during["max_displacement"] - reference) < 0.15 * reference, (during, reference, linear)
+        assert abs(during["max_displacement"] - reference) < abs(linear - reference), (during, reference, linear)
+    else:
+        assert abs(during["max_displacement"] - linear) < 0.05 * linear, (during, linear)
     assert during["peak_force_plotted"] > 0.05
     assert during["sim_rate"] > 0 and during["frame_rate"] > 0
     # the released organ settles (B = 8 M: amplitudes fall as exp(-4 t))
@@ -149,3 +156,44 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     assert changed > 0.01, f"only {changed:.2%} of the organ's pixels changed"
     plot_changed = np.mean(np.abs(plot_before - plot_during).sum(axis=2) > 30)
     assert plot_changed > 0.005, f"only {plot_changed:.2%} of the force plot's pixels changed"
+
+
+def test_presses_grab_the_organ_at_a_low_frame_rate():
+    """At 2 frames/s the drawn organ is replaced while the browser is still swapping in the last
+    one; the mouse grabs a transparent copy that moves only when the organ has moved, so each of
+    three presses on the organ grabs it (none orbits the camera instead)."""
+    import rtfem as rt
+    from rtfem.viewer.app import Viewer
+    from rtfem.viewer.session import Session
+
+    v = Viewer(Session(rt.meshes.liver(), fixed="attachment"), port=_free_port(), fps=2.0).start()
+    exe = _chromium()
+    try:
+        with playwright_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=exe, headless=True, args=ARGS)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
+                page.goto(v.url)
+                _wait(lambda: v.state()["clients"] >= 1, 60, "the browser to connect")
+                page.wait_for_selector("canvas", timeout=60_000)
+                time.sleep(3.0)
+                canvas = page.locator("canvas").first.bounding_box()
+                x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+                grabbed = []
+                for k in range(3):
+                    page.mouse.move(x0, y0)
+                    page.mouse.down()
+                    for i in range(1, 11):
+                        page.mouse.move(x0 + 3 * i, y0 - 4 * i)
+                        time.sleep(0.05)
+                    _wait(lambda: v.state()["grabbed"] is not None, 20, f"press {k + 1} to grab the organ")
+                    grabbed.append(v.state()["grabbed"])
+                    time.sleep(0.7)  # mid-pull: frames (and the organ) change under the mouse
+                    page.mouse.up()
+                    _wait(lambda: v.state()["grabbed"] is None, 20, "the release")
+                    time.sleep(0.8)  # the next press lands while the organ still settles
+            finally:
+                browser.close()
+    finally:
+        v.stop()
+    assert v.drags == 3 and len(grabbed) == 3 and v.state()["error"] is None

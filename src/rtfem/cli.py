@@ -145,21 +145,30 @@ def _vector(text: str, what: str) -> np.ndarray:
     return v
 
 
-def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool = False, edge_length: float | None = None):
+def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = False, edge_length: float | None = None):
     """The mesh of a command: the file (a TetMesh for a volume file), or the embedded liver; with
-    ``solid`` a surface is meshed into tets first (kept on disk, so a second run reuses them)."""
+    ``solid`` a surface is meshed into tets first (kept on disk, so a second run reuses them);
+    ``solid="auto"``: a closed surface is, an open one is not."""
     from . import meshes
     from .meshfile import load_mesh
-    from .meshing import cached_tetrahedralize
+    from .meshing import cached_tetrahedralize, mesher_available
     from .tetmesh import TetMesh
 
+    if solid == "auto" and not mesher_available():
+        print("shell       the mesh extra (pytetwild) is not installed, so the surface is modelled as a shell; "
+              "pip install 'rtfem[mesh]' (make installs it) to mesh a closed organ into tets", flush=True)
+        solid = False
     if path is None:
-        if solid:
+        if solid:  # True, or "auto": the embedded liver is closed
             mesh = meshes.liver(solid=True, spacing=None if edge_length is None else edge_length / scale)
         else:
             mesh = meshes.liver()
         return mesh if scale == 1.0 else mesh.scaled(scale)
     mesh = load_mesh(path, scale=scale)
+    if solid == "auto" and not isinstance(mesh, TetMesh):
+        solid = mesh.is_closed()
+        if not solid:
+            print(f"surface     {path} is open: modelled as a shell", flush=True)
     if solid and not isinstance(mesh, TetMesh):
         print(f"meshing     {path} into tets (fTetWild) ...", flush=True)
         mesh = cached_tetrahedralize(mesh, edge_length)
@@ -191,8 +200,9 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
                    help="mesh a surface into tets (fTetWild, the mesh extra) and model the volume instead of a shell")
     g.add_argument("--edge-length", type=positive, default=None, metavar="M",
                    help="target tet edge length in m for --solid (default 5 %% of the organ's diagonal)")
-    g.add_argument("--element", choices=("tet4", "tet10"), default="tet4",
-                   help="tet4 (linear, fast; too stiff for nearly incompressible tissue) or tet10 (quadratic)")
+    g.add_argument("--element", choices=("tet4", "tet10"), default="tet10",
+                   help="tet10 (quadratic, the default: does not lock at nu = 0.45) or tet4 (linear, fast; too stiff "
+                        "for nearly incompressible tissue)")
     g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
     g = p.add_argument_group("material and supports")
     g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
@@ -213,7 +223,15 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
 
 
 def mesh_of_args(args):
-    return load_mesh_arg(args.mesh, args.scale, args.solid, args.edge_length)
+    return load_mesh_arg(args.mesh, args.scale, _solid_wanted(args), args.edge_length)
+
+
+def _solid_wanted(args):
+    """--solid (True), --shell or a command without it (False); ``rtfem view`` without either:
+    "auto", a closed surface is a solid organ, an open one (a hollow organ) a shell."""
+    if args.solid or not hasattr(args, "shell"):
+        return bool(args.solid)
+    return False if args.shell else "auto"
 
 
 def model_options(args, mesh) -> dict:
@@ -235,7 +253,7 @@ def build_model(args, *, quiet: bool = False):
     model.fix(nodes)
     model.check_restrained()
     if not quiet:
-        name = args.mesh or ("embedded default liver" + (", solid" if args.solid else ""))
+        name = args.mesh or ("embedded default liver" + (", solid" if isinstance(mesh, TetMesh) else ""))
         if isinstance(mesh, TetMesh):
             size = (f"{model.n_nodes:,} nodes, {mesh.n_tets:,} {args.element} tets, "
                     f"{model.mesh.n_triangles:,} surface triangles")
@@ -394,7 +412,10 @@ def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: in
     if sim is None:
         from .sldm import SLDM
 
-        U_all = SLDM(model, damping_of(args)).response(schedule, times, tol=args.tol)
+        print(f"sldm        factorizing K and building the Krylov basis of each load pattern ({len(schedule.nodes)} "
+              "loaded node(s))", flush=True)
+        with progress_bar("sldm (Lanczos)", unit="vectors") as sbar:
+            U_all = SLDM(model, damping_of(args), progress=sbar).response(schedule, times, tol=args.tol)
     for k, t in enumerate(times):
         f = schedule.forces_at(t - args.dt)
         if sim is None:
@@ -447,8 +468,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
               f"{info['cubature']['of']} elements, static correction")
     else:
         sim = None
+    from .threads import runtime
+
     t0 = time.perf_counter()
-    with progress_bar(f"simulate ({args.method})", unit="steps") as bar:
+    # the steps on one BLAS thread (rtfem.threads); SLDM's Krylov build (no stepping) keeps BLAS's threads
+    stepping = runtime() if sim is not None else contextlib.nullcontext()
+    with stepping, progress_bar(f"simulate ({args.method})", unit="steps") as bar:
         if schedule is None:
             out, what = _simulate_probe(args, model, sim, n_steps, frame_every, bar)
         else:
@@ -536,22 +561,61 @@ def cmd_pictures(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_view(args: argparse.Namespace) -> int:
-    from .viewer.app import serve
-    from .viewer.session import Settings
+class _StageBars:
+    """progress(stage, done, total, message) of a multi-stage precompute: one CLI bar per stage."""
 
-    check_address(args.host, args.port)
+    def __init__(self) -> None:
+        self.stage, self.bar = None, None
+
+    def __call__(self, stage: str, done: int, total: int, message: str = "") -> None:
+        if stage != self.stage:
+            self.close()
+            self.stage = stage
+            self.bar = progress_bar(stage, unit="step")
+            self.bar_fn = self.bar.__enter__()
+        self.bar_fn(done, total, message)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+            self.bar = None
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .viewer.session import Session, Settings
+
+    if args.benchmark is None:
+        check_address(args.host, args.port)
     if args.local and args.method != "nonlinear":
         raise RtfemError("--local adds a patch to the reduced nonlinear model's basis at each grab: use it with --method "
                          "nonlinear")
-    model = build_model(args)
+    if args.shell and args.solid:
+        raise RtfemError("--shell and --solid contradict each other: give one (a closed surface is a solid by default)")
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
-                        local=(args.local or 0.0) * 1e-3).check()
-    print("precomputing ...", flush=True)
+                        local=(args.local or 0.0) * 1e-3, max_force=args.max_force).check()  # before any work
+    model = build_model(args)
     mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
-    serve(mesh, material=model.material, fixed=np.flatnonzero(model.held_nodes), settings=settings, host=args.host,
-          port=args.port, model_options=model_options(args, mesh))
+    t0 = time.perf_counter()
+    bars = _StageBars()
+    try:
+        session = Session(mesh, model.material, np.flatnonzero(model.held_nodes), settings,
+                          model_options(args, mesh), progress=bars)
+    finally:
+        bars.close()
+    print(f"precomputed {settings.label} in {time.perf_counter() - t0:.1f} s", flush=True)
+    if args.benchmark is not None:
+        import json
+
+        from .viewer.benchmark import run
+
+        report = run(session, args.benchmark)
+        report["precompute_s"] = round(time.perf_counter() - t0 - report["seconds"], 1)
+        print(json.dumps(report), flush=True)
+        return 0 if report["error"] is None else 1
+    from .viewer.app import serve
+
+    serve(session=session, host=args.host, port=args.port)
     return 0
 
 
@@ -655,9 +719,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
     add_model_options(p)
-    p.add_argument("--method", choices=("modal", "impedance", "direct", "nonlinear"), default="modal",
-                   help="dynamics (default modal; nonlinear: the reduced nonlinear model, modes + modal derivatives "
-                        "with cubature forces: large deformation of a shell or a solid, ~1 ms a step on the default liver)")
+    p.add_argument("--shell", action="store_true",
+                   help="model a closed surface as a shell (a hollow organ) instead of meshing it into tets (the "
+                        "default for a closed surface; an open surface is always a shell)")
+    p.add_argument("--method", choices=("modal", "impedance", "direct", "nonlinear"), default="nonlinear",
+                   help="dynamics (default nonlinear: the reduced nonlinear model, modes + modal derivatives with "
+                        "cubature forces and the static correction, large deformation of a shell or a solid; modal: "
+                        "the linear modal model; impedance: a precomputed map; direct: the full model, the baseline)")
+    p.add_argument("--max-force", type=positive, default=10.0, metavar="N",
+                   help="the grasp's force limit in N (default 10, what a desktop haptic device renders); the panel "
+                        "says when it clips")
+    p.add_argument("--benchmark", type=positive, metavar="SECONDS",
+                   help="no server: run the viewer's session headless for SECONDS with a scripted grab of the default "
+                        "vertex pulled 3 cm and released, and print one JSON line (rates, step percentiles, force, "
+                        "peak displacement)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")

@@ -55,7 +55,8 @@ class SLDMInfo:
     """What the last SLDM evaluation did."""
 
     m: int  # Krylov dimension used
-    m0: int  # the lower bound t_max sqrt(theta_max)/2 (0 for frequency responses)
+    m0: int  # the a-priori estimate t_max sqrt(theta_max)/2 (0 for frequency responses); the error estimate
+    #          often stops the basis earlier (the damped response forgets the stiffest modes)
     estimate: float  # relative error estimate (difference of z_m and z_{m-p})
     residual: float  # relative Lanczos residual beta0 beta_m |e_m^T z_m| at its worst time
     theta_max: float  # largest Ritz value of K' (rad^2/s^2)
@@ -67,7 +68,7 @@ class SLDMInfo:
 
     def __str__(self) -> str:
         return (
-            f"SLDM: m = {self.m} (lower bound m0 = {self.m0}), error estimate {self.estimate:.1e}, "
+            f"SLDM: m = {self.m} (a-priori estimate m0 = {self.m0}), error estimate {self.estimate:.1e}, "
             f"{'breakdown (exact), ' if self.breakdown else ''}Lanczos {self.lanczos_seconds * 1e3:.1f} ms, "
             f"evaluation {self.evaluate_seconds * 1e3:.1f} ms"
         )

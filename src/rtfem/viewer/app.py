@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import ModelError, RtfemError
 from ..material import Material
 from ..mesh import TriMesh
-from .session import METHODS, Session, Settings
+from .session import METHODS, Session, Settings, default_session
 
 # viridis at five stops: perceptually uniform, readable by the colour-blind
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=float)
@@ -117,13 +117,24 @@ class Viewer:
         self.server.initial_camera.position = tuple(centre + size * np.array([0.1, -0.62, 0.5]))
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self.organ = sc.add_glb("/organ", glb_bytes(s.X, mesh.triangles, colormap(np.zeros(mesh.n_vertices), 1.0)))
+        # the mouse grabs a transparent copy of the surface, not the drawn organ: the drawn one is
+        # replaced every frame, and a press that came while the client swapped it in (often, at a low
+        # frame rate) missed it and orbited the camera. The copy moves only when the organ has moved
+        # by PICK_TOLERANCE, at most twice a second, and never during a drag.
+        used = mesh.used_vertices()
+        self._pick_vertices = used
+        self._pick_faces = np.searchsorted(used, mesh.triangles).astype(np.uint32)
+        self._pick_u = np.zeros((used.size, 3))
+        self._pick_time = 0.0
+        self.pick = sc.add_mesh_simple("/organ_pick", s.X[used].astype(np.float32), self._pick_faces,
+                                       color=(255, 255, 255), opacity=0.0, side="double")
         fixed = np.flatnonzero(s.model.held_nodes)
         if fixed.size:
             sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,
                                point_shape="circle")
         self.marker = sc.add_icosphere("/grab", radius=0.012 * size, color=(230, 60, 40), visible=False)
         self.hand = sc.add_icosphere("/hand", radius=0.008 * size, color=(255, 255, 255), visible=False)
-        organ = self.organ
+        organ = self.pick
 
         @organ.on_drag("left")
         async def _pull(event) -> None:
@@ -215,6 +226,10 @@ class Viewer:
             self.E_kpa = gui.add_number("Young's modulus (kPa)", initial_value=s.settings.E / 1e3, min=1.0, max=1e6, step=1.0)
             self.k_grasp = gui.add_slider("grasp spring (N/m)", min=10.0, max=2000.0, step=10.0,
                                           initial_value=s.settings.grasp_stiffness)
+            self.max_force = gui.add_slider("force limit (N)", min=0.5, max=50.0, step=0.5,
+                                            initial_value=min(50.0, s.settings.max_force),
+                                            hint="the grasp force is capped here (a desktop haptic device renders "
+                                                 "~10 N); the panel says when it clips")
             self.grab_mm = gui.add_slider("grab radius (mm)", min=0.0, max=40.0, step=1.0,
                                           initial_value=s.settings.grab_radius * 1e3,
                                           hint="the jaw holds the surface within this radius of the picked point "
@@ -234,6 +249,13 @@ class Viewer:
         def _(_) -> None:
             self._reconfigure()
 
+        @self.max_force.on_update
+        def _(_) -> None:
+            try:
+                s.set_force_limit(float(self.max_force.value))
+            except RtfemError as exc:
+                s.error = str(exc)
+
         @self.large.on_update
         def _(_) -> None:
             self._reconfigure()
@@ -252,7 +274,7 @@ class Viewer:
         changes = dict(method=self.method.value, n_modes=int(self.modes_slider.value), dt=float(self.dt_ms.value) * 1e-3,
                        alpha=float(self.alpha.value), E=float(self.E_kpa.value) * 1e3,
                        grasp_stiffness=float(self.k_grasp.value), grab_radius=float(self.grab_mm.value) * 1e-3,
-                       large=bool(self.large.value))
+                       max_force=float(self.max_force.value), large=bool(self.large.value))
         if not force and all(getattr(s.settings, k) == v for k, v in changes.items()):
             return
         self.stats_md.content = "rebuilding ..."
@@ -293,6 +315,7 @@ class Viewer:
                 peak = float(mag.max())
                 self.vmax = max(peak, 0.97 * self.vmax, 1e-4)
                 self.organ.glb_data = glb_bytes(s.X + u, tri, colormap(mag, self.vmax))
+                self._move_pick(u)
                 s.record_force()
                 self._draw_hand(u)
                 self.frames += 1
@@ -307,6 +330,19 @@ class Viewer:
             except Exception as exc:  # keep serving; say what went wrong
                 s.error = f"{type(exc).__name__}: {exc}"
             time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+
+    PICK_TOLERANCE = 5e-4  # m: how far the drawn organ may move from its grabbable copy
+
+    def _move_pick(self, u: np.ndarray) -> None:
+        """Bring the grabbable copy to the drawn surface (see _build_scene) when they differ."""
+        now = time.perf_counter()
+        if self._dragging or now - self._pick_time < 0.5:
+            return
+        up = u[self._pick_vertices]
+        if np.abs(up - self._pick_u).max() < self.PICK_TOLERANCE:
+            return
+        self._pick_u, self._pick_time = up.copy(), now
+        self.pick.vertices = (self.session.X[self._pick_vertices] + up).astype(np.float32)
 
     def _draw_hand(self, u: np.ndarray) -> None:
         s = self.session
@@ -327,13 +363,19 @@ class Viewer:
         self.plot.data = (hist[:, 0].copy(), hist[:, 1].copy())
         f = float(np.linalg.norm(s.force))
         lines = [
-            f"**{s.settings.label}**: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
+            f"**{s.settings.label}** on a {s.kind}: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
             f"dt = {s.settings.dt * 1e3:g} ms",
             f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
             f"{st.step_us:,.1f} us per step",
             f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
             f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm); field drawn on the {s.field_on.upper()}",
         ]
+        g = s.grasp
+        if s.node is not None and getattr(g, "clipped", False):
+            lines.append(f"**force clipped at {g.max_force:g} N**: the hand asks {g.demand:.1f} N; raise the force "
+                         "limit to follow it")
+        if s.building:
+            lines.append(f"precomputing: {s.building}")
         if s.local_status:
             lines.append(s.local_status)
         if s.error:
@@ -376,15 +418,21 @@ class Viewer:
 
 def serve(mesh=None, *, material: Material | None = None, fixed="attachment",
           settings: Settings | None = None, host: str = "127.0.0.1", port: int = 8080,
-          block: bool = True, model_options: dict | None = None) -> Viewer:
+          block: bool = True, model_options: dict | None = None, session: Session | None = None) -> Viewer:
     """Precompute, serve the viewer and (``block``) run until Ctrl-C. ``mesh``: a TriMesh (a shell)
     or a TetMesh (a solid, drawn and touched on its boundary); ``model_options`` go to the model
-    (``element``, ``mass`` of a solid)."""
+    (``element``, ``mass`` of a solid). No mesh: the scene of ``rtfem view``, the embedded liver
+    as a solid of tet10 with the reduced nonlinear model (a shell where the mesh extra is absent).
+    ``session``: serve this one instead (built by the caller)."""
     from .. import meshes
+    from ..meshing import mesher_available
 
     _need_viser()
-    mesh = meshes.liver() if mesh is None else mesh
-    session = Session(mesh, material, fixed, settings, model_options)
+    if session is None:
+        if mesh is None and mesher_available():
+            session = default_session(settings=settings)
+        else:
+            session = Session(meshes.liver() if mesh is None else mesh, material, fixed, settings, model_options)
     viewer = Viewer(session, host=host, port=port).start()
     if block:
         print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)

@@ -20,6 +20,7 @@ Methods
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import deque
@@ -40,6 +41,7 @@ from ..reduced import reduced_nonlinear_driver
 from ..model import make_model
 from .. import gpu
 from ..simulate import ModalSimulator, as_driver, prepare
+from ..threads import runtime
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
 #: response samples of the maps the impedance method builds per grabbed vertex (s)
@@ -57,9 +59,11 @@ class Settings:
     E: float | None = None  # Young's modulus (Pa); None: the material's
     grasp_stiffness: float = 200.0  # N/m
     grab_radius: float = 0.01  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
-    max_force: float = 2.0  # N
+    max_force: float = 10.0  # N: what a desktop haptic device renders (a Touch X: 7.9 N peak); the panel says when it clips
     large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
     local: float = 0.0  # m: each grab adds every dof within this of the held nodes to the basis (0: off; method "nonlinear" only)
+    derivatives: int = 10  # method "nonlinear": the modal derivatives of the lowest this many modes
+    spread: int = 1  # method "nonlinear": cubature element groups, one re-evaluated per step (1: all every step, stable)
 
     def check(self) -> "Settings":
         """Validate every field; returns a checked copy (numbers as floats, n_modes as an int)."""
@@ -74,6 +78,8 @@ class Settings:
             max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
             large=_large(self.method, self.large),
             local=validate.in_range(self.local, "local", 0.0, 1.0, what="the radius in m of the patch a grab adds"),
+            derivatives=validate.count(self.derivatives, "derivatives", 0, 200, what="modes whose derivatives are kept"),
+            spread=validate.count(self.spread, "spread", 1, 64, what="cubature element groups"),
         )
 
     @property
@@ -103,13 +109,14 @@ class Stats:
     realtime: float = 0.0  # simulated seconds per wall-clock second, last second
     step_us: float = 0.0  # median compute per step, last second
     forces: deque = field(default_factory=lambda: deque(maxlen=600))  # (t, |f|) at ~60 Hz
+    computes: deque = field(default_factory=lambda: deque(maxlen=1_000_000))  # every step's compute (s)
 
 
 class Session:
     """The organ, its precomputed dynamics and a thread stepping it in real time."""
 
     def __init__(self, mesh: TriMesh | TetMesh, material: Material | None = None, fixed="attachment",
-                 settings: Settings | None = None, model_options: dict | None = None) -> None:
+                 settings: Settings | None = None, model_options: dict | None = None, progress=None) -> None:
         if not isinstance(mesh, (TriMesh, TetMesh)):
             raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (a shell) or TetMesh (a solid)")
         if material is not None and not isinstance(material, Material):
@@ -138,6 +145,8 @@ class Session:
         self.local_status = ""  # what the per-grab localization is doing (settings.local > 0)
         self.localizing: threading.Thread | None = None
         self._local_gen = 0
+        self.building = ""  # what a (re)build is doing now, for the panel ("" when none runs)
+        self._progress = progress  # progress(done, total, message) of the precompute (the CLI's bars)
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
@@ -147,27 +156,47 @@ class Session:
         model.check_restrained()
         return model
 
+    def _report(self, stage: str):
+        """A progress(done, total, message) callback for one precompute stage: it keeps the
+        panel's line and feeds the caller's progress (the CLI's bar)."""
+        t0 = time.perf_counter()
+
+        def progress(done: int, total: int, message: str = "") -> None:
+            self.building = (f"{stage}: {done}/{total} {message} ({time.perf_counter() - t0:.0f} s)" if total
+                             else f"{stage} ...")
+            if self._progress is not None:
+                self._progress(stage, done, total, message)
+
+        return progress
+
     def _driver(self, s: Settings, model, modes, damping):
         """The Driver of a method: the one place the methods differ."""
         if s.method == "direct":
             return DirectSimulator(model, s.dt, damping, large_deformation=s.large)
         if s.method == "modal":
             return ModalSimulator(modes, s.dt, damping, static_correction=True, warping=s.large)
-        if s.method == "nonlinear":  # every cubature element each step: spread > 1 needs the high modes damped (zeta)
-            return reduced_nonlinear_driver(model, modes, s.dt, damping, spread=1, precision="single",
-                                            background=True)
+        if s.method == "nonlinear":  # static correction, single precision; spread > 1 diverged on a 3 cm pull (d = 10)
+            return reduced_nonlinear_driver(model, modes, s.dt, damping, derivatives=s.derivatives, spread=s.spread,
+                                            precision="single", background=True,
+                                            progress=self._report("modal derivatives"))
         return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
         """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock)."""
-        old = getattr(self, "model", None)
-        model = old if old is not None and old.material.E == s.E else self._model(s.E)
-        basis: ModalBasis | None = getattr(self, "modes", None)
-        if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
-            basis = modal_analysis(model, max(s.n_modes, 40))
-        modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis  # the r in use
-        damping = Damping(alpha=s.alpha)
-        driver = self._driver(s, model, modes, damping)
+        try:
+            self.building = "assembling the model ..."
+            old = getattr(self, "model", None)
+            model = old if old is not None and old.material.E == s.E else self._model(s.E)
+            basis: ModalBasis | None = getattr(self, "modes", None)
+            if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
+                r = max(s.n_modes, 40)
+                basis = modal_analysis(model, r, progress=self._report(f"modes (r = {r})"))
+            modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis  # the r in use
+            damping = Damping(alpha=s.alpha)
+            self.building = f"building the {s.method} driver ..."
+            driver = self._driver(s, model, modes, damping)
+        finally:
+            self.building = ""
         with self._lock:
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
             self.reduced = modes
@@ -204,7 +233,22 @@ class Session:
         s = replace(self.settings, **changes).check()
         if s.n_modes > self.model.n_dofs // self.model.dofs_per_node * 3 - 1:
             raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
+        changed = {f.name for f in fields(Settings) if getattr(s, f.name) != getattr(self.settings, f.name)}
+        if changed and changed <= {"grasp_stiffness", "grab_radius", "max_force"}:  # the hand only: no precompute
+            grasp = Grasp(self.mesh, self.driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
+                          radius=s.grab_radius)
+            with self._lock:
+                self.settings, self.grasp = s, grasp
+                self.node, self.target = None, None
+            return
         self._build(s)
+
+    def set_force_limit(self, newtons: float) -> None:
+        """Change the grasp's force limit (N) now, mid-pull included (the panel's slider)."""
+        f = validate.positive(newtons, "max_force", "the force limit in N")
+        with self._lock:
+            self.settings = replace(self.settings, max_force=f)
+            self.grasp.max_force = f
 
     # ---------------------------------------------------------------- the hand
     def grab(self, point, displacements: np.ndarray | None = None) -> int:
@@ -239,9 +283,21 @@ class Session:
         self.local_status = f"localizing: the dofs within {radius * 1e3:g} mm of vertex {node} ..."
 
         def work() -> None:
+            try:  # the lowest priority: the running model's thread comes first (Linux: per thread)
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+            except (AttributeError, OSError):  # pragma: no cover - other systems
+                pass
             try:
                 new = driver.localized(nodes, radius)
                 prepare(new, nodes)  # the held vertices' columns, outside the lock
+                cost = _step_cost(new)
+                if gen != self._local_gen:  # released or grabbed elsewhere meanwhile: not wanted any more
+                    return
+                if cost > 0.9 * new.dt:  # it could not keep real time: the running basis goes on
+                    self.local_status = (f"the patch within {radius * 1e3:g} mm of vertex {node} would take "
+                                         f"{cost * 1e3:.2f} ms a step, more than the {new.dt * 1e3:g} ms step: "
+                                         "kept the running basis")
+                    return
                 with self._lock:
                     if gen != self._local_gen or self.driver is not driver:  # a later grab says its own
                         if gen == self._local_gen:
@@ -270,6 +326,9 @@ class Session:
         with self._lock:
             self.node, self.target = None, None
             self.grasp.release()
+            if self.localizing is not None and self.localizing.is_alive():
+                self._local_gen += 1  # a patch still training is for this grab: dropped when it arrives
+                self.local_status = "released before the patch was ready: it is dropped, the running basis goes on"
 
     # ---------------------------------------------------------------- stepping
     def step(self) -> None:
@@ -278,6 +337,11 @@ class Session:
             self.grasp.update(self.target)
             self.stats.steps += 1
             self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
+
+    @property
+    def kind(self) -> str:
+        """The model in words: "solid (tet10)" or "shell"."""
+        return f"solid ({self.model.element})" if self.volume is not None else "shell"
 
     @property
     def force(self) -> np.ndarray:
@@ -308,6 +372,10 @@ class Session:
 
     # ---------------------------------------------------------------- the clock
     def _run(self) -> None:
+        with runtime():  # one BLAS thread while the organ is stepped (see rtfem.threads)
+            self._clock()
+
+    def _clock(self) -> None:
         st = self.stats
         wall0, steps0 = time.perf_counter(), st.steps
         window_steps, window_start, computes = 0, time.perf_counter(), []
@@ -327,6 +395,7 @@ class Session:
                 self.step()
                 c1 = time.perf_counter()
                 computes.append(c1 - c0)
+                st.computes.append(c1 - c0)
                 window_steps += 1
                 if c1 - window_start >= 1.0:
                     st.sim_rate = window_steps / (c1 - window_start)
@@ -347,3 +416,25 @@ class Session:
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
+
+
+def _step_cost(driver, steps: int = 30) -> float:
+    """Median seconds of a free step of ``driver`` (then reset): whether a new basis keeps real time."""
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        driver.step(None)
+        times.append(time.perf_counter() - t0)
+    driver.reset()
+    return float(np.median(times))
+
+
+def default_session(progress=None, settings: Settings | None = None) -> Session:
+    """The scene of ``rtfem view`` and ``make demo``: the embedded liver meshed into tets
+    (:func:`rtfem.meshes.liver`, ``solid=True``: the mesh extra) as a solid of tet10 (no locking
+    at nu = 0.45), held at its attachment, with the reduced nonlinear model (40 modes and the
+    derivatives of the lowest 10, cubature forces, the static correction) and the 10 mm jaw."""
+    from .. import meshes
+
+    return Session(meshes.liver(solid=True), Material(), "attachment", settings or Settings(method="nonlinear"),
+                   {"element": "tet10"}, progress=progress)

@@ -1,0 +1,122 @@
+"""``rtfem view --benchmark``: the viewer's session run headless under a scripted grab.
+
+The session steps on its own thread exactly as behind the browser (its clock, the BLAS limit of
+run time, the background tangent of the reduced nonlinear model), and a frame thread does the
+viewer's per-frame work at up to 30 frames per second (the field, its colours and the binary
+glTF of the surface; only the websocket is missing). The script: at 10 % of the time the
+default vertex (the mesh's ``probe`` group, else the free surface vertex farthest from the
+supports) is grabbed with the panel's jaw, pulled 3 cm along its outward normal by 30 %, held
+until 60 % and released; the organ then settles. One JSON line reports what a user would see.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from .session import Session
+
+PULL = 0.03  # m
+
+
+def default_vertex(session: Session) -> int:
+    """The vertex the benchmark grabs: the mesh's ``probe`` group, else the free surface vertex
+    farthest from the supports."""
+    probe = session.mesh.groups.get("probe") if session.mesh.groups else None
+    if probe is not None and len(probe):
+        return int(np.asarray(probe)[0])
+    from ..bench import probe_vertex
+
+    return probe_vertex(session.model)
+
+
+def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30.0) -> dict:
+    """Run the scripted grab for ``seconds`` of wall-clock time and return the report."""
+    try:
+        from .app import colormap, glb_bytes
+        import trimesh  # noqa: F401
+
+        draw = True
+    except ImportError:  # the viewer extra absent: the field only
+        draw = False
+    node = default_vertex(session)
+    X = session.X[node]
+    normal = session.mesh.vertex_normals()[node]
+    tri = session.mesh.triangles
+    peak = [0.0, 0.0]  # the largest displacement drawn (m), the largest force (N)
+    clipped = [0]
+    frames = [0]
+    stop = threading.Event()
+
+    def frame_thread() -> None:
+        period = 1.0 / fps
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            u = session.displacements()
+            mag = np.linalg.norm(u, axis=1)
+            peak[0] = max(peak[0], float(mag.max()))
+            if draw:
+                glb_bytes(session.X + u, tri, colormap(mag, max(float(mag.max()), 1e-4)))
+            session.record_force()
+            frames[0] += 1
+            time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+
+    steps0 = session.stats.steps
+    session.stats.computes.clear()
+    session.start()
+    drawer = threading.Thread(target=frame_thread, name="rtfem-benchmark-frames", daemon=True)
+    wall0 = time.perf_counter()
+    drawer.start()
+    grabbed = released = False
+    try:
+        while True:
+            now = time.perf_counter() - wall0
+            if now >= seconds:
+                break
+            f = now / seconds
+            if not grabbed and f >= 0.1:
+                session.grab(X)
+                grabbed = True
+            if grabbed and not released:
+                if f >= 0.6:
+                    session.release()
+                    released = True
+                else:
+                    session.drag(X + pull * min(1.0, (f - 0.1) / 0.2) * normal)
+                    peak[1] = max(peak[1], float(np.linalg.norm(session.force)))
+                    clipped[0] += bool(getattr(session.grasp, "clipped", False))
+            if session.error:
+                break
+            time.sleep(0.005)
+    finally:
+        wall = time.perf_counter() - wall0
+        stop.set()
+        drawer.join(timeout=5)
+        session.stop()
+    steps = session.stats.steps - steps0
+    computes = np.array(session.stats.computes, dtype=float) * 1e6
+    s = session.settings
+    model = session.model
+    return {
+        "model": "solid" if session.volume is not None else "shell",
+        "element": getattr(model, "element", "shell"),
+        "method": s.method,
+        "nodes": int(model.n_nodes),
+        "coordinates": int(getattr(getattr(session.driver, "reduced", None), "size", session.reduced.n_modes)),
+        "seconds": round(wall, 3),
+        "steps_per_s": round(steps / wall, 1),
+        "realtime": round(steps * session.driver.dt / wall, 4),
+        "step_p50_us": round(float(np.median(computes)), 1) if computes.size else None,
+        "step_p99_us": round(float(np.percentile(computes, 99)), 1) if computes.size else None,
+        "frames_per_s": round(frames[0] / wall, 1),
+        "frames_drawn": "glb" if draw else "field only",
+        "max_force_N": round(peak[1], 4),
+        "force_limit_N": s.max_force,
+        "clipped": clipped[0] > 0,
+        "peak_mm": round(peak[0] * 1e3, 3),
+        "vertex": node,
+        "local": session.local_status or None,
+        "error": session.error,
+    }
