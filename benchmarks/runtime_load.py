@@ -12,7 +12,9 @@ quiet machine and once while another process keeps one core busy (a Python spin 
 * ``nonlinear shell``: the reduced nonlinear step (40 modes + derivatives of 20, cubature,
   static correction, single precision, spread 1) under a Grasp pulled 2 cm, 2,000 steps;
 * ``view``: ``rtfem view --benchmark 5``: the default scene (the liver as a solid of tet10, the
-  reduced nonlinear model) stepped by the viewer's session with frames drawn at up to 30/s.
+  reduced nonlinear model) stepped by the viewer's session with frames drawn at up to 30/s;
+* ``view-local``: the same for 10 s with ``--local 20``: the grab trains a 20 mm patch in the
+  background (the end of the row: what became of it).
 
 Medians and 99th percentiles per step; the ratio busy / quiet of the medians in the same run.
 
@@ -94,6 +96,8 @@ def run_path(path: str, limit: bool, busy: bool, seconds: float) -> dict:
     try:
         if path == "view":
             cmd = [sys.executable, "-m", "rtfem.cli", "view", "--benchmark", str(seconds)]
+        elif path == "view-local":
+            cmd = [sys.executable, "-m", "rtfem.cli", "view", "--benchmark", str(2 * seconds), "--local", "20"]
         else:
             cmd = [sys.executable, __file__, "--worker", path, "--seconds", str(seconds)]
         r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
@@ -105,15 +109,15 @@ def run_path(path: str, limit: bool, busy: bool, seconds: float) -> dict:
     if r.returncode != 0 or not line:
         return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:]}
     out = json.loads(line[-1])
-    if path == "view":
+    if path.startswith("view"):
         out = {"p50_us": out["step_p50_us"], "p99_us": out["step_p99_us"], "realtime": out["realtime"],
-               "fps": out["frames_per_s"]}
+               "fps": out["frames_per_s"], "local": out.get("local")}
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--paths", nargs="+", default=["modal", "field", "nonlinear", "view"])
+    ap.add_argument("--paths", nargs="+", default=["modal", "field", "nonlinear", "view", "view-local"])
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--worker")
     args = ap.parse_args()
@@ -123,7 +127,8 @@ def main() -> None:
     from _common import print_table
 
     names = {"modal": "modal r=100, haptic step", "field": "field 15k vertices r=50 float32",
-             "nonlinear": "reduced nonlinear shell, Grasp step", "view": "rtfem view --benchmark (solid tet10 nonlinear)"}
+             "nonlinear": "reduced nonlinear shell, Grasp step", "view": "rtfem view --benchmark (solid tet10 nonlinear)",
+             "view-local": "same, --local 20 (a patch trained per grab), twice as long"}
     rows = []
     for path in args.paths:
         for limit in (True, False):
@@ -133,6 +138,8 @@ def main() -> None:
                 if "error" in r:
                     return f"failed: {r['error']}"
                 extra = f", {r['realtime']:.2f} x real time, {r['fps']:.0f} frames/s" if "realtime" in r else ""
+                if r.get("local"):
+                    extra += f" ({r['local'].split(':')[0]})"
                 return f"{r['p50_us']:,.0f} / {r['p99_us']:,.0f} us{extra}"
 
             ratio = (f"{res[True]['p50_us'] / res[False]['p50_us']:.2f}"

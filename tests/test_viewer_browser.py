@@ -50,6 +50,17 @@ def _wait(cond, timeout: float, what: str) -> None:
         time.sleep(0.1)
 
 
+def _dismiss_notices(page) -> None:
+    """Close viser's "Software WebGL rendering detected" notice (headless chromium draws in
+    software), which would cover part of the screenshots (docs/img/viewer.png is one)."""
+    try:
+        page.get_by_text("Software WebGL rendering detected").wait_for(timeout=5000)
+        page.locator("#webgl-software-rendering button.mantine-Notification-closeButton").click(timeout=2000)
+        page.locator("#webgl-software-rendering").wait_for(state="detached", timeout=5000)
+    except Exception:  # no notice (a GPU), or another layout: the screenshots keep it
+        pass
+
+
 def _pixels(png: bytes) -> np.ndarray:
     from io import BytesIO
 
@@ -92,6 +103,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
             page.goto(viewer.url)
             _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
             page.wait_for_selector("canvas", timeout=60_000)
+            _dismiss_notices(page)
             start = viewer.frames
             _wait(lambda: viewer.frames > start + 30, 60, "frames to be served")
             time.sleep(3.0)  # the client renders what it was sent

@@ -151,7 +151,7 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
     ``solid="auto"``: a closed surface is, an open one is not."""
     from . import meshes
     from .meshfile import load_mesh
-    from .meshing import cached_tetrahedralize, mesher_available
+    from .meshing import cached_tetrahedralize, is_cached, mesher_available
     from .tetmesh import TetMesh
 
     if solid == "auto" and not mesher_available():
@@ -160,7 +160,11 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
         solid = False
     if path is None:
         if solid:  # True, or "auto": the embedded liver is closed
-            mesh = meshes.liver(solid=True, spacing=None if edge_length is None else edge_length / scale)
+            spacing = None if edge_length is None else edge_length / scale
+            if not is_cached(meshes.liver(3), spacing):
+                print("meshing     the embedded liver into tets (fTetWild, a few seconds; kept for later runs) ...",
+                      flush=True)
+            mesh = meshes.liver(solid=True, spacing=spacing)
         else:
             mesh = meshes.liver()
         return mesh if scale == 1.0 else mesh.scaled(scale)

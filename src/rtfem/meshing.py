@@ -202,18 +202,27 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rtfem"
 
 
+def _cache_entry(surface: TriMesh, edge_length: float | None) -> tuple[str, Path]:
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(surface.vertices).tobytes())
+    h.update(np.ascontiguousarray(surface.triangles, dtype=np.int64).tobytes())
+    h.update(repr(edge_length).encode())
+    key = h.hexdigest()
+    return key, cache_dir() / f"tets-{key[:20]}.npz"
+
+
+def is_cached(surface: TriMesh, edge_length: float | None = None) -> bool:
+    """Whether :func:`cached_tetrahedralize` has this surface's tets on disk (no meshing to wait for)."""
+    return _cache_entry(surface, edge_length)[1].is_file()
+
+
 def cached_tetrahedralize(surface: TriMesh, edge_length: float | None = None) -> TetMesh:
     """:func:`tetrahedralize`, kept on disk (:func:`cache_dir`) under a hash of the surface and
     the edge length. fTetWild's result differs from run to run, so a generated organ (the solid
     default liver) would otherwise get a new mesh, and saved results a new fingerprint, in every
     process; with the cache it is made once per machine. A cache file that does not read back
     as a valid mesh is replaced."""
-    h = hashlib.sha1()
-    h.update(np.ascontiguousarray(surface.vertices).tobytes())
-    h.update(np.ascontiguousarray(surface.triangles, dtype=np.int64).tobytes())
-    h.update(repr(edge_length).encode())
-    key = h.hexdigest()
-    path = cache_dir() / f"tets-{key[:20]}.npz"
+    key, path = _cache_entry(surface, edge_length)
     if path.is_file():
         try:  # checksummed, and made from this surface (a file swapped in from another key is not)
             z, info = load_versioned(path, "rtfem.TetCache", 1, ["vertices", "tets"], "tet mesh cache")
