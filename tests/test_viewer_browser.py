@@ -9,6 +9,7 @@ RTFEM_REQUIRE_BROWSER=1 (set by .ci/run, which installs Debian's chromium when m
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import socket
@@ -61,6 +62,23 @@ def _dismiss_notices(page) -> None:
         pass
 
 
+@contextlib.contextmanager
+def _open_page(viewer):
+    """Headless chromium showing the viewer: the page once connected and drawing."""
+    exe = _chromium()
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(viewer.url)
+            _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
+            page.wait_for_selector("canvas", timeout=60_000)
+            _dismiss_notices(page)
+            yield page
+        finally:
+            browser.close()
+
+
 def _pixels(png: bytes) -> np.ndarray:
     from io import BytesIO
 
@@ -95,45 +113,35 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     import rtfem as rt
 
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    exe = _chromium()
-    with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=exe, headless=True, args=ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            page.goto(viewer.url)
-            _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
-            page.wait_for_selector("canvas", timeout=60_000)
-            _dismiss_notices(page)
-            start = viewer.frames
-            _wait(lambda: viewer.frames > start + 30, 60, "frames to be served")
-            time.sleep(3.0)  # the client renders what it was sent
-            plot = page.locator(".uplot").first
-            plot_before = _pixels(plot.screenshot())
-            before_png = page.screenshot(path=str(ARTIFACTS / f"1_before_{viewer.kind}.png"))
-            before = viewer.state()
-            assert before["max_displacement"] < 1e-12 and before["force"] == 0.0  # m: at rest, to roundoff
+    with _open_page(viewer) as page:
+        start = viewer.frames
+        _wait(lambda: viewer.frames > start + 30, 60, "frames to be served")
+        time.sleep(3.0)  # the client renders what it was sent
+        plot = page.locator(".uplot").first
+        plot_before = _pixels(plot.screenshot())
+        before_png = page.screenshot(path=str(ARTIFACTS / f"1_before_{viewer.kind}.png"))
+        before = viewer.state()
+        assert before["max_displacement"] < 1e-12 and before["force"] == 0.0  # m: at rest, to roundoff
 
-            # the camera looks at the organ's centre, which is the canvas centre
-            canvas = page.locator("canvas").first.bounding_box()
-            x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
-            page.mouse.move(x0, y0)
-            page.mouse.down()
-            for i in range(1, 21):
-                page.mouse.move(x0 + 3 * i, y0 - 5 * i)
-                time.sleep(0.05)
-            _wait(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
-            time.sleep(2.0)
-            during = viewer.state()
-            held, held_forces = viewer.session.grasp.nodes.copy(), viewer.session.grasp.forces.copy()
-            during_png = page.screenshot(path=str(ARTIFACTS / f"2_dragging_{viewer.kind}.png"))
-            plot_during = _pixels(plot.screenshot(path=str(ARTIFACTS / f"2_force_plot_{viewer.kind}.png")))
-            page.mouse.up()
-            _wait(lambda: viewer.state()["grabbed"] is None, 20, "the release")
-            time.sleep(2.5)
-            after = viewer.state()
-            page.screenshot(path=str(ARTIFACTS / f"3_released_{viewer.kind}.png"))
-        finally:
-            browser.close()
+        # the camera looks at the organ's centre, which is the canvas centre
+        canvas = page.locator("canvas").first.bounding_box()
+        x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+        page.mouse.move(x0, y0)
+        page.mouse.down()
+        for i in range(1, 21):
+            page.mouse.move(x0 + 3 * i, y0 - 5 * i)
+            time.sleep(0.05)
+        _wait(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
+        time.sleep(2.0)
+        during = viewer.state()
+        held, held_forces = viewer.session.grasp.nodes.copy(), viewer.session.grasp.forces.copy()
+        during_png = page.screenshot(path=str(ARTIFACTS / f"2_dragging_{viewer.kind}.png"))
+        plot_during = _pixels(plot.screenshot(path=str(ARTIFACTS / f"2_force_plot_{viewer.kind}.png")))
+        page.mouse.up()
+        _wait(lambda: viewer.state()["grabbed"] is None, 20, "the release")
+        time.sleep(2.5)
+        after = viewer.state()
+        page.screenshot(path=str(ARTIFACTS / f"3_released_{viewer.kind}.png"))
 
     # served state: one drag, a vertex held by a real force, the organ deformed, the plot fed
     assert during["drags"] == 1 and during["error"] is None
@@ -179,33 +187,24 @@ def test_presses_grab_the_organ_at_a_low_frame_rate():
     from rtfem.viewer.session import Session
 
     v = Viewer(Session(rt.meshes.liver(), fixed="attachment"), port=_free_port(), fps=2.0).start()
-    exe = _chromium()
     try:
-        with playwright_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=exe, headless=True, args=ARGS)
-            try:
-                page = browser.new_page(viewport={"width": 1280, "height": 800})
-                page.goto(v.url)
-                _wait(lambda: v.state()["clients"] >= 1, 60, "the browser to connect")
-                page.wait_for_selector("canvas", timeout=60_000)
-                time.sleep(3.0)
-                canvas = page.locator("canvas").first.bounding_box()
-                x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
-                grabbed = []
-                for k in range(3):
-                    page.mouse.move(x0, y0)
-                    page.mouse.down()
-                    for i in range(1, 11):
-                        page.mouse.move(x0 + 3 * i, y0 - 4 * i)
-                        time.sleep(0.05)
-                    _wait(lambda: v.state()["grabbed"] is not None, 20, f"press {k + 1} to grab the organ")
-                    grabbed.append(v.state()["grabbed"])
-                    time.sleep(0.7)  # mid-pull: frames (and the organ) change under the mouse
-                    page.mouse.up()
-                    _wait(lambda: v.state()["grabbed"] is None, 20, "the release")
-                    time.sleep(0.8)  # the next press lands while the organ still settles
-            finally:
-                browser.close()
+        with _open_page(v) as page:
+            time.sleep(3.0)
+            canvas = page.locator("canvas").first.bounding_box()
+            x0, y0 = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+            grabbed = []
+            for k in range(3):
+                page.mouse.move(x0, y0)
+                page.mouse.down()
+                for i in range(1, 11):
+                    page.mouse.move(x0 + 3 * i, y0 - 4 * i)
+                    time.sleep(0.05)
+                _wait(lambda: v.state()["grabbed"] is not None, 20, f"press {k + 1} to grab the organ")
+                grabbed.append(v.state()["grabbed"])
+                time.sleep(0.7)  # mid-pull: frames (and the organ) change under the mouse
+                page.mouse.up()
+                _wait(lambda: v.state()["grabbed"] is None, 20, "the release")
+                time.sleep(0.8)  # the next press lands while the organ still settles
     finally:
         v.stop()
     assert v.drags == 3 and len(grabbed) == 3 and v.state()["error"] is None
