@@ -316,3 +316,32 @@ def test_a_patch_that_arrives_after_the_release_or_too_slow_is_not_swapped_in(mo
     s.grab(X[node])
     s.localizing.join(120)
     assert s.driver is plain and "kept the running basis" in s.local_status and "5.00 ms" in s.local_status
+
+
+def test_new_viewer_settings_and_entry_points_refuse_bad_values():
+    """The derivatives, spread and force limit of the viewer, and the benchmark's arguments: a
+    bad value is an RtfemError that changes nothing."""
+    from rtfem.viewer import benchmark
+
+    for bad in (dict(derivatives=-1), dict(spread=0), dict(spread=2.5), dict(max_force=0.0),
+                dict(max_force=float("nan"))):
+        with pytest.raises(rt.RtfemError):
+            Settings(**bad).check()
+    mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=6, ny=2, nz=2)
+    s = Session(mesh, rt.Material(E=1e5, nu=0.3, density=10.0), fixed="x0", settings=Settings(n_modes=6))
+    assert s.settings.max_force == 10.0 and s.grasp.max_force == 10.0  # a desktop device's range, not 2 N
+    for bad in (-1.0, 0.0, float("inf"), "ten"):
+        with pytest.raises(rt.RtfemError):
+            s.set_force_limit(bad)
+    assert s.settings.max_force == 10.0 and s.grasp.max_force == 10.0
+    s.set_force_limit(3.0)
+    assert s.settings.max_force == 3.0 and s.grasp.max_force == 3.0
+    driver = s.driver
+    s.configure(grab_radius=0.0, grasp_stiffness=80.0)  # the hand only: no new precompute
+    assert s.driver is driver and s.grasp.stiffness == 80.0 and s.grasp.max_force == 3.0
+    for kw in (dict(seconds=0.0), dict(seconds=-1.0), dict(seconds=float("nan")), dict(seconds=1.0, pull=-0.01)):
+        with pytest.raises(rt.RtfemError):
+            benchmark.run(s, **kw)
+    with pytest.raises(rt.RtfemError):
+        benchmark.run("session", 1.0)
+    assert s.stats.steps == 0 and s.node is None  # nothing ran

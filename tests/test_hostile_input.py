@@ -1,6 +1,7 @@
 """Hostile input, as a new user meets it on the newer parts (issue 36, item 8): each case gets a
 specific RtfemError that says what to do, and nothing already computed is changed."""
 
+import os
 import subprocess
 import sys
 import threading
@@ -324,3 +325,17 @@ def test_a_static_correction_refuses_to_solve_on_changed_supports(beam):
                  lambda: (sim.step({int(tip[1]): (0.0, 0.0, 1.0)}), sim.displacements())):  # (the field needs its column)
         with pytest.raises(rt.ModelError, match="supports changed"):
             call()
+
+
+def test_a_bad_runtime_thread_count_warns_and_keeps_one_thread():
+    """RTFEM_RUNTIME_THREADS is read when rtfem is imported: a bad value is a warning naming it,
+    not a traceback, and the run-time limit stays one thread."""
+    code = ("import warnings\nwarnings.simplefilter('always')\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    import rtfem.threads as t\n"
+            "print(t.RUNTIME_THREADS, [str(x.message) for x in w])\n")
+    for bad in ("abc", "-2"):
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ, RTFEM_RUNTIME_THREADS=bad))
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+        assert r.stdout.startswith("1 ") and "RTFEM_RUNTIME_THREADS" in r.stdout, r.stdout

@@ -80,9 +80,15 @@ def _runtime_threads() -> int:
     try:
         value = int(text)
     except ValueError:
-        raise ValueError(f"RTFEM_RUNTIME_THREADS={text!r}: give a whole number of threads (0: no limit)") from None
-    if value < 0:
-        raise ValueError(f"RTFEM_RUNTIME_THREADS={text!r}: give a whole number >= 0 (0: no limit)")
+        value = -1
+    if value < 0:  # a warning, not an error: the variable is read when rtfem is imported
+        import warnings
+
+        from .errors import RtfemWarning
+
+        warnings.warn(f"RTFEM_RUNTIME_THREADS={text!r} is not a whole number >= 0 (0: no limit); using 1",
+                      RtfemWarning, stacklevel=2)
+        value = 1
     return value
 
 

@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from .. import validate
+from ..errors import ModelError
 from .session import Session
 
 PULL = 0.03  # m
@@ -34,6 +36,11 @@ def default_vertex(session: Session) -> int:
 
 def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30.0) -> dict:
     """Run the scripted grab for ``seconds`` of wall-clock time and return the report."""
+    if not isinstance(session, Session):
+        raise ModelError(f"session={validate.show(session)} must be a viewer Session")
+    seconds = validate.in_range(seconds, "seconds", 0.0, 3600.0, lo_open=True, what="the benchmark's duration in s")
+    pull = validate.in_range(pull, "pull", 0.0, 1.0, lo_open=True, what="the pull in m")
+    fps = validate.in_range(fps, "fps", 0.0, 1000.0, lo_open=True, what="frames per second")
     try:
         from .app import colormap, glb_bytes
         import trimesh  # noqa: F401
