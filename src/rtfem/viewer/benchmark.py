@@ -42,7 +42,7 @@ def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30
     pull = validate.in_range(pull, "pull", 0.0, 1.0, lo_open=True, what="the pull in m")
     fps = validate.in_range(fps, "fps", 0.0, 1000.0, lo_open=True, what="frames per second")
     try:
-        from .app import colormap, glb_bytes
+        from .app import surface_faces, surface_glb
         import trimesh  # noqa: F401
 
         draw = True
@@ -51,7 +51,7 @@ def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30
     node = default_vertex(session)
     X = session.X[node]
     normal = session.mesh.vertex_normals()[node]
-    tri = session.mesh.triangles
+    faces = surface_faces(session) if draw else None
     peak = [0.0, 0.0]  # the largest displacement drawn (m), the largest force (N)
     clipped = [0]
     frames = [0]
@@ -61,11 +61,11 @@ def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30
         period = 1.0 / fps
         while not stop.is_set():
             t0 = time.perf_counter()
-            u = session.displacements()
-            mag = np.linalg.norm(u, axis=1)
-            peak[0] = max(peak[0], float(mag.max()))
+            u = session.surface_displacements()
+            top = float(np.linalg.norm(u, axis=1).max())
+            peak[0] = max(peak[0], top)
             if draw:
-                glb_bytes(session.X + u, tri, colormap(mag, max(float(mag.max()), 1e-4)))
+                surface_glb(session, u, faces, max(top, 1e-4))
             session.record_force()
             frames[0] += 1
             time.sleep(max(0.0, period - (time.perf_counter() - t0)))

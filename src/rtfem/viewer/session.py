@@ -40,7 +40,7 @@ from ..modal import ModalBasis, modal_analysis
 from ..reduced import reduced_nonlinear_driver
 from ..model import make_model
 from .. import gpu
-from ..simulate import ModalSimulator, as_driver, prepare
+from ..simulate import ModalSimulator, as_driver, displacements_at, prepare
 from ..threads import runtime
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
@@ -135,6 +135,7 @@ class Session:
             self.settings.E = self.material.E
         self._fixed = fixed
         self.X = np.asarray(self.mesh.vertices)
+        self.drawn = self.mesh.used_vertices()  # the surface's vertices (a solid's interior is not drawn)
         self._lock = threading.RLock()
         self.field_device = "gpu" if gpu.module() is not None else "cpu"  # where a modal field is drawn from
         self._stop = threading.Event()
@@ -365,6 +366,15 @@ class Session:
                         self.error = f"the GPU field failed ({type(exc).__name__}: {exc}); drawing from the CPU"
                 return self.driver.displacements(dtype=np.float32)
             return self.driver.displacements()
+
+    def surface_displacements(self) -> np.ndarray:
+        """The (k, 3) displacements of the drawn vertices (:attr:`drawn`) now: what a frame shows.
+        A solid's field is evaluated on its surface only (566 of the 7,398 nodes of the default
+        tet10 liver)."""
+        if type(self.driver) is ModalSimulator or self.drawn.size == self.X.shape[0]:
+            return self.displacements()[self.drawn]
+        with self._lock:
+            return displacements_at(self.driver, self.drawn)
 
     def record_force(self) -> None:
         with self._lock:

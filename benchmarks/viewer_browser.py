@@ -1,0 +1,106 @@
+"""The viewer with a real browser drawing: the default scene pulled in headless chromium.
+
+The scene of ``rtfem view`` (``default_session()``: the liver as a solid of tet10, the reduced
+nonlinear model) is served, headless chromium (Debian's, WebGL in software: swiftshader, on the
+same cores) opens it and drags the organ from the canvas centre, holds the pull for
+``--seconds`` and lets go. The session's rate (steps/s, fraction of real time) and the frames
+sent per second are sampled every 0.5 s during the hold; once quiet, once while another process
+keeps one core busy. Needs playwright and a chromium binary (the test extra; apt-get install
+chromium).
+
+    python benchmarks/viewer_browser.py [--seconds 8] [--chromium PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def measure(viewer, chromium: str, seconds: float) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    rates, real, frames = [], [], []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(viewer.url)
+            page.wait_for_selector("canvas", timeout=60_000)
+            time.sleep(3.0)
+            box = page.locator("canvas").first.bounding_box()
+            x0, y0 = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            page.mouse.move(x0, y0)
+            page.mouse.down()
+            for i in range(1, 21):
+                page.mouse.move(x0 + 3 * i, y0 - 5 * i)
+                time.sleep(0.05)
+            t0 = time.perf_counter()
+            time.sleep(1.5)  # the rates cover a whole second of the pull
+            while time.perf_counter() - t0 < seconds:
+                st = viewer.state()
+                rates.append(st["sim_rate"])
+                real.append(viewer.session.stats.realtime)
+                frames.append(st["frame_rate"])
+                time.sleep(0.5)
+            grabbed = viewer.state()["grabbed"] is not None
+            page.mouse.up()
+        finally:
+            browser.close()
+    return {"grabbed": grabbed, "steps_per_s": float(np.median(rates)), "realtime_p50": float(np.median(real)),
+            "realtime_min": float(np.min(real)), "frames_per_s": float(np.median(frames))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--chromium", default=shutil.which("chromium") or shutil.which("chromium-browser"))
+    args = ap.parse_args()
+    if not args.chromium:
+        raise SystemExit("no chromium binary: apt-get install chromium, or give --chromium PATH")
+    from rtfem.viewer.app import Viewer
+    from rtfem.viewer.session import default_session
+    from _common import print_table
+
+    session = default_session()
+    rows = []
+    for busy in (False, True):
+        spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+        viewer = Viewer(session, port=_free_port()).start()
+        try:
+            r = measure(viewer, args.chromium, args.seconds)
+        finally:
+            viewer.stop()
+            session.release()
+            if spinner is not None:
+                spinner.kill()
+                spinner.wait()
+        rows.append(["one core busy" if busy else "quiet", "yes" if r["grabbed"] else "NO",
+                     f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
+                     f"{r['frames_per_s']:.0f}"])
+        print(rows[-1], flush=True)
+    print()
+    print_table(["machine", "grabbed", "steps/s (median)", "real time (median, min of 0.5 s samples)",
+                 "frames sent /s"], rows)
+
+
+if __name__ == "__main__":
+    main()
