@@ -339,3 +339,22 @@ def test_a_bad_runtime_thread_count_warns_and_keeps_one_thread():
                            env=dict(os.environ, RTFEM_RUNTIME_THREADS=bad))
         assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
         assert r.stdout.startswith("1 ") and "RTFEM_RUNTIME_THREADS" in r.stdout, r.stdout
+
+
+def test_background_threads_are_stopped_and_joined_before_the_interpreter_exits():
+    """A daemon thread inside C++ code (scipy's sparse kernels) when Python finalizes is unwound
+    by force and libstdc++ aborts the process (a fresh clone's passing test run exited so):
+    threads.background() threads are stopped and joined at exit, so they end on their own."""
+    code = ("import threading, time, numpy as np, scipy.sparse as sp, rtfem.threads as th\n"
+            "A = sp.random(2000, 2000, density=0.01, format='csr', random_state=0); x = np.ones(2000)\n"
+            "stop = threading.Event()\n"
+            "def work():\n"
+            "    try:\n"
+            "        while not stop.is_set():\n"
+            "            A @ x\n"
+            "    finally:\n"
+            "        print('worker ended', flush=True)\n"
+            "th.background(threading.Thread(target=work, daemon=True), stop.set).start()\n"
+            "time.sleep(0.2)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "worker ended" in r.stdout, (r.returncode, r.stdout, r.stderr[-500:])

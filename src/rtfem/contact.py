@@ -59,7 +59,7 @@ from . import validate
 from .errors import ModelError
 from .mesh import TriMesh
 from .simulate import as_driver, displacements_at, predictions, prepare, step_compliances
-from .threads import runtime
+from .threads import background, runtime
 
 __all__ = ["Tool", "ToolContact", "pgs", "closest_points_on_triangles", "hold_patch", "nodes_to_prepare"]
 
@@ -917,8 +917,15 @@ class _Preparer:
             self._pending, self._where, self._at = nodes[fresh], where[fresh], np.asarray(at, dtype=float)
             if self._pending.size and (self._thread is None or not self._thread.is_alive()):
                 self._thread = threading.Thread(target=self._run, name="rtfem-prepare", daemon=True)
+                background(self._thread, self.close)
                 self._thread.start()
             self._cv.notify()
+
+    def close(self) -> None:
+        """Drop what is pending: the thread ends after the batch in hand (the interpreter's exit)."""
+        with self._cv:
+            self._pending, self._where = self._pending[:0], self._where[:0]
+            self._cv.notify_all()
 
     def _run(self) -> None:
         # BLAS and MKL held to one thread while this thread lives (the run-time limit the loops

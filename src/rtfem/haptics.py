@@ -735,8 +735,17 @@ class HapticLoop:
         run = self._run_compiled if compiled else self._run
         self._thread = threading.Thread(target=run, args=(self.stats, max_steps, seconds),
                                         name="rtfem-haptic-loop", daemon=True)
+        from .threads import background
+
+        background(self._thread, self._signal_stop)
         self._thread.start()
         return self
+
+    def _signal_stop(self) -> None:
+        """Tell the ticks to end (Python and compiled), without waiting."""
+        self._stop.set()
+        self._ctl[0] = 1
+        self._resume.set()  # a loop waiting for a grab or release goes on to stop
 
     def _pause_point(self) -> None:
         """The loop thread, its ticks stopped for a waiting grab or release: wait until it is done."""
@@ -771,9 +780,7 @@ class HapticLoop:
         that does not end within ``timeout`` s (a device whose position() never returns) is left
         to end by itself and a SolverError says so, instead of waiting forever."""
         timeout = validate.positive(timeout, "timeout", "seconds to wait for the loop's thread")
-        self._stop.set()
-        self._ctl[0] = 1
-        self._resume.set()  # a loop waiting for a grab or release goes on to stop
+        self._signal_stop()
         if self._thread is not None:
             self._thread.join(timeout)
             if self._thread.is_alive():

@@ -1101,6 +1101,7 @@ class _TangentWorker:
         self._epoch = 0
         self._thread = None
         self.failed: BaseException | None = None
+        self._closing = False
         self.done = 0  # linearizations computed (for tests and benchmarks)
 
     def ask(self, q: np.ndarray) -> bool:
@@ -1114,6 +1115,7 @@ class _TangentWorker:
             if self._thread is None or not self._thread.is_alive():
                 threads._RUNTIME.acquire()  # here, on the stepping thread: no BLAS call of its runs meanwhile
                 self._thread = threading.Thread(target=self._run, name="rtfem-tangent", daemon=True)
+                threads.background(self._thread, self.close)
                 self._thread.start()
             self._cv.notify()
         return True
@@ -1129,6 +1131,13 @@ class _TangentWorker:
             self._epoch += 1
             self._request = self._result = None
 
+    def close(self) -> None:
+        """End the thread after the linearization in hand (the interpreter's exit calls this)."""
+        with self._cv:
+            self._closing = True
+            self._request = None
+            self._cv.notify_all()
+
     def _run(self) -> None:
         try:
             self._work()
@@ -1142,8 +1151,10 @@ class _TangentWorker:
             pass
         while True:
             with self._cv:
-                if self._request is None and not self._cv.wait_for(lambda: self._request is not None,
-                                                                   timeout=self.IDLE):
+                if self._request is None and not self._cv.wait_for(
+                        lambda: self._request is not None or self._closing, timeout=self.IDLE):
+                    return
+                if self._closing:
                     return
                 (epoch, q), self._request, self._busy = self._request, None, True
             try:

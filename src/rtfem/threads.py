@@ -17,11 +17,14 @@ modal step 8-16 ms instead of 0.11 ms. :func:`runtime` holds every BLAS pool to
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import threading
+import time
+import weakref
 
-__all__ = ["blas_limits", "usable_cores", "SharedLimit", "runtime", "RUNTIME_THREADS"]
+__all__ = ["blas_limits", "usable_cores", "SharedLimit", "runtime", "RUNTIME_THREADS", "background"]
 
 
 def usable_cores() -> int:
@@ -106,3 +109,36 @@ def runtime():
         yield
     finally:
         _RUNTIME.release()
+
+
+# ---------------------------------------------------------------- background threads at exit
+_BACKGROUND: list = []  # (weak reference to a thread, its stop callable or None)
+EXIT_WAIT = 30.0  # s: how long the interpreter's exit waits for background threads in all
+
+
+def background(thread: threading.Thread, stop=None) -> threading.Thread:
+    """Register a daemon thread to be stopped (``stop()``) and joined when the interpreter exits.
+    A daemon thread still inside a C++ routine (scipy's sparse kernels, the sparse solvers) when
+    Python finalizes is unwound by force on its way back to the GIL, and libstdc++ aborts the
+    whole process ("terminate called without an active exception": a fresh clone's test run
+    that had passed every test exited 134 so). Joined at exit (atexit runs before the
+    finalization), it ends first."""
+    _BACKGROUND.append((weakref.ref(thread), stop))
+    if len(_BACKGROUND) > 256:  # forget the finished ones
+        _BACKGROUND[:] = [(r, f) for r, f in _BACKGROUND if r() is not None and r().is_alive()]
+    return thread
+
+
+@atexit.register
+def _stop_background() -> None:
+    live = [(r(), f) for r, f in _BACKGROUND]
+    live = [(t, f) for t, f in live if t is not None and t.is_alive()]
+    for _, stop in live:
+        if stop is not None:
+            try:
+                stop()
+            except Exception:  # noqa: BLE001 - exiting anyway
+                pass
+    deadline = time.monotonic() + EXIT_WAIT
+    for t, _ in live:
+        t.join(max(0.0, deadline - time.monotonic()))

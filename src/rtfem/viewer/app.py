@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import ModelError, RtfemError
 from ..material import Material
+from ..threads import background
 from ..mesh import TriMesh
 from .session import METHODS, Session, Settings, default_session
 
@@ -115,7 +116,8 @@ class Viewer:
         self._stop = threading.Event()
         self._build_scene()
         self._build_panel()
-        self._thread = threading.Thread(target=self._frames, name="rtfem-viewer-frames", daemon=True)
+        self._thread = background(threading.Thread(target=self._frames, name="rtfem-viewer-frames", daemon=True),
+                                  self._stop.set)
 
     # ---------------------------------------------------------------- scene
     def _build_scene(self) -> None:

@@ -41,7 +41,7 @@ from ..reduced import reduced_nonlinear_driver
 from ..model import make_model
 from .. import gpu
 from ..simulate import ModalSimulator, as_driver, displacements_at, prepare
-from ..threads import runtime
+from ..threads import background, runtime
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
 #: response samples of the maps the impedance method builds per grabbed vertex (s)
@@ -314,7 +314,7 @@ class Session:
                 self.local_status = ""
                 self.error = f"localizing failed ({type(exc).__name__}: {exc}); the running basis goes on"
 
-        self.localizing = threading.Thread(target=work, name="rtfem-viewer-localize", daemon=True)
+        self.localizing = background(threading.Thread(target=work, name="rtfem-viewer-localize", daemon=True))
         self.localizing.start()
 
     def drag(self, target) -> None:
@@ -419,6 +419,7 @@ class Session:
         if self._thread is None or not self._thread.is_alive():
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="rtfem-viewer-physics", daemon=True)
+            background(self._thread, self._stop.set)
             self._thread.start()
         return self
 
