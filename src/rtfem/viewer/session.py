@@ -176,7 +176,7 @@ class Session:
             return DirectSimulator(model, s.dt, damping, large_deformation=s.large)
         if s.method == "modal":
             return ModalSimulator(modes, s.dt, damping, static_correction=True, warping=s.large)
-        if s.method == "nonlinear":  # static correction, single precision; spread > 1 diverged on a 3 cm pull (d = 10)
+        if s.method == "nonlinear":  # static correction, single precision; spread 1 (benchmarks/viewer_settings.py)
             return reduced_nonlinear_driver(model, modes, s.dt, damping, derivatives=s.derivatives, spread=s.spread,
                                             precision="single", background=True,
                                             progress=self._report("modal derivatives"))
