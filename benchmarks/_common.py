@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import statistics
+import subprocess
+import sys
 import time
 from typing import Callable
 
@@ -31,3 +34,16 @@ def fmt_s(t: float | None) -> str:
     if t < 1.0:
         return f"{t * 1e3:.1f} ms"
     return f"{t:.2f} s"
+
+
+@contextlib.contextmanager
+def busy_core(on: bool = True):
+    """Another process keeping one core busy (a Python spin loop) while the block runs; nothing
+    when ``on`` is false: the "busy" column of the run-time tables."""
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if on else None
+    try:
+        yield
+    finally:
+        if spinner is not None:
+            spinner.kill()
+            spinner.wait()

@@ -92,8 +92,9 @@ def worker(path: str, seconds: float) -> dict:
 
 def run_path(path: str, limit: bool, busy: bool, seconds: float) -> dict:
     env = dict(os.environ, RTFEM_RUNTIME_THREADS="1" if limit else "0")
-    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
-    try:
+    from _common import busy_core
+
+    with busy_core(busy):
         if path == "view":
             cmd = [sys.executable, "-m", "rtfem.cli", "view", "--benchmark", str(seconds)]
         elif path == "view-local":
@@ -101,10 +102,6 @@ def run_path(path: str, limit: bool, busy: bool, seconds: float) -> dict:
         else:
             cmd = [sys.executable, __file__, "--worker", path, "--seconds", str(seconds)]
         r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
-    finally:
-        if spinner is not None:
-            spinner.kill()
-            spinner.wait()
     line = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
     if r.returncode != 0 or not line:
         return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:]}

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import shutil
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -78,21 +77,18 @@ def main() -> None:
         raise SystemExit("no chromium binary: apt-get install chromium, or give --chromium PATH")
     from rtfem.viewer.app import Viewer
     from rtfem.viewer.session import default_session
-    from _common import print_table
+    from _common import busy_core, print_table
 
     session = default_session()
     rows = []
     for busy in (False, True):
-        spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
-        viewer = Viewer(session, port=_free_port()).start()
-        try:
-            r = measure(viewer, args.chromium, args.seconds)
-        finally:
-            viewer.stop()
-            session.release()
-            if spinner is not None:
-                spinner.kill()
-                spinner.wait()
+        with busy_core(busy):
+            viewer = Viewer(session, port=_free_port()).start()
+            try:
+                r = measure(viewer, args.chromium, args.seconds)
+            finally:
+                viewer.stop()
+                session.release()
         rows.append(["one core busy" if busy else "quiet", "yes" if r["grabbed"] else "NO",
                      f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
                      f"{r['frames_per_s']:.0f}"])
