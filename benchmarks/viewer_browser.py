@@ -8,7 +8,7 @@ sent per second are sampled every 0.5 s during the hold; once quiet, once while 
 keeps one core busy. Needs playwright and a chromium binary (the test extra; apt-get install
 chromium).
 
-    python benchmarks/viewer_browser.py [--seconds 8] [--chromium PATH]
+    python benchmarks/viewer_browser.py [--seconds 8] [--viewport 1280x800 960x600] [--chromium PATH]
 """
 
 from __future__ import annotations
@@ -28,20 +28,24 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--use-angle
         "--enable-unsafe-swiftshader"]
 
 
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-def measure(viewer, chromium: str, seconds: float) -> dict:
+def measure(viewer, chromium: str, seconds: float, viewport=(1280, 800)) -> dict:
     from playwright.sync_api import sync_playwright
+
+    from rtfem.viewer.benchmark import BROWSER_COUNTER
 
     rates, real, frames = [], [], []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=ARGS)
         try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page = browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
+            page.add_init_script(BROWSER_COUNTER)
             page.goto(viewer.url)
             page.wait_for_selector("canvas", timeout=60_000)
             time.sleep(3.0)
@@ -52,25 +56,30 @@ def measure(viewer, chromium: str, seconds: float) -> dict:
             for i in range(1, 21):
                 page.mouse.move(x0 + 3 * i, y0 - 5 * i)
                 time.sleep(0.05)
-            t0 = time.perf_counter()
             time.sleep(1.5)  # the rates cover a whole second of the pull
+            counts0, t0 = page.evaluate("({...window.__rtfem})"), time.perf_counter()
             while time.perf_counter() - t0 < seconds:
                 st = viewer.state()
                 rates.append(st["sim_rate"])
                 real.append(viewer.session.stats.realtime)
                 frames.append(st["frame_rate"])
                 time.sleep(0.5)
+            counts, t1 = page.evaluate("({...window.__rtfem})"), time.perf_counter()
             grabbed = viewer.state()["grabbed"] is not None
             page.mouse.up()
         finally:
             browser.close()
     return {"grabbed": grabbed, "steps_per_s": float(np.median(rates)), "realtime_p50": float(np.median(real)),
-            "realtime_min": float(np.min(real)), "frames_per_s": float(np.median(frames))}
+            "realtime_min": float(np.min(real)), "frames_per_s": float(np.median(frames)),
+            "drawn_per_s": (counts["drawn"] - counts0["drawn"]) / (t1 - t0),
+            "compiled_per_s": (counts["compiled"] - counts0["compiled"]) / (t1 - t0)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--viewport", type=lambda v: tuple(int(x) for x in v.split("x")), nargs="+",
+                    default=[(1280, 800), (960, 600)], help="browser viewports, WxH (default 1280x800 960x600)")
     ap.add_argument("--chromium", default=shutil.which("chromium") or shutil.which("chromium-browser"))
     args = ap.parse_args()
     if not args.chromium:
@@ -81,21 +90,22 @@ def main() -> None:
 
     session = default_session()
     rows = []
-    for busy in (False, True):
-        with busy_core(busy):
-            viewer = Viewer(session, port=_free_port()).start()
-            try:
-                r = measure(viewer, args.chromium, args.seconds)
-            finally:
-                viewer.stop()
-                session.release()
-        rows.append(["one core busy" if busy else "quiet", "yes" if r["grabbed"] else "NO",
-                     f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
-                     f"{r['frames_per_s']:.0f}"])
-        print(rows[-1], flush=True)
+    for viewport in args.viewport:
+        for busy in (False, True):
+            with busy_core(busy):
+                viewer = Viewer(session, port=_free_port()).start()
+                try:
+                    r = measure(viewer, args.chromium, args.seconds, viewport)
+                finally:
+                    viewer.stop()
+                    session.release()
+            rows.append(["%dx%d" % viewport, "one core busy" if busy else "quiet", "yes" if r["grabbed"] else "NO",
+                         f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
+                         f"{r['frames_per_s']:.0f}", f"{r['drawn_per_s']:.1f}", f"{r['compiled_per_s']:.1f}"])
+            print(rows[-1], flush=True)
     print()
-    print_table(["machine", "grabbed", "steps/s (median)", "real time (median, min of 0.5 s samples)",
-                 "frames sent /s"], rows)
+    print_table(["viewport", "machine", "grabbed", "steps/s (median)", "real time (median, min of 0.5 s samples)",
+                 "frames sent /s", "frames drawn /s", "shaders compiled /s"], rows)
 
 
 if __name__ == "__main__":

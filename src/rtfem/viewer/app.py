@@ -52,10 +52,16 @@ def srgb_to_linear(rgba: np.ndarray) -> np.ndarray:
 
 
 def glb_bytes(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> bytes:
-    """A binary glTF of the surface with per-vertex colours and smooth normals."""
+    """A binary glTF of the surface with per-vertex colours, smooth normals and a dielectric
+    material (glTF's default is a metal, black under anything but an environment map, which the
+    viewer does not use: see :meth:`Viewer._build_scene`)."""
     import trimesh
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
 
-    tm = trimesh.Trimesh(vertices, triangles, vertex_colors=srgb_to_linear(colors), process=False)
+    material = PBRMaterial(baseColorFactor=[255, 255, 255, 255], metallicFactor=0.0, roughnessFactor=0.65)
+    tm = trimesh.Trimesh(vertices, triangles, process=False, visual=TextureVisuals(material=material))
+    tm.visual.vertex_attributes["color"] = srgb_to_linear(colors)
     return tm.export(file_type="glb", include_normals=True)
 
 
@@ -124,6 +130,13 @@ class Viewer:
         s, mesh = self.session, self.session.mesh
         sc = self.server.scene
         sc.set_up_direction("+z")
+        # Lights that cost little per pixel: viser's defaults (an environment map sampled at every
+        # fragment, cascaded shadow maps drawn every frame) are the most of a frame's work in a
+        # browser without a GPU (benchmarks/viewer_browser.py).
+        sc.configure_environment_map(hdri=None)
+        sc.configure_default_lights(enabled=True, cast_shadow=False)
+        sc.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(120, 110, 110),
+                                intensity=1.5)
         lo, hi = mesh.bounds()
         centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
         self.centre, self.size = centre, size
@@ -132,14 +145,23 @@ class Viewer:
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._faces = surface_faces(s)
         self.organ = sc.add_glb("/organ", surface_glb(s, np.zeros((s.drawn.size, 3)), self._faces, 1.0))
+        # The client disposes each replaced frame's material and with it the shader program, unless
+        # another object uses one alike: every frame then compiled its shaders again, and a browser
+        # without a GPU drew 2-3 of the 28 frames/s sent. A speck drawn with the same material (a
+        # triangle of 1 um at the centre: below a pixel) keeps the program.
+        speck = centre + 1e-6 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        self._speck = sc.add_glb("/organ_speck", glb_bytes(speck, np.array([[0, 1, 2]]), colormap(np.zeros(3), 1.0)))
         # the mouse grabs a transparent copy of the surface, not the drawn organ: the drawn one is
         # replaced every frame, and a press that came while the client swapped it in (often, at a low
         # frame rate) missed it and orbited the camera. The copy moves only when the organ has moved
         # by PICK_TOLERANCE, at most twice a second, and never during a drag.
         self._pick_u = np.zeros((s.drawn.size, 3))
         self._pick_time = 0.0
+        # drawn (transparent) like any mesh: its front faces only where the surface is closed (on a
+        # browser without a GPU, 17.5 frames/s drawn against 13.5 with both sides)
         self.pick = sc.add_mesh_simple("/organ_pick", s.X[s.drawn].astype(np.float32), self._faces,
-                                       color=(255, 255, 255), opacity=0.0, side="double")
+                                       color=(255, 255, 255), opacity=0.0,
+                                       side="front" if mesh.is_closed() else "double")
         fixed = np.flatnonzero(s.model.held_nodes)
         if fixed.size:
             sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,

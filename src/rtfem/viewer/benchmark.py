@@ -23,6 +23,25 @@ from .session import Session
 PULL = 0.03  # m
 
 
+# A page script (playwright's add_init_script) counting the animation frames in which the page issued
+# WebGL draw calls (the frames a browser drew, not the frames the server sent) and the shaders it
+# compiled, in window.__rtfem: benchmarks/viewer_browser.py and the browser test read it.
+BROWSER_COUNTER = """
+window.__rtfem = {drawn: 0, compiled: 0, frame: 0, last: -1};
+(function tick() { window.__rtfem.frame++; requestAnimationFrame(tick); })();
+for (const C of [WebGLRenderingContext, WebGL2RenderingContext]) {
+  for (const name of ["drawElements", "drawArrays", "compileShader"]) {
+    const f = C.prototype[name];
+    C.prototype[name] = function (...a) {
+      const c = window.__rtfem;
+      if (name === "compileShader") c.compiled++;
+      else if (c.last !== c.frame) { c.last = c.frame; c.drawn++; }
+      return f.apply(this, a);
+    };
+  }
+}
+"""
+
 def default_vertex(session: Session) -> int:
     """The vertex the benchmark grabs: the mesh's ``probe`` group, else the free surface vertex
     farthest from the supports."""
