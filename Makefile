@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(BIN)/rtfem view --port $(PORT)
 else
 demo: $(STAMP)
-	$(BIN)/python -m rtfem.demo
+	$(BIN)/python -m rtfem.cli.demo
 endif
 
 test: $(STAMP)

@@ -9,7 +9,7 @@ import sys
 import time
 from typing import Callable
 
-from rtfem.bench import format_table
+from rtfem.cli.bench import format_table
 
 
 def median_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:

@@ -13,7 +13,8 @@ driver (r modes, static correction) and gives the mean number of active contact 
   (A thin plate under a flat punch bends away from its middle and touches it at the corners.)
 The step times are those of the ticks in contact.
 Then a 1 cm sphere comes down from 3 cm above onto the liver's top and slides 4 mm deep over the whole organ, end
-to end (a path on the surface, about 20 cm) at 2 cm/s in the 1 kHz loop with nothing prepared before: with ``lookahead=0`` the ticks that meet new vertices
+to end (a path on the surface, about 20 cm) at 2 cm/s in the 1 kHz loop with nothing prepared before:
+with ``lookahead=0`` the ticks that meet new vertices
 compute their static-correction columns (sparse solves) themselves; with the default lookahead
 a background thread has prepared them before the tool arrives. The table gives both loops' step
 times and how many ticks prepared vertices. The
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
 import sys
 import time
 
@@ -30,7 +29,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import fmt_s, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
-from rtfem.bench import per_step as _per_step  # noqa: E402
+from rtfem.cli.bench import per_step as _per_step  # noqa: E402
 
 DT = 1e-3
 DAMPING = rt.Damping(alpha=4.0)
@@ -54,7 +53,6 @@ def run(levels, modes_list):
     print(f"# rtfem {rt.__version__}, numpy {np.__version__}, python {platform.python_version()}, "
           f"backends: {', '.join(rt.linalg.available_backends())}; dt = {DT * 1e3:g} ms, alpha = {DAMPING.alpha}")
     rows = []
-    r_max = max(modes_list)
     for level in levels:
         mesh = rt.meshes.liver(level)
         model = rt.ShellModel(mesh, rt.Material())

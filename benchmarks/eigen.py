@@ -36,7 +36,7 @@ def geodesic_liver(frequency: int) -> rt.TriMesh:
     icosahedron face cut into frequency^2 triangles (10 f^2 + 2 vertices: f = 100 gives
     100,002, between the liver's levels 6 and 7), relaxed on the same map and with the same
     attachment region as ``rt.meshes.liver``."""
-    from rtfem.meshes import _liver_map, _relax_on_map
+    from rtfem.mesh.meshes import _liver_map, _relax_on_map
 
     ico = rt.meshes.icosphere(1.0, 0)
     V0, T0 = np.asarray(ico.vertices), np.asarray(ico.triangles)
@@ -130,7 +130,8 @@ def main() -> None:
                          i["method"].split(" (")[0].replace("shift-invert ", ""), f"{peak_gb():.1f} GB"])
             print(f"  {name}, {backend}: {total:.1f} s", file=sys.stderr, flush=True)
         os.environ.pop("RTFEM_BACKEND", None)
-    print_table(["mesh", "vertices", "dof", "backend", "factorize", "solves (right-hand sides)", "Lanczos other", "modal_analysis",
+    print_table(["mesh", "vertices", "dof", "backend", "factorize", "solves (right-hand sides)", "Lanczos other",
+                 "modal_analysis",
                  "plain eigsh", "eigsh / rtfem", "max |dw^2|/w_r^2", "eigensolver", "peak RSS so far"], rows)
 
 

@@ -35,9 +35,9 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
-from rtfem import gpu  # noqa: E402
-from rtfem.haptics import _compiled_loop  # noqa: E402
-from rtfem.simulate import prepare  # noqa: E402
+from rtfem.drivers import gpu  # noqa: E402
+from rtfem.interaction.haptics import _compiled_loop  # noqa: E402
+from rtfem.drivers.base import prepare  # noqa: E402
 
 
 def us(x: float) -> str:

@@ -15,7 +15,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
-from rtfem import kernels  # noqa: E402
+from rtfem.drivers import kernels  # noqa: E402
 
 
 def timed(sim, node, f, n):

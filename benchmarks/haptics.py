@@ -70,7 +70,8 @@ def run(levels, seconds, n_modes):
         t_map = time.perf_counter() - t0
         cm = offline(rt.Probe(mesh, imap), traj, 4000)
         rows.append([mesh.n_vertices, fmt_s(t_modal), f"{np.median(c) * 1e6:.1f} us", f"{np.percentile(c, 99) * 1e6:.1f} us",
-                     f"{near.size} nodes, {fmt_s(t_map)}", f"{np.median(cm) * 1e6:.1f} us", f"{np.percentile(cm, 99) * 1e6:.1f} us"])
+                     f"{near.size} nodes, {fmt_s(t_map)}", f"{np.median(cm) * 1e6:.1f} us",
+                     f"{np.percentile(cm, 99) * 1e6:.1f} us"])
         # the real-time loop
         sim.reset()
         probe = rt.Probe(mesh, sim)

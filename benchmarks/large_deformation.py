@@ -85,7 +85,7 @@ def settle(sim, mesh, node, target=None, loads=None, steps=2000, stiffness=None,
             sim.step(loads)
         times.append(time.perf_counter() - t0)
         if k >= steps - min(500, steps // 2):
-            tail.append(rt.simulate.displacements_at(sim, held))
+            tail.append(rt.drivers.base.displacements_at(sim, held))
     tail = np.array(tail)
     fixed = target is not None and not callable(target)
     pull = np.linalg.norm(target - np.asarray(mesh.vertices)[node]) if fixed else np.abs(tail[-1]).max()

@@ -12,7 +12,7 @@ and, where it stalls, the trust region; a case with no reference, as a shell ver
 whose apex would turn past the shell's 90-degree limit, is reported and left out). The linear and
 warped modal models (r modes, static correction) are settled by an ``rt.Grasp`` (1e5 times
 stiffer than the organ at the vertex, 2,000 steps at 1 kHz, critical damping); the reduced
-nonlinear model (:class:`rtfem.reduced.ReducedNonlinearModel`: the r modes and the modal
+nonlinear model (:class:`rtfem.reduction.reduced.ReducedNonlinearModel`: the r modes and the modal
 derivatives of the lowest d) is solved for its static equilibrium with the held nodes moved
 exactly, without and with the static correction (the static response D f, D = K^-1 - U U^T,
 that the basis cannot hold, for the held nodes' reactions f: ``static_correction=True``).
@@ -55,7 +55,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import rtfem as rt  # noqa: E402
-from rtfem.reduced import ReducedNonlinearModel  # noqa: E402
+from rtfem.reduction.reduced import ReducedNonlinearModel  # noqa: E402
 from _common import fmt_s, print_table  # noqa: E402
 from large_deformation import _budget, _OverBudget, errors, grasp_node, organs, settle  # noqa: E402
 
@@ -67,7 +67,7 @@ CASES = {"point1": (0.0, 0.01), "point2": (0.0, 0.02), "point5": (0.0, 0.05),
          "jaw2": (0.01, 0.02), "jaw5": (0.01, 0.05), "lift2": (None, 0.02), "lift5": (None, 0.05)}
 
 
-def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, organ: str = "shell",
+def run(n_modes: int, n_derivatives: int, cases: list[str], spread: int = 4, organ: str = "shell",  # noqa: C901
         tol: float = 0.05, local: float | None = None, local_remainder: bool = False,
         reference_seconds: float = 600.0) -> None:
     name, model, fresh = organs([organ])[0]
@@ -264,7 +264,8 @@ def main() -> None:
     ap.add_argument("--modes", type=int, default=40)
     ap.add_argument("--derivatives", type=int, default=20)
     ap.add_argument("--spread", type=int, default=4, help="element groups of the multirate simulator (default 4)")
-    ap.add_argument("--cases", nargs="*", default=["jaw2", "jaw5", "point1", "point2", "point5", "lift2", "lift5"], choices=sorted(CASES),
+    ap.add_argument("--cases", nargs="*", default=["jaw2", "jaw5", "point1", "point2", "point5", "lift2", "lift5"],
+                    choices=sorted(CASES),
                     help="pulls measured against the full-order reference (none: the cost and loop tables only)")
     ap.add_argument("--organ", choices=["shell", "solid"], default="shell",
                     help="the default liver as a shell (level 4, default) or the solid liver (tet4)")

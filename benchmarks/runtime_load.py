@@ -71,7 +71,7 @@ def worker(path: str, seconds: float) -> dict:
         with runtime():
             t = _times(lambda: shapes @ q, 300)
     elif path == "nonlinear":
-        from rtfem.reduced import reduced_nonlinear_driver
+        from rtfem.drivers.reduced_nonlinear import reduced_nonlinear_driver
 
         mesh = rt.meshes.liver()
         model = rt.ShellModel(mesh, rt.Material())
@@ -96,9 +96,9 @@ def run_path(path: str, limit: bool, busy: bool, seconds: float) -> dict:
 
     with busy_core(busy):
         if path == "view":
-            cmd = [sys.executable, "-m", "rtfem.cli", "view", "--benchmark", str(seconds)]
+            cmd = [sys.executable, "-m", "rtfem.cli.main", "view", "--benchmark", str(seconds)]
         elif path == "view-local":
-            cmd = [sys.executable, "-m", "rtfem.cli", "view", "--benchmark", str(2 * seconds), "--local", "20"]
+            cmd = [sys.executable, "-m", "rtfem.cli.main", "view", "--benchmark", str(2 * seconds), "--local", "20"]
         else:
             cmd = [sys.executable, __file__, "--worker", path, "--seconds", str(seconds)]
         r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)

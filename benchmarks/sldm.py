@@ -29,7 +29,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import fmt_s, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
-from rtfem.oscillator import step_response  # noqa: E402
+from rtfem.reduction.oscillator import step_response  # noqa: E402
 
 DAMPING = rt.Damping(alpha=4.0)
 TOLS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8)
@@ -56,8 +56,8 @@ def modal_step(model, basis, node, force, times, correction=True):
 
 def prefix_errors(sldm, force_vec, times, m_ref):
     """Error of y_m for every m <= m_ref from one Lanczos run (mass-weighted norm, reduced space)."""
-    from rtfem.lanczos import Lanczos
-    from rtfem.sldm import _eig_tridiagonal
+    from rtfem.reduction.lanczos import Lanczos
+    from rtfem.reduction.sldm import _eig_tridiagonal
 
     b = sldm._load(force_vec)
     L = Lanczos(sldm.apply, b)

@@ -28,7 +28,7 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import fmt_s, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
-from rtfem.bench import per_step  # noqa: E402
+from rtfem.cli.bench import per_step  # noqa: E402
 
 ORGANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "organs"
 SCALES = {".stl": 1e-3, ".vtk": 1e-3}  # the OpenHELP/sofa_env and GCA files are in millimetres

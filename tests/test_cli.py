@@ -4,7 +4,7 @@ import numpy as np
 
 import rtfem as rt
 
-from rtfem.cli import main
+from rtfem.cli.main import main
 from conftest import organ
 
 
@@ -22,10 +22,11 @@ def test_info_reference_file(capsys):
 def test_broken_file_exit_code_2_no_traceback(tmp_path):
     bad = tmp_path / "broken.obj"
     bad.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
-    r = subprocess.run([sys.executable, "-m", "rtfem.cli", "info", str(bad)], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "rtfem.cli.main", "info", str(bad)], capture_output=True, text=True)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and r.stderr.startswith("rtfem: error:") and "vertex 1" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "rtfem.cli", "info", str(tmp_path / "missing.stl")], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "rtfem.cli.main", "info", str(tmp_path / "missing.stl")], capture_output=True,
+                       text=True)
     assert r.returncode == 2 and "does not exist" in r.stderr
 
 
@@ -34,7 +35,7 @@ def test_no_help_text_prints_a_doubled_percent_sign(capsys):
     --help` printed "20 %%"."""
     import argparse
 
-    from rtfem.cli import build_parser, main
+    from rtfem.cli.main import build_parser, main
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     for name in sub.choices:
@@ -43,7 +44,7 @@ def test_no_help_text_prints_a_doubled_percent_sign(capsys):
 
 
 def test_info_gives_the_extent_in_metres_and_says_when_it_looks_like_millimetres(tmp_path, capsys):
-    from rtfem.cli import main
+    from rtfem.cli.main import main
 
     assert main(["info"]) == 0
     out = capsys.readouterr().out

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import os
 import signal
 import subprocess
 import sys
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.cli import main
+from rtfem.cli.main import main
 from conftest import organ, wait_for_viewer_address
 
 GB = ["--scale", "1e-3", "--fix", "bottom:0.2"]  # the gallbladder file is in mm, free-floating
@@ -124,7 +123,7 @@ def test_pictures_on_file(tmp_path, capsys):
 def test_every_command_rejects_a_broken_file(tmp_path, command):
     bad = tmp_path / "broken.stl"
     bad.write_bytes(b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0\nendloop\nendfacet\nendsolid\n")
-    r = subprocess.run([sys.executable, "-m", "rtfem.cli", command, str(bad)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "rtfem.cli.main", command, str(bad)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert r.stderr.startswith("rtfem: error:") and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
@@ -155,7 +154,7 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli", "view", gallbladder(), *GB, "--shell", "--method", "modal",
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "view", gallbladder(), *GB, "--shell", "--method", "modal",
                           "--port", str(port)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -169,13 +168,13 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
     assert p.returncode == 130 and "stopped" in out and "Traceback" not in err
 
 
-needs_mesher = pytest.mark.skipif(not rt.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
+needs_mesher = pytest.mark.skipif(not rt.mesh.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
 
 
 @pytest.fixture(scope="module")
 def tet_file(tmp_path_factory):
     """A tetrahedral organ file: the solid liver, written as VTU (no groups: --fix is given)."""
-    if not rt.meshing.mesher_available():
+    if not rt.mesh.meshing.mesher_available():
         pytest.skip("the mesh extra (pytetwild) is not installed")
     path = tmp_path_factory.mktemp("tets") / "liver.vtu"
     rt.save_mesh(rt.meshes.liver(solid=True), path)
@@ -262,7 +261,8 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
         forces[method] = sum(hold) / len(hold)
     assert "reduced nonlinear" in out and "10 modes + 55 derivatives" in out
     assert forces["modal"] > 0.01 and abs(forces["nonlinear"] / forces["modal"] - 1) < 0.1
-    rc, out, err = run(capsys, "simulate", "--solid", "--element", "tet4", "-n", 10, "--method", "nonlinear", "--local", 15, "--duration",
+    rc, out, err = run(capsys, "simulate", "--solid", "--element", "tet4", "-n", 10, "--method", "nonlinear", "--local", 15,
+                       "--duration",
                        0.05, "--out", tmp_path / "solid-local")
     assert rc == 0 and "of a 15 mm patch" in out, err
     rc, out, err = run(capsys, "simulate", "--local", 15, "--out", tmp_path / "bad")

@@ -1,4 +1,4 @@
-"""rtfem.contact and the cross compliances: each driver's block against a second route (stepping the
+"""rtfem.interaction.contact and the cross compliances: each driver's block against a second route (stepping the
 driver under unit loads from its saved state), the contact solver against closed forms, and the
 refusals of bad arguments (nothing changes on a refusal)."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.cli import main
+from rtfem.cli.main import main
 from rtfem import contact
-from rtfem.contact import closest_points_on_triangles, hold_patch, pgs
-from rtfem.simulate import predictions, step_compliances
+from rtfem.interaction.contact import closest_points_on_triangles, hold_patch, pgs
+from rtfem.drivers.base import predictions, step_compliances
 from rtfem.viewer.session import Settings
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.simulate import DRIVER_MEMBERS, Driver
+from rtfem.drivers.base import DRIVER_MEMBERS, Driver
 
 
 class WinklerBed:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem import gpu
+from rtfem.drivers import gpu
 
 
 @pytest.fixture()

@@ -161,7 +161,7 @@ def test_session_reduced_nonlinear_method(cap):
     """method="nonlinear": the reduced nonlinear driver (the modes, their modal derivatives and
     cubature forces, with the static correction). Held by the grasp, the organ settles to the
     reduced model's own static equilibrium under the forces the jaw applies (dead loads)."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     mesh = cap.mesh
     node = int(mesh.groups["pole"][0])
@@ -186,7 +186,7 @@ def test_session_reduced_nonlinear_method_on_a_solid():
     """The viewer's nonlinear method on a tet model (the corotated-tet cubature): a cantilever's
     tip grabbed and dragged 10 cm settles to the reduced model's static equilibrium under the
     jaw's forces (measured 2.7e-6 of the motion)."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
     s = Session(mesh, rt.Material(E=1e5, nu=0.3, density=10.0), fixed="x0",
@@ -214,7 +214,7 @@ def test_a_grasp_carried_to_a_simulator_localized_mid_pull(radius):
     the beam is where a grasp on the localized model from the start, closed at rest on the same
     vertex and dragged to the same point, settles (re-grabbing at the deformed state instead
     would have moved the jaw's references, and the equilibrium)."""
-    from rtfem.reduced import ReducedNonlinearSimulator, reduced_nonlinear_driver
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator, reduced_nonlinear_driver
 
     mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
     model = rt.SolidModel(mesh, rt.Material(E=1e5, nu=0.3, density=10.0)).fix("x0")
@@ -251,7 +251,7 @@ def test_session_localizes_the_nonlinear_basis_per_grab():
     patch's modes damped: patch_zeta, under the viewer's alpha), the beam is where a session
     running the localized model from the start settles; a second grab elsewhere localizes again
     from the global basis. The CLI refuses --local without --method nonlinear."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
     mat = rt.Material(E=1e5, nu=0.3, density=10.0)

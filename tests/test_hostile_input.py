@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.reduced import ReducedNonlinearModel, ReducedNonlinearSimulator
+from rtfem.reduction.reduced import ReducedNonlinearModel
+from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +104,7 @@ def test_two_loops_on_one_simulator_are_refused(beam):
 
 
 def test_the_cli_refuses_a_depth_through_the_organ(tmp_path):
-    from rtfem.cli import main
+    from rtfem.cli.main import main
 
     t0 = time.perf_counter()
     assert main(["simulate", "--depth", "1e9", "--duration", "0.01", "--out", str(tmp_path / "o")]) == 2
@@ -114,7 +115,7 @@ def test_the_cli_refuses_a_depth_through_the_organ(tmp_path):
 def test_tetrahedralize_checks_its_flag_estimates_its_size_and_keeps_ctrl_c():
     import signal
 
-    from rtfem.meshing import mesher_available
+    from rtfem.mesh.meshing import mesher_available
 
     surface = rt.meshes.liver(3)
     with pytest.raises(rt.MeshError, match="optimize"):

@@ -134,7 +134,7 @@ def test_the_size_estimate_is_what_the_build_holds_and_the_cli_asks_before_a_lar
     (exact for up to 20 loaded nodes, which it samples all); `rtfem impedance` prints it first and
     refuses a map past 1 GiB without --allow-large (the README's old example wrote 567 MiB
     unannounced; every free node with no radius would be ~3.6 GB)."""
-    from rtfem.cli import main
+    from rtfem.cli.main import main
 
     model = rt.ShellModel(rt.meshes.liver(2), rt.Material()).fix("attachment")
     nodes = model.mesh.used_vertices()[::40][:12]

@@ -1,4 +1,4 @@
-"""Exports and saved files (rtfem.io): VTU/PVD contents read back by meshio, versioned .npz
+"""Exports and saved files (rtfem.io, rtfem.storage): VTU/PVD contents read back by meshio, versioned .npz
 round trips with their types, atomic replacement."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.io import atomic_target, load_versioned, save_versioned, write_pvd, write_vtu
+from rtfem.io import write_pvd, write_vtu
+from rtfem.storage import atomic_target, load_versioned, save_versioned
 
 
 def test_vtu_holds_the_deformed_points_and_the_displacement_field(tmp_path):

@@ -1,4 +1,4 @@
-"""The compiled haptic step (rtfem.kernels) against the numpy path and against its own Python
+"""The compiled haptic step (rtfem.drivers.kernels) against the numpy path and against its own Python
 definition: the same states, step after step, for both integrators, with and without loads."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem import kernels
+from rtfem.drivers import kernels
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.lanczos import Lanczos
+from rtfem.reduction.lanczos import Lanczos
 
 
 def spd(n, seed=0):
@@ -63,7 +63,7 @@ def test_bad_start_vectors():
 
 
 # ---------------------------------------------------------------- block eigensolver
-from rtfem.lanczos import BlockLanczosFailed, block_eigs  # noqa: E402
+from rtfem.reduction.lanczos import BlockLanczosFailed, block_eigs  # noqa: E402
 
 
 def test_block_eigs_on_a_known_spectrum():

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from conftest import organ
 
 def test_stl_triangle_soup_is_welded(tmp_path):
     src = rt.meshes.icosphere(0.05, 2)

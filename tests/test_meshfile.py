@@ -1,4 +1,4 @@
-"""Mesh files (rtfem.meshfile): every reference organ loads, formats round-trip through
+"""Mesh files (rtfem.mesh.files): every reference organ loads, formats round-trip through
 save_mesh/load_mesh, what meshio cannot read is read, broken files are refused in words."""
 
 import numpy as np

@@ -113,12 +113,12 @@ def test_block_solver_choice(liver3, monkeypatch):
         rt.modal_analysis(model, 4, solver="block", sigma=10.0)
     with pytest.raises(rt.ModelError, match="solver"):
         rt.modal_analysis(model, 4, solver="lobpcg")
-    import rtfem.modal
+    import rtfem.reduction.modal
 
     def stops_short(*args, **kwargs):
-        raise rtfem.modal.BlockLanczosFailed("the Krylov block lost rank")
+        raise rtfem.reduction.modal.BlockLanczosFailed("the Krylov block lost rank")
 
-    monkeypatch.setattr(rtfem.modal, "block_eigs", stops_short)
+    monkeypatch.setattr(rtfem.reduction.modal, "block_eigs", stops_short)
     auto = rt.modal_analysis(model, 12)  # the block method stops short: ARPACK, and says why
     assert auto.info["method"].startswith("shift-invert") and "lost rank" in auto.info["fallback"]
     assert np.abs(auto.eigenvalues - basis.eigenvalues).max() <= 1e-10 * basis.eigenvalues.max()

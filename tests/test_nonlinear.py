@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import rtfem as rt
-from rtfem import shell, solid
-from rtfem.tetmesh import TET10_EDGES
+from rtfem.fe import shell, solid
+from rtfem.mesh.tetmesh import TET10_EDGES
 
 RNG = np.random.default_rng(7)
 SHELL_MAT = rt.Material(E=1e5, nu=0.3, thickness=0.01)
@@ -196,7 +196,7 @@ def test_a_solve_stalling_in_ever_shorter_steps_ends_with_the_solver_error(monke
     converges, so the cuts in a row never reach max_cuts while the step halves towards zero. The
     solve ends with a SolverError holding the last equilibrium (once a ZeroDivisionError from the
     secant predictor, when the step fell below the load factor's round-off)."""
-    import rtfem.nonlinear as nl
+    import rtfem.fe.nonlinear as nl
 
     model = _strip()
     F = np.zeros((model.n_nodes, 3))

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from rtfem.oscillator import _expm_blocks, step_response, transition
+from rtfem.reduction.oscillator import _expm_blocks, step_response, transition
 
 CASES = [(100.0, 2.0), (100.0, 20.0), (100.0, 40.0), (0.0, 3.0), (1e-9, 0.5), (1e4, 0.0), (25.0, 10.0 + 1e-7),
          (4e6, 5000.0), (1e-3, 5000.0), (0.0, 0.0)]

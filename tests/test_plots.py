@@ -8,7 +8,7 @@ import pytest
 import rtfem as rt
 
 pytest.importorskip("matplotlib")
-from rtfem import plots  # noqa: E402
+from rtfem.cli import plots  # noqa: E402
 
 
 @pytest.fixture(scope="module")

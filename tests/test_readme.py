@@ -68,7 +68,7 @@ def test_the_readme_names_its_inputs_and_they_ship():
 
 @pytest.mark.parametrize("line", [ln for ln in _command_block() if " view " not in f" {ln} " or "--benchmark" in ln])
 def test_every_rtfem_command_in_the_readme_runs_as_written(line, folder):
-    argv = [sys.executable, "-m", "rtfem.cli", *shlex.split(line)[1:]]
+    argv = [sys.executable, "-m", "rtfem.cli.main", *shlex.split(line)[1:]]
     r = subprocess.run(argv, cwd=folder, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, (line, r.stdout[-2000:], r.stderr[-2000:])
     assert "Traceback" not in r.stderr, r.stderr
@@ -86,7 +86,7 @@ def test_every_rtfem_command_in_the_readme_runs_as_written(line, folder):
 def test_the_readme_view_command_serves_and_stops_on_ctrl_c(folder):
     pytest.importorskip("viser")
     line = next(ln for ln in _command_block() if ln.startswith("rtfem view ") and "--benchmark" not in ln)
-    argv = [sys.executable, "-m", "rtfem.cli", *shlex.split(line)[1:]]
+    argv = [sys.executable, "-m", "rtfem.cli.main", *shlex.split(line)[1:]]
     p = subprocess.Popen(argv, cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     said = []
     try:

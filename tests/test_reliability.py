@@ -4,7 +4,6 @@ argument-by-argument sweep of every public entry point is in test_reliability_ap
 
 from __future__ import annotations
 
-import os
 import random
 import re
 import signal
@@ -21,8 +20,8 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.cli import main
-from conftest import ORGANS, liver_model, organ, wait_for_viewer_address
+from rtfem.cli.main import main
+from conftest import liver_model, organ, wait_for_viewer_address
 
 PY = sys.executable
 NAN = float("nan")
@@ -166,11 +165,11 @@ def test_save_killed_at_random_moments_leaves_old_or_new_file(tmp_path):
 
 def test_impedance_ctrl_c_exits_130_keeps_the_old_map_and_says_what_was_kept(tmp_path):
     out = tmp_path / "liver.map.npz"
-    rc = subprocess.run([PY, "-m", "rtfem.cli", "impedance", "--nodes", "nodes:885", "--modes", "10", "-o", str(out)],
+    rc = subprocess.run([PY, "-m", "rtfem.cli.main", "impedance", "--nodes", "nodes:885", "--modes", "10", "-o", str(out)],
                         capture_output=True, text=True, timeout=300)
     assert rc.returncode == 0
     before = out.read_bytes()
-    p = subprocess.Popen([PY, "-m", "rtfem.cli", "impedance", "--modes", "10", "--allow-large", "-o", str(out)],
+    p = subprocess.Popen([PY, "-m", "rtfem.cli.main", "impedance", "--modes", "10", "--allow-large", "-o", str(out)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.time()
@@ -196,12 +195,12 @@ def test_impedance_ctrl_c_exits_130_keeps_the_old_map_and_says_what_was_kept(tmp
 # ============================================================== hangs and runaway work
 @pytest.mark.parametrize("port", ["99999", "-1", "65536"])
 def test_view_refuses_a_port_out_of_range(port):
-    r = subprocess.run([PY, "-m", "rtfem.cli", "view", "--port", port], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([PY, "-m", "rtfem.cli.main", "view", "--port", port], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and one_line_error(r.stderr) and "port" in r.stderr, r.stderr
 
 
 def test_view_refuses_an_address_that_is_not_this_machines():
-    r = subprocess.run([PY, "-m", "rtfem.cli", "view", "--host", "192.0.2.1", "--port", str(free_port())],
+    r = subprocess.run([PY, "-m", "rtfem.cli.main", "view", "--host", "192.0.2.1", "--port", str(free_port())],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and one_line_error(r.stderr) and "192.0.2.1" in r.stderr, r.stderr
 
@@ -219,7 +218,7 @@ def test_info_on_200k_disconnected_triangles_finishes(tmp_path):
     base = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
     offs = np.random.default_rng(0).uniform(0, 1000, (n, 1, 3))
     _binary_stl(tmp_path / "soup.stl", base[None] + offs)
-    r = subprocess.run([PY, "-m", "rtfem.cli", "info", str(tmp_path / "soup.stl")], capture_output=True, text=True,
+    r = subprocess.run([PY, "-m", "rtfem.cli.main", "info", str(tmp_path / "soup.stl")], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0, r.stderr
     assert "200000 triangles" in r.stdout and "components: 200000" in r.stdout
@@ -231,7 +230,7 @@ def test_coincident_unused_vertices_need_linear_memory(tmp_path):
                                           "f -4 -3 -2", "f -4 -2 -1", "f -4 -1 -3", "f -3 -1 -2"]
     (tmp_path / "dups.obj").write_text("\n".join(lines) + "\n")
     code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000)); "
-            "import sys; from rtfem.cli import main; sys.exit(main(['info', sys.argv[1]]))")
+            "import sys; from rtfem.cli.main import main; sys.exit(main(['info', sys.argv[1]]))")
     r = subprocess.run([PY, "-c", code, str(tmp_path / "dups.obj")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "4 vertices, 4 triangles" in r.stdout
@@ -255,7 +254,7 @@ def test_haptic_loop_runs_for_wall_time_and_refuses_impossible_rates(small):
 
 
 def test_simulate_refuses_a_run_that_cannot_finish():
-    r = subprocess.run([PY, "-m", "rtfem.cli", "simulate", "--duration", "1e9", "--dt", "1e-9"],
+    r = subprocess.run([PY, "-m", "rtfem.cli.main", "simulate", "--duration", "1e9", "--dt", "1e-9"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and one_line_error(r.stderr) and "steps" in r.stderr, r.stderr
 
@@ -524,7 +523,7 @@ ORGAN_FILES = [("sofa_liver2.obj", 0.1), ("sofa_env_gallbladder_collision.stl", 
 
 @pytest.mark.parametrize("name, scale", [("default liver", 1.0)] + ORGAN_FILES)
 def test_default_penalty_works_on_every_organ_and_matches_elimination(name, scale):
-    from rtfem.cli import fixed_nodes
+    from rtfem.cli.main import fixed_nodes
 
     mesh = rt.meshes.liver() if name == "default liver" else rt.load_mesh(organ(name), scale=scale)
     nodes, _ = fixed_nodes(mesh, None)
@@ -637,7 +636,7 @@ def test_progress_and_results_of_a_save_keep_their_types(small, tmp_path):
 # ============================================================== exposure and the viewer's exit
 def _view(*extra) -> subprocess.Popen:
     gb = str(organ("sofa_env_gallbladder_collision.stl"))
-    return subprocess.Popen([PY, "-m", "rtfem.cli", "view", gb, "--scale", "1e-3", "--fix", "bottom:0.2", "-n", "8",
+    return subprocess.Popen([PY, "-m", "rtfem.cli.main", "view", gb, "--scale", "1e-3", "--fix", "bottom:0.2", "-n", "8",
                              "--shell", "--method", "modal", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

@@ -204,7 +204,8 @@ def _entries() -> list[Entry]:
                     {"loads": {}, "steps": 2.5}]), make=lambda: map_driver, snapshot=map_driver_snap)
     add("ImpedanceMap.as_driver", lambda o, **k: imap.as_driver(**k), dict(dt=1e-3), dict(dt=POSITIVE))
     add("SLDM", lambda o, **k: rt.SLDM(**k), dict(model=model, damping=w["damping"]),
-        dict(model=[None, "abc", OBJ], damping=["abc", 5], tol=[NAN, 0.0, 1.0, -1.0, "abc", None], m=[0, -1, 2.5, "abc", NAN, True],
+        dict(model=[None, "abc", OBJ], damping=["abc", 5], tol=[NAN, 0.0, 1.0, -1.0, "abc", None],
+             m=[0, -1, 2.5, "abc", NAN, True],
              m_max=[0, -1, 2.5, "abc", NAN], reorth=CHOICE))
     add("SLDM.step_response", lambda o, **k: sldm.step_response(**k), dict(forces=f, times=[1e-3, 2e-3], m=20),
         dict(forces=forces_bad(n, node), times=TIMES, tol=[NAN, 0.0, 2.0, "abc"], m=[0, 2.5, "abc", NAN]))
@@ -222,7 +223,8 @@ def _entries() -> list[Entry]:
              memory_limit=[NAN, -1.0, 0.0, "abc", OBJ, None], progress=["abc", 5], workers=[0, -1, 2.5, "abc", NAN, True],
              modes=["abc", 5, rt.modal_analysis(rt.ShellModel(w["other"], rt.Material()).fix("attachment"), 3)]))
     add("ImpedanceMap.displacements", lambda o, **k: imap.displacements(**k), dict(loads=[(node, (0.0, 0.0, -0.1), 0.0)], t=0.01),
-        dict(loads=[[(node, (NAN, 0.0, 0.0), 0.0)], [(node, ("a", 0.0, 0.0))], [(10**9, (1.0, 0.0, 0.0))], [(2.5, (1.0, 0.0, 0.0))],
+        dict(loads=[[(node, (NAN, 0.0, 0.0), 0.0)], [(node, ("a", 0.0, 0.0))], [(10**9, (1.0, 0.0, 0.0))],
+                    [(2.5, (1.0, 0.0, 0.0))],
                     [(True, (1.0, 0.0, 0.0))], "abc", 5, [(node,)], [(node, (1.0, 0.0, 0.0), NAN)], OBJ],
              t=[NAN, "abc", None, OBJ]))
     add("ImpedanceMap.compliance_at", lambda o, **k: imap.compliance_at(**k), dict(loaded=node, nodes=[0, 1]),
@@ -285,7 +287,8 @@ def _entries() -> list[Entry]:
              alpha=[NAN, -1.0, "abc"], E=[NAN, 0.0, -1.0, "abc"], grasp_stiffness=[NAN, 0.0, "abc"],
              max_force=[NAN, 0.0, -1.0, "abc"], bogus=[1]),
         make=lambda: session, snapshot=session_snap)
-    add("Session.grab", lambda o, **k: session.grab(**k), dict(point=w["far"]), dict(point=POINT, displacements=["abc", np.ones((2, 3))]),
+    add("Session.grab", lambda o, **k: session.grab(**k), dict(point=w["far"]),
+        dict(point=POINT, displacements=["abc", np.ones((2, 3))]),
         make=lambda: session, snapshot=session_snap)
     add("Session.drag", lambda o, **k: session.drag(**k), dict(target=w["far"]), dict(target=POINT),
         make=lambda: session, snapshot=session_snap)

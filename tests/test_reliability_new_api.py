@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.scenario import LoadSchedule, RunWriter
+from rtfem.io.scenario import LoadSchedule, RunWriter
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Load schedules, the scripted press and the run writer (rtfem.scenario, ScriptedDevice.press)."""
+"""Load schedules, the scripted press and the run writer (rtfem.io.scenario, ScriptedDevice.press)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.scenario import LoadSchedule, RunWriter
+from rtfem.io.scenario import LoadSchedule, RunWriter
 
 
 def test_a_schedule_holds_each_nodes_force_until_its_next_row():

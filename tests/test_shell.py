@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem import shell
+from rtfem.fe import shell
 
 MAT = rt.Material(E=2.0e5, nu=0.3, thickness=0.01, density=1000.0)
 

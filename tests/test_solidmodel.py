@@ -9,8 +9,8 @@ import pytest
 import scipy.linalg as sla
 
 import rtfem as rt
-from rtfem.model import MODEL_MEMBERS, check_model
-from rtfem.oscillator import step_response
+from rtfem.fe.model import MODEL_MEMBERS, check_model
+from rtfem.reduction.oscillator import step_response
 from conftest import organ
 
 MAT = rt.Material(E=2e4, nu=0.45, density=1000.0)
@@ -152,7 +152,7 @@ def test_surface_compliance_by_condensation_equals_the_solves_and_the_map_built_
     np.testing.assert_allclose(c.point, a.point, rtol=0, atol=1e-10 * np.abs(a.point).max())
     with pytest.raises(rt.ModelError, match="method"):
         model.surface_compliance(method="dense")
-    monkeypatch.setattr("rtfem.model._DENSE_LIMIT", 30)
+    monkeypatch.setattr("rtfem.fe.model._DENSE_LIMIT", 30)
     with pytest.raises(rt.ModelError, match="allow_large"):
         model.surface_compliance()
 
@@ -205,7 +205,7 @@ def test_volume_vtu_carries_the_displacements(tmp_path, beam):
     np.testing.assert_allclose(m.points, model.tetmesh.vertices + u)
 
 
-needs_mesher = pytest.mark.skipif(not rt.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
+needs_mesher = pytest.mark.skipif(not rt.mesh.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")
 
 
 @needs_mesher

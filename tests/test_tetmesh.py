@@ -83,7 +83,7 @@ def test_quadratic_and_back():
     assert q.order == 2 and q.tets.shape == (box.n_tets, 10)
     # mid-edge nodes at the midpoints of their corner edges, VTK order
     X = q.vertices
-    for k, (i, j) in enumerate(rt.tetmesh.TET10_EDGES):
+    for k, (i, j) in enumerate(rt.mesh.tetmesh.TET10_EDGES):
         np.testing.assert_allclose(X[q.tets[:, 4 + k]], 0.5 * (X[q.tets[:, i]] + X[q.tets[:, j]]), atol=1e-15)
     assert q.n_vertices == box.n_vertices + box.edges().shape[0]
     assert q.surface.n_triangles == box.surface.n_triangles  # the corner surface

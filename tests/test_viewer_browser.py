@@ -100,7 +100,7 @@ def viewer(request):
     from rtfem.viewer.session import Session, default_session
 
     if request.param == "default":
-        if not rt.meshing.mesher_available():
+        if not rt.mesh.meshing.mesher_available():
             pytest.skip("the mesh extra (pytetwild) is not installed")
         session = default_session()
         assert session.kind == "solid (tet10)" and session.settings.method == "nonlinear"

@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import rtfem as rt
-from rtfem.warping import integrated_rotation, rotation
+from rtfem.drivers.warping import integrated_rotation, rotation
 
 
 def test_rotation_is_rodrigues():
@@ -57,7 +57,7 @@ def test_warping_needs_the_model():
     model = rt.ShellModel(rt.meshes.plate(1.0, 1.0, nx=4), rt.Material(E=1e5, nu=0.3, thickness=0.01)).fix("x0")
     modes = rt.modal_analysis(model, 4)
     sim = rt.ModalSimulator(modes, 1e-3, warping=True)
-    assert isinstance(sim, rt.warping.WarpedModalSimulator) and sim.warping and not sim.compiled
+    assert isinstance(sim, rt.drivers.warping.WarpedModalSimulator) and sim.warping and not sim.compiled
     modes.model = None
     with pytest.raises(rt.ModelError, match="model"):
         rt.ModalSimulator(modes, 1e-3, warping=True)

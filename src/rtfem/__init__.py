@@ -1,28 +1,31 @@
 """rtfem: real-time simulation of dynamically deformable finite-element models (shells and solids)."""
 
-from . import meshes
+from .mesh import meshes
 from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
-from .material import Damping, Material
-from .mesh import MeshReport, TriMesh
-from .tetmesh import TetMesh
-from .meshfile import load_mesh, save_mesh
-from . import linalg
-from .linalg import available_backends
-from .modal import ModalBasis, modal_analysis
-from .haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
-from .contact import Tool, ToolContact
-from . import contact
-from .impedance import ImpedanceDriver, ImpedanceMap, Load
-from .model import Model, ShellModel, make_model
-from .solidmodel import SolidModel
-from .meshing import tetrahedralize
-from .selection import select_nodes
-from .fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator, NonlinearNewmarkSimulator
-from .simulate import Driver, ModalSimulator
-from .staticdriver import StaticDriver
-from .sldm import SLDM
-from . import nonlinear
-from .reduced import ReducedNonlinearModel, ReducedNonlinearSimulator
+from .fe.material import Damping, Material
+from .mesh.surface import MeshReport, TriMesh
+from .mesh.tetmesh import TetMesh
+from .mesh.files import load_mesh, save_mesh
+from .fe import linalg
+from .fe.linalg import available_backends
+from .reduction.modal import ModalBasis, modal_analysis
+from .interaction.haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
+from .interaction.contact import Tool, ToolContact
+from .interaction import contact
+from .drivers.impedance import ImpedanceDriver, ImpedanceMap, Load
+from .fe.model import Model, ShellModel
+from .fe.build import make_model
+from .fe.solidmodel import SolidModel
+from .mesh.meshing import tetrahedralize
+from .mesh.selection import select_nodes
+from .drivers.fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator, NonlinearNewmarkSimulator
+from .drivers.base import Driver
+from .drivers.modal import ModalSimulator
+from .drivers.static import StaticDriver
+from .reduction.sldm import SLDM
+from .fe import nonlinear
+from .reduction.reduced import ReducedNonlinearModel
+from .drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
 __version__ = "0.1.0"
 
@@ -69,5 +72,8 @@ __all__ = [
     "TriMesh",
     "load_mesh",
     "meshes",
+    "linalg",
+    "contact",
+    "nonlinear",
     "save_mesh",
 ]

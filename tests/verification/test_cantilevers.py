@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem import shell
+from rtfem.fe import shell
 
 
 def inplane_tip_ratio(membrane: str, nx: int, ny: int, nu: float) -> float:

@@ -13,7 +13,7 @@ import scipy.linalg as sla
 
 import rtfem as rt
 from conftest import liver_model
-from rtfem.modal import ModalBasis
+from rtfem.reduction.modal import ModalBasis
 
 
 def ss_plate_model(divisions, material):

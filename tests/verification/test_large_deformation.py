@@ -238,7 +238,7 @@ def _tent(n=8, pull=0.04):
 
 
 def test_a_shell_pulled_into_a_tent_needs_the_trust_region():
-    from rtfem.nonlinear import Configuration
+    from rtfem.fe.nonlinear import Configuration
 
     model, P = _tent()
     with pytest.raises(rt.SolverError, match="did not converge"):
@@ -284,7 +284,9 @@ def test_the_dynamic_newton_refuses_a_kink_past_the_rotation_limit():
     F = np.zeros((model.n_nodes, 3))
     F[centre, 2] = 3.2
     sim = rt.DirectSimulator(model, 2e-4, rt.Damping(alpha=500.0), large_deformation=True)
-    with pytest.raises(rt.SolverError, match="step [0-9]+ was refused: a shell triad turned [0-9]+ degrees from an element.s frame, past the 150"):
+    with pytest.raises(rt.SolverError,
+                       match="step [0-9]+ was refused: a shell triad turned [0-9]+ degrees "
+                             "from an element.s frame, past the 150"):
         for _ in range(1000):
             before, steps = sim.displacements().copy(), sim.steps
             sim.step(F)

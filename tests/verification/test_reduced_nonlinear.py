@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.reduced import ReducedNonlinearModel
+from rtfem.reduction.reduced import ReducedNonlinearModel
 from test_large_deformation import ELASTICA, _edge_load, _tip, _strip
 
 
@@ -124,7 +124,7 @@ def test_compiled_element_forces_equal_the_numpy_kernel(small_liver):
     """The compiled corotational kernel (frames, deformational dofs and their derivatives written
     out by hand) against the numpy kernel (differentiated by jets), at a pose moving the organ by
     a third of its size (rotations near 1 rad), and its pure-Python definition."""
-    from rtfem import cubature
+    from rtfem.reduction import cubature
 
     red = small_liver
     q = _pose(red, np.random.default_rng(1), 0.3)
@@ -149,8 +149,9 @@ def test_compiled_element_forces_at_large_local_rotations():
     from the element frame (the rotation vector's closed form, past its series): forces on the
     translations equal, and on the rotation vectors J(theta)^T m of the numpy kernel's moments m
     about the spins (J the left Jacobian of SO(3), Choi & Ko's integrated rotation)."""
-    from rtfem import cubature, shell
-    from rtfem.rotations import integrated_rotation, rotation
+    from rtfem.reduction import cubature
+    from rtfem.fe import shell
+    from rtfem.fe.rotations import integrated_rotation, rotation
 
     rng = np.random.default_rng(3)
     X = np.array([[[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.3, 0.8, 0.1]]]).repeat(6, axis=0)
@@ -196,7 +197,8 @@ def test_a_remainder_cubature_is_exact_to_first_order(small_liver):
     """train_cubature(remainder=True) keeps the rest-linear forces K_r q exact and fits only the
     nonlinear remainder: its force error against the sum over every element is second order in
     the motion (the relative error falls in proportion to the amplitude), where the cubature of
-    the whole force keeps an error of the order of its tolerance at any amplitude. At rest both are zero; the linear part is U^T K U (identity: the basis is
+    the whole force keeps an error of the order of its tolerance at any amplitude. At rest both are zero; the linear part is
+    U^T K U (identity: the basis is
     stiffness-orthonormal)."""
     red = small_liver
     rng = np.random.default_rng(5)
@@ -219,7 +221,7 @@ def test_a_remainder_cubature_is_exact_to_first_order(small_liver):
 
 
 def test_simulator_comes_to_the_reduced_equilibrium_and_keeps_the_driver_contract(small_liver):
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = small_liver
     red.train_cubature(16, tol=0.02)
@@ -257,7 +259,7 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
     1 : 2 : 3 : 7 for k = 2, 3, 4, 8); carried along their tangents (tangent="current", the
     default) it is 30 times smaller at k = 2 and grows faster than the lag (measured 1 : 3.3 : 7.0
     for k = 2, 3, 4: between first and second order)."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = small_liver
     red.train_cubature(16, tol=0.02)
@@ -311,7 +313,7 @@ def test_spread_refresh_keeps_the_equilibrium_and_its_error_is_first_order_in_th
     for kwargs in ({"spread": 0}, {"spread": 10**5}, {"spread": 2, "cubature": False}, {"spread": 1.5}):
         with pytest.raises(rt.ModelError):
             ReducedNonlinearSimulator(red, 1e-3, **kwargs)
-    from rtfem.reduced import reduced_nonlinear_driver
+    from rtfem.drivers.reduced_nonlinear import reduced_nonlinear_driver
 
     for args, kwargs in (((model, "modes", 1e-3), {}), ((model, None, 1e-3), {"derivatives": "x"})):
         with pytest.raises(rt.ModelError):
@@ -334,7 +336,7 @@ def test_single_precision_rows_keep_the_forces_and_the_equilibrium(small_liver):
     within 1e-5 relative from a thousandth to a third of the organ's size (float32's 6e-8 summed
     over 18 E terms), and the simulator, every element each step or spread over 3 groups, settles
     within 1e-5 of the double-precision state under a 2 cm load (measured: forces 1e-6, states 6e-7)."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = small_liver
     red.train_cubature(16, tol=0.02)
@@ -370,7 +372,7 @@ def test_static_correction_is_the_linear_answer_at_small_load_and_the_simulator_
     the 16 coordinates miss a third of the dent under the load. The simulator with the
     correction keeps the one-step contract (the step's displacement is predict + W f, W with
     D_pp) and settles to the corrected static equilibrium; a pulled node reaches its target."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = small_liver
     red.train_cubature(16, tol=0.02)
@@ -413,7 +415,7 @@ def test_static_correction_is_the_linear_answer_at_small_load_and_the_simulator_
 
 
 def test_bad_arguments_are_refused_and_change_nothing(small_liver):
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = small_liver
     red.train_cubature(8, tol=0.1)
@@ -476,7 +478,7 @@ def test_compiled_tet_forces_equal_the_numpy_kernel_and_carry_no_rigid_rotation(
     SVD only for inverted elements) against the full-order numpy kernel (SVD polar decomposition)
     at a pose moving the beam by half its length, at a rigid 90-degree rotation of every element
     (no force: rotation invariance) and with elements turned inside out (the SVD branch)."""
-    from rtfem import cubature
+    from rtfem.reduction import cubature
 
     red = solid_beam
     q = _pose(red, np.random.default_rng(2), 0.5)
@@ -517,7 +519,7 @@ def test_reduced_nonlinear_simulator_on_a_solid(solid_beam):
     forces, the simulator settles under a tip load to the cubature's static equilibrium, which
     is within the cubature's error of the exact reduced one, in the large-deflection range
     (the tip lags the linear one by more than 5 %); the driver builds it in one call."""
-    from rtfem.reduced import ReducedNonlinearSimulator, reduced_nonlinear_driver
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator, reduced_nonlinear_driver
 
     red = solid_beam
     model = red.model
@@ -553,7 +555,7 @@ def test_localized_basis_adds_the_patch_dofs_and_its_simulator_keeps_the_contrac
     (measured 0.0235 -> 0.0058 of the pull with a quarter of the beam). Its cubature keeps the patch's elements exact (weight
     1, first), the simulator refreshes them every step under spread, keeps the one-step contract
     and settles to the cubature's static equilibrium."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = solid_beam
     model = red.model
@@ -609,7 +611,7 @@ def test_a_simulator_localized_mid_pull_continues_the_same_field(solid_beam, spr
     what the correction held); the new simulator then settles to its own static equilibrium
     under the same loads. From one patch to another the field is projected (energy norm): close,
     not exact. A simulator without the correction cannot continue one with it."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = solid_beam
     if getattr(red, "_cubature", None) is None:
@@ -622,8 +624,9 @@ def test_a_simulator_localized_mid_pull_continues_the_same_field(solid_beam, spr
     sim = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=spread, static_correction=True)
     sim.run(f, 150)  # mid-swing: a velocity and an acceleration to carry over
     U0 = sim.displacements()
-    loc = sim.localized([tip], 0.25, tol=0.02)  # (at 0.05 the cubature's static solve, linear at the
-    assert loc.reduced.local is not None            # cubature's error rate, did not converge in 60) and loc.steps == sim.steps and loc.spread == spread
+    # tol 0.02: at 0.05 the cubature's static solve, linear at the cubature's error rate, did not converge in 60
+    loc = sim.localized([tip], 0.25, tol=0.02)
+    assert loc.reduced.local is not None and loc.steps == sim.steps and loc.spread == spread
     assert loc.static_correction and loc.damping is sim.damping
     assert np.abs(loc.displacements() - U0).max() < 1e-10 * np.abs(U0).max()
     for key in ("qdot", "qddot"):  # the velocity and acceleration fields carried over exactly
@@ -650,7 +653,7 @@ def test_patch_modes_are_damped_under_mass_proportional_damping():
     4e-4 N, and 7e-6 N with them damped (the first such mode is at 177 Hz; the twelve
     lowest carry none of the patch, so their damping is the one given). A model without a patch
     ignores it."""
-    from rtfem.reduced import ReducedNonlinearSimulator, reduced_nonlinear_driver
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator, reduced_nonlinear_driver
 
     mesh = rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=2, nz=2)
     model = rt.SolidModel(mesh, rt.Material(E=1e5, nu=0.3, density=10.0)).fix("x0")
@@ -701,7 +704,7 @@ def test_a_solid_swung_to_30_and_60_percent_settles_at_1khz(tet10_cantilever, lo
     before) settled 1.3-1.8 times the linear error away at 30 % and at 60 % diverged, or settled
     0.74 of it away (two BLAS threads or one: a chaotic case, so the test asks that it fails the
     bar, either way)."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = tet10_cantilever
     model = red.model
@@ -738,7 +741,7 @@ def test_background_tangent_refresh_settles_where_the_synchronous_one_does(tet10
     The cantilever swung to 60 % settles to the same field as with the synchronous refresh (the
     same equilibrium; the transients differ with the timing); reset() drops a refresh in flight;
     a bad setting is refused before anything runs."""
-    from rtfem.reduced import ReducedNonlinearSimulator
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
     red = tet10_cantilever
     model = red.model

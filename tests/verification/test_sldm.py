@@ -16,7 +16,7 @@ import scipy.sparse.linalg as spla
 
 import rtfem as rt
 from conftest import liver_model
-from rtfem.oscillator import step_response
+from rtfem.reduction.oscillator import step_response
 
 
 def liver_model_and_node(level):

@@ -12,14 +12,12 @@ from __future__ import annotations
 import threading
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from ..errors import ModelError, RtfemError
-from ..material import Material
+from ..errors import RtfemError
+from ..fe.material import Material
 from ..threads import background
-from ..mesh import TriMesh
 from .session import METHODS, Session, Settings, default_session
 
 # viridis at five stops: perceptually uniform, readable by the colour-blind
@@ -458,8 +456,8 @@ def serve(mesh=None, *, material: Material | None = None, fixed="attachment",
     (``element``, ``mass`` of a solid). No mesh: the scene of ``rtfem view``, the embedded liver
     as a solid of tet10 with the reduced nonlinear model (a shell where the mesh extra is absent).
     ``session``: serve this one instead (built by the caller)."""
-    from .. import meshes
-    from ..meshing import mesher_available
+    from ..mesh import meshes
+    from ..mesh.meshing import mesher_available
 
     _need_viser()
     if session is None:

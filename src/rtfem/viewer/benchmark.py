@@ -48,7 +48,7 @@ def default_vertex(session: Session) -> int:
     probe = session.mesh.groups.get("probe") if session.mesh.groups else None
     if probe is not None and len(probe):
         return int(np.asarray(probe)[0])
-    from ..bench import probe_vertex
+    from ..mesh.selection import probe_vertex
 
     return probe_vertex(session.model)
 

@@ -30,17 +30,18 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
-from ..haptics import Grasp
-from ..fullorder import DirectSimulator
-from ..impedance import ImpedanceDriver
-from ..material import Damping, Material
-from ..mesh import TriMesh
-from ..tetmesh import TetMesh
-from ..modal import ModalBasis, modal_analysis
-from ..reduced import reduced_nonlinear_driver
-from ..model import make_model
-from .. import gpu
-from ..simulate import ModalSimulator, as_driver, displacements_at, prepare
+from ..interaction.haptics import Grasp
+from ..drivers.fullorder import DirectSimulator
+from ..drivers.impedance import ImpedanceDriver
+from ..fe.material import Damping, Material
+from ..mesh.surface import TriMesh
+from ..mesh.tetmesh import TetMesh
+from ..reduction.modal import ModalBasis, modal_analysis
+from ..drivers.reduced_nonlinear import reduced_nonlinear_driver
+from ..fe.build import make_model
+from ..drivers import gpu
+from ..drivers.base import as_driver, displacements_at, prepare
+from ..drivers.modal import ModalSimulator
 from ..threads import background, runtime
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
@@ -442,10 +443,10 @@ def _step_cost(driver, steps: int = 30) -> float:
 
 def default_session(progress=None, settings: Settings | None = None) -> Session:
     """The scene of ``rtfem view`` and ``make demo``: the embedded liver meshed into tets
-    (:func:`rtfem.meshes.liver`, ``solid=True``: the mesh extra) as a solid of tet10 (no locking
+    (:func:`rtfem.mesh.meshes.liver`, ``solid=True``: the mesh extra) as a solid of tet10 (no locking
     at nu = 0.45), held at its attachment, with the reduced nonlinear model (40 modes and the
     derivatives of the lowest 10, cubature forces, the static correction) and the 10 mm jaw."""
-    from .. import meshes
+    from ..mesh import meshes
 
     return Session(meshes.liver(solid=True), Material(), "attachment", settings or Settings(method="nonlinear"),
                    {"element": "tet10"}, progress=progress)

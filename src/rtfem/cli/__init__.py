@@ -1,0 +1,1 @@
+"""The command line (``rtfem``), the demo, the benchmark tables and the pictures."""

@@ -1,0 +1,783 @@
+"""The ``rtfem`` command: every step of the job on the embedded liver or on your own mesh.
+
+    rtfem info [MESH]                      mesh check and repair report
+    rtfem modes [MESH] -n 40 -o FILE       precompute the modal basis (.npz)
+    rtfem simulate [MESH] ...              headless run: scripted probe or load file -> .pvd + .csv
+    rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
+    rtfem bench [MESH]                     time per step: modal vs direct, measured now
+    rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
+    rtfem view [MESH]                      the interactive web viewer
+    rtfem demo                             the scripted demo of `make demo HEADLESS=1`
+
+Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError, RtfemError
+
+if TYPE_CHECKING:
+    from ..io.scenario import RunWriter
+
+
+# ---------------------------------------------------------------- shared pieces
+class _LineProgress:
+    """Plain progress lines, at most one a second (stderr is a file or a pipe: no bar to redraw)."""
+
+    def __init__(self, label: str, unit: str, stream) -> None:
+        self.label, self.unit, self.stream = label, unit, stream
+        self.t0 = self._last = time.perf_counter()
+        self.done = self.total = 0
+        self.message = ""
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        self.done, self.total, self.message = done, total, message
+        now = time.perf_counter()
+        if now - self._last >= 1.0:
+            self._last = now
+            self._write(now)
+
+    def _write(self, now: float) -> None:
+        self.stream.write(f"{self.label}: {self.done}/{self.total} {self.unit} {self.message} "
+                          f"({now - self.t0:.1f} s)\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        self._write(time.perf_counter())
+
+
+class _TqdmProgress:
+    """A tqdm bar on a terminal, fed by progress(done, total, message)."""
+
+    def __init__(self, label: str, unit: str, stream) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc=label, unit=unit, file=stream, total=None, dynamic_ncols=True, mininterval=0.1, leave=True)
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        bar = self.bar
+        if total != bar.total:
+            bar.total = total
+        if message:
+            bar.set_postfix_str(message, refresh=False)
+        bar.update(done - bar.n)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, unit: str = "it", stream=None):
+    """The CLI's rendering of the library's progress(done, total, message) callbacks: a tqdm bar on
+    a terminal, a plain line a second otherwise (logs, CI, pipes)."""
+    stream = stream or sys.stderr
+    bar = _TqdmProgress(label, unit, stream) if stream.isatty() else _LineProgress(label, unit, stream)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+# ---------------------------------------------------------------- option types (argparse type= checks)
+def _option(check, parse=float, expect: str = "a number"):
+    """An argparse ``type=``: the text parsed by ``parse``, then checked by a :mod:`rtfem.validate`
+    rule (the same rules as the library's arguments); a refusal becomes argparse's one-line error."""
+
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {expect}") from None
+        try:
+            return check(value)
+        except RtfemError as exc:
+            raise argparse.ArgumentTypeError(validate.one_line(str(exc))) from None
+
+    return convert
+
+
+def _comma_floats(text: str) -> list[float]:
+    """'0.01,0.1,0.5' -> [0.01, 0.1, 0.5]; empty items are an error."""
+    parts = [t.strip() for t in text.split(",")]
+    if any(not t for t in parts):
+        raise ValueError(text)
+    return [float(t) for t in parts]
+
+
+positive = _option(lambda x: validate.positive(x, "value"))
+nonnegative = _option(lambda x: validate.nonnegative(x, "value"))
+fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, hi_open=True))
+open_fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, lo_open=True, hi_open=True))
+poisson = _option(lambda x: validate.in_range(x, "nu", -1.0, 0.5, lo_open=True, hi_open=True, what="Poisson's ratio"))
+count = _option(lambda x: validate.count(x, "value", 1), int, "a whole number")
+mode_count = _option(lambda x: validate.count(x, "value", 1, what="ask for at least one mode"), int, "a whole number")
+port = _option(lambda x: validate.count(x, "port", 0, 65535), int, "a whole number")
+time_list = _option(lambda x: validate.times(x, "times").tolist(), _comma_floats,
+                    "a comma-separated list of times in s, e.g. 0.01,0.1,0.5")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``rtfem: error: ...`` and exit 2, no usage dump."""
+
+    def error(self, message: str):  # type: ignore[override]
+        cmd = self.prog.split()[-1] if " " in self.prog else ""
+        hint = f"; see rtfem {cmd} --help" if cmd else "; see rtfem --help"
+        self.exit(2, f"rtfem: error: {_one_line(message)}{hint}\n")
+
+
+def _one_line(text) -> str:
+    return validate.one_line(str(text))
+
+
+def _vector(text: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise RtfemError(f"{what}={text!r}: give three numbers separated by commas, e.g. 0.05,0.05,0") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise RtfemError(f"{what}={text!r}: give three finite numbers separated by commas")
+    return v
+
+
+def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = False, edge_length: float | None = None):
+    """The mesh of a command: the file (a TetMesh for a volume file), or the embedded liver; with
+    ``solid`` a surface is meshed into tets first (kept on disk, so a second run reuses them);
+    ``solid="auto"``: a closed surface is, an open one is not."""
+    from ..mesh import meshes
+    from ..mesh.files import load_mesh
+    from ..mesh.meshing import cached_tetrahedralize, is_cached, mesher_available
+    from ..mesh.tetmesh import TetMesh
+
+    if solid == "auto" and not mesher_available():
+        print("shell       the mesh extra (pytetwild) is not installed, so the surface is modelled as a shell; "
+              "pip install 'rtfem[mesh]' (make installs it) to mesh a closed organ into tets", flush=True)
+        solid = False
+    if path is None:
+        if solid:  # True, or "auto": the embedded liver is closed
+            spacing = None if edge_length is None else edge_length / scale
+            if not is_cached(meshes.liver(3), spacing):
+                print("meshing     the embedded liver into tets (fTetWild, a few seconds; kept for later runs) ...",
+                      flush=True)
+            mesh = meshes.liver(solid=True, spacing=spacing)
+        else:
+            mesh = meshes.liver()
+        return mesh if scale == 1.0 else mesh.scaled(scale)
+    mesh = load_mesh(path, scale=scale)
+    if solid == "auto" and not isinstance(mesh, TetMesh):
+        solid = mesh.is_closed()
+        if not solid:
+            print(f"surface     {path} is open: modelled as a shell", flush=True)
+    if solid and not isinstance(mesh, TetMesh):
+        print(f"meshing     {path} into tets (fTetWild) ...", flush=True)
+        mesh = cached_tetrahedralize(mesh, edge_length)
+    return mesh
+
+
+def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
+    """Parse a region (--fix, --nodes) with :func:`rtfem.select_nodes`; None: the group 'attachment' if
+    the mesh has one, else bottom:0.1. An empty region is refused."""
+    from ..mesh.selection import describe_selection
+
+    if spec is None:
+        spec = "attachment" if "attachment" in mesh.groups else "bottom:0.1"
+    nodes, how = describe_selection(mesh, spec, option)
+    if nodes.size == 0:
+        what = "nothing would hold the organ" if option == "--fix" else "nothing to load"
+        raise RtfemError(f"{option} {spec!r} selects no vertex: {what}; choose another region")
+    return nodes, how
+
+
+def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> None:
+    from ..fe.material import Material
+
+    m = Material()
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
+    p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    g = p.add_argument_group("solid (tetrahedral) models: a volume file (VTU/VTK/MSH/MESH/INP with tets) is one already")
+    g.add_argument("--solid", action="store_true",
+                   help="mesh a surface into tets (fTetWild, the mesh extra) and model the volume instead of a shell")
+    g.add_argument("--edge-length", type=positive, default=None, metavar="M",
+                   help="target tet edge length in m for --solid (default 5 %% of the organ's diagonal)")
+    g.add_argument("--element", choices=("tet4", "tet10"), default="tet10",
+                   help="tet10 (quadratic, the default: does not lock at nu = 0.45) or tet4 (linear, fast; too stiff "
+                        "for nearly incompressible tissue)")
+    g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
+    g = p.add_argument_group("material and supports")
+    g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
+    g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
+    g.add_argument("--thickness", type=positive, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
+    g.add_argument("--density", type=positive, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
+    g.add_argument("--fix", default=None, metavar="REGION",
+                   help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
+                        "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
+    if dynamics:
+        g = p.add_argument_group("dynamics")
+        g.add_argument("-n", "--modes", type=mode_count, default=40, help="number of modes r (default 40)")
+        g.add_argument("--alpha", type=nonnegative, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
+        g.add_argument("--dt", type=positive, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
+        g.add_argument("--large", action="store_true",
+                       help="large deformation: modal warping for the modal method, the corotational full order (Newton "
+                            "per step) for direct")
+
+
+def mesh_of_args(args):
+    return load_mesh_arg(args.mesh, args.scale, _solid_wanted(args), args.edge_length)
+
+
+def _solid_wanted(args):
+    """--solid (True), --shell or a command without it (False); ``rtfem view`` without either:
+    "auto", a closed surface is a solid organ, an open one (a hollow organ) a shell."""
+    if args.solid or not hasattr(args, "shell"):
+        return bool(args.solid)
+    return False if args.shell else "auto"
+
+
+def model_options(args, mesh) -> dict:
+    """The model options the arguments give for this mesh (a solid's element and mass)."""
+    from ..mesh.tetmesh import TetMesh
+
+    return {"element": args.element, "mass": args.mass} if isinstance(mesh, TetMesh) else {}
+
+
+def build_model(args, *, quiet: bool = False):
+    from ..fe.material import Material
+    from ..fe.build import make_model
+    from ..mesh.tetmesh import TetMesh
+
+    mesh = mesh_of_args(args)
+    material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
+    nodes, how = fixed_nodes(mesh, args.fix)
+    model = make_model(mesh, material, **model_options(args, mesh))
+    model.fix(nodes)
+    model.check_restrained()
+    if not quiet:
+        name = args.mesh or ("embedded default liver" + (", solid" if isinstance(mesh, TetMesh) else ""))
+        if isinstance(mesh, TetMesh):
+            size = (f"{model.n_nodes:,} nodes, {mesh.n_tets:,} {args.element} tets, "
+                    f"{model.mesh.n_triangles:,} surface triangles")
+        else:
+            size = f"{mesh.n_vertices:,} vertices, {mesh.n_triangles:,} triangles"
+        print(f"model       {name}: {size}, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
+    return model
+
+
+def damping_of(args):
+    from ..fe.material import Damping
+
+    return Damping(alpha=args.alpha)
+
+
+MAX_STEPS = 2_000_000  # steps of one `rtfem simulate` run (each keeps a CSV row in memory)
+MAX_FRAMES = 10_000  # VTU frames of one run
+
+
+def _modes(model, args, *, quiet=False):
+    from ..reduction.modal import modal_analysis
+
+    r = args.modes
+    if r < 1:
+        raise RtfemError(f"--modes {r}: ask for at least one mode")
+    if quiet:
+        return modal_analysis(model, r)
+    with progress_bar(f"modes (r = {r})", unit="solve") as bar:
+        return modal_analysis(model, r, progress=bar)
+
+
+# ---------------------------------------------------------------- commands
+def cmd_info(args: argparse.Namespace) -> int:
+    from ..mesh.tetmesh import TetMesh
+
+    mesh = mesh_of_args(args)
+    print(f"mesh        {args.mesh or 'embedded default liver'}")
+    if isinstance(mesh, TetMesh):
+        print(f"volume mesh {mesh.n_vertices} nodes, {mesh.n_tets} tets of {mesh.tets.shape[1]} nodes, "
+              f"volume {mesh.volume():.4g}")
+        print("check       " + str(mesh.report).replace("\n", "\n            "))
+        print(f"quality     {mesh.quality()}")
+        mesh = mesh.surface
+        print("surface     (the boundary, drawn and touched)")
+    lo, hi = mesh.bounds()
+    print(f"size        {mesh.used_vertices().size} vertices, {mesh.n_triangles} triangles, {mesh.edges().shape[0]} edges")
+    ext = hi - lo
+    print(f"extent      {ext[0]:.4g} x {ext[1]:.4g} x {ext[2]:.4g} m (x, y, z; coordinates read as metres), surface area "
+          f"{mesh.areas().sum():.4g} m^2")
+    if ext.max() > 5.0:
+        print(f"            an organ {ext.max():.3g} m across: if the file is in millimetres, give --scale 1e-3")
+    if mesh.is_closed():
+        print(f"volume      {mesh.volume():.4g} m^3")
+    print("check       " + str(mesh.report).replace("\n", "\n            "))
+    if mesh.groups:
+        print("groups      " + ", ".join(f"{k} ({len(v)} vertices)" for k, v in sorted(mesh.groups.items())))
+    from ..fe.linalg import available_backends, default_backend
+
+    print(f"solver      {default_backend()} (sparse Cholesky in use; available: {', '.join(available_backends())})")
+    from ..drivers.gpu import status
+
+    print(f"gpu field   {status()}")
+    return 0
+
+
+def _output_file(path: str) -> Path:
+    """Refuse an output that is an existing directory before any work is done."""
+    out = Path(path)
+    if out.is_dir():
+        raise RtfemError(f"-o {path!r} is a directory; give a file name, e.g. {str(out / 'out.npz')!r}")
+    return out
+
+
+def cmd_modes(args: argparse.Namespace) -> int:
+    _output_file(args.output)
+    model = build_model(args)
+    basis = _modes(model, args)
+    f = basis.frequencies
+    print("frequencies " + ", ".join(f"{x:.3f}" for x in f[:8]) + (f" ... {f[-1]:.2f}" if f.size > 8 else "") + " Hz")
+    out = basis.save(args.output)
+    print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ModalBasis.load(path, model=...)")
+    return 0
+
+
+def _probe_point(model, at: str | None) -> int:
+    if at is not None:
+        return model.nearest_free_node(_vector(at, "--at"))
+    from ..mesh.selection import probe_vertex
+
+    return probe_vertex(model)
+
+
+def _check_simulate(args: argparse.Namespace) -> tuple[int, int]:
+    """Refuse a run that cannot work before any work: returns (steps, steps per frame)."""
+    validate.time_step(args.dt, "--dt")
+    if args.at is not None:
+        _vector(args.at, "--at")
+    if args.method == "sldm" and not args.load:
+        raise RtfemError("--method sldm answers given loads (it has no state to step a contact with): add --load FILE")
+    n_float = args.duration / args.dt
+    if n_float > MAX_STEPS:
+        raise RtfemError(f"--duration {args.duration:g} s at --dt {args.dt:g} s is {n_float:.3g} steps, more than the "
+                         f"{MAX_STEPS:,} steps a run may take (one CSV row each): shorten --duration or raise --dt")
+    n_steps = int(round(n_float))
+    if n_steps < 1:
+        raise RtfemError(f"--duration {args.duration} is shorter than one step (--dt {args.dt})")
+    frame_every = max(1, int(round(1 / args.fps / args.dt)))
+    if n_steps // frame_every > MAX_FRAMES:
+        raise RtfemError(f"--fps {args.fps:g} over {args.duration:g} s writes {n_steps // frame_every:,} VTU frames, more "
+                         f"than {MAX_FRAMES:,}: lower --fps")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
+    return n_steps, frame_every
+
+
+def _drawn(model):
+    """What a run's frames hold: a solid's volume (tets, for ParaView's clips and slices), a shell's surface."""
+    return getattr(model, "tetmesh", model.mesh)
+
+
+def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tuple[RunWriter, str]:
+    """A scripted point probe presses the organ: one CSV row per step, frames at --fps."""
+    from ..interaction.haptics import Probe, ScriptedDevice
+    from ..io.scenario import RunWriter
+
+    mesh = model.mesh
+    node = _probe_point(model, args.at)
+    X, nrm = np.asarray(mesh.vertices)[node], mesh.vertex_normals()[node]
+    device = ScriptedDevice.press(X, nrm, args.depth, args.duration, approach=0.001)
+    probe = Probe(mesh, sim, stiffness=args.stiffness)
+    out = RunWriter(args.out, _drawn(model), ["t", "probe_x", "probe_y", "probe_z", "force_x", "force_y", "force_z", "force",
+                                     "contact_node", "u_x", "u_y", "u_z"], frame_every)
+    for k in range(n_steps):
+        t = k * args.dt
+        pos = device.position(t)
+        f = probe.update(pos)
+        contact = probe.contact_node if probe.contact_node is not None else -1
+        out.row([t + args.dt, *pos, *f, float(np.linalg.norm(f)), contact, *sim.displacement(node)])
+        out.frame(k + 1, t + args.dt, sim.displacements)
+        bar(k + 1, n_steps, f"t = {t:.3f} s")
+    what = (f"point probe at vertex {node}, {args.depth * 1e3:g} mm deep along its inward normal, stiffness "
+            f"{args.stiffness:g} N/m")
+    return out, what
+
+
+def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: int, bar) -> RunWriter:
+    """Given loads: stepped by a driver, or answered whole by SLDM (Duhamel superposition)."""
+    from ..io.scenario import RunWriter
+
+    nodes = schedule.nodes
+    header = ["t"] + [f"{c}{n}" for n in nodes for c in ("f_x@", "f_y@", "f_z@", "u_x@", "u_y@", "u_z@")]
+    out = RunWriter(args.out, _drawn(model), header, frame_every)
+    zero = np.zeros(3)
+    times = (np.arange(n_steps) + 1) * args.dt
+    if sim is None:
+        from ..reduction.sldm import SLDM
+
+        print(f"sldm        factorizing K and building the Krylov basis of each load pattern ({len(schedule.nodes)} "
+              "loaded node(s))", flush=True)
+        with progress_bar("sldm (Lanczos)", unit="vectors") as sbar:
+            U_all = SLDM(model, damping_of(args), progress=sbar).response(schedule, times, tol=args.tol)
+    for k, t in enumerate(times):
+        f = schedule.forces_at(t - args.dt)
+        if sim is None:
+            U = U_all[k]
+        else:
+            sim.step({n: tuple(v) for n, v in f.items()} or None)
+            U = sim.displacements()
+        out.row([t] + [v for n in nodes for v in (*f.get(n, zero), *U[n])])
+        out.frame(k + 1, t, U)
+        bar(k + 1, n_steps, f"t = {t:.3f} s")
+    return out
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from ..drivers.fullorder import DirectSimulator
+    from ..io.scenario import LoadSchedule
+    from ..drivers.modal import ModalSimulator
+
+    n_steps, frame_every = _check_simulate(args)
+    model = build_model(args)
+    if not args.load and args.depth > 0.5 * model.mesh.diagonal():  # before any precompute
+        raise ModelError(f"--depth {args.depth:g} m is more than half the organ's size ({model.mesh.diagonal():.3g} m "
+                         "across): the probe would pass through it. Give the indentation in m, e.g. 0.005")
+    schedule = LoadSchedule.from_csv(args.load, model.n_nodes) if args.load else None
+    damping = damping_of(args)
+    large = getattr(args, "large", False)
+    if large and args.method == "sldm":
+        raise RtfemError("--large: SLDM superposes linear responses; use --method modal (modal warping) or direct (the "
+                         "corotational full order)")
+    if getattr(args, "local", None) and args.method != "nonlinear":
+        raise RtfemError("--local adds a patch to the reduced nonlinear model's basis: use it with --method nonlinear")
+    if args.method == "modal":
+        sim = ModalSimulator(_modes(model, args), args.dt, damping, static_correction=True, warping=large)
+    elif args.method == "direct":
+        sim = DirectSimulator(model, args.dt, damping, large_deformation=large)
+    elif args.method == "nonlinear":
+        from ..drivers.reduced_nonlinear import reduced_nonlinear_driver
+
+        local = None
+        if args.local:  # the patch around the probed vertex, or the loaded nodes
+            local = (schedule.nodes if schedule is not None else [_probe_point(model, args.at)], args.local * 1e-3)
+        modes = _modes(model, args)
+        with progress_bar("modal derivatives", unit="mode") as bar:
+            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar)
+        info = sim.reduced.info
+        patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
+                                                f"({info['local']['nodes']} nodes)")
+        print(f"reduced     {sim.reduced.size} coordinates ({modes.n_modes} modes + {sim.reduced.n_derivatives} "
+              f"derivatives{patch}), cubature on {info['cubature']['elements']} of "
+              f"{info['cubature']['of']} elements, static correction")
+    else:
+        sim = None
+    from ..threads import runtime
+
+    t0 = time.perf_counter()
+    # the steps on one BLAS thread (rtfem.threads); SLDM's Krylov build (no stepping) keeps BLAS's threads
+    stepping = runtime() if sim is not None else contextlib.nullcontext()
+    with stepping, progress_bar(f"simulate ({args.method})", unit="steps") as bar:
+        if schedule is None:
+            out, what = _simulate_probe(args, model, sim, n_steps, frame_every, bar)
+        else:
+            out = _simulate_schedule(args, model, sim, schedule, n_steps, frame_every, bar)
+            what = f"{len(schedule)} load rows from {args.load} on {len(schedule.nodes)} node(s)"
+    elapsed = time.perf_counter() - t0
+    csv_path, pvd = out.close()
+    print(f"load        {what}")
+    label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method) if large else args.method
+    label = "reduced nonlinear" if args.method == "nonlinear" else label
+    print(f"ran         {n_steps} steps of {args.dt * 1e3:g} ms ({label}) in {elapsed:.2f} s "
+          f"({n_steps * args.dt / elapsed:.2f} x real time, including the output)")
+    if schedule is None:
+        forces = np.array([r[7] for r in out.rows])
+        print(f"force       peak {forces.max():.4f} N, final {forces[-1]:.4f} N")
+    print(f"wrote       {csv_path} ({len(out.rows)} rows), {pvd} ({len(out.frames)} frames; open in ParaView)")
+    return 0
+
+
+LARGE_MAP = 2**30  # bytes: an impedance map past this needs --allow-large
+
+
+def cmd_impedance(args: argparse.Namespace) -> int:
+    from ..drivers.impedance import ImpedanceMap
+
+    output = _output_file(args.output)
+    model = build_model(args)
+    times = args.times
+    nodes = None
+    if args.nodes:
+        nodes, how = fixed_nodes(model.mesh, args.nodes, "--nodes")
+        print(f"loaded      {nodes.size} nodes ({how})")
+    kw = dict(nodes=nodes, radius=args.radius, metric=args.metric, threshold=args.threshold, method=args.method,
+              n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30)
+    if times is not None:
+        kw["times"] = times
+    size = ImpedanceMap.estimate_bytes(model, nodes=nodes, radius=args.radius, metric=args.metric,
+                                       **({"times": times} if times is not None else {}))
+    print(f"estimate    about {size['bytes'] / 2**20:,.0f} MiB to write ({size['loaded']:,} loaded nodes, "
+          f"{size['kept_per_node']:,.0f} kept per node, {size['samples']} samples each"
+          f"{'; --threshold keeps fewer' if args.threshold else ''})", flush=True)
+    if size["bytes"] > LARGE_MAP and not args.allow_large:
+        raise RtfemError(f"the map would be about {size['bytes'] / 2**30:.1f} GiB, more than {LARGE_MAP / 2**30:g} GiB: "
+                         "pass --allow-large to write it, or give a smaller --radius, a --threshold, fewer --times or "
+                         "--nodes")
+    with progress_bar("impedance", unit="nodes") as bar:
+        imap = ImpedanceMap.build(model, damping_of(args), progress=bar, **kw)
+    if not imap.info.get("complete", True):
+        # interrupted: keep what was finished, beside (never over) the requested output
+        name = output.name[:-4] if output.name.endswith(".npz") else output.name
+        partial = imap.save(output.with_name(name + ".partial.npz"))
+        print(f"rtfem: interrupted: kept {imap.loaded.size} of {imap.info['requested_nodes']} loaded nodes in "
+              f"{partial}; {args.output} was not touched", file=sys.stderr)
+        return 130
+    out = imap.save(output)
+    print(f"map         {imap}")
+    print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ImpedanceMap.load(path, model=...)")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import dynamics_table
+
+    model = build_model(args)
+    rows = dynamics_table(model, args.modes_list, dt=args.dt, damping=damping_of(args), direct_steps=args.direct_steps,
+                          large=args.large)
+    from .bench import print_table
+
+    print_table(rows)
+    if args.plot:
+        from .plots import plot_bench
+
+        print(f"wrote       {plot_bench(rows, args.plot)}")
+    return 0
+
+
+def cmd_pictures(args: argparse.Namespace) -> int:
+    from .plots import pictures
+
+    model = build_model(args)
+    for path in pictures(model, Path(args.out), n_modes=args.modes, damping=damping_of(args), dt=args.dt,
+                         gif=not args.no_gif, mp4=args.mp4, scaling_levels=() if args.no_scaling else (2, 3, 4),
+                         say=print):
+        print(f"wrote       {path}")
+    return 0
+
+
+class _StageBars:
+    """progress(stage, done, total, message) of a multi-stage precompute: one CLI bar per stage."""
+
+    def __init__(self) -> None:
+        self.stage, self.bar = None, None
+
+    def __call__(self, stage: str, done: int, total: int, message: str = "") -> None:
+        if stage != self.stage:
+            self.close()
+            self.stage = stage
+            self.bar = progress_bar(stage, unit="step")
+            self.bar_fn = self.bar.__enter__()
+        self.bar_fn(done, total, message)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+            self.bar = None
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from ..viewer.session import Session, Settings
+
+    if args.benchmark is None:
+        check_address(args.host, args.port)
+    if args.local and args.method != "nonlinear":
+        raise RtfemError("--local adds a patch to the reduced nonlinear model's basis at each grab: use it with --method "
+                         "nonlinear")
+    if args.shell and args.solid:
+        raise RtfemError("--shell and --solid contradict each other: give one (a closed surface is a solid by default)")
+    settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
+                        grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
+                        local=(args.local or 0.0) * 1e-3, max_force=args.max_force).check()  # before any work
+    model = build_model(args)
+    mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
+    t0 = time.perf_counter()
+    bars = _StageBars()
+    try:
+        session = Session(mesh, model.material, np.flatnonzero(model.held_nodes), settings,
+                          model_options(args, mesh), progress=bars)
+    finally:
+        bars.close()
+    print(f"precomputed {settings.label} in {time.perf_counter() - t0:.1f} s", flush=True)
+    if args.benchmark is not None:
+        import json
+
+        from ..viewer.benchmark import run
+
+        report = run(session, args.benchmark)
+        report["precompute_s"] = round(time.perf_counter() - t0 - report["seconds"], 1)
+        print(json.dumps(report), flush=True)
+        return 0 if report["error"] is None else 1
+    from ..viewer.app import serve
+
+    serve(session=session, host=args.host, port=args.port)
+    return 0
+
+
+def check_address(host: str, port: int) -> None:
+    """Refuse, before any precompute, a host that is not an address of this machine."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise RtfemError(f"--host {host}: unknown address ({getattr(exc, 'strerror', None) or exc})") from None
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return  # the viewer moves to the next free port and says so
+            raise RtfemError(f"--host {host}: cannot serve on this address ({exc.strerror or exc}); give an address "
+                             "of this machine, e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (the network)") from None
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import main as demo_main
+
+    return demo_main(["--out", args.out])
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
+                                 "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
+                                 epilog="Every command runs on the embedded default liver when no MESH is given.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("info", help="check a mesh file (or the embedded liver) and report repairs")
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
+    p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    p.add_argument("--solid", action="store_true", help="mesh a surface into tets (fTetWild) and report the volume mesh")
+    p.add_argument("--edge-length", type=positive, default=None, metavar="M", help="target tet edge length in m for --solid")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("modes", help="precompute the r lowest modes and save them (.npz)")
+    add_model_options(p)
+    p.add_argument("-o", "--output", default="liver.modes.npz", help="output file (default liver.modes.npz)")
+    p.set_defaults(func=cmd_modes)
+
+    p = sub.add_parser("simulate", help="headless run: a scripted probe (default) or a load file; writes .pvd + .csv",
+                       description="A point probe presses the organ along the inward normal (1 mm approach, press to "
+                       "--depth over 20 % of the run, hold to 60 %, release by 80 %), or the loads of --load act. "
+                       "Writes response.pvd (+ frames) and response.csv to --out.")
+    add_model_options(p)
+    p.add_argument("--method", choices=("modal", "direct", "sldm", "nonlinear"), default="modal",
+                   help="modal (r modes + static correction, default), direct (Newmark on the full model, the "
+                        "baseline), sldm (Krylov, --load only) or nonlinear (the reduced nonlinear model: the r modes "
+                        "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
+    p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
+                   "probed (or loaded) vertex in the basis, for pulls of centimetres (see README)")
+    p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
+    p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
+    p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
+                   "farthest from the supports")
+    p.add_argument("--depth", type=positive, default=0.005, help="probe indentation in m (default 0.005)")
+    p.add_argument("--stiffness", type=positive, default=200.0, help="probe coupling spring in N/m (default 200)")
+    p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--fps", type=positive, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
+    p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("impedance", help="precompute an impedance map (responses to unit loads) and save it (.npz)")
+    add_model_options(p)
+    p.add_argument("-o", "--output", default="liver.map.npz", help="output file (default liver.map.npz)")
+    p.add_argument("--nodes", metavar="REGION", help="loaded nodes, same forms as --fix (default: every free node)")
+    p.add_argument("--radius", type=positive, help="radius of influence in m (default: none)")
+    p.add_argument("--metric", choices=("euclidean", "geodesic"), default="euclidean", help="distance for --radius")
+    p.add_argument("--threshold", type=fraction, help="drop responses below this fraction of each column's largest")
+    p.add_argument("--times", type=time_list, help="response samples in s, comma-separated (default 0.005,...,0.5)")
+    p.add_argument("--method", choices=("modal", "sldm"), default="modal", help="modal (r modes + static correction) or sldm")
+    p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
+    p.add_argument("--workers", type=count, default=1, help="threads (default 1)")
+    p.add_argument("--memory-limit", type=positive, default=4.0, help="refuse maps above this many GiB (default 4)")
+    p.add_argument("--allow-large", action="store_true", help="write a map estimated past 1 GiB (refused otherwise)")
+    p.set_defaults(func=cmd_impedance)
+
+    p = sub.add_parser("bench", help="time per step of the modal simulator against direct integration, measured now")
+    add_model_options(p)
+    p.add_argument("--modes-list", type=count, nargs="+", default=[10, 40, 100], help="r values (default 10 40 100)")
+    p.add_argument("--direct-steps", type=count, default=30, help="direct Newmark steps timed (default 30)")
+    p.add_argument("--plot", metavar="PNG", help="also plot the table")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("pictures", help="PNG mode shapes and deformed states, a GIF of a response, and plots")
+    add_model_options(p)
+    p.add_argument("--out", default="out/pictures", help="output folder (default out/pictures)")
+    p.add_argument("--no-gif", action="store_true", help="skip the animated GIF")
+    p.add_argument("--mp4", action="store_true", help="also write an MP4 (needs imageio-ffmpeg)")
+    p.add_argument("--no-scaling", action="store_true", help="skip the scaling curves (they time the liver at 3 sizes)")
+    p.set_defaults(func=cmd_pictures)
+
+    p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
+    add_model_options(p)
+    p.add_argument("--shell", action="store_true",
+                   help="model a closed surface as a shell (a hollow organ) instead of meshing it into tets (the "
+                        "default for a closed surface; an open surface is always a shell)")
+    p.add_argument("--method", choices=("modal", "impedance", "direct", "nonlinear"), default="nonlinear",
+                   help="dynamics (default nonlinear: the reduced nonlinear model, modes + modal derivatives with "
+                        "cubature forces and the static correction, large deformation of a shell or a solid; modal: "
+                        "the linear modal model; impedance: a precomputed map; direct: the full model, the baseline)")
+    p.add_argument("--max-force", type=positive, default=10.0, metavar="N",
+                   help="the grasp's force limit in N (default 10, what a desktop haptic device renders); the panel "
+                        "says when it clips")
+    p.add_argument("--benchmark", type=positive, metavar="SECONDS",
+                   help="no server: run the viewer's session headless for SECONDS with a scripted grab of the default "
+                        "vertex pulled 3 cm and released, and print one JSON line (rates, step percentiles, force, "
+                        "peak displacement)")
+    p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
+    p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
+                   "of the picked point, in mm (default 10; 0: one vertex)")
+    p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: each grab adds every dof within MM "
+                   "mm of the held vertices to the basis (trained in the background, seconds; then swapped in mid-pull)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
+                   "and says so)")
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
+    p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
+    p.set_defaults(func=cmd_demo)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option (2, one line already printed)
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
+    try:
+        return int(args.func(args))
+    except RtfemError as exc:
+        print(f"rtfem: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"rtfem: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("rtfem: error: out of memory: use a coarser mesh, fewer modes or a smaller map (--radius, --threshold)",
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nrtfem: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,805 @@
+"""The impedance map: precomputed responses to unit loads, superposed at run time (paper 4.1).
+
+For each selected node j and direction k, the displacement response to a unit step load
+switched on at t = 0 is computed at the requested time samples plus its static limit, and
+kept only where it matters: within a radius of influence of j (Euclidean or geodesic), or
+where it is larger than a fraction of its peak (``threshold``; a radius fails for a load
+near the free end of an organ held at the other end, where the largest motion lies far
+from the load). At run time, the field of any set of loads switched on at given times is
+the superposition of those columns, delayed to their onsets (Duhamel), and the 3x3 point
+compliance at a contact node renders the force.
+
+Responses come from the modal route (``method="modal"``: r modes, exact closed form in time,
+plus the static correction so that the static limit is exact) or from SLDM (one Krylov basis
+per load vector; exact to ``tol`` at every sample, costlier to build).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from .. import validate
+from ..errors import ModelError
+from ..storage import load_versioned, save_versioned
+from ..fe.material import Damping
+from ..fe.model import check_model
+from ..reduction.modal import mesh_fingerprint, modal_analysis
+from ..reduction.oscillator import step_response
+
+__all__ = ["ImpedanceMap", "ImpedanceDriver", "Load"]
+
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Load:
+    """A force (fx, fy, fz) on ``node`` switched on at ``onset`` (s) and held."""
+
+    node: int
+    force: tuple[float, float, float]
+    onset: float = 0.0
+
+
+class ImpedanceMap:
+    """Precomputed unit-load responses (see the module docstring); build with :meth:`build`."""
+
+    def __init__(self, n_nodes: int, times: np.ndarray, loaded: np.ndarray, offsets: np.ndarray,
+                 neighbours: np.ndarray, responses: np.ndarray, point: np.ndarray, fingerprint: str,
+                 info: dict | None = None) -> None:
+        n = validate.count(n_nodes, "n_nodes", 1)
+        times = validate.times(times, "times")
+        loaded = validate.int_array(loaded, "loaded")
+        offsets = validate.int_array(offsets, "offsets")
+        neighbours = validate.int_array(neighbours, "neighbours")
+        L, nt = loaded.size, times.size + 1
+        if L == 0:
+            raise ModelError("loaded is empty: a map needs at least one loaded node")
+        if loaded.min() < 0 or loaded.max() >= n:
+            raise ModelError(f"loaded holds node {loaded.max() if loaded.max() >= n else loaded.min()} outside "
+                             f"0..{n - 1} (n_nodes = {n})")
+        if np.unique(loaded).size != L:
+            raise ModelError("loaded lists a node twice")
+        if offsets.size != L + 1 or offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != neighbours.size:
+            raise ModelError(f"offsets must rise from 0 to {neighbours.size} (the length of neighbours) in {L + 1} "
+                             f"entries, one slot per loaded node; got {offsets.size} entries from "
+                             f"{offsets[0] if offsets.size else '-'} to {offsets[-1] if offsets.size else '-'}")
+        if neighbours.size and (neighbours.min() < 0 or neighbours.max() >= n):
+            bad = neighbours.max() if neighbours.max() >= n else neighbours.min()
+            raise ModelError(f"neighbours holds node {bad} outside 0..{n - 1} (n_nodes = {n})")
+        inner = np.ones(neighbours.size, bool)
+        inner[offsets[:-1][offsets[:-1] < neighbours.size]] = False  # first entry of each slot
+        if neighbours.size > 1 and np.any(np.diff(neighbours)[inner[1:]] <= 0):
+            raise ModelError("neighbours are not strictly increasing within each loaded node's slot")
+        responses = validate.real_array(responses, "responses", 4)
+        if responses.shape != (neighbours.size, nt, 3, 3):
+            raise ModelError(f"responses must have shape ({neighbours.size}, {nt}, 3, 3) for {neighbours.size} kept "
+                             f"nodes and {times.size} times + the static limit, got {responses.shape}")
+        point = validate.real_array(point, "point", 4)
+        if point.shape != (L, nt, 3, 3):
+            raise ModelError(f"point must have shape ({L}, {nt}, 3, 3), got {point.shape}")
+        if not isinstance(fingerprint, str):
+            raise ModelError(f"fingerprint={validate.show(fingerprint)} must be a string (the mesh hash)")
+        if info is not None and not isinstance(info, dict):
+            raise ModelError(f"info={validate.show(info)} must be a dict")
+        self.n_nodes = n
+        self.times = times  # (n_t,) samples; the static limit is appended
+        self.loaded = loaded  # (L,) loaded nodes
+        self.offsets = offsets  # (L + 1,) into neighbours/responses
+        self.neighbours = neighbours  # (N,) kept nodes per loaded node, increasing
+        self.responses = responses  # (N, n_t + 1, 3, 3): [kept node, time, u comp, load dir]
+        self.point = point  # (L, n_t + 1, 3, 3): exact responses at the loaded node itself
+        self.fingerprint = fingerprint
+        self.info = dict(info or {})
+        self._slot = np.full(self.n_nodes, -1, dtype=np.int64)
+        self._slot[self.loaded] = np.arange(self.loaded.size)
+
+    # ---------------------------------------------------------------- building
+    @classmethod
+    def build(
+        cls,
+        model,
+        damping: Damping | None = None,
+        *,
+        nodes=None,
+        radius: float | None = None,
+        metric: str = "euclidean",
+        threshold: float | None = None,
+        times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
+        method: str = "modal",
+        n_modes: int = 100,
+        tol: float = 1e-6,
+        memory_limit: float = 4 * 2**30,
+        progress: Callable[[int, int, str], None] | None = None,
+        workers: int = 1,
+        modes=None,
+        static: str = "solves",
+    ) -> "ImpedanceMap":
+        """Precompute the map.
+
+        Parameters
+        ----------
+        model : a restrained ShellModel.
+        damping : the damping of the responses.
+        nodes : loaded nodes (indices, mask or group name); default every free node of the surface.
+        radius : radius of influence in metres (None: no radius).
+        metric : "euclidean" or "geodesic" (shortest path along mesh edges).
+        threshold : keep only nodes whose response exceeds ``threshold`` times the largest
+            response of that column (at any time); combines with ``radius``.
+        times : response samples (s), increasing, > 0; the static limit is kept as well.
+        method : "modal" (``n_modes`` modes + static correction) or "sldm" (tolerance ``tol``).
+        memory_limit : refuse to start if the estimate exceeds it (bytes).
+        progress : ``progress(done, total, message)`` after each loaded node (nodes done, nodes asked
+            for, a message with the node and the seconds so far).
+        workers : loaded nodes computed in parallel by this many threads (the sparse solves
+            and the BLAS products release the interpreter lock).
+        modes : a :class:`~rtfem.ModalBasis` of this model to use instead of computing
+            ``n_modes`` modes (method "modal").
+        static : where the static limits (and the modal route's static correction) come from:
+            "solves" (three sparse solves per loaded node, default) or "condensation" (Bro-Nielsen
+            & Cotin: the surface's whole static compliance at once, :meth:`surface_compliance`
+            with its Schur complement; the map then keeps surface nodes only, which is what is
+            drawn and touched). Condensation pays for maps over a large part of a solid's surface
+            (``benchmarks/condensation.py``); it is dense, (3 s)^2 for s surface nodes.
+
+        A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
+        (``info["complete"]`` is False, ``info["requested_nodes"]`` says how many were asked
+        for) and can be saved; an interruption before the first node is re-raised.
+        """
+        check_model(model)
+        if damping is not None and not isinstance(damping, Damping):
+            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
+        damping = damping if damping is not None else Damping()
+        t = validate.times(times, "times")
+        validate.choice(metric, "metric", ("euclidean", "geodesic"))
+        if radius is not None:
+            radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
+        if threshold is not None:
+            threshold = validate.in_range(threshold, "threshold", 0.0, 1.0, hi_open=True,
+                                          what="a fraction of each column's peak, or None")
+        validate.choice(method, "method", ("modal", "sldm"))
+        n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
+        tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
+        memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
+        progress = validate.progress(progress)
+        workers = validate.count(workers, "workers", 1, 256)
+        static = validate.choice(static, "static", ("solves", "condensation"))
+        if modes is not None:
+            from ..reduction.modal import ModalBasis
+
+            if (not isinstance(modes, ModalBasis) or modes.n_nodes != model.n_nodes
+                    or modes.fingerprint != mesh_fingerprint(model.mesh)
+                    or (modes.model is not None and modes.model is not model)):
+                raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
+        model.check_restrained()
+        loaded, held = _loaded_nodes(model, nodes)
+        within = _NeighbourFinder(model.mesh, radius, metric)
+        _check_memory(loaded, within, t.size, memory_limit)
+        engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
+                  else _SLDMColumns(model, damping, t, tol))
+        surface = None
+        if static == "condensation":
+            t_cond = time.perf_counter()
+            nodes_s, C = model.surface_compliance(np.union1d(_free_surface(model), loaded), method="condensation")
+            engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
+            engine.setup_seconds += time.perf_counter() - t_cond
+            surface = np.zeros(model.n_nodes, dtype=bool)
+            surface[nodes_s] = True
+
+        def one(j: int):
+            cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
+            keep = within(j)
+            if surface is not None:  # the static limit is known on the surface only
+                keep = keep[surface[keep]]
+            if threshold is not None and threshold > 0:
+                mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
+                keep = keep[mag >= threshold * mag.max()]
+            return j, keep, cols[keep], cols[j]
+
+        t0 = time.perf_counter()
+        results, complete = _run_nodes(one, loaded, workers, progress)
+        info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
+                "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
+                "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
+                "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
+                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size), "static": static,
+                "requested_nodes": int(loaded.size)}
+        offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
+        return cls(model.n_nodes, t, np.array([r[0] for r in results]), offsets,
+                   np.concatenate([r[1] for r in results]), np.concatenate([r[2] for r in results]),
+                   np.array([r[3] for r in results]), mesh_fingerprint(model.mesh), info)
+
+    # ---------------------------------------------------------------- sizes
+    @staticmethod
+    def estimate_bytes(model, *, nodes=None, radius: float | None = None, metric: str = "euclidean",
+                       times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)) -> dict:
+        """What :meth:`build` with these settings would hold (and :meth:`save` write), before
+        any work: ``{"bytes", "loaded", "kept_per_node", "samples"}`` (the kept neighbourhoods
+        sampled at 20 loaded nodes; a ``threshold`` keeps fewer)."""
+        check_model(model)
+        t = validate.times(times, "times")
+        validate.choice(metric, "metric", ("euclidean", "geodesic"))
+        if radius is not None:
+            radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
+        loaded, _ = _loaded_nodes(model, nodes)
+        nbytes, kept = _estimate(loaded, _NeighbourFinder(model.mesh, radius, metric), t.size)
+        return {"bytes": nbytes, "loaded": int(loaded.size), "kept_per_node": kept, "samples": int(t.size + 1)}
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.responses.nbytes + self.point.nbytes + self.neighbours.nbytes + self.offsets.nbytes)
+
+    @property
+    def bytes_per_node(self) -> float:
+        """Memory per loaded node (bytes)."""
+        return self.nbytes / max(1, self.loaded.size)
+
+    def __repr__(self) -> str:
+        kept = np.diff(self.offsets).mean() if self.loaded.size else 0
+        return (f"ImpedanceMap({self.loaded.size} loaded nodes, {kept:.0f} kept per node, {self.times.size} samples "
+                f"+ static, {self.nbytes / 2**20:.1f} MiB, method={self.info.get('method')!r})")
+
+    # ---------------------------------------------------------------- run time
+    def _slot_of(self, node, name: str = "node") -> int:
+        node = validate.node(node, self.n_nodes, name)
+        if self._slot[node] < 0:
+            raise ModelError(f"node {node} is not a loaded node of this impedance map")
+        return int(self._slot[node])
+
+    def _sample(self, R: np.ndarray, tau: float) -> np.ndarray | None:
+        """R (k, n_t + 1, 3, 3) at a delay tau, linear in time between samples.
+
+        Before the first sample the response grows linearly from 0 at tau = 0; past the last
+        sample the static limit is used (choose the samples to cover the settling time).
+        """
+        t = self.times
+        if tau <= 0:
+            return None
+        if tau > t[-1]:
+            return R[:, -1]
+        i1 = int(np.searchsorted(t, tau))
+        if i1 == 0:
+            return R[:, 0] * (tau / t[0])
+        w = (tau - t[i1 - 1]) / (t[i1] - t[i1 - 1])
+        return (1 - w) * R[:, i1 - 1] + w * R[:, i1]
+
+    def displacements(self, loads: Iterable[Load | tuple], t: float) -> np.ndarray:
+        """Superposed (n, 3) displacement field at time ``t`` of loads switched on at their onsets.
+
+        ``loads``: :class:`Load` objects or ``(node, (fx, fy, fz), onset)`` tuples; a load that
+        ends is a second load of opposite sign at the release time.
+        """
+        t = validate.instant(t, "t")
+        if isinstance(loads, (str, bytes)) or not hasattr(loads, "__iter__"):
+            raise ModelError(f"loads={validate.show(loads)} must be a list of Load or (node, (fx, fy, fz), onset)")
+        parsed = []
+        for ld in loads:
+            if isinstance(ld, Load):
+                node, f, onset = ld.node, ld.force, ld.onset
+            elif isinstance(ld, (tuple, list)) and len(ld) in (2, 3):
+                node, f, onset = ld[0], ld[1], ld[2] if len(ld) > 2 else 0.0
+            else:
+                raise ModelError(f"load {validate.show(ld)} must be a Load or a (node, (fx, fy, fz), onset) tuple")
+            self._slot_of(node, "load node")
+            f = validate.vector(f, f"force on node {node}", 3)
+            onset = validate.instant(onset, "onset")
+            parsed.append((int(node), f, onset))
+        u = np.zeros((self.n_nodes, 3))
+        for node, f, onset in parsed:
+            self._superpose(u, node, f, t - onset)
+        return u
+
+    def _superpose(self, u: np.ndarray, node: int, f: np.ndarray, delay: float) -> None:
+        """u += the field of a step load f switched on at a loaded node ``delay`` seconds ago
+        (inf: its static limit); checked arguments (the run-time path)."""
+        s = int(self._slot[node])
+        lo, hi = self.offsets[s], self.offsets[s + 1]
+        Rt = self._sample(self.responses[lo:hi], delay)
+        if Rt is not None:
+            u[self.neighbours[lo:hi]] += Rt @ f
+
+    def compliance_at(self, loaded: int, nodes: np.ndarray, t: float | None = None) -> np.ndarray:
+        """(k, 3, 3) responses at ``nodes`` per unit force at ``loaded`` (static when t is None).
+
+        O(k log kept): what a haptic update needs (the field near the contact), without
+        superposing the whole map. Nodes outside the kept set get zeros.
+        """
+        self._slot_of(loaded, "loaded")
+        nodes = validate.nodes(nodes, self.n_nodes)
+        if t is not None:
+            t = validate.instant(t, "t")
+        return self._columns(int(loaded), nodes, t)
+
+    def _columns(self, loaded: int, nodes: np.ndarray, t: float | None) -> np.ndarray:
+        """:meth:`compliance_at` on checked arguments (the run-time path)."""
+        s = int(self._slot[loaded])
+        lo, hi = self.offsets[s], self.offsets[s + 1]
+        kept = self.neighbours[lo:hi]  # sorted
+        pos = np.clip(np.searchsorted(kept, nodes), 0, max(kept.size - 1, 0))
+        hit = kept[pos] == nodes
+        out = np.zeros((nodes.size, 3, 3))
+        R = self.responses[lo + pos[hit]]
+        if t is None:
+            out[hit] = R[:, -1]
+        else:
+            Rt = self._sample(R, t)
+            if Rt is not None:
+                out[hit] = Rt
+        return out
+
+    def point_compliance(self, node: int, t: float | None = None) -> np.ndarray:
+        """3x3 compliance at a loaded node: displacement there per unit force there.
+
+        ``t=None`` gives the static compliance (G_pp = [K^-1]_pp), otherwise the step-response
+        compliance after a delay ``t``. Exact (it does not depend on the truncation).
+        """
+        s = self._slot_of(node)
+        if t is not None:
+            t = validate.instant(t, "t")
+        P = self.point[s][None]
+        if t is None:
+            return self.point[s, -1].copy()
+        out = self._sample(P, t)
+        return np.zeros((3, 3)) if out is None else out[0]
+
+    def as_driver(self, dt: float = 1e-3, *, dynamic: bool = False) -> "ImpedanceDriver":
+        """This map as a Driver (what Probe and Grasp use when given the map): quasi-static, or with
+        ``dynamic=True`` its field follows the force history (:class:`ImpedanceDriver`)."""
+        return ImpedanceDriver(self, dt, dynamic=dynamic)
+
+    # ---------------------------------------------------------------- files
+    _ARRAYS = ["times", "loaded", "offsets", "neighbours", "responses", "point"]
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Save as a versioned ``.npz`` (no pickle)."""
+        arrays = {k: getattr(self, k) for k in self._ARRAYS}
+        arrays.update(n_nodes=np.array(self.n_nodes), fingerprint=np.array(self.fingerprint))
+        return save_versioned(path, "rtfem.ImpedanceMap", FORMAT_VERSION, arrays, self.info)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, model=None) -> "ImpedanceMap":
+        """Load a saved map; with ``model`` it must belong to that model's mesh."""
+        z, info = load_versioned(path, "rtfem.ImpedanceMap", FORMAT_VERSION, cls._ARRAYS + ["n_nodes", "fingerprint"],
+                                  "impedance map")
+        fp, n = z.pop("fingerprint"), z.pop("n_nodes")
+        where = repr(str(path))
+        if fp.dtype.kind != "U" or fp.ndim != 0:
+            raise ModelError(f"{where}: field 'fingerprint' is not a string: the file is damaged or altered")
+        if n.ndim != 0 or not np.issubdtype(n.dtype, np.integer):
+            raise ModelError(f"{where}: field 'n_nodes' is not an integer: the file is damaged or altered")
+        fp, n = str(fp), int(n)
+        if model is not None:
+            check_model(model)
+            if n != model.n_nodes:
+                raise ModelError(f"{where}: field 'n_nodes' = {n} but the model has {model.n_nodes} nodes: "
+                                 "the map was built for a different mesh (or the file was altered)")
+            if fp != mesh_fingerprint(model.mesh):
+                raise ModelError(f"{where} was built for a different mesh (field 'fingerprint'); rebuild it with "
+                                 "ImpedanceMap.build")
+        try:
+            return cls(n, fingerprint=fp, info=info, **z)
+        except ModelError as exc:
+            raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
+
+
+def _free_surface(model) -> np.ndarray:
+    """The surface's nodes that can move (all free nodes on a shell; a solid is touched on its surface)."""
+    surface = model.mesh.used_vertices()
+    return surface[~model.held_nodes[surface]]
+
+
+def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes to load (default every free surface node) and those given that are held (skipped: a
+    load on a fixed node moves nothing)."""
+    if nodes is None:
+        loaded = _free_surface(model)
+    else:
+        loaded = np.unique(model.select_nodes(nodes))
+    held = loaded[model.held_nodes[loaded]]
+    loaded = np.setdiff1d(loaded, held)
+    if loaded.size == 0:
+        raise ModelError("no free nodes to load (every node given is fixed)")
+    return loaded, held
+
+
+def _estimate(loaded: np.ndarray, within, n_times: int) -> tuple[float, float]:
+    """(bytes, mean kept nodes per loaded node) of a map's responses, its kept neighbourhoods
+    sampled at 20 loaded nodes (before any threshold, which keeps fewer)."""
+    sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
+    mean_kept = float(np.mean([within(j).size for j in sample]))
+    return loaded.size * mean_kept * (n_times + 1) * 9 * 8, mean_kept
+
+
+def _check_memory(loaded: np.ndarray, within, n_times: int, memory_limit: float) -> None:
+    """Refuse before starting when the map would exceed ``memory_limit``."""
+    estimate, mean_kept = _estimate(loaded, within, n_times)
+    if estimate > memory_limit:
+        raise ModelError(
+            f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
+            f"node, {n_times + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
+            f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
+        )
+
+
+def _run_nodes(one, loaded: np.ndarray, workers: int, progress) -> tuple[list, bool]:
+    """``one(j)`` for every loaded node, in order, on ``workers`` threads; a KeyboardInterrupt
+    keeps the finished nodes (complete = False) unless there are none (re-raised)."""
+    # one append per finished node: a Ctrl-C between two bytecodes cannot leave the
+    # partial results inconsistent
+    results: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    t0 = time.perf_counter()
+    complete = True
+
+    def collect(result) -> None:
+        results.append(result)
+        if progress is not None:
+            progress(len(results), loaded.size, f"node {result[0]}, {time.perf_counter() - t0:.1f} s")
+
+    try:
+        if workers == 1:
+            for j in loaded:
+                collect(one(int(j)))
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                pending = []  # in order, a window of 2 x workers in flight
+                for j in loaded:
+                    pending.append(pool.submit(one, int(j)))
+                    if len(pending) >= 2 * workers:
+                        collect(pending.pop(0).result())
+                while pending:
+                    collect(pending.pop(0).result())
+    except KeyboardInterrupt:
+        complete = False
+    if not results:
+        raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
+    return results, complete
+
+
+class _NeighbourFinder:
+    def __init__(self, mesh, radius, metric):
+        self.mesh, self.radius, self.metric = mesh, radius, metric
+        self.X = np.asarray(mesh.vertices)
+        self.all = np.arange(mesh.n_vertices)
+        if radius is not None and metric == "euclidean":
+            self.tree = cKDTree(self.X)
+
+    def __call__(self, j: int) -> np.ndarray:
+        if self.radius is None:
+            return self.all
+        if self.metric == "euclidean":
+            return np.array(sorted(self.tree.query_ball_point(self.X[j], self.radius)), dtype=np.int64)
+        d = dijkstra(self.mesh.adjacency(), directed=False, indices=j, limit=self.radius)
+        return np.flatnonzero(np.isfinite(d))
+
+
+class _ModalColumns:
+    """Unit-step columns from r modes with the static correction (mode acceleration)."""
+
+    def __init__(self, model, damping, times, n_modes, modes=None):
+        t0 = time.perf_counter()
+        self.model = model
+        self.basis = modal_analysis(model, n_modes) if modes is None else modes
+        lam = self.basis.omega**2
+        self.lam = lam
+        g = step_response(lam[:, None], damping.modal_alpha(self.basis.omega)[:, None], times[None, :])
+        self.g = np.concatenate([g, (1.0 / lam)[:, None]], axis=1)  # (r, n_t + 1): samples + static
+        self.static = _SolvedStatic(model)
+        self.setup_seconds = time.perf_counter() - t0
+
+    def columns(self, j: int) -> np.ndarray:
+        phi = self.basis.shapes  # (n, 3, r)
+        pj = phi[j]  # (3, r): load direction k -> modal force pj[k]
+        # modal part: u(t) = sum_i phi_i g_i(t) phi_i(j)^T e_k
+        cols = np.einsum("nir,rt,kr->ntik", phi, self.g, pj, optimize=True)
+        # static correction: D = K^-1 e_jk - Phi Lambda^-1 Phi^T e_jk, added at every time
+        static = self.static(j)
+        modal_static = cols[:, -1]
+        cols += (static - modal_static)[:, None]
+        return cols
+
+
+class _SLDMColumns:
+    """Unit-step columns from SLDM, three Krylov bases per loaded node."""
+
+    def __init__(self, model, damping, times, tol):
+        from ..reduction.sldm import SLDM
+
+        t0 = time.perf_counter()
+        self.model = model
+        self.sldm = SLDM(model, damping, tol=tol)
+        self.times = times
+        self.static = _SolvedStatic(model)
+        self.setup_seconds = time.perf_counter() - t0
+
+    def columns(self, j: int) -> np.ndarray:
+        n = self.model.n_nodes
+        cols = np.zeros((n, self.times.size + 1, 3, 3))
+        F = np.zeros((n, 6))
+        static = self.static(j)
+        for k in range(3):
+            if self.model.fixed[j, k]:
+                continue  # a load on a fixed dof goes into the support: a zero column
+            F[:] = 0.0
+            F[j, k] = 1.0
+            U = self.sldm.step_response(F[:, :3], self.times)  # (n_t, n, 3)
+            cols[:, :-1, :, k] = U.transpose(1, 0, 2)
+            cols[:, -1, :, k] = static[:, :, k]
+        return cols
+
+
+class _SolvedStatic:
+    """A loaded node's static responses (n, 3, 3) by three sparse solves."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+
+    def __call__(self, j: int) -> np.ndarray:
+        static = np.empty((self.model.n_nodes, 3, 3))
+        for k in range(3):
+            static[:, :, k] = self.model.unit_load_response(j, k)
+        return static
+
+
+class _CondensedStatic:
+    """A loaded node's static responses from the condensed surface compliance (zero off the surface,
+    where the map then keeps nothing)."""
+
+    def __init__(self, n_nodes: int, nodes: np.ndarray, C: np.ndarray) -> None:
+        self.n, self.nodes, self.C = n_nodes, nodes, C
+        self.pos = np.full(n_nodes, -1, dtype=np.int64)
+        self.pos[nodes] = np.arange(nodes.size)
+
+    def __call__(self, j: int) -> np.ndarray:
+        static = np.zeros((self.n, 3, 3))
+        b = 3 * self.pos[j]
+        static[self.nodes] = self.C[:, b:b + 3].reshape(-1, 3, 3)
+        return static
+
+
+class ImpedanceDriver:
+    """Impedance maps as a Driver (paper 4.1): the organ answers a contact force with the
+    precomputed responses of its loaded nodes; nothing is solved at run time.
+
+    ``step(forces)`` makes ``forces`` the current loads (on loaded nodes of the maps). The
+    contact (``predict``, ``step_compliance``) is quasi-static, as in the paper: with no load
+    the organ is at rest (``predict`` is zero) and W is the exact static point compliance G_pp.
+    The drawn field depends on ``dynamic``:
+
+    * ``dynamic=False``: the static columns of the current loads, superposed.
+    * ``dynamic=True``: Duhamel superposition of the force history. Each change of a node's
+      load is a step load switched on when it happens; changes within ``resolution`` seconds
+      (default the map's first sample time) are merged into one, and loads older than the
+      last sample have settled into one static load, so the history stays short (at most
+      ``times[-1] / resolution`` live entries per node). The field is the map's sampled step
+      responses, linear in time between samples.
+
+    Maps: one :class:`ImpedanceMap` or several of the same mesh; :meth:`on_demand` builds a
+    node's map the first time it is prepared (:meth:`prepare`, called by Grasp and Probe
+    when a vertex is first touched, outside the force loop).
+    """
+
+    def __init__(self, maps, dt: float = 1e-3, *, dynamic: bool = False, resolution: float | None = None) -> None:
+        maps = [maps] if isinstance(maps, ImpedanceMap) else maps
+        if isinstance(maps, (str, bytes)) or not hasattr(maps, "__iter__"):
+            raise ModelError(f"maps={validate.show(maps)} must be an ImpedanceMap or a list of them")
+        maps = list(maps)
+        if not maps or not all(isinstance(m, ImpedanceMap) for m in maps):
+            raise ModelError("maps must hold at least one ImpedanceMap (ImpedanceDriver.on_demand builds them as needed)")
+        self._init(maps[0].n_nodes, maps[0].fingerprint, dt, dynamic, resolution, None)
+        for m in maps:
+            self.add(m)
+
+    @classmethod
+    def on_demand(cls, model, damping: Damping | None = None, dt: float = 1e-3, *, dynamic: bool = True,
+                  resolution: float | None = None, **build_options) -> "ImpedanceDriver":
+        """A driver with no map yet: :meth:`prepare` builds one per newly touched node with
+        ``ImpedanceMap.build(model, damping, nodes=[node], **build_options)``."""
+        check_model(model)
+        if damping is not None and not isinstance(damping, Damping):
+            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
+
+        def build(nodes):
+            return ImpedanceMap.build(model, damping, nodes=nodes, **build_options)
+
+        self = cls.__new__(cls)
+        self._init(model.n_nodes, mesh_fingerprint(model.mesh), dt, dynamic, resolution, build)
+        return self
+
+    def _init(self, n_nodes, fingerprint, dt, dynamic, resolution, builder) -> None:
+        self.dt = validate.time_step(dt)
+        self.dynamic = validate.flag(dynamic, "dynamic")
+        self.resolution = None if resolution is None else validate.positive(resolution, "resolution",
+                                                                             "a time in s")
+        self.n_nodes = n_nodes
+        self.fingerprint = fingerprint
+        self.maps: list[ImpedanceMap] = []
+        self._owner: dict[int, ImpedanceMap] = {}
+        self._builder = builder
+        self.time = 0.0
+        self.steps = 0
+        self._loads: dict[int, np.ndarray] = {}
+        self._history: list[tuple[int, np.ndarray, float]] = []  # (node, force change, onset); -inf: settled
+        self._live = None  # while a compiled HapticLoop ticks this driver: the loads it applies now
+
+    # ---------------------------------------------------------------- maps
+    def add(self, imap: ImpedanceMap) -> None:
+        """Use ``imap`` for its loaded nodes too (it must belong to the same mesh)."""
+        if not isinstance(imap, ImpedanceMap):
+            raise ModelError(f"imap={validate.show(imap)} must be an ImpedanceMap")
+        if imap.n_nodes != self.n_nodes or imap.fingerprint != self.fingerprint:
+            raise ModelError("this impedance map belongs to another mesh than the driver's")
+        self.maps.append(imap)
+        for node in imap.loaded.tolist():
+            self._owner.setdefault(node, imap)
+
+    def _map(self, node: int) -> ImpedanceMap:
+        m = self._owner.get(node)
+        if m is None:
+            raise ModelError(f"node {node} is not a loaded node of this driver's impedance maps"
+                             + ("; prepare([node]) builds its map" if self._builder else "; build a map with it"))
+        return m
+
+    def prepare(self, nodes) -> None:
+        """Make sure every node has a map (built now when the driver builds on demand)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        missing = [n for n in nodes.tolist() if n not in self._owner]
+        if missing and self._builder is not None:
+            self.add(self._builder(missing))
+        for n in missing:
+            self._map(n)
+
+    @property
+    def _settle(self) -> float:
+        return max(m.times[-1] for m in self.maps) if self.maps else 0.0
+
+    # ---------------------------------------------------------------- stepping
+    def _parse(self, forces) -> dict[int, np.ndarray]:
+        loads: dict[int, np.ndarray] = {}
+        if forces is None:
+            return loads
+        if type(forces) is dict and len(forces) == 1:  # the haptic loop's one contact: checked inline
+            ((node, f),) = forces.items()
+            if type(node) is int and node in self._owner and type(f) is tuple and len(f) == 3 \
+                    and all(type(v) is float and math.isfinite(v) for v in f):
+                return {node: np.array(f)} if any(f) else loads
+        if isinstance(forces, Mapping):
+            for node, f in forces.items():
+                i = validate.node(node, self.n_nodes, "force key")
+                v = validate.vector(f, f"force on node {i}", 3)
+                self._map(i)
+                loads[i] = loads.get(i, 0.0) + v
+        else:
+            F = validate.forces(forces, self.n_nodes)
+            for i in np.flatnonzero(np.any(F != 0, axis=1)).tolist():
+                self._map(i)
+                loads[i] = F[i]
+        return {i: f for i, f in loads.items() if np.any(f)}
+
+    def step(self, forces=None) -> None:
+        """Make ``forces`` the current loads and advance ``dt`` (checked whole first)."""
+        loads = self._parse(forces)
+        if self.dynamic:
+            self._record(loads)
+        self._loads = loads
+        self.steps += 1
+        self.time = self.steps * self.dt
+
+    def _record(self, loads: dict[int, np.ndarray]) -> None:
+        """The load changes of this step into the history (merged per node within the resolution)."""
+        t = self.time
+        res = self.resolution if self.resolution is not None else min(m.times[0] for m in self.maps)
+        for node in set(loads) | set(self._loads):
+            df = loads.get(node, 0.0) - self._loads.get(node, 0.0)
+            if not np.any(df):
+                continue
+            last = next((k for k in range(len(self._history) - 1, -1, -1) if self._history[k][0] == node), None)
+            if last is not None and t - self._history[last][2] < res:
+                n_, f_, onset = self._history[last]
+                self._history[last] = (n_, f_ + df, onset)
+            else:
+                self._history.append((node, np.array(df, dtype=float), t))
+        # settled loads: one static entry per node
+        settle, now = self._settle, t + self.dt
+        if any(now - onset > settle for _, _, onset in self._history if onset > -np.inf):
+            settled: dict[int, np.ndarray] = {}
+            live = []
+            for node, df, onset in self._history:
+                if now - onset > settle:
+                    settled[node] = settled.get(node, 0.0) + df
+                else:
+                    live.append((node, df, onset))
+            self._history = [(n, f, -np.inf) for n, f in settled.items() if np.any(f)] + live
+
+    # ---------------------------------------------------------------- contact (quasi-static)
+    def predict(self, node) -> np.ndarray:
+        if type(node) is not int or not 0 <= node < self.n_nodes:
+            validate.node(node, self.n_nodes)
+        return np.zeros(3)
+
+    def step_compliance(self, node) -> np.ndarray:
+        i = validate.node(node, self.n_nodes)
+        return self._map(i).point_compliance(i)
+
+    def predict_at(self, nodes) -> np.ndarray:
+        return np.zeros((validate.nodes(nodes, self.n_nodes).size, 3))
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The static cross compliances (3k, 3l) G_ab = [K^-1]_ab of a contact set, from the maps of
+        the loaded nodes (zero beyond a map's kept neighbourhood; the diagonal blocks exact)."""
+        nodes = validate.nodes(nodes, self.n_nodes)
+        loaded = nodes if loaded is None else validate.nodes(loaded, self.n_nodes)
+        W = np.zeros((3 * nodes.size, 3 * loaded.size))
+        for b, j in enumerate(loaded.tolist()):
+            W[:, 3 * b:3 * b + 3] = self._map(j)._columns(j, nodes, None).reshape(-1, 3)
+            same = np.flatnonzero(nodes == j)
+            for a in same.tolist():
+                W[3 * a:3 * a + 3, 3 * b:3 * b + 3] = self._map(j).point_compliance(j)
+        return W
+
+    # ---------------------------------------------------------------- the field
+    def _entries(self):
+        """(node, force, delay since its onset; inf for a static or settled load) of what is
+        superposed now."""
+        if not self.dynamic:
+            live = self._live
+            return [(p, f, np.inf) for p, f in (self._loads if live is None else live()).items()]
+        return [(p, f, self.time - onset) for p, f, onset in self._history]  # onset -inf: settled
+
+    def displacements_at(self, nodes) -> np.ndarray:
+        if not (type(nodes) is np.ndarray and nodes.dtype == np.int64 and nodes.ndim == 1 and nodes.size
+                and 0 <= nodes.min() and nodes.max() < self.n_nodes):
+            nodes = validate.nodes(nodes, self.n_nodes)
+        u = np.zeros((nodes.size, 3))
+        for p, f, delay in self._entries():
+            u += self._owner[p]._columns(p, nodes, delay) @ f
+        return u
+
+    def displacement(self, node) -> np.ndarray:
+        return self.displacements_at([validate.node(node, self.n_nodes)])[0]
+
+    def displacements(self) -> np.ndarray:
+        u = np.zeros((self.n_nodes, 3))
+        for p, f, delay in self._entries():
+            self._owner[p]._superpose(u, p, f, delay)
+        return u
+
+    # ---------------------------------------------------------------- state
+    def reset(self) -> None:
+        self._loads = {}
+        self._history = []
+        self.time = 0.0
+        self.steps = 0
+
+    def get_state(self) -> dict:
+        return {"loads": {p: f.copy() for p, f in self._loads.items()},
+                "history": [(p, f.copy(), onset) for p, f, onset in self._history], "steps": self.steps}
+
+    def set_state(self, state) -> None:
+        if not isinstance(state, Mapping) or not {"loads", "steps"} <= set(state) <= {"loads", "history", "steps"} \
+                or not isinstance(state["loads"], Mapping):
+            raise ModelError("state must be a mapping with 'loads' ({node: force}), 'steps' and optionally 'history', "
+                             "as get_state() returns")
+        loads = {}
+        for node, f in state["loads"].items():
+            i = validate.node(node, self.n_nodes, "load node")
+            self._map(i)
+            loads[i] = validate.vector(f, f"load on node {i}", 3)
+        history = []
+        for h in validate.entries(state.get("history", []), "state['history']", "history entry", 3,
+                                  "(node, force change, onset)"):
+            i = validate.node(h[0], self.n_nodes, "history node")
+            self._map(i)
+            onset = validate.instant(h[2], "onset")  # -inf: a settled load
+            history.append((i, validate.vector(h[1], f"force change on node {i}", 3), onset))
+        steps = validate.count(state["steps"], "state['steps']", 0)
+        self._loads, self._history, self.steps, self.time = loads, history, steps, steps * self.dt

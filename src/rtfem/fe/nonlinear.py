@@ -1,0 +1,471 @@
+"""Geometrically nonlinear (corotational) full-order statics: the accuracy reference for large
+deformations (issue 14).
+
+:class:`NonlinearSystem` assembles a model's corotational internal forces and consistent
+tangent (shell triangles: :class:`rtfem.fe.shell.CorotationalTriangles`; tets:
+:class:`rtfem.fe.solid.CorotationalTets`) over a :class:`Configuration` (nodal translations and, on a
+shell, nodal rotation matrices updated by spins). :func:`solve_static` is Newton's method with
+adaptive load stepping (Crisfield, Non-linear Finite Element Analysis of Solids and Structures,
+vol. 1, ch. 9): dead loads, supports held or moved to prescribed positions. Where Newton stalls
+(a thin shell pulled into a tent, whose tangent turns near-singular and indefinite on the way),
+a load step falls back on a trust-region minimization of the total potential (a Newton step
+shifted by mu diag(H) until the shifted Hessian is positive definite, mu adapted to the ratio
+of actual to predicted decrease: Nocedal & Wright, Numerical Optimization, 2nd ed., ch. 4 and
+10.3); it ends at a stable equilibrium (positive definite Hessian), quadratically once the shift
+is zero. The dynamic reference (Newton inside implicit Newmark) is
+:class:`rtfem.drivers.fullorder.NonlinearNewmarkSimulator`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from .. import validate
+from ..errors import ModelError, SolverError
+from .linalg import factorize
+from .rotations import rotation
+
+__all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static"]
+
+
+@dataclass
+class Configuration:
+    """A deformed state: translations u (n, 3) and, on a model with rotations, the nodal
+    rotation matrices Q (n, 3, 3) (None on a solid)."""
+
+    u: np.ndarray
+    Q: np.ndarray | None
+
+    @classmethod
+    def rest(cls, n_nodes: int, rotations: bool) -> "Configuration":
+        return cls(np.zeros((n_nodes, 3)), np.tile(np.eye(3), (n_nodes, 1, 1)) if rotations else None)
+
+    def copy(self) -> "Configuration":
+        return Configuration(self.u.copy(), None if self.Q is None else self.Q.copy())
+
+    def update(self, delta: np.ndarray) -> None:
+        """Add an increment of all dofs (n, dofs_per_node): translations add, rotations compose
+        (Q <- exp([w]x) Q with the spins w)."""
+        self.u += delta[:, :3]
+        if self.Q is not None:
+            moved = np.flatnonzero(np.any(delta[:, 3:] != 0, axis=1))
+            if moved.size:
+                self.Q[moved] = rotation(delta[moved, 3:]) @ self.Q[moved]
+
+    def rotation_vectors(self) -> np.ndarray | None:
+        """The nodal rotations as rotation vectors (n, 3) (None on a solid)."""
+        return None if self.Q is None else Rotation.from_matrix(self.Q).as_rotvec()
+
+
+class NonlinearSystem:
+    """The assembled corotational internal forces and consistent tangent of a model on its
+    free dofs (fixed dofs are eliminated; prescribed motions of them enter through the
+    configuration). Built by ``model.nonlinear()``; the element kernel and connectivity come
+    from the model's ``_corotational()``."""
+
+    def __init__(self, model) -> None:
+        model.check_restrained()
+        self.model = model
+        self.kernel, self.cells = model._corotational()
+        self.dpn = model.dofs_per_node
+        self.rotations = self.dpn == 6
+        n_dofs = model.n_dofs
+        ne, k = self.cells.shape
+        nd = k * self.dpn
+        self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
+        self.free = model.free_dofs
+        pos = np.full(n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        pe = pos[self.dofs]
+        rows = np.repeat(pe, nd, axis=1).ravel()
+        cols = np.tile(pe, (1, nd)).ravel()
+        self._keep = np.flatnonzero((rows >= 0) & (cols >= 0))
+        nf = self.free.size
+        keys = rows[self._keep].astype(np.int64) * nf + cols[self._keep]
+        uniq, self._slot = np.unique(keys, return_inverse=True)
+        indices = (uniq % nf).astype(np.int32)
+        indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
+        self._pattern = (indices, indptr, nf)
+        self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
+        self.turned = 0.0  # the largest local rotation (degrees) a solve refused
+
+    def expand(self, values: np.ndarray) -> np.ndarray:
+        """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
+        full = np.zeros(self.model.n_dofs)
+        full[self.free] = values
+        return full.reshape(self.model.n_nodes, self.dpn)
+
+    def evaluate(self, conf: Configuration, tangent: bool = True):
+        """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
+        unless ``tangent``) and the strain energy."""
+        X = np.asarray(self.model.mesh.vertices)
+        x = (X + conf.u)[self.cells]
+        if self.rotations:
+            fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
+        else:
+            fe, Ke, energy = self.kernel.evaluate(x, tangent)
+        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
+        K = None
+        if tangent:
+            indices, indptr, nf = self._pattern
+            data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
+            K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
+        return f, K, float(energy.sum())
+
+    def energy(self, conf: Configuration) -> float:
+        """The strain energy of a configuration."""
+        return self.evaluate(conf, tangent=False)[2]
+
+    def local_rotation(self, conf: Configuration) -> float:
+        """The largest rotation (degrees) of a shell's nodal triad relative to an element's
+        corotated frame (0 on a solid, whose polar decomposition has no such limit)."""
+        if not self.rotations:
+            return 0.0
+        X = np.asarray(self.model.mesh.vertices)
+        return float(self.kernel.local_rotations((X + conf.u)[self.cells], conf.Q[self.cells]).max())
+
+    def within_limit(self, conf: Configuration) -> bool:
+        """Whether no shell triad has turned :data:`LOCAL_ROTATION_LIMIT` degrees from an element
+        frame; the largest such turn refused is kept in ``turned`` (for the error message)."""
+        angle = self.local_rotation(conf)
+        if angle >= LOCAL_ROTATION_LIMIT:
+            self.turned = max(self.turned, angle)
+            return False
+        return True
+
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
+        """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
+        rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
+        SolverError (a symmetric matrix that must be positive definite)."""
+        order = lambda: self.model.dof_order(self.free)  # noqa: E731
+        if spd_only:
+            return factorize(K, spd=True, what=what, order=order)
+        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
+        if sym:
+            try:
+                return factorize(K, spd=True, what=what, order=order)
+            except SolverError:
+                pass  # indefinite (past a limit point, or compressed): LU below
+        return factorize(K, spd=False, what=what, order=order)
+
+
+@dataclass
+class NonlinearResult:
+    """What :func:`solve_static` found.
+
+    ``displacements`` (n, 3); ``rotations`` (n, 3) rotation vectors on a shell (None on a solid);
+    ``reactions`` (n, 3): the internal forces at the held dofs (the supports' forces on the
+    model, with sign: minus the load they carry); ``load_factors``: the converged load steps;
+    ``residuals``: per load step, the free-dof residual norm before each Newton iteration and
+    after the last; ``local_rotation``: a shell's largest nodal rotation relative to an element
+    frame, in degrees (the element's rotation measure, the rotation vector, is exact to 180
+    degrees; past :data:`LOCAL_ROTATION_LIMIT` no step is accepted); ``methods``: per load step, "newton" or
+    "trust-region" (the step Newton could not converge, minimized instead); ``converged``; ``energy``: the
+    strain energy; ``seconds``.
+    """
+
+    displacements: np.ndarray
+    rotations: np.ndarray | None
+    reactions: np.ndarray
+    load_factors: list[float] = field(default_factory=list)
+    residuals: list[list[float]] = field(default_factory=list)
+    methods: list[str] = field(default_factory=list)
+    local_rotation: float = 0.0
+    converged: bool = True
+    energy: float = 0.0
+    seconds: float = 0.0
+    configuration: Configuration | None = None
+
+    @property
+    def iterations(self) -> int:
+        return sum(len(r) - 1 for r in self.residuals)
+
+
+def _prescribed(model, prescribed) -> np.ndarray:
+    """Prescribed values (n, dofs_per_node) on fixed dofs (zeros elsewhere), checked."""
+    n, dpn = model.n_nodes, model.dofs_per_node
+    P = np.zeros((n, dpn))
+    if prescribed is None:
+        return P
+    A = validate.forces(prescribed, n, tuple(sorted({3, dpn})))
+    P[:, :A.shape[1]] = A
+    loose = np.flatnonzero((~model.fixed & (P != 0)).any(axis=1))
+    if loose.size:
+        raise ModelError(f"prescribed motion on dofs that are not fixed (first: node {loose[0]}): a support moves only "
+                         "where model.fix(...) holds it; fix those dofs or drop them from prescribed")
+    if dpn == 6:
+        partial = np.flatnonzero((P[:, 3:] != 0).any(axis=1) & ~model.fixed[:, 3:].all(axis=1))
+        if partial.size:
+            raise ModelError(f"node {partial[0]}: a prescribed rotation needs all three rotations of the node fixed")
+    return P
+
+
+METHODS = ("auto", "newton", "trust-region")
+
+
+def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: float = 1e-9,
+                 max_iterations: int = 30, max_cuts: int = 12, method: str = "auto",
+                 progress=None) -> NonlinearResult:
+    """Geometrically nonlinear static equilibrium f_int(x) = F by Newton's method with load steps.
+
+    Parameters
+    ----------
+    model : a model with ``nonlinear()`` (ShellModel, SolidModel).
+    forces : dead nodal loads ((n, 3) array or {node: (fx, fy, fz)}; moments (n, 6) on a shell).
+    prescribed : motions of fixed dofs ((n, 3) translations, or (n, 6) with rotation vectors on a
+        shell whose rotations are all fixed there), applied with the load factor. A rigid
+        motion of all the supports moves the model without straining it.
+    steps : initial number of equal load steps; a step whose Newton iterations do not converge
+        is halved (at most ``max_cuts`` times in a row) and retried from the last equilibrium.
+    tol : convergence: free-dof residual <= tol * (|lambda F| + |f_int|) (or a correction below
+        1e-12 of the model's size, for a motion with no force to measure against).
+    method : "newton" (each load step by Newton's method), "trust-region" (each load step by the
+        trust-region minimization of the total potential, up to 5 * ``max_iterations``
+        iterations: slower per step, but it cannot stall on an indefinite or near-singular
+        tangent) or "auto" (Newton, and the trust region on a step Newton does not converge,
+        before the step is halved). The trust region needs a potential: dead forces, no
+        moments (a dead moment does no path-independent work on finite rotations).
+    progress : callback(done, total, message) per converged load step.
+
+    Raises SolverError when a load step cannot be halved further; the error's ``result`` holds
+    the last equilibrium reached (nothing computed is lost).
+    """
+    t0 = time.perf_counter()
+    system = model.nonlinear()
+    F = model.force_vector(forces if forces is not None else np.zeros((model.n_nodes, 3)))
+    P = _prescribed(model, prescribed)
+    steps = validate.count(steps, "steps", 1, 10**6)
+    tol = validate.positive(tol, "tol", "a relative tolerance such as 1e-9")
+    max_iterations = validate.count(max_iterations, "max_iterations", 1, 1000)
+    max_cuts = validate.count(max_cuts, "max_cuts", 0, 60)
+    method = validate.choice(method, "method", METHODS)
+    n, dpn = model.n_nodes, model.dofs_per_node
+    conservative = dpn == 3 or not F.reshape(n, dpn)[:, 3:].any()
+    if method == "trust-region" and not conservative:
+        raise ModelError("method='trust-region' minimizes the total potential, which dead moments do not have on finite "
+                         "rotations: apply the moments as force couples, or use method='newton'")
+    system.turned = 0.0  # the arguments are checked: this solve's refused turns only
+    fixed_mask = model.fixed
+    conf = Configuration.rest(n, dpn == 6)
+    applied = 0.0  # load factor of the last equilibrium
+    result = NonlinearResult(np.zeros((n, 3)), None, np.zeros((n, 3)))
+    step = 1.0 / steps
+    cuts = 0
+    previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
+    while applied < 1.0 - 1e-12:
+        target = min(1.0, applied + step)
+        trial = conf.copy()
+        if previous is not None:  # secant predictor: continue the last step's motion
+            _extrapolate(trial, previous[0], (target - applied) / previous[1])
+        _move_supports(trial, P, fixed_mask, applied, target)
+        used = "newton" if method != "trust-region" else "trust-region"
+        if used == "newton":
+            start = trial.copy() if method == "auto" and conservative else None
+            history, ok = _newton(system, trial, target * F, tol, max_iterations)
+            if not ok and start is not None:  # Newton stalled or diverged: minimize from the same start
+                used, trial = "trust-region", start
+        if used == "trust-region":
+            history, ok = _minimize(system, trial, target * F, tol, 5 * max_iterations)
+        if ok:
+            previous = (conf, target - applied)
+            conf, applied = trial, target
+            result.load_factors.append(target)
+            result.residuals.append(history)
+            result.methods.append(used)
+            if cuts == 0 and len(history) <= (6 if used == "newton" else 12):
+                step *= 2.0  # easy going: longer steps
+            cuts = 0
+            if progress is not None:
+                progress(applied, 1.0, f"load factor {applied:.3g}")
+            continue
+        cuts += 1
+        if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
+            _fill(result, system, conf, t0, converged=False)
+            turned = system.turned
+            limit = f"; steps were refused where a {turn_refused(turned)}" if turned >= LOCAL_ROTATION_LIMIT else ""
+            exc = SolverError(
+                f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
+                f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
+                f"{history[-1]:.3g} after {len(history) - 1} iterations{limit}): the structure may buckle or snap "
+                "there, or the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
+            exc.result = result
+            raise exc
+        step *= 0.5
+    _fill(result, system, conf, t0, converged=True)
+    return result
+
+
+MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
+# a shell triad may turn at most this far (degrees) from an element's corotated frame: the
+# element's rotational deformation is the rotation vector (log map) of that turn, exact up to 180
+# degrees, where its axis flips and a turn beyond costs less than it should (its derivatives grow
+# without bound on the way); an equilibrium beyond is not accepted
+LOCAL_ROTATION_LIMIT = 150.0
+
+
+def turn_refused(turned: float) -> str:
+    """Why a step that turns a shell triad ``turned`` degrees is refused, and what to do (the static
+    solver's and the corotational Newmark simulator's messages)."""
+    return (f"shell triad turned {turned:.0f} degrees from an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the "
+            "corotational shell describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
+            "the load over more nodes or refine the mesh there")
+
+
+def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
+    """Move ``conf`` on by ``ratio`` times its change since ``before`` (rotations by the
+    relative rotation's vector)."""
+    conf.u += ratio * (conf.u - before.u)
+    if conf.Q is not None:
+        rel = Rotation.from_matrix(conf.Q @ before.Q.transpose(0, 2, 1)).as_rotvec()
+        conf.Q = rotation(ratio * rel) @ conf.Q
+
+
+def _move_supports(conf: Configuration, P: np.ndarray, fixed: np.ndarray, start: float, end: float) -> None:
+    """Set the fixed dofs to the prescribed motion at load factor ``end`` (from ``start``)."""
+    if not P.any():
+        return
+    held = fixed[:, :3]
+    conf.u[held] = end * P[:, :3][held]
+    if conf.Q is not None:
+        rot = np.flatnonzero(fixed[:, 3:].all(axis=1) & (P[:, 3:] != 0).any(axis=1))
+        if rot.size:
+            conf.Q[rot] = rotation(end * P[rot, 3:])
+
+
+def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
+            max_iterations: int) -> tuple[list[float], bool]:
+    """Newton iterations on the free dofs from ``conf`` (changed in place). Converged when the
+    residual is below ``tol`` times the force scale (|F| + |f_int|), or when a correction moves no
+    translation by more than 1e-12 of the model's size (a state with no force to measure
+    against, such as a rigid motion of the supports). Returns the residual norms (before each
+    iteration, and the last) and whether it converged."""
+    free = system.free
+    history: list[float] = []
+
+    def failed():
+        system.within_limit(conf)  # records a shell triad turned past the limit, for the error message
+        return history, False
+
+    for _ in range(max_iterations):
+        f, K, _ = system.evaluate(conf)
+        r = f[free] - F[free]
+        rn = float(np.linalg.norm(r))
+        history.append(rn)
+        if not np.isfinite(rn) or (len(history) > 3 and rn > 1e3 * history[0]):
+            return failed()
+        if rn <= tol * (float(np.linalg.norm(F)) + float(np.linalg.norm(f))):
+            return history, system.within_limit(conf)
+        try:
+            delta = -system.solver(K, "the tangent stiffness").solve(r)
+        except SolverError:
+            return failed()
+        full = system.expand(delta)
+        conf.update(full)
+        if np.abs(full[:, :3]).max() <= 1e-12 * system.size:
+            f, _, _ = system.evaluate(conf, tangent=False)
+            history.append(float(np.linalg.norm(f[free] - F[free])))
+            return history, system.within_limit(conf)
+    return failed()
+
+
+def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
+              max_iterations: int) -> tuple[list[float], bool]:
+    """Trust-region minimization of the total potential Pi = E(x) - F . u from ``conf`` (changed
+    in place), by Levenberg-Marquardt shifted Newton steps: (H + mu D) p = -r with H the
+    symmetric Hessian (the symmetric part of the spin tangent: its skew part, -1/2 [m]x, is the
+    multiplicative update's and vanishes at equilibrium), D = |diag H| at the start, and mu
+    raised until H + mu D is positive definite (a Cholesky factorization) and the step decreases
+    Pi by at least 1e-4 of the quadratic model's prediction; mu shrinks by 4 after a step the
+    model predicted well (ratio > 0.75) and is dropped below 1e-6, where the steps are Newton's
+    (Nocedal & Wright, ch. 4; Conn, Gould & Toint, Trust-Region Methods, 7.3). The potential
+    never rises, so the iterates cannot run off along a negative curvature as Newton's do, and
+    the end is a minimum: a stable equilibrium. Returns the residual norms (as :func:`_newton`)
+    and whether it converged."""
+    free = system.free
+    n, dpn = system.model.n_nodes, system.dpn
+    load = F.reshape(n, dpn)[:, :3]  # dead forces; no moments (checked by the caller)
+
+    def potential(c: Configuration, energy: float) -> float:
+        return energy - float(np.sum(load * c.u))
+
+    f, K, energy = system.evaluate(conf)
+    pi = potential(conf, energy)
+    scale = float(np.linalg.norm(F))
+    history: list[float] = []
+    if not system.within_limit(conf):  # a start the shell cannot describe: a shorter step
+        return [float(np.linalg.norm(f[free] - F[free]))], False
+    mu, D = 0.0, None
+
+    def more(mu: float) -> float:  # the shift after a refused step
+        return max(4.0 * mu, 1e-6)
+
+    for _ in range(max_iterations):
+        r = f[free] - F[free]
+        rn = float(np.linalg.norm(r))
+        history.append(rn)
+        if not np.isfinite(rn):
+            return history, False
+        if rn <= tol * (scale + float(np.linalg.norm(f))):
+            return history, True
+        H = (0.5 * (K + K.T)).tocsr()
+        if D is None:
+            D = np.abs(H.diagonal())
+            D = np.maximum(D, 1e-12 * D.max())
+        while True:  # shift until the step is a descent the quadratic model predicts
+            if mu > 1e12:
+                return history, False  # no decrease even along the scaled gradient: a non-smooth potential
+            A = H + sp.diags(mu * D) if mu > 0 else H
+            try:
+                p = -system.solver(A, "the shifted Hessian", spd_only=True).solve(r)
+            except SolverError:  # not positive definite: shift more
+                mu = more(mu)
+                continue
+            predicted = -(r @ p + 0.5 * p @ (H @ p))
+            if not (-r @ p > 0 and predicted > 0):  # not a descent direction: indefinite after all
+                mu = more(mu)
+                continue
+            trial = conf.copy()
+            full = system.expand(p)
+            trial.update(full)
+            if not system.within_limit(trial):  # would turn a triad past the limit: a shorter step
+                mu = more(mu)
+                continue
+            ft, Kt, et = system.evaluate(trial)
+            pt = potential(trial, et)
+            ratio = (pi - pt) / predicted
+            # near the end the decrease is below the round-off of Pi: judge by the residual there
+            tiny = predicted <= 1e-12 * (abs(pi) + abs(energy)) and \
+                float(np.linalg.norm(ft[free] - F[free])) < rn
+            if np.isfinite(pt) and (ratio > 1e-4 or tiny):
+                break
+            mu = more(mu)
+        conf.u, conf.Q = trial.u, trial.Q
+        f, K, energy, pi = ft, Kt, et, pt
+        newton = mu == 0.0
+        if ratio > 0.75 or tiny:
+            mu = mu / 4.0 if mu > 1e-6 else 0.0
+        elif ratio < 0.25:
+            mu = more(mu)
+        if newton and np.abs(full[:, :3]).max() <= 1e-12 * system.size:  # a Newton step that moved nothing
+            history.append(float(np.linalg.norm(f[free] - F[free])))
+            return history, True
+    return history, False
+
+
+def _fill(result: NonlinearResult, system: NonlinearSystem, conf: Configuration, t0: float, converged: bool) -> None:
+    f, _, energy = system.evaluate(conf, tangent=False)
+    model = system.model
+    reactions = f.reshape(model.n_nodes, system.dpn)[:, :3] * model.fixed[:, :3]
+    result.displacements = conf.u.copy()
+    result.rotations = conf.rotation_vectors()
+    result.reactions = reactions
+    result.energy = energy
+    result.local_rotation = system.local_rotation(conf)
+    result.converged = converged
+    result.seconds = time.perf_counter() - t0
+    result.configuration = conf

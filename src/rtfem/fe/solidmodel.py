@@ -1,0 +1,194 @@
+"""SolidModel: a tetrahedral solid (3 translations per node) through the Model protocol.
+
+The same fixes, loads, constrained systems, factorization and static solves as the shell
+(:class:`rtfem.fe.model.FEModel`); the element math is in :mod:`rtfem.fe.solid`. The surface that is
+drawn and touched is the tet mesh's boundary over the model's own node numbering.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import solid
+from .. import validate
+from ..errors import ModelError
+from .material import Material
+from .model import FEModel
+from ..mesh.tetmesh import TET10_EDGES, TetMesh
+
+__all__ = ["SolidModel"]
+
+_CHUNK = 8192  # tets per batch during assembly (a 10-node tet's stiffness is 30 x 30)
+
+
+class SolidModel(FEModel):
+    """Linear elastic tetrahedral finite-element model of a volume (3 dof per node).
+
+    Parameters
+    ----------
+    mesh : a :class:`~rtfem.TetMesh` (``rt.load_mesh`` of a volume file, or ``rt.tetrahedralize``).
+    material : :class:`~rtfem.Material` (E, nu, density; the thickness is not used).
+    element : "tet4" (linear, constant strain; stiff in bending and near incompressibility) or
+        "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`).
+    mass : "lumped" (diagonal, the paper's M; default) or "consistent" (rho int N^T N). With a
+        consistent mass the modal route uses it as it is (the eigen-solve takes ARPACK's
+        generalized mode); SLDM and the central-difference simulator need a diagonal M and ask
+        for ``mass='lumped'``.
+    constraints, penalty : as for :class:`~rtfem.ShellModel`.
+    """
+
+    dofs_per_node = 3  # x, y, z
+
+    def __init__(self, mesh: TetMesh, material: Material, *, element: str = "tet4", mass: str = "lumped",
+                 constraints: str = "elimination", penalty: float = 1e8) -> None:
+        if not isinstance(mesh, TetMesh):
+            raise ModelError(f"mesh must be an rtfem TetMesh, got {type(mesh).__name__}; use rt.load_mesh on a volume "
+                             "file or rt.tetrahedralize(surface)")
+        if not isinstance(material, Material):
+            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
+        validate.choice(element, "element", solid.ELEMENTS)
+        validate.choice(mass, "mass", solid.MASSES)
+        penalty = self._check_constraints(constraints, penalty)
+        if element == "tet10":
+            mesh = mesh.quadratic()
+        elif mesh.order == 2:
+            raise ModelError("element='tet4' on a mesh of 10-node tets: use element='tet10', or mesh.linear() for the "
+                             "4-node mesh of its corners")
+        self.tetmesh = mesh
+        self.element = element
+        self.mass = mass
+        self._setup(mesh.surface, material, constraints, penalty)
+
+    @property
+    def metadata(self) -> dict:
+        """What a saved basis or map records about the model."""
+        return {"model": "solid", "element": self.element, "mass": self.mass, "constraints": self.constraints}
+
+    def __repr__(self) -> str:
+        nf = int(self.fixed.any(axis=1).sum())
+        return (f"SolidModel({self.n_nodes} nodes, {self.tetmesh.n_tets} {self.element} tets, {self.n_dofs} dof, "
+                f"{nf} nodes fixed, mass={self.mass!r}, constraints={self.constraints!r})")
+
+    # ------------------------------------------------------------ assembly
+    def _assemble(self) -> None:
+        t0 = time.perf_counter()
+        T = np.asarray(self.tetmesh.tets)
+        X = np.asarray(self.tetmesh.vertices)
+        ne, k = T.shape
+        dofs = (3 * T[:, :, None] + np.arange(3)[None, None, :]).reshape(ne, 3 * k)
+        kdata, mdata = [], []
+        lumped = np.zeros(self.n_nodes)
+        for s in range(0, ne, _CHUNK):
+            c = slice(s, min(s + _CHUNK, ne))
+            Ke, Me = solid.element_matrices(X[T[c]], self.material, self.element, self.mass)
+            kdata.append(Ke.reshape(-1))
+            if self.mass == "consistent":
+                mdata.append(Me.reshape(-1))
+                lumped_e = _hrz(Me) if self.element == "tet10" else Me.sum(axis=2)
+            else:
+                lumped_e = np.einsum("mii->mi", Me)
+            np.add.at(lumped, T[c].ravel(), lumped_e.ravel())
+        rows = np.repeat(dofs, 3 * k, axis=1).ravel()
+        cols = np.tile(dofs, (1, 3 * k)).ravel()
+        K = sp.coo_matrix((np.concatenate(kdata), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
+        K.sum_duplicates()
+        self._K = ((K + K.T) * 0.5).tocsr()
+        self._M = np.repeat(lumped, 3)
+        if self.mass == "consistent":
+            r = np.repeat(T, k, axis=1).ravel()
+            c = np.tile(T, (1, k)).ravel()
+            Mn = sp.coo_matrix((np.concatenate(mdata), (r, c)), shape=(self.n_nodes, self.n_nodes)).tocsr()
+            Mn = ((Mn + Mn.T) * 0.5).tocsr()
+            self._Mc = sp.kron(Mn, sp.identity(3), format="csr")
+        self.timings["assemble"] = time.perf_counter() - t0
+
+    @property
+    def M(self) -> sp.csr_matrix:
+        """The global mass matrix: diagonal (lumped) or the consistent one."""
+        if self.mass == "lumped":
+            return sp.diags(self.mass_diagonal, format="csr")
+        if self._K is None:
+            self._assemble()
+        return self._Mc
+
+    def constrained_mass(self) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The mass (lumped or consistent, as built) on the dofs of :meth:`constrained_stiffness`."""
+        dofs = self.free_dofs if self.constraints == "elimination" else np.arange(self.n_dofs)
+        return self.M[dofs][:, dofs].tocsr(), dofs
+
+    def _distribute(self, T: np.ndarray, per_face: np.ndarray) -> np.ndarray:
+        """Consistent nodal forces of a uniform load: a third to each corner of a linear face; on a
+        6-node face (tet10) nothing to the corners and a third to each mid-edge node."""
+        if self.element == "tet4":
+            return super()._distribute(T, per_face)
+        out = np.zeros((self.n_nodes, 3))
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            np.add.at(out, self._mid_node(T[:, a], T[:, b]), per_face / 3.0)
+        return out
+
+    def _edge_mids(self) -> tuple[np.ndarray, np.ndarray]:
+        """(keys, mids) of the tet10 corner edges: key i n + j (i < j), and its mid-edge node."""
+        if "mid" not in self._cache:
+            T = np.asarray(self.tetmesh.tets)
+            e = np.sort(T[:, TET10_EDGES].reshape(-1, 2), axis=1)
+            keys, first = np.unique(e[:, 0] * self.n_nodes + e[:, 1], return_index=True)
+            self._cache["mid"] = (keys, T[:, 4:].ravel()[first])
+        return self._cache["mid"]
+
+    def _mid_node(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """The mid-edge nodes (tet10) of the corner edges (i, j)."""
+        keys, mids = self._edge_mids()
+        want = np.minimum(i, j) * self.n_nodes + np.maximum(i, j)
+        return mids[np.searchsorted(keys, want)]
+
+    def fix(self, nodes, dofs="all") -> "SolidModel":
+        """As :meth:`ShellModel.fix`; on tet10 a mid-edge node whose two corners are both fixed in a
+        dof is fixed in it too (a face clamped by its corner indices, e.g. those of the 4-node mesh
+        it was made from, is clamped along its edges, not left with free mid-edge nodes: a
+        cantilever clamped so deflected 11 % more than one clamped by region)."""
+        super().fix(nodes, dofs)
+        if self.element == "tet10":
+            keys, mids = self._edge_mids()
+            i, j = keys // self.n_nodes, keys % self.n_nodes
+            for d in np.flatnonzero(self._dof_mask(dofs)):
+                self.fixed[mids[self.fixed[i, d] & self.fixed[j, d]], d] = True
+        return self
+
+    def _node_graph(self) -> sp.csr_matrix:
+        return self.tetmesh.adjacency()
+
+    def rotation_field(self, U: np.ndarray) -> np.ndarray:
+        """The infinitesimal rotations (n, 3, k) of translation fields U (n, 3, k): half the curl,
+        per tet at its centroid, averaged to the nodes by volume."""
+        U = np.asarray(U, float)
+        if "curl" not in self._cache:
+            T = np.asarray(self.tetmesh.tets)
+            X = np.asarray(self.tetmesh.vertices)[T]
+            dN = solid.shape_functions(self.element, np.full((1, 3), 0.25))[1][0]
+            G, det = solid._gradients(X, dN)
+            w = np.bincount(T.ravel(), weights=np.repeat(det, T.shape[1]), minlength=self.n_nodes)
+            self._cache["curl"] = (T, G, det, w)
+        T, G, det, w = self._cache["curl"]
+        H = np.einsum("miar,mib->mabr", U[T], G)  # du_a / dX_b per tet and field
+        curl = 0.5 * np.stack([H[:, 2, 1] - H[:, 1, 2], H[:, 0, 2] - H[:, 2, 0], H[:, 1, 0] - H[:, 0, 1]], axis=1)
+        out = np.zeros_like(U)
+        for i in range(T.shape[1]):
+            np.add.at(out, T[:, i], det[:, None, None] * curl)
+        return out / np.maximum(w, 1e-300)[:, None, None]
+
+    def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
+        """The corotational element kernel and the cells (tets) it acts on."""
+        T = np.asarray(self.tetmesh.tets)
+        return solid.CorotationalTets(np.asarray(self.tetmesh.vertices)[T], self.material, self.element), T
+
+    def _pieces(self) -> tuple[int, np.ndarray]:
+        return self.tetmesh.components()
+
+
+def _hrz(Me: np.ndarray) -> np.ndarray:
+    """HRZ lumping of consistent element masses (m, k, k): the diagonal scaled to the element mass."""
+    d = np.einsum("mii->mi", Me)
+    return d * (Me.sum(axis=(1, 2)) / d.sum(axis=1))[:, None]

@@ -1,0 +1,5 @@
+"""Exports (VTU, PVD) and load schedules with headless runs. Saved files: rtfem.storage."""
+
+from .vtk import write_pvd, write_vtu
+
+__all__ = ["write_vtu", "write_pvd"]

@@ -1,0 +1,485 @@
+"""Reduced internal forces on a few weighted elements (optimized cubature, An, Kim & James,
+ACM TOG 27 (2008) 165), and the compiled kernel that evaluates them at haptic rates.
+
+The reduced force of a Galerkin model is a sum over elements, g_r(q) = sum_e U_e^T g_e(U_e q).
+Cubature replaces the sum by a few elements with non-negative weights, chosen so that the sum
+is reproduced on training poses: greedy selection of the element whose contribution best
+matches what is left, then non-negative least squares for all the weights so far (An et al.,
+Sec. 4), until the relative error on the training forces is below the tolerance.
+
+The compiled kernels (numba) evaluate the corotational shell triangle's forces (the same
+deformational dofs and first derivatives as :class:`rtfem.fe.shell.CorotationalTriangles`, to
+round-off) and the corotated tet's (as :class:`rtfem.fe.solid.CorotationalTets`: the polar rotation
+by Higham's scaled Newton iteration, the SVD for an inverted element) in one loop each that
+releases the GIL; the element dofs before it and the projection after it are BLAS products.
+Without numba the shell's loop runs in Python and the tets are batched in numpy (the same
+numbers, slower).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import nnls
+
+from ..errors import ModelError
+
+__all__ = ["train", "compiled_forces", "element_forces", "compiled_solid_forces", "solid_element_forces"]
+
+# axial(skew(A))_c = (A[p, q] - A[q, p]) / 2 for (p, q) = (2, 1), (0, 2), (1, 0)
+_AP = np.array([2, 0, 1])
+_AQ = np.array([1, 2, 0])
+
+
+def _exp_series(t, th, sn, cs, jacobian, K, out):
+    """out (3, 3) = I + a [t]x + b [t]x^2: exp([t]x) (Rodrigues; a = sin|t|/|t|, b = (1 - cos|t|)/|t|^2),
+    or with ``jacobian`` the left Jacobian of SO(3) (a = (1 - cos|t|)/|t|^2, b = (|t| - sin|t|)/|t|^3).
+    th = |t|, sn = sin th, cs = cos th (a corner's exponential and Jacobian share them); K (3, 3)
+    scratch for [t]x."""
+    if jacobian:
+        if th < 1e-6:
+            a, b = 0.5 - th * th / 24.0, 1.0 / 6.0 - th * th / 120.0
+        else:
+            a, b = (1.0 - cs) / (th * th), (th - sn) / (th * th * th)
+    elif th < 1e-8:
+        a, b = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
+    else:
+        a, b = sn / th, (1.0 - cs) / (th * th)
+    K[0, 0] = 0.0
+    K[1, 1] = 0.0
+    K[2, 2] = 0.0
+    K[0, 1] = -t[2]
+    K[0, 2] = t[1]
+    K[1, 0] = t[2]
+    K[1, 2] = -t[0]
+    K[2, 0] = -t[1]
+    K[2, 1] = t[0]
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for m in range(3):
+                s += K[i, m] * K[m, j]
+            out[i, j] = a * K[i, j] + b * s + (1.0 if i == j else 0.0)
+
+
+def _rotation_vector(y, th, D):
+    """th (3) = the rotation vector theta n of a rotation A from y = (axial(skew(A)), (tr A - 1)/2),
+    and D (3, 4) its derivatives over y: th = 2 G(v) s / (r + c), r = sqrt(|s|^2 + c^2),
+    v = |s|^2 / (r + c)^2, G(v) = atan(sqrt v) / sqrt v (as :func:`rtfem.fe.shell._rotation_vector`,
+    whose derivatives come from forward differentiation; these are written out)."""
+    u = y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+    c = y[3]
+    r = np.sqrt(u + c * c)
+    den = r + c
+    v = u / (den * den)
+    if v < 0.05:
+        G = 1.0  # the series sum (-v)^j / (2j + 1) and its derivative
+        G1 = 0.0
+        p = 1.0  # v^(j-1)
+        for j in range(1, 16):
+            coef = (1.0 if j % 2 == 0 else -1.0) / (2 * j + 1)
+            G1 += coef * j * p
+            p *= v
+            G += coef * p
+    else:
+        sv = np.sqrt(v)
+        G = np.arctan(sv) / sv
+        G1 = (1.0 / (1.0 + v) - G) / (2.0 * v)
+    k = 2.0 * G / den
+    dden_u, dden_c = 0.5 / r, c / r + 1.0
+    dv_u = 1.0 / (den * den) - u / (r * den * den * den)
+    dv_c = -2.0 * u / (den * den * den) * dden_c
+    dk_u = 2.0 * G1 * dv_u / den - 2.0 * G / (den * den) * dden_u
+    dk_c = 2.0 * G1 * dv_c / den - 2.0 * G / (den * den) * dden_c
+    for a in range(3):
+        th[a] = k * y[a]
+        for b in range(3):
+            D[a, b] = 2.0 * y[a] * y[b] * dk_u + (k if a == b else 0.0)
+        D[a, 3] = y[a] * dk_c
+
+
+def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):  # noqa: C901 - a compiled kernel, to split (issue 38)
+    """F (E, 18) = g_e(V_e), the generalized forces of corotational triangles at element dofs V
+    (E, 18) (V_e = U_e q: one BLAS product before; the projection U_e^T F_e is one after).
+    X (E, 3, 3) rest corners, R0 (E, 3, 3) rest frames, x2, x3, y3 (E,) local rest coordinates,
+    k (E, 18, 18) local stiffnesses. g_e: the forces on the corners' translations and
+    J(theta)^T m on their rotation vectors."""
+    E = V.shape[0]
+    Kx = np.zeros((3, 3))
+    trig = np.zeros((3, 3))  # each corner's |theta|, sin and cos (for its exponential and its Jacobian)
+    v = np.zeros(18)
+    x = np.zeros((3, 3))
+    Q = np.zeros((3, 3))
+    Jl = np.zeros((3, 3))
+    C = np.zeros((3, 3, 3))  # each corner's Q_i R0^T
+    A = np.zeros((3, 3))
+    R = np.zeros((3, 3))
+    dR = np.zeros((3, 3, 6))
+    dA = np.zeros((3, 3, 6))
+    de1 = np.zeros((3, 6))
+    dn = np.zeros((3, 6))
+    de3 = np.zeros((3, 6))
+    d = np.zeros(18)
+    g = np.zeros(18)
+    fz = np.zeros(15)
+    f = np.zeros(18)
+    a = np.zeros(3)
+    b = np.zeros(3)
+    n = np.zeros(3)
+    t = np.zeros(3)
+    em = np.zeros(3)
+    yv = np.zeros(4)
+    th3 = np.zeros(3)
+    Dphi = np.zeros((3, 3, 4))  # each corner's rotation vector's derivatives over its y
+    gy = np.zeros(4)
+    for e in range(E):
+        for i in range(18):
+            v[i] = V[e, i]
+        for i in range(3):
+            for c in range(3):
+                x[i, c] = X[e, i, c] + v[6 * i + c]
+        for c in range(3):
+            a[c] = x[1, c] - x[0, c]
+            b[c] = x[2, c] - x[0, c]
+        la = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+        n[0] = a[1] * b[2] - a[2] * b[1]
+        n[1] = a[2] * b[0] - a[0] * b[2]
+        n[2] = a[0] * b[1] - a[1] * b[0]
+        ln = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+        for c in range(3):
+            R[0, c] = a[c] / la
+            R[2, c] = n[c] / ln
+        R[1, 0] = R[2, 1] * R[0, 2] - R[2, 2] * R[0, 1]
+        R[1, 1] = R[2, 2] * R[0, 0] - R[2, 0] * R[0, 2]
+        R[1, 2] = R[2, 0] * R[0, 1] - R[2, 1] * R[0, 0]
+        # gradients over z = (a, b): e1 = a/|a|, n = a x b, e3 = n/|n|, e2 = e3 x e1
+        for c in range(3):
+            for m in range(6):
+                de1[c, m] = 0.0
+                dn[c, m] = 0.0
+        for c in range(3):
+            for m in range(3):
+                de1[c, m] = ((1.0 if c == m else 0.0) - R[0, c] * R[0, m]) / la
+        for m in range(3):  # e_m x b and a x e_m
+            em[0] = 0.0
+            em[1] = 0.0
+            em[2] = 0.0
+            em[m] = 1.0
+            dn[0, m] = em[1] * b[2] - em[2] * b[1]
+            dn[1, m] = em[2] * b[0] - em[0] * b[2]
+            dn[2, m] = em[0] * b[1] - em[1] * b[0]
+            dn[0, 3 + m] = a[1] * em[2] - a[2] * em[1]
+            dn[1, 3 + m] = a[2] * em[0] - a[0] * em[2]
+            dn[2, 3 + m] = a[0] * em[1] - a[1] * em[0]
+        for m in range(6):
+            s = R[2, 0] * dn[0, m] + R[2, 1] * dn[1, m] + R[2, 2] * dn[2, m]
+            for c in range(3):
+                de3[c, m] = (dn[c, m] - R[2, c] * s) / ln
+        for m in range(6):
+            for c in range(3):
+                dR[0, c, m] = de1[c, m]
+                dR[2, c, m] = de3[c, m]
+            # de2 = de3 x e1 + e3 x de1
+            dR[1, 0, m] = (de3[1, m] * R[0, 2] - de3[2, m] * R[0, 1]) + (R[2, 1] * de1[2, m] - R[2, 2] * de1[1, m])
+            dR[1, 1, m] = (de3[2, m] * R[0, 0] - de3[0, m] * R[0, 2]) + (R[2, 2] * de1[0, m] - R[2, 0] * de1[2, m])
+            dR[1, 2, m] = (de3[0, m] * R[0, 1] - de3[1, m] * R[0, 0]) + (R[2, 0] * de1[1, m] - R[2, 1] * de1[0, m])
+        for i in range(18):
+            d[i] = 0.0
+        d[6] = la - x2[e]
+        d[12] = R[0, 0] * b[0] + R[0, 1] * b[1] + R[0, 2] * b[2] - x3[e]
+        d[13] = R[1, 0] * b[0] + R[1, 1] * b[1] + R[1, 2] * b[2] - y3[e]
+        for i in range(3):  # corner rotations relative to the element frame: C_i = Q_i R0^T, A = R C_i
+            for c in range(3):
+                t[c] = v[6 * i + 3 + c]
+            th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+            trig[i, 0] = th
+            trig[i, 1] = np.sin(th)
+            trig[i, 2] = np.cos(th)
+            _exp_series(t, th, trig[i, 1], trig[i, 2], False, Kx, Q)
+            for p in range(3):
+                for s_ in range(3):
+                    acc = 0.0
+                    for m in range(3):
+                        acc += Q[p, m] * R0[e, s_, m]
+                    C[i, p, s_] = acc
+            for p in range(3):
+                for s_ in range(3):
+                    acc = 0.0
+                    for m in range(3):
+                        acc += R[p, m] * C[i, m, s_]
+                    A[p, s_] = acc
+            for c in range(3):
+                yv[c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
+            yv[3] = 0.5 * (A[0, 0] + A[1, 1] + A[2, 2] - 1.0)
+            _rotation_vector(yv, th3, Dphi[i])
+            for c in range(3):
+                d[6 * i + 3 + c] = th3[c]
+        for i in range(18):
+            s = 0.0
+            for j in range(18):
+                s += k[e, i, j] * d[j]
+            g[i] = s
+        for m in range(15):
+            fz[m] = 0.0
+        for m in range(3):  # the translational rows
+            fz[m] += g[6] * R[0, m]
+            s12 = 0.0
+            s13 = 0.0
+            for c in range(3):
+                s12 += de1[c, m] * b[c]
+                s13 += dR[1, c, m] * b[c]
+            fz[m] += g[12] * s12 + g[13] * s13
+            s12 = 0.0
+            s13 = 0.0
+            for c in range(3):
+                s12 += de1[c, 3 + m] * b[c]
+                s13 += dR[1, c, 3 + m] * b[c]
+            fz[3 + m] += g[12] * (s12 + R[0, m]) + g[13] * (s13 + R[1, m])
+        for i in range(3):  # the rotational rows: over (a, b) and over the corner's spins
+            for p in range(3):
+                for s_ in range(3):
+                    for m in range(6):
+                        acc = 0.0
+                        for u in range(3):
+                            acc += dR[p, u, m] * C[i, u, s_]
+                        dA[p, s_, m] = acc
+            for m in range(4):  # the weights on y = (axial(skew(A)), (tr A - 1)/2): D^T g
+                acc = 0.0
+                for c in range(3):
+                    acc += g[6 * i + 3 + c] * Dphi[i, c, m]
+                gy[m] = acc
+            for m in range(6):
+                fz[m] += gy[3] * 0.5 * (dA[0, 0, m] + dA[1, 1, m] + dA[2, 2, m])
+            for ll in range(3):
+                l1, l2 = (ll + 1) % 3, (ll + 2) % 3
+                acc = 0.0
+                for p in range(3):
+                    acc += R[p, l2] * C[i, l1, p] - R[p, l1] * C[i, l2, p]
+                fz[6 + 3 * i + ll] += gy[3] * 0.5 * acc
+            for c in range(3):
+                gi = gy[c]
+                p, qq = AP[c], AQ[c]
+                for m in range(6):
+                    fz[m] += gi * 0.5 * (dA[p, qq, m] - dA[qq, p, m])
+                # d/dw_l of R exp([w]x) Q R0^T at w = 0: R [e_l]x C; [e_l]x[u, s] = -eps(l, u, s)
+                for ll in range(3):
+                    # (R [e_l]x C)[p, q] = sum_u R[p, u] (e_l x C[:, q])_u = R[p, l+2] C[l+1, q] - R[p, l+1] C[l+2, q]
+                    l1, l2 = (ll + 1) % 3, (ll + 2) % 3
+                    xp = R[p, l2] * C[i, l1, qq] - R[p, l1] * C[i, l2, qq]
+                    xq = R[qq, l2] * C[i, l1, p] - R[qq, l1] * C[i, l2, p]
+                    fz[6 + 3 * i + ll] += gi * 0.5 * (xp - xq)
+        for c in range(3):
+            f[c] = -fz[c] - fz[3 + c]
+            f[6 + c] = fz[c]
+            f[12 + c] = fz[3 + c]
+        for i in range(3):  # generalized moments J(theta)^T m on the rotation vectors
+            for c in range(3):
+                t[c] = v[6 * i + 3 + c]
+            _exp_series(t, trig[i, 0], trig[i, 1], trig[i, 2], True, Kx, Jl)
+            for c in range(3):
+                s = 0.0
+                for m in range(3):
+                    s += Jl[m, c] * fz[6 + 3 * i + m]
+                f[6 * i + 3 + c] = s
+        for i in range(18):
+            F[e, i] = f[i]
+
+
+def _polar_rotation(Fm, R, Y, Z):
+    """R (3, 3) = the rotation of the polar decomposition F = R S, for det F > 0, by Higham's scaled
+    Newton iteration R <- (g R + R^-T / g) / 2 (quadratic; ~6-8 iterations from F). Returns False
+    when it does not apply (det F <= 0, or no convergence), for an SVD instead. Y, Z (3, 3) scratch."""
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = Fm[i, j]
+    for it in range(30):
+        # Z = R^-T = cof(R) / det R
+        Z[0, 0] = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
+        Z[0, 1] = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
+        Z[0, 2] = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
+        Z[1, 0] = R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2]
+        Z[1, 1] = R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0]
+        Z[1, 2] = R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]
+        Z[2, 0] = R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]
+        Z[2, 1] = R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]
+        Z[2, 2] = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
+        det = R[0, 0] * Z[0, 0] + R[0, 1] * Z[0, 1] + R[0, 2] * Z[0, 2]
+        if not det > 0.0:
+            return False
+        nr = 0.0
+        nz = 0.0
+        for i in range(3):
+            for j in range(3):
+                Z[i, j] /= det
+                nr += R[i, j] * R[i, j]
+                nz += Z[i, j] * Z[i, j]
+        g = (nz / nr) ** 0.25 if it < 4 else 1.0  # scaling speeds the first iterations only
+        change = 0.0
+        for i in range(3):
+            for j in range(3):
+                Y[i, j] = 0.5 * (g * R[i, j] + Z[i, j] / g)
+                change += (Y[i, j] - R[i, j]) ** 2
+                R[i, j] = Y[i, j]
+        if change < 1e-30 * 3.0:
+            return True
+    return False
+
+
+def _solid_element_forces(V, X, G, wdet, lm, F):
+    """F (E, 3k) = the corotated-linear tets' nodal forces (mu |F - R|^2 + lambda/2 tr(S - I)^2, as
+    :class:`rtfem.fe.solid.CorotationalTets`) at element dofs V (E, 3k): X (E, k, 3) rest nodes,
+    G (E, nq, k, 3) the shape gradients and wdet (E, nq) the weights of each quadrature point,
+    lm (E, 2) the Lame constants. f_i = sum_q wdet P G_i with P = 2 mu (F - R) + lambda tr(S - I) R."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = np.zeros((k, 3))
+    Fm = np.zeros((3, 3))
+    R = np.zeros((3, 3))
+    Y = np.zeros((3, 3))
+    Z = np.zeros((3, 3))
+    P = np.zeros((3, 3))
+    for e in range(E):
+        for i in range(k):
+            for c in range(3):
+                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
+                F[e, 3 * i + c] = 0.0
+        lam, mu = lm[e, 0], lm[e, 1]
+        for q in range(nq):
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for i in range(k):
+                        s += x[i, a] * G[e, q, i, b]
+                    Fm[a, b] = s
+            if not _polar_rotation(Fm, R, Y, Z):  # inverted or degenerate: the SVD (a proper R)
+                u, sv, vt = np.linalg.svd(Fm)
+                du = u[0, 0] * (u[1, 1] * u[2, 2] - u[1, 2] * u[2, 1]) - u[0, 1] * (u[1, 0] * u[2, 2] - u[1, 2] * u[2, 0]) \
+                    + u[0, 2] * (u[1, 0] * u[2, 1] - u[1, 1] * u[2, 0])
+                dv = vt[0, 0] * (vt[1, 1] * vt[2, 2] - vt[1, 2] * vt[2, 1]) \
+                    - vt[0, 1] * (vt[1, 0] * vt[2, 2] - vt[1, 2] * vt[2, 0]) \
+                    + vt[0, 2] * (vt[1, 0] * vt[2, 1] - vt[1, 1] * vt[2, 0])
+                if du * dv < 0.0:
+                    for i in range(3):
+                        u[i, 2] = -u[i, 2]
+                for a in range(3):
+                    for b in range(3):
+                        R[a, b] = u[a, 0] * vt[0, b] + u[a, 1] * vt[1, b] + u[a, 2] * vt[2, b]
+            trS = 0.0  # tr S = tr(R^T F)
+            for a in range(3):
+                for b in range(3):
+                    trS += R[a, b] * Fm[a, b]
+            t = lam * (trS - 3.0)
+            for a in range(3):
+                for b in range(3):
+                    P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
+            w = wdet[e, q]
+            for i in range(k):
+                for a in range(3):
+                    s = 0.0
+                    for b in range(3):
+                        s += P[a, b] * G[e, q, i, b]
+                    F[e, 3 * i + a] += w * s
+
+
+def solid_forces_numpy(V, X, G, wdet, lm, F) -> None:
+    """The same forces as :func:`_solid_element_forces`, batched in numpy (the polar decomposition
+    by SVD, as the full-order kernel): the path without numba."""
+    from ..fe.solid import polar
+
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = X + V.reshape(E, k, 3)
+    out = np.zeros((E, k, 3))
+    for q in range(nq):
+        Fm = np.einsum("eka,ekb->eab", x, G[:, q])
+        R, S = polar(Fm)
+        trE = np.einsum("eii->e", S) - 3.0
+        P = 2 * lm[:, 1, None, None] * (Fm - R) + (lm[:, 0] * trE)[:, None, None] * R
+        out += wdet[:, q, None, None] * np.einsum("eab,eib->eia", P, G[:, q])
+    F[:] = out.reshape(E, 3 * k)
+
+
+_COMPILED: dict = {}
+
+
+def _compiled(key: str, kernel, *helpers):
+    """``kernel`` compiled by numba with its helper functions compiled too (cached), or None
+    where numba is absent or cannot compile it."""
+    if key not in _COMPILED:
+        try:
+            import numba
+
+            opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+            g = dict(kernel.__globals__, **{h.__name__: numba.njit(**opts)(h) for h in helpers})
+            _COMPILED[key] = numba.njit(**opts)(type(kernel)(kernel.__code__, g, kernel.__name__))
+        except Exception:  # pragma: no cover - numba absent or unable to compile here
+            _COMPILED[key] = None
+    return _COMPILED[key]
+
+
+def compiled_forces():
+    """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
+    return _compiled("shell", _shell_element_forces, _exp_series, _rotation_vector)
+
+
+def compiled_solid_forces():
+    """The compiled corotated-tet kernel (numba), or None where numba is absent or cannot compile it."""
+    return _compiled("solid", _solid_element_forces, _polar_rotation)
+
+
+def solid_element_forces(V, X, G, wdet, lm, F) -> None:
+    """F (E, 3k) = the corotated tets' forces at element dofs V (E, 3k) (see
+    :func:`_solid_element_forces`): compiled, or batched numpy without numba."""
+    fn = compiled_solid_forces()
+    (solid_forces_numpy if fn is None else fn)(V, X, G, wdet, lm, F)
+
+
+def element_forces(V, X, R0, x2, x3, y3, k, F) -> None:
+    """F (E, 18) = g_e(V_e) for element dofs V (E, 18): the compiled kernel, or without numba the
+    same loop in Python (slow: machines without the ``fast`` extra). One thread: on this 2-core
+    machine a two-thread kernel (numba prange, OpenMP) did not shorten the reduced step, whose
+    BLAS passes over the basis rows then compete with OpenMP's spinning threads."""
+    fn = compiled_forces()
+    (_shell_element_forces if fn is None else fn)(V, X, R0, x2, x3, y3, k, _AP, _AQ, F)
+
+
+def train(contributions, targets, tol: float = 0.02, max_elements: int | None = None, seed: int = 0):
+    """Optimized cubature (An et al. 2008): elements and non-negative weights w with
+    sum_e w_e contributions[:, e] ~ targets.
+
+    contributions : (T, E) each element's reduced force on the training poses, stacked (each
+        pose's rows scaled to unit norm of its target).
+    targets : (T,) the full sums.
+    tol : stop when |A w - b| <= tol |b|.
+
+    Returns (elements, weights, relative error). Candidates are drawn at random (a quarter of
+    the elements per pick, at least 64) and the ones best aligned with the residual are taken
+    (one at first, then an eighth of the number chosen so far).
+    """
+    A = np.asarray(contributions, float)
+    b = np.asarray(targets, float)
+    T, E = A.shape
+    max_elements = E if max_elements is None else min(E, max_elements)
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = np.inf
+    rng = np.random.default_rng(seed)
+    chosen: list[int] = []
+    w = np.zeros(0)
+    res = b.copy()
+    bn = float(np.linalg.norm(b))
+    if bn == 0:
+        raise ModelError("cubature training: the training forces are all zero (poses at rest?)")
+    err = 1.0
+    while err > tol and len(chosen) < max_elements:
+        cand = rng.choice(E, size=min(E, max(64, E // 4)), replace=False)
+        score = (A[:, cand].T @ res) / norms[cand]
+        score[np.isin(cand, chosen)] = -np.inf
+        if not np.isfinite(score.max()) or score.max() <= 0:
+            break
+        batch = max(1, len(chosen) // 8)  # several at a time once many are in (fewer NNLS solves)
+        best = cand[np.argsort(score)[::-1][:batch]]
+        chosen.extend(int(c) for c in best if np.isfinite(score[cand == c][0]) and score[cand == c][0] > 0)
+        w, _ = nnls(A[:, chosen], b, maxiter=50 * len(chosen))
+        keep = w > 0
+        chosen = [c for c, k in zip(chosen, keep) if k]
+        w = w[keep]
+        res = b - A[:, chosen] @ w
+        err = float(np.linalg.norm(res)) / bn
+    return np.array(chosen, dtype=int), w, err
