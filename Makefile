@@ -4,6 +4,7 @@
 #   make demo HEADLESS=1   the scripted session instead (static poke, modal dynamics, 1 kHz loop)
 #   make test              the whole suite (the browser test needs Debian's chromium: see README)
 #   make pictures          the README's pictures, into docs/img
+#   make docs              the manual (Sphinx), warnings as errors, into docs/_build/html
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -11,7 +12,7 @@ STAMP  := $(VENV)/.installed
 PORT   ?= 8080
 HEADLESS ?=
 
-.PHONY: demo test bench pictures clean
+.PHONY: demo test bench pictures docs clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || \
@@ -19,7 +20,7 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || \
 	  { rm -rf $(VENV); echo "could not create a virtual environment: on Debian/Ubuntu run 'apt-get install python3-venv'"; exit 1; }
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[viewer,plots,video,test,fast,mesh]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[viewer,plots,video,test,fast,mesh,docs]"
 	@touch $(STAMP)
 
 ifeq ($(HEADLESS),)
@@ -34,6 +35,10 @@ endif
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+docs: $(STAMP)
+	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
+	@echo "rtfem: the manual is in docs/_build/html/index.html"
 
 pictures: $(STAMP)
 	$(BIN)/rtfem pictures --out docs/img

@@ -1,4 +1,8 @@
-"""Static poke: load the default liver, fix its attachment, push one point, see how far it moves.
+"""
+Static poke
+===========
+
+Load the default liver, fix its attachment, push one point, see how far it moves.
 
     .venv/bin/python examples/01_static_poke.py [MESH]     (default: the embedded liver)
 """

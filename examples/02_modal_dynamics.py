@@ -1,4 +1,8 @@
-"""Modal dynamics: 40 modes, a push held for 0.2 s and released, plotted against direct integration.
+"""
+Modal dynamics
+==============
+
+40 modes, a push held for 0.2 s and released, plotted against direct integration.
 
     .venv/bin/python examples/02_modal_dynamics.py
 """

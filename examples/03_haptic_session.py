@@ -1,4 +1,8 @@
-"""Haptic session: a scripted probe presses the liver under a real-time 1 kHz force loop.
+"""
+Haptic session
+==============
+
+A scripted probe presses the liver under a real-time 1 kHz force loop.
 
 Replace ScriptedDevice by CallbackDevice(get_position, set_force) to plug in a real device.
 

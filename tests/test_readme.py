@@ -1,10 +1,11 @@
-"""The README's commands, run as written in a fresh folder (a newcomer's first minutes).
+"""The README's and the getting-started page's commands, run as written in a fresh folder (a
+newcomer's first minutes).
 
-The `rtfem` command block is run line by line in an empty folder holding a copy of
-`examples/` (the README's inputs); every line must exit 0 without a traceback, and what it says
-it writes must be there. The `view` line serves until it prints its address, then gets Ctrl-C
-(exit 130). The Python quick start runs whole. `make demo` and `make test` (the first block) are
-what CI itself runs.
+The `rtfem` command block (docs/guide/getting-started.md) is run line by line in an empty folder
+holding a copy of `examples/` (its inputs); every line must exit 0 without a traceback, and what
+it says it writes must be there. The `view` line serves until it prints its address, then gets
+Ctrl-C (exit 130). The README's example and the guide's first script run whole. `make demo` and
+`make test` (the README's first block) are what CI itself runs.
 """
 
 from __future__ import annotations
@@ -23,12 +24,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+GUIDE = (ROOT / "docs" / "guide" / "getting-started.md").read_text()
 
 
-def _blocks(lang: str) -> list[str]:
+def _blocks(lang: str, text: str = README) -> list[str]:
     """The fenced blocks of a language ("" for plain ones), fences read in order."""
     blocks, current, kind = [], None, None
-    for line in README.splitlines():
+    for line in text.splitlines():
         fence = line.strip()
         if fence.startswith("```"):
             if current is None:
@@ -43,7 +45,7 @@ def _blocks(lang: str) -> list[str]:
 
 
 def _command_block() -> list[str]:
-    block = next(b for b in _blocks("") if "rtfem info" in b)
+    block = next(b for b in _blocks("", GUIDE) if "rtfem info" in b)
     lines = [ln.split("  #")[0].strip() for ln in block.splitlines()]
     return [ln for ln in lines if ln]
 
@@ -55,15 +57,24 @@ def folder(tmp_path_factory):
     return where
 
 
+def test_the_readme_is_short_and_starts_with_the_two_commands():
+    lines = README.splitlines()
+    assert len(lines) <= 150, len(lines)
+    first = _blocks("")[0]
+    assert README.startswith("```") and first.startswith("make demo") and "make test" in first, first
+    for link in re.findall(r"\]\(([^)#]+)\)", README):  # every relative link resolves
+        assert link.startswith("http") or (ROOT / link).exists(), link
+
+
 def test_the_readme_names_its_inputs_and_they_ship():
-    """Every file a README command reads is in the repository."""
+    """Every file a command of the guide reads is in the repository."""
     lines = _command_block()
     assert len(lines) >= 8 and all(ln.startswith("rtfem ") for ln in lines), lines
     for ln in lines:
         for word in shlex.split(ln):
             if word.endswith((".stl", ".csv", ".obj", ".vtu")) and not word.startswith("-"):
                 assert (ROOT / word).is_file(), f"{ln!r} reads {word}, which the repository lacks"
-    assert "../shared" not in README, "the README links a file outside the repository"
+    assert "../shared" not in README + GUIDE, "a page links a file outside the repository"
 
 
 @pytest.mark.parametrize("line", [ln for ln in _command_block() if " view " not in f" {ln} " or "--benchmark" in ln])
@@ -106,11 +117,12 @@ def test_the_readme_view_command_serves_and_stops_on_ctrl_c(folder):
     assert "modal derivatives" in err, err
 
 
-def test_the_quick_start_runs(folder, monkeypatch):
+@pytest.mark.parametrize("page", ["README", "guide"])
+def test_the_first_scripts_run(page, folder, monkeypatch):
     monkeypatch.chdir(folder)
-    code = _blocks("python")[0]
+    code = _blocks("python", README if page == "README" else GUIDE)[0]
     assert "rt.HapticLoop" in code
     scope: dict = {}
-    exec(compile(code, "README quick start", "exec"), scope)  # noqa: S102 - the README's own code
+    exec(compile(code, f"the {page}'s first script", "exec"), scope)  # noqa: S102 - our own pages' code
     stats = scope["stats"]
     assert stats.steps > 500 and stats.peak_force > 0.0

@@ -54,10 +54,10 @@ class ModalSimulator(StaticCorrection, ForceInput):
     def __new__(cls, modes=None, dt=None, damping=None, *, integrator: str = "exact", static_correction: bool = False,
                 warping: bool = False):
         if cls is ModalSimulator and validate.flag(warping, "warping"):
-            cls = ModalSimulator.warped  # rtfem.drivers.warping registers it (the package imports it)
+            cls = ModalSimulator._warped  # rtfem.drivers.warping registers it (the package imports it)
         return super().__new__(cls)
 
-    warped: type | None = None  # the class ModalSimulator(..., warping=True) makes
+    _warped: type | None = None  # the class ModalSimulator(..., warping=True) makes
 
     compliance_changes = False  # step_compliance is constant (consumers may cache it)
     warping = False

@@ -28,13 +28,17 @@ class StaticDriver(ForceInput):
 
     Parameters
     ----------
-    model : a ShellModel or SolidModel with its supports (they are read now: a later
-        ``model.fix`` or ``release`` makes this driver refuse to step, instead of answering for
-        the old supports).
-    loads : loads held at every step ((n, 3) or {node: f}; None for none); change them with
+    model : ShellModel or SolidModel
+        The model with its supports (they are read now: a later ``model.fix`` or ``release``
+        makes this driver refuse to step, instead of answering for the old supports).
+    loads : array_like or dict, optional
+        Loads held at every step ((n, 3) or {node: f}; None for none); change them with
         :meth:`hold`.
-    dt : the time a step stands for (s; only ``time`` uses it).
+    dt : float
+        The time a step stands for (s; only ``time`` uses it).
 
+    Notes
+    -----
     ``predict(node)`` is the equilibrium under the held loads alone and ``step_compliance(node)``
     the static 3x3 compliance (K^-1)_pp, so ``rt.ToolContact(mesh, rt.StaticDriver(model), ...)``
     solves the static contact problem each step (its ``coupling="constraint"``: a rigid tool).

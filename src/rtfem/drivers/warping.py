@@ -177,4 +177,4 @@ class WarpedModalSimulator(ModalSimulator):
         return W
 
 
-ModalSimulator.warped = WarpedModalSimulator
+ModalSimulator._warped = WarpedModalSimulator

@@ -117,16 +117,28 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
 
     Parameters
     ----------
-    surface : a closed :class:`TriMesh` (every edge shared by two triangles).
-    edge_length : target edge length in metres (default: 5 % of the bounding-box diagonal).
-    epsilon : how far the result's boundary may stray from the input surface, as a fraction of
-        the diagonal (fTetWild's envelope; 1e-3 by default).
-    optimize : improve the tets' quality (fTetWild's AMIPS optimization); False is faster.
-    threads : fTetWild's threads; 0 for all cores. With more than one the result differs from run
-        to run (the default, 1, gives the same mesh for the same input).
+    surface : TriMesh
+        A closed surface (every edge shared by two triangles).
+    edge_length : float, optional
+        Target edge length in metres (default: 5 % of the bounding-box diagonal).
+    epsilon : float
+        How far the result's boundary may stray from the input surface, as a fraction of the
+        diagonal (fTetWild's envelope; 1e-3 by default).
+    optimize : bool
+        Improve the tets' quality (fTetWild's AMIPS optimization); False is faster.
+    threads : int
+        fTetWild's threads; 0 for all cores. With more than one the result differs from run to
+        run (the default, 1, gives the same mesh for the same input).
 
-    Returns a :class:`TetMesh` whose vertex groups are the input's carried to the nearest new
-    surface nodes. Raises MeshError for an open surface or when the mesher is missing or fails.
+    Returns
+    -------
+    TetMesh
+        The tets, whose vertex groups are the input's carried to the nearest new surface nodes.
+
+    Raises
+    ------
+    MeshError
+        For an open surface, or when the mesher is missing or fails.
     """
     if not isinstance(surface, TriMesh):
         raise MeshError(f"tetrahedralize needs a TriMesh surface, got {type(surface).__name__}")

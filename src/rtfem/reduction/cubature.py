@@ -444,12 +444,26 @@ def train(contributions, targets, tol: float = 0.02, max_elements: int | None = 
     """Optimized cubature (An et al. 2008): elements and non-negative weights w with
     sum_e w_e contributions[:, e] ~ targets.
 
-    contributions : (T, E) each element's reduced force on the training poses, stacked (each
-        pose's rows scaled to unit norm of its target).
-    targets : (T,) the full sums.
-    tol : stop when |A w - b| <= tol |b|.
+    Parameters
+    ----------
+    contributions : ndarray (T, E)
+        Each element's reduced force on the training poses, stacked (each pose's rows scaled to
+        unit norm of its target).
+    targets : ndarray (T,)
+        The full sums.
+    tol : float
+        Stop when |A w - b| <= tol |b|.
+    max_elements : int, optional
+        At most this many elements.
+    seed : int
+        The seed of the random candidates.
 
-    Returns (elements, weights, relative error). Candidates are drawn at random (a quarter of
+    Returns
+    -------
+    tuple
+        (elements, weights, relative error).
+
+    Candidates are drawn at random (a quarter of
     the elements per pick, at least 64) and the ones best aligned with the residual are taken
     (one at first, then an eighth of the number chosen so far).
     """

@@ -1,0 +1,38 @@
+"""The manual builds (``make docs``): Sphinx over docs/ with warnings as errors, the API reference
+from the docstrings, the gallery running examples/. The docs extra brings Sphinx (make installs it)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_manual_builds_without_a_warning(tmp_path):
+    pytest.importorskip("sphinx", reason="the docs extra (Sphinx) is not installed: pip install 'rtfem[docs]'")
+    pytest.importorskip("sphinx_gallery", reason="the docs extra (sphinx-gallery) is not installed")
+    out = tmp_path / "html"
+    run = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html",
+                          "-d", str(tmp_path / "doctrees"), "docs", str(out)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=900)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-4000:]
+    # every public name has its page, every guide page and example is there, the gallery has its figure
+    import rtfem
+
+    for name in rtfem.__all__:
+        obj = getattr(rtfem, name)
+        page = obj.__name__ if type(obj).__name__ == "module" else f"rtfem.{name}"  # modules: their own path
+        assert (out / "generated" / f"{page}.html").is_file(), name
+    for page in (ROOT / "docs" / "guide").glob("*.md"):
+        assert (out / "guide" / f"{page.stem}.html").is_file(), page.name
+    for example in (ROOT / "examples").glob("[0-9][0-9]_*.py"):
+        assert (out / "auto_examples" / f"{example.stem}.html").is_file(), example.name
+    assert list((out / "_images").glob("sphx_glr_02_modal_dynamics_*.png"))  # the example's figure
+    # the guide's images resolve (a missing one is a warning, which failed the build above)
+    assert re.search(r'<img[^>]+viewer\.png', (out / "index.html").read_text())
+    assert re.search(r'<img[^>]+modes\.png', (out / "guide" / "getting-started.html").read_text())
