@@ -9,8 +9,10 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli.main import main
-from rtfem import contact
-from rtfem.interaction.contact import closest_points_on_triangles, hold_patch, pgs
+from rtfem.interaction import compliance, contact_points, friction
+from rtfem.interaction.contact import hold_patch
+from rtfem.interaction.contact_points import closest_points_on_triangles
+from rtfem.interaction.friction import pgs
 from rtfem.drivers.base import predictions, step_compliances
 from rtfem.viewer.session import Settings
 
@@ -19,7 +21,7 @@ def frames(n: np.ndarray) -> np.ndarray:
     """(k, 3, 3) contact frames of unit normals n, by the kernel the contact set uses."""
     F = np.empty((n.shape[0], 3, 3))
     for k in range(n.shape[0]):
-        contact._frame_into(n[k, 0], n[k, 1], n[k, 2], F, k)
+        contact_points._frame_into(n[k, 0], n[k, 1], n[k, 2], F, k)
     return F
 
 
@@ -128,7 +130,7 @@ def test_the_kept_compliance_block_equals_a_fresh_one_as_the_contact_set_changes
     model, modes = plate
     d = rt.ModalSimulator(modes, 1e-3, rt.Damping(alpha=5.0), static_correction=True)
     d.step({30: (0.0, 0.0, 0.3)})
-    pool = contact._ComplianceBlock(d, slots=16)
+    pool = compliance._ComplianceBlock(d, slots=16)
     rng = np.random.default_rng(3)
     free = np.flatnonzero(~model.held_nodes)
     caps, computed = set(), 0
@@ -175,7 +177,7 @@ def test_compiled_geometry_equals_the_vectorized_definitions():
                  rt.Tool.jaw(0.01, 0.02, 0.002, normal=(0.2, 0.1, 1.0))):
         d_ref, n_ref = tool.distance(P, c, O)
         d, n = np.empty(300), np.empty((300, 3))
-        contact._gaps(P, P, O, np.zeros(300), c, tool.orientation, tool.half_extents, tool.radius, d, n)
+        contact_points._gaps(P, P, O, np.zeros(300), c, tool.orientation, tool.half_extents, tool.radius, d, n)
         np.testing.assert_allclose(d, d_ref, rtol=0, atol=1e-15)
         np.testing.assert_allclose(n, n_ref, rtol=0, atol=1e-12)
         assert (d < 0).sum() > 10 and (d > 0).sum() > 10  # both sides met
@@ -183,7 +185,7 @@ def test_compiled_geometry_equals_the_vectorized_definitions():
     Q_ref, bary_ref = closest_points_on_triangles(P[:60] * 100, A, B, C)
     for i in range(60):
         q, bary = np.empty(3), np.empty(3)
-        contact._closest_on_triangle(P[i] * 100, A[i], B[i], C[i], q, bary)
+        contact_points._closest_on_triangle(P[i] * 100, A[i], B[i], C[i], q, bary)
         np.testing.assert_allclose(q, Q_ref[i], atol=1e-12)
         np.testing.assert_allclose(bary, bary_ref[i], atol=1e-12)
     F = frames(O)
@@ -216,7 +218,7 @@ def test_contact_operator_equals_the_matrix_products_and_the_solve_needs_only_pr
     for inv_k in (0.0, 1e-3):
         A, full = np.empty((3 * m, 3 * m)), np.zeros(m, dtype=bool)
         for d in range(m):
-            contact._column(W, Bi, Bv, F, inv_k, d, A, full)
+            friction._column(W, Bi, Bv, F, inv_k, d, A, full)
         C = B3 @ W @ B3.T + inv_k * np.tile(np.eye(3), (m, m))
         ref = Fd.T @ C @ Fd
         # and the tangential diagonal's 1e-9 of each point's compliance (a held direction stays invertible)
@@ -231,7 +233,7 @@ def test_contact_operator_equals_the_matrix_products_and_the_solve_needs_only_pr
         r_full, sweeps_full = pgs(A, b, mu)
         have = np.zeros(m, dtype=bool)
         lazy = np.full_like(A, np.nan)
-        r, sweeps = contact._solve(lazy, have, W, Bi, Bv, F, inv_k, b.copy(), mu, np.zeros_like(b), 500, 1e-10)
+        r, sweeps = friction._solve(lazy, have, W, Bi, Bv, F, inv_k, b.copy(), mu, np.zeros_like(b), 500, 1e-10)
         np.testing.assert_array_equal(r, r_full)
         assert sweeps == sweeps_full
         pressed = r[::3] > 0

@@ -3,7 +3,8 @@
 from .mesh import meshes
 from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .fe.material import Damping, Material
-from .mesh.surface import MeshReport, TriMesh
+from .mesh.repair import MeshReport
+from .mesh.surface import TriMesh
 from .mesh.tetmesh import TetMesh
 from .mesh.files import load_mesh, save_mesh
 from .fe import linalg

@@ -18,7 +18,8 @@ from scipy.sparse.csgraph import connected_components
 
 from .. import validate
 from ..errors import MeshError
-from .surface import TriMesh, _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes
+from .repair import _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes
+from .surface import TriMesh
 
 __all__ = ["TetMesh", "TetReport", "TetQuality", "TET10_EDGES", "TET_FACES"]
 

@@ -1,0 +1,373 @@
+"""Checks and repairs of surface meshes (the arrays, finiteness, degenerate and duplicate
+triangles, merged vertices, non-manifold edges, orientation) and the report of what was found
+and changed (:class:`MeshReport`); :class:`~rtfem.TriMesh` and :class:`~rtfem.TetMesh` run them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, connected_components
+from scipy.spatial import cKDTree
+
+from .. import validate
+from ..errors import MeshError
+
+__all__ = ["MeshReport"]
+
+_MAX_LISTED = 5
+
+
+def _listing(idx: np.ndarray) -> str:
+    idx = np.asarray(idx).ravel()
+    head = ", ".join(str(int(i)) for i in idx[:_MAX_LISTED])
+    return head + (f", ... ({idx.size} in all)" if idx.size > _MAX_LISTED else "")
+
+
+@dataclass
+class MeshReport:
+    """What validation found and what repair changed."""
+
+    n_vertices_in: int = 0
+    n_triangles_in: int = 0
+    merged_vertices: int = 0
+    dropped_unreferenced: int = 0
+    removed_degenerate: int = 0
+    removed_duplicate_triangles: int = 0
+    flipped_triangles: int = 0
+    n_components: int = 0
+    closed: bool = False
+    n_boundary_edges: int = 0
+    orientable: bool = True
+    nonmanifold_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    min_angle_deg: float = float("nan")
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def repaired(self) -> bool:
+        """True when repair changed the mesh."""
+        return bool(
+            self.merged_vertices
+            or self.dropped_unreferenced
+            or self.removed_degenerate
+            or self.removed_duplicate_triangles
+            or self.flipped_triangles
+        )
+
+    def __str__(self) -> str:
+        lines = [
+            f"input: {self.n_vertices_in} vertices, {self.n_triangles_in} triangles",
+            f"components: {self.n_components}, "
+            + ("closed" if self.closed else f"open ({self.n_boundary_edges} boundary edges)")
+            + ("" if self.orientable else ", NOT orientable"),
+            f"smallest angle: {self.min_angle_deg:.2f} deg",
+        ]
+        rep = [
+            (self.merged_vertices, "duplicate vertices merged"),
+            (self.dropped_unreferenced, "unreferenced vertices dropped"),
+            (self.removed_degenerate, "degenerate (zero-area) triangles removed"),
+            (self.removed_duplicate_triangles, "duplicate triangles removed"),
+            (self.flipped_triangles, "triangles flipped to a consistent orientation"),
+        ]
+        done = [f"{n} {what}" for n, what in rep if n]
+        lines.append("repairs: " + ("; ".join(done) if done else "none"))
+        if self.nonmanifold_vertices.size:
+            lines.append(
+                f"warning: {self.nonmanifold_vertices.size} non-manifold vertices (surfaces touching at "
+                f"a single point: {_listing(self.nonmanifold_vertices)}); they act as hinges"
+            )
+        lines.extend(self.notes)
+        return "\n".join(lines)
+
+
+def _check_groups(groups, n: int) -> dict[str, np.ndarray]:
+    if groups is None:
+        return {}
+    if not isinstance(groups, Mapping):
+        raise MeshError(f"groups={validate.show(groups)} must be a mapping {{name: vertex indices}}")
+    out = {}
+    for name, idx in groups.items():
+        if not isinstance(name, str) or not name:
+            raise MeshError(f"group name {validate.show(name)} must be a non-empty string")
+        out[name] = validate.nodes(idx, n, f"group {name!r}", allow_empty=True, error=MeshError)
+    return out
+
+
+def _check_arrays(vertices, triangles) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        V = np.array(vertices, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"vertices are not a numeric (n, 3) array: {exc}") from None
+    try:
+        T_raw = np.asarray(triangles)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"triangles are not an integer (m, 3) array: {exc}") from None
+    if V.size == 0 or T_raw.size == 0:
+        raise MeshError(
+            f"empty mesh ({V.shape[0] if V.ndim else 0} vertices, {T_raw.shape[0] if T_raw.ndim else 0} "
+            "triangles): a shell model needs at least one triangle"
+        )
+    if V.ndim != 2 or V.shape[1] not in (2, 3):
+        raise MeshError(f"vertices must be an (n, 3) array, got shape {V.shape}")
+    if V.shape[1] == 2:
+        V = np.column_stack([V, np.zeros(V.shape[0])])
+    if T_raw.ndim != 2 or T_raw.shape[1] != 3:
+        raise MeshError(
+            f"triangles must be an (m, 3) array of vertex indices, got shape {T_raw.shape}"
+            + ("; split quads or polygons first (load_mesh does)" if T_raw.ndim == 2 else "")
+        )
+    T = _integer_cells(T_raw, "triangle indices")
+    _check_finite_and_in_range(V, T, ("vertex", "vertices"), "triangle")
+    return V, T
+
+
+def _integer_cells(T_raw: np.ndarray, what: str) -> np.ndarray:
+    """Cell indices as C-ordered int64: integers, or floats holding whole numbers."""
+    if not np.issubdtype(T_raw.dtype, np.integer):
+        if not np.issubdtype(T_raw.dtype, np.floating) or np.any(T_raw != np.round(T_raw)):
+            raise MeshError(f"{what} must be integers, got dtype {T_raw.dtype}")
+    return np.ascontiguousarray(T_raw, dtype=np.int64)
+
+
+def _check_finite_and_in_range(V: np.ndarray, T: np.ndarray, node: tuple[str, str], cell: str) -> None:
+    """MeshError naming the first non-finite point and the first cell with an index out of range
+    (``node``: the word for a point, singular and plural; ``cell``: for a cell)."""
+    bad_v = np.flatnonzero(~np.isfinite(V).all(axis=1))
+    if bad_v.size:
+        raise MeshError(
+            f"non-finite (NaN or infinite) coordinates at {node[0]} {_listing(bad_v)}: "
+            f"first one is {V[bad_v[0]].tolist()}; fix or remove these {node[1]}"
+        )
+    bad_t = np.flatnonzero(((T < 0) | (T >= V.shape[0])).any(axis=1))
+    if bad_t.size:
+        raise MeshError(
+            f"{cell} {_listing(bad_t)} refers to a {node[0]} index outside 0..{V.shape[0] - 1} "
+            f"(first one: {T[bad_t[0]].tolist()})"
+        )
+
+
+def _edge_index(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique sorted edges and, for each triangle side (0-1, 1-2, 2-0), its edge number."""
+    e = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
+    e = np.sort(e, axis=1)
+    edges, inverse = np.unique(e, axis=0, return_inverse=True)
+    return edges, inverse.ravel()
+
+
+def _unique_edges(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    edges, inverse = _edge_index(T)
+    return edges, np.bincount(inverse, minlength=edges.shape[0])
+
+
+def _twice_areas(V: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c = V[T]
+    n = np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
+    lmax = np.max(np.linalg.norm(c - np.roll(c, 1, axis=1), axis=2), axis=1)
+    return n, lmax
+
+
+def _degenerate(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Triangles with a repeated vertex or (numerically) zero area."""
+    rep = (T[:, 0] == T[:, 1]) | (T[:, 1] == T[:, 2]) | (T[:, 2] == T[:, 0])
+    a2, lmax = _twice_areas(V, T)
+    return rep | (a2 <= 1e-12 * lmax**2)
+
+
+def _refuse_unrepaired(V: np.ndarray, T: np.ndarray) -> None:
+    deg = np.flatnonzero(_degenerate(V, T))
+    if deg.size:
+        raise MeshError(
+            f"degenerate (zero-area) triangle {_listing(deg)}: vertices {T[deg[0]].tolist()}; "
+            "pass repair=True to remove them"
+        )
+
+
+def _merge_classes(V: np.ndarray, tol: float) -> np.ndarray:
+    """For each vertex, the lowest index of the vertices it merges with (within ``tol``).
+
+    O(n log n) time and O(n) memory however the points cluster: vertices are first binned
+    into cells of size ``tol`` (one cell = one class), then only the cells' representatives
+    are paired within ``tol`` -- at most a few dozen neighbours each, where pairing all points
+    directly would list n^2 / 2 pairs for n coincident vertices.
+    """
+    n = V.shape[0]
+    if tol > 0:
+        key = np.floor((V - V.min(axis=0)) / tol).astype(np.int64)
+    else:
+        key = V
+    _, first, cell = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    cell = cell.ravel()
+    reps = V[first]
+    if tol > 0 and first.size > 1:
+        pairs = cKDTree(reps).query_pairs(tol, output_type="ndarray")
+    else:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    k = first.size
+    if pairs.shape[0]:
+        G = sp.coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
+        _, label = connected_components(G, directed=False)
+    else:
+        label = np.arange(k)
+    label = label[cell]
+    # representative of each class: its lowest index
+    rep = np.full(int(label.max()) + 1, n, dtype=np.int64)
+    np.minimum.at(rep, label, np.arange(n))
+    return rep[label]
+
+
+def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: MeshReport):
+    n_in = V.shape[0]
+    # 1. merge duplicate vertices within a tolerance relative to the model size
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    tol = merge_tol * (diag if diag > 0 else 1.0)
+    merge = _merge_classes(V, tol)
+    report.merged_vertices = int(np.sum(merge != np.arange(n_in)))
+    if report.merged_vertices:
+        T = merge[T]
+    # 2. degenerate triangles
+    deg = _degenerate(V, T)
+    report.removed_degenerate = int(deg.sum())
+    T = T[~deg]
+    if T.shape[0] == 0:
+        raise MeshError("every triangle is degenerate (zero area): the mesh has no usable surface")
+    # 3. duplicate triangles (same three vertices, either orientation)
+    _, first = np.unique(np.sort(T, axis=1), axis=0, return_index=True)
+    report.removed_duplicate_triangles = int(T.shape[0] - first.size)
+    T = T[np.sort(first)]
+    # 4. unreferenced vertices
+    used = np.zeros(n_in, bool)
+    used[T.ravel()] = True
+    new_index = np.full(n_in, -1, dtype=np.int64)
+    new_index[used] = np.arange(int(used.sum()))
+    report.dropped_unreferenced = int(n_in - report.merged_vertices - used.sum())
+    vmap = new_index[merge]
+    return V[used], new_index[T], vmap
+
+
+def _check_manifold_edges(V: np.ndarray, T: np.ndarray) -> None:
+    edges, count = _unique_edges(T)
+    bad = np.flatnonzero(count > 2)
+    if bad.size:
+        a, b = edges[bad[0]]
+        tri = np.flatnonzero(np.isin(T, [a, b]).sum(axis=1) == 2)
+        raise MeshError(
+            f"non-manifold mesh: {bad.size} edges are shared by more than two triangles; the first, "
+            f"between vertices {a} {V[a].tolist()} and {b} {V[b].tolist()}, belongs to triangles "
+            f"{_listing(tri)}. A shell surface must have at most two triangles per edge: "
+            "separate the sheets or remove the extra faces"
+        )
+
+
+@dataclass
+class _HalfEdges:
+    """Directed edges (3 per triangle, half-edge h of triangle h // 3), the undirected edges and
+    the two half-edges (h1, h2) of each interior edge, with their triangles (t1, t2)."""
+
+    e_dir: np.ndarray
+    edges: np.ndarray
+    inv: np.ndarray  # half-edge -> undirected edge
+    count: np.ndarray  # triangles per undirected edge
+    h1: np.ndarray
+    h2: np.ndarray
+
+    @classmethod
+    def of(cls, T: np.ndarray) -> "_HalfEdges":
+        e_dir = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
+        edges, inv = np.unique(np.sort(e_dir, axis=1), axis=0, return_inverse=True)
+        inv = inv.ravel()
+        count = np.bincount(inv, minlength=edges.shape[0])
+        order = np.argsort(inv, kind="stable")
+        sorted_inv = inv[order]
+        starts = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
+        pair_edges = starts[count[sorted_inv[starts]] == 2]
+        return cls(e_dir, edges, inv, count, order[pair_edges], order[pair_edges + 1])
+
+    @property
+    def t1(self) -> np.ndarray:
+        return self.h1 // 3
+
+    @property
+    def t2(self) -> np.ndarray:
+        return self.h2 // 3
+
+
+def _orientation_flips(m: int, he: _HalfEdges) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Which triangles to flip for one orientation per component: (flip, component label,
+    number of components, orientable). One breadth-first walk over every component at once."""
+    t1, t2 = he.t1, he.t2
+    same = he.e_dir[he.h1, 0] == he.e_dir[he.h2, 0]  # same direction -> inconsistent orientation
+    G = sp.coo_matrix((np.ones(t1.size), (t1, t2)), shape=(m, m)).tocsr()
+    G = G + G.T
+    n_comp, label = connected_components(G, directed=False)
+    # sign relation between adjacent triangles: flip[t2] = flip[t1] xor same
+    rel = sp.coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[t1, t2], np.r_[t2, t1])), shape=(m, m)).tocsr()
+    # a virtual root (index m) joined to one triangle of each component: O(m) however many pieces
+    _, roots = np.unique(label, return_index=True)
+    Gc = G.tocoo()
+    Gr = sp.coo_matrix((np.ones(Gc.nnz + roots.size), (np.r_[Gc.row, np.full(roots.size, m)], np.r_[Gc.col, roots])),
+                       shape=(m + 1, m + 1)).tocsr()
+    bfs, pred = breadth_first_order(Gr, m, directed=False, return_predecessors=True)
+    child = bfs[1:]
+    parent = pred[child]
+    inner = parent != m
+    child, parent = child[inner], parent[inner]
+    s_rel = (np.asarray(rel[parent, child]).ravel() == 2) if child.size else np.zeros(0, bool)
+    flip = np.zeros(m, bool)
+    for c_, p_, si in zip(child.tolist(), parent.tolist(), s_rel.tolist()):  # in BFS order: parents first
+        flip[c_] = flip[p_] ^ si
+    orientable = bool(((flip[t1] ^ flip[t2]) == same).all())
+    return flip, label, int(n_comp), orientable
+
+
+def _outward_turns(V: np.ndarray, T: np.ndarray, label: np.ndarray, n_comp: int, he: _HalfEdges) -> np.ndarray:
+    """Triangles of closed components with negative enclosed volume (to be turned outward)."""
+    c = V[T]
+    vol6 = np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2]))
+    comp_closed = np.ones(n_comp, bool)
+    open_tris = np.zeros(T.shape[0], bool)
+    open_tris[np.flatnonzero(he.count[he.inv] == 1) // 3] = True
+    comp_closed[np.unique(label[open_tris])] = False
+    comp_vol = np.bincount(label, weights=vol6, minlength=n_comp)
+    return (comp_closed & (comp_vol < 0))[label]
+
+
+def _nonmanifold_vertices(T: np.ndarray, he: _HalfEdges, n_vertices: int) -> np.ndarray:
+    """Vertices whose corners do not share one fan of edge-adjacent triangles (bow ties)."""
+    m = T.shape[0]
+    t1, t2 = he.t1, he.t2
+    corner_of = lambda t, v: 3 * t + np.argmax(T[t] == v[:, None], axis=1)  # noqa: E731
+    a, b = he.edges[he.inv[he.h1]][:, 0], he.edges[he.inv[he.h1]][:, 1]
+    ca = np.r_[corner_of(t1, a), corner_of(t1, b)]
+    cb = np.r_[corner_of(t2, a), corner_of(t2, b)]
+    _, fan = connected_components(sp.coo_matrix((np.ones(ca.size), (ca, cb)), shape=(3 * m, 3 * m)), directed=False)
+    pairs = np.unique(np.stack([T.ravel(), fan], axis=1), axis=0)
+    return np.flatnonzero(np.bincount(pairs[:, 0], minlength=n_vertices) > 1)
+
+
+def _orient(V: np.ndarray, T: np.ndarray, report: MeshReport, repair: bool) -> np.ndarray:
+    """Consistent orientation by a breadth-first walk over edge-adjacent triangles; closed
+    components outward; boundary, components and non-manifold vertices into the report."""
+    he = _HalfEdges.of(T)
+    report.n_boundary_edges = int(np.sum(he.count == 1))
+    report.closed = report.n_boundary_edges == 0
+    flip, label, n_comp, orientable = _orientation_flips(T.shape[0], he)
+    report.n_components = n_comp
+    if not orientable:
+        report.orientable = False
+        report.notes.append(
+            "note: the surface is not orientable (a Moebius-like band); normals cannot be made "
+            "consistent, which does not affect the stiffness but makes 'pressure' ambiguous"
+        )
+        flip[:] = False
+    T = T.copy()
+    if repair and report.orientable:
+        T[flip] = T[flip][:, ::-1]
+        turn = _outward_turns(V, T, label, n_comp, he)
+        T[turn] = T[turn][:, ::-1]
+        report.flipped_triangles = int(np.sum(flip ^ turn))
+    elif not repair and report.orientable and flip.any() and not np.all(flip[label == label[0]]):
+        report.notes.append("note: orientation is inconsistent (repair=False left it as given)")
+    report.nonmanifold_vertices = _nonmanifold_vertices(T, he, V.shape[0])
+    return T
