@@ -36,7 +36,7 @@ from _common import print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
 from rtfem.drivers import gpu  # noqa: E402
-from rtfem.interaction.haptics import _compiled_loop  # noqa: E402
+from rtfem.interaction.ticks import _compiled_loop  # noqa: E402
 from rtfem.drivers.base import prepare  # noqa: E402
 
 

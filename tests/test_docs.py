@@ -13,6 +13,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def test_the_api_reference_lists_every_public_name_and_module():
+    import pkgutil
+
+    import rtfem
+
+    api = (ROOT / "docs" / "api.rst").read_text()
+    listed = {ln.strip() for ln in api.splitlines() if ln.startswith("   ") and not ln.strip().startswith(":")}
+    names = {n for n in rtfem.__all__ if type(getattr(rtfem, n)).__name__ != "module"}
+    modules = {m.name[len("rtfem."):] for m in pkgutil.walk_packages(rtfem.__path__, "rtfem.")}
+    assert names | modules == listed, (sorted((names | modules) - listed), sorted(listed - (names | modules)))
+
+
 def test_the_manual_builds_without_a_warning(tmp_path):
     pytest.importorskip("sphinx", reason="the docs extra (Sphinx) is not installed: pip install 'rtfem[docs]'")
     pytest.importorskip("sphinx_gallery", reason="the docs extra (sphinx-gallery) is not installed")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from rtfem.interaction.haptics import _compiled_loop
+from rtfem.interaction.ticks import _compiled_loop
 
 needs_loop = pytest.mark.skipif(_compiled_loop() is None, reason="the compiled loop needs numba (rtfem[fast])")
 
@@ -308,7 +308,7 @@ def test_compiled_refusals_say_why(organ):
 
 
 def test_period_errors_use_adjacent_slots_only():
-    from rtfem.interaction.haptics import LoopStats
+    from rtfem.interaction.loop import LoopStats
 
     st = LoopStats(lateness=[0.0, 2e-6, 1e-6, 9e-6, 5e-6], slots=[0, 1, 2, 5, 6], compute=[1e-6] * 5, steps=5)
     assert np.allclose(st.period_errors(), [2e-6, 1e-6, 4e-6], rtol=0, atol=1e-18)  # 2 -> 5 is a gap
@@ -320,7 +320,7 @@ def test_a_compiled_loop_leaves_blas_a_core_fewer():
     threadpoolctl = pytest.importorskip("threadpoolctl")
     import os
 
-    from rtfem.interaction.haptics import _spare_core
+    from rtfem.interaction.loop import _spare_core
 
     np.ones((64, 64)) @ np.ones((64, 64))  # numpy's BLAS is loaded
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()

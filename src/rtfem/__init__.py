@@ -10,7 +10,9 @@ from .mesh.files import load_mesh, save_mesh
 from .fe import linalg
 from .fe.linalg import available_backends
 from .reduction.modal import ModalBasis, modal_analysis
-from .interaction.haptics import CallbackDevice, Grasp, HapticLoop, Probe, ScriptedDevice, SharedDevice
+from .interaction.devices import CallbackDevice, ScriptedDevice, SharedDevice
+from .interaction.haptics import Grasp, Probe
+from .interaction.loop import HapticLoop
 from .interaction.contact import Tool, ToolContact
 from .interaction import contact
 from .drivers.impedance import ImpedanceDriver, ImpedanceMap, Load

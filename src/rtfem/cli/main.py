@@ -385,7 +385,8 @@ def _drawn(model):
 
 def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tuple[RunWriter, str]:
     """A scripted point probe presses the organ: one CSV row per step, frames at --fps."""
-    from ..interaction.haptics import Probe, ScriptedDevice
+    from ..interaction.haptics import Probe
+    from ..interaction.devices import ScriptedDevice
     from ..io.scenario import RunWriter
 
     mesh = model.mesh

@@ -1,0 +1,110 @@
+"""Devices: where the hand is, and what it feels. A scripted press (:class:`ScriptedDevice`,
+:class:`Press`), a device behind two callbacks (:class:`CallbackDevice`) or one shared with another
+thread (:class:`SharedDevice`)."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError
+
+__all__ = ["ScriptedDevice", "Press", "CallbackDevice", "SharedDevice"]
+
+
+class ScriptedDevice:
+    """A probe that follows a trajectory: ``trajectory(t) -> (3,)`` position in metres."""
+
+    def __init__(self, trajectory: Callable[[float], np.ndarray]) -> None:
+        if not callable(trajectory):
+            raise ModelError(f"trajectory={validate.show(trajectory)} must be a callable t -> (3,) position")
+        self.trajectory = trajectory
+        self.forces: list[np.ndarray] = []
+        self.times: list[float] = []
+
+    @classmethod
+    def press(cls, point, normal, depth: float, duration: float, *, approach: float = 0.002, ramp: float = 0.2,
+              release: float = 0.6, repeat: bool = False) -> "ScriptedDevice":
+        """A press along the inward normal: from ``approach`` (m) outside the surface point to
+        ``depth`` (m) inside over ``ramp * duration``, held until ``release * duration``, backed
+        out over ``ramp * duration`` and left outside; ``repeat`` starts again every ``duration``.
+        The one scripted press of the CLI, the demo, the examples and the benchmarks."""
+        return cls(Press(point, normal, depth, duration, approach, ramp, release, repeat))
+
+    def position(self, t: float) -> np.ndarray:
+        return np.asarray(self.trajectory(t), dtype=float)
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self.times.append(t)
+        self.forces.append(np.array(force))
+
+
+class Press:
+    """The trajectory of :meth:`ScriptedDevice.press`: ``press(t)`` is the probe position (3,) and
+    ``press.depth_at(t)`` how far inside the undeformed surface it is (m; negative outside)."""
+
+    def __init__(self, point, normal, depth, duration, approach=0.002, ramp=0.2, release=0.6, repeat=False) -> None:
+        self.point = validate.point(point, "point")
+        n = validate.vector(normal, "normal", 3)
+        if not np.linalg.norm(n) > 0:
+            raise ModelError("normal must be a non-zero vector (the surface's outward normal)")
+        self.normal = n / np.linalg.norm(n)
+        self.depth = validate.number(depth, "depth", "a press depth in m")
+        self.duration = validate.positive(duration, "duration", "a time in s")
+        self.approach = validate.nonnegative(approach, "approach", "a distance in m")
+        self.ramp = validate.in_range(ramp, "ramp", 0.0, 0.5, lo_open=True, what="a fraction of the duration")
+        self.release = validate.in_range(release, "release", self.ramp, 1.0 - self.ramp, what="a fraction of the duration")
+        self.repeat = validate.flag(repeat, "repeat")
+
+    def depth_at(self, t: float) -> float:
+        s = (t % self.duration if self.repeat else t) / self.duration
+        if s < self.release:
+            level = min(s / self.ramp, 1.0)
+        else:
+            level = max(0.0, 1.0 - (s - self.release) / self.ramp)
+        return -self.approach + (self.depth + self.approach) * level
+
+    def __call__(self, t: float) -> np.ndarray:
+        return self.point - self.depth_at(t) * self.normal
+
+
+class CallbackDevice:
+    """Plug a real device driver (or the viewer) in: ``get_position() -> (3,)``, ``set_force(f)``."""
+
+    def __init__(self, get_position: Callable[[], np.ndarray], set_force: Callable[[np.ndarray], None]) -> None:
+        for name, fn in (("get_position", get_position), ("set_force", set_force)):
+            if not callable(fn):
+                raise ModelError(f"{name}={validate.show(fn)} must be a callable")
+        self._get, self._set = get_position, set_force
+
+    def position(self, t: float) -> np.ndarray:
+        return validate.point(self._get(), "the device's position (get_position())")
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self._set(force)
+
+
+class SharedDevice:
+    """A device whose position any thread writes (:meth:`move_to`: a device driver's thread, the
+    viewer's mouse) and whose force any thread reads (:attr:`force`), through one shared array,
+    so a compiled HapticLoop reads and writes it without the GIL."""
+
+    def __init__(self, position=(0.0, 0.0, 0.0)) -> None:
+        self.mailbox = np.zeros(6)  # position (3), force on the probe (3)
+        self.move_to(position)
+
+    def move_to(self, position) -> None:
+        self.mailbox[:3] = validate.point(position, "device position")
+
+    @property
+    def force(self) -> np.ndarray:
+        """The last force handed to the device (N): what the hand feels."""
+        return self.mailbox[3:6].copy()
+
+    def position(self, t: float) -> np.ndarray:
+        return self.mailbox[:3].copy()
+
+    def set_force(self, t: float, force: np.ndarray) -> None:
+        self.mailbox[3:6] = force
