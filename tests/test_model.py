@@ -155,7 +155,7 @@ def test_force_on_fixed_dof_is_reported(liver_model):
 
 
 def test_dof_parsing():
-    from rtfem.fe.model import parse_dofs
+    from rtfem.fe.protocol import parse_dofs
 
     assert parse_dofs("all").all()
     assert parse_dofs("xyz").tolist() == [True] * 3 + [False] * 3

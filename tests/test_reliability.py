@@ -523,7 +523,7 @@ ORGAN_FILES = [("sofa_liver2.obj", 0.1), ("sofa_env_gallbladder_collision.stl", 
 
 @pytest.mark.parametrize("name, scale", [("default liver", 1.0)] + ORGAN_FILES)
 def test_default_penalty_works_on_every_organ_and_matches_elimination(name, scale):
-    from rtfem.cli.main import fixed_nodes
+    from rtfem.cli.common import fixed_nodes
 
     mesh = rt.meshes.liver() if name == "default liver" else rt.load_mesh(organ(name), scale=scale)
     nodes, _ = fixed_nodes(mesh, None)

@@ -9,7 +9,7 @@ import pytest
 import scipy.linalg as sla
 
 import rtfem as rt
-from rtfem.fe.model import MODEL_MEMBERS, check_model
+from rtfem.fe.protocol import MODEL_MEMBERS, check_model
 from rtfem.reduction.oscillator import step_response
 from conftest import organ
 

@@ -16,7 +16,8 @@ from .interaction.loop import HapticLoop
 from .interaction.contact import Tool, ToolContact
 from .interaction import contact
 from .drivers.impedance import ImpedanceDriver, ImpedanceMap, Load
-from .fe.model import Model, ShellModel
+from .fe.protocol import Model
+from .fe.shellmodel import ShellModel
 from .fe.build import make_model
 from .fe.solidmodel import SolidModel
 from .mesh.meshing import tetrahedralize

@@ -305,7 +305,7 @@ def pictures(model, out: Path, *, n_modes: int = 40, damping: Damping | None = N
     if scaling_levels:
         say("scaling: time per step on the liver at levels " + ", ".join(map(str, scaling_levels)) + " ...")
         from ..mesh import meshes
-        from ..fe.model import ShellModel
+        from ..fe.shellmodel import ShellModel
 
         rows = []
         for lv in scaling_levels:

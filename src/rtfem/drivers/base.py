@@ -269,7 +269,7 @@ class StaticCorrection:
     def _check_correction_supports(self) -> None:
         """The correction's solves use the model's current supports: refuse them once the model
         was fixed otherwise than the basis was computed on (the two would not match)."""
-        from ..fe.model import check_supports
+        from ..fe.protocol import check_supports
 
         check_supports(self._sc_model, self._sc_supports, f"{type(self).__name__}'s static correction")
 

@@ -20,7 +20,7 @@ from .. import validate
 from ..errors import ModelError, SolverError
 from ..fe.linalg import factorize
 from ..fe.material import Damping
-from ..fe.model import check_model, check_supports, require_lumped_mass
+from ..fe.protocol import check_model, check_supports, require_lumped_mass
 from .base import ForceInput, check_damping, check_dt, newmark_constants, newmark_velocity
 
 __all__ = ["DirectSimulator", "NewmarkSimulator", "CentralDifferenceSimulator", "NonlinearNewmarkSimulator"]

@@ -31,7 +31,7 @@ from .. import validate
 from ..errors import ModelError
 from ..storage import load_versioned, save_versioned
 from ..fe.material import Damping
-from ..fe.model import check_model
+from ..fe.protocol import check_model
 from ..reduction.modal import mesh_fingerprint, modal_analysis
 from ..reduction.oscillator import step_response
 

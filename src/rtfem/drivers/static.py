@@ -48,7 +48,7 @@ class StaticDriver(ForceInput):
     warping = False
 
     def __init__(self, model, loads=None, dt: float = 1e-3) -> None:
-        from ..fe.model import check_model
+        from ..fe.protocol import check_model
 
         check_model(model, "static driver")
         if not hasattr(model, "unit_load_responses"):
@@ -76,7 +76,7 @@ class StaticDriver(ForceInput):
         self.reset()
 
     def _check_supports(self) -> None:
-        from ..fe.model import check_supports
+        from ..fe.protocol import check_supports
 
         check_supports(self.model, self._supports, "StaticDriver")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..mesh.tetmesh import TetMesh
 from .material import Material
-from .model import ShellModel
+from .shellmodel import ShellModel
 from .solidmodel import SolidModel
 
 __all__ = ["make_model"]

@@ -1,4 +1,5 @@
-"""ShellModel: sparse assembly of K and M, fixed nodes, condensation and static solves.
+"""FEModel, what shell and solid models share: sparse assembly of K and M, fixed nodes,
+condensation and static solves.
 
 Paper section 2: element matrices are assembled into the global stiffness (Eq. 3); fixed
 nodes are imposed either by elimination (default) or by the paper's penalty method; the
@@ -9,157 +10,27 @@ factorization that never forms a dense (3n)^2 matrix.
 
 from __future__ import annotations
 
-import re
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import shell
 from .. import validate
 from ..errors import ModelError, RtfemWarning, SolverError
 from .linalg import Factorization, expand_node_order, factorize, nested_dissection
 from .material import Material
+from .protocol import DOF_NAMES, parse_dofs
 from ..mesh.surface import TriMesh
 from ..mesh.selection import select_nodes
 
-__all__ = ["Model", "MODEL_MEMBERS", "check_model", "FEModel", "ShellModel", "DOF_NAMES", "parse_dofs",
-           "require_lumped_mass", "is_diagonal"]
+__all__ = ["FEModel", "Condensation"]
 
-DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
 _CHUNK = 16384  # elements per batch during assembly (bounds the temporary memory)
-
-
-@runtime_checkable
-class Model(Protocol):
-    """What ``modal_analysis``, ``SLDM``, ``ImpedanceMap``, the full-order simulators, the viewer and
-    the CLI ask of a model, and nothing more (DESIGN.md, "The two seams").
-
-    Dofs: each node has ``dofs_per_node`` dofs whose first three are the translations (x, y, z);
-    dof ``d`` of node ``i`` is global dof ``i * dofs_per_node + d``. ``constrained_stiffness()`` and
-    ``constrained_mass()`` are sparse on the same dofs (the free ones with elimination, all with
-    a penalty) and return those dofs, the map back to nodes (:meth:`nodal_translations`).
-    ``solve_static`` and ``unit_load_response`` go through the cached ``factorization()``; the
-    latter is the one copy of the unit-load loop (static correction, impedance map).
-    ``condensation()`` gives K_c = K_tt - K_tr K_rr^-1 K_rt on the free translations t (for a
-    model without rotations, K_tt). Satisfied by :class:`ShellModel` and :class:`~rtfem.SolidModel`.
-    """
-
-    mesh: object  # the surface that is drawn and touched: triangles over model nodes
-    material: object
-    n_nodes: int
-    n_dofs: int
-    dofs_per_node: int
-    constraints: str  # "elimination" or "penalty"
-    fixed: np.ndarray  # (n_nodes, dofs_per_node) bool
-    held_nodes: np.ndarray  # (n_nodes,) bool: all three translations fixed
-    mass_diagonal: np.ndarray  # (n_dofs,) lumped mass
-    metadata: dict  # what a saved result records about the model (kind, element, ...)
-
-    def select_nodes(self, nodes) -> np.ndarray: ...
-    def fix(self, nodes, dofs="all"): ...
-    def release(self, nodes=None, dofs="all"): ...
-    def nearest_free_node(self, point, displacements=None) -> int: ...
-    def check_not_all_fixed(self) -> None: ...
-    def check_restrained(self) -> None: ...
-    def constrained_stiffness(self) -> tuple: ...
-    def constrained_mass(self) -> tuple: ...
-    def nodal_translations(self, values, dofs) -> np.ndarray: ...
-    def translation_dofs(self, node: int) -> np.ndarray: ...
-    def dof_order(self, dofs) -> np.ndarray: ...
-    def factorization(self): ...
-    def force_vector(self, forces, *, warn: bool = True) -> np.ndarray: ...
-    def solve_static(self, forces, *, warn: bool = True) -> np.ndarray: ...
-    def unit_load_response(self, node: int, direction: int) -> np.ndarray: ...
-    def condensation(self): ...
-
-
-MODEL_MEMBERS = ("mesh", "material", "n_nodes", "n_dofs", "dofs_per_node", "constraints", "fixed", "held_nodes",
-                 "mass_diagonal", "metadata", "select_nodes", "fix", "release", "nearest_free_node",
-                 "check_not_all_fixed", "check_restrained", "constrained_stiffness", "constrained_mass",
-                 "nodal_translations", "translation_dofs", "dof_order", "factorization", "force_vector",
-                 "solve_static", "unit_load_response", "condensation")
-
-
-def check_model(model, what: str = "model"):
-    """``model`` if it satisfies the Model protocol; otherwise a ModelError naming what it lacks."""
-    missing = [m for m in MODEL_MEMBERS if not hasattr(type(model), m) and not hasattr(model, m)]
-    if missing:
-        raise ModelError(f"{what}={validate.show(model)} is not a model: rtfem needs a ShellModel, a SolidModel "
-                         "or any class with "
-                         f"the Model protocol's members; it lacks {', '.join(missing[:6])}"
-                         f"{' ...' if len(missing) > 6 else ''}")
-    return model
-
-
-def check_supports(model, version: int, what: str) -> None:
-    """Refuse to go on with ``what`` (a driver) built on ``model`` when its ``supports_version``
-    was ``version``: it would answer for the old supports (a user's model without the counter:
-    nothing to check)."""
-    if getattr(model, "supports_version", 0) != version:
-        raise ModelError(f"the model's supports changed (model.fix or release) since this {what} was built on it: "
-                         "build a new one for the new supports")
-
-
-def is_diagonal(M: sp.spmatrix) -> bool:
-    """Whether the sparse matrix has no nonzero entry off its diagonal (a lumped mass)."""
-    C = M.tocoo()
-    return bool(np.all((C.row == C.col) | (C.data == 0)))
-
-
-def require_lumped_mass(model, what: str) -> None:
-    """Refuse a model whose constrained mass is not diagonal: ``what`` works with M^-1/2 or M^-1
-    of the diagonal (lumped) mass."""
-    if not is_diagonal(model.constrained_mass()[0]):
-        raise ModelError(f"{what} needs a diagonal (lumped) mass; this model's is consistent: build it with "
-                         "mass='lumped', or use the modal route (modal_analysis takes a consistent mass)")
-
-
-def parse_dofs(dofs: str | Sequence[str] | Sequence[int]) -> np.ndarray:
-    """Turn a dof specification into a boolean mask over ``(x, y, z, rx, ry, rz)``.
-
-    Accepts "all", "xyz" (translations), "rxyz" or "rotations", single components ("z",
-    "rx"), concatenations ("xy", "z,rx") or a sequence of names or indices 0..5.
-    """
-    mask = np.zeros(6, bool)
-    if not isinstance(dofs, (str, Sequence, np.ndarray)):
-        raise ModelError(f"dofs={validate.show(dofs)} not understood; use 'all', 'xyz', 'rotations', or components "
-                         f"from {DOF_NAMES}")
-    if isinstance(dofs, str):
-        s = dofs.strip().lower()
-        if s == "all":
-            return np.ones(6, bool)
-        if s in ("rotations", "rot", "r"):
-            mask[3:] = True
-            return mask
-        if s in ("translations", "trans", "t"):
-            mask[:3] = True
-            return mask
-        s = s.replace("rxyz", "rx,ry,rz")
-        compact = re.sub(r"[\s,;+]", "", s)
-        tokens = re.findall(r"r?[xyz]", compact)
-        if not tokens or "".join(tokens) != compact:
-            raise ModelError(
-                f"dofs={dofs!r} not understood; use 'all', 'xyz', 'rotations', or components from {DOF_NAMES}"
-            )
-        for t in tokens:
-            mask[DOF_NAMES.index(t)] = True
-        return mask
-    for d in dofs:
-        if isinstance(d, str):
-            mask |= parse_dofs(d)
-        elif isinstance(d, (int, np.integer)) and not isinstance(d, (bool, np.bool_)) and 0 <= d < 6:
-            mask[int(d)] = True
-        else:
-            raise ModelError(f"dof {validate.show(d)} not understood; use names from {DOF_NAMES} or indices 0..5")
-    if not mask.any():
-        raise ModelError(f"dofs={validate.show(dofs)} names no dof; use 'all', 'xyz', 'rotations', ...")
-    return mask
 
 
 class FEModel:
@@ -683,111 +554,6 @@ class FEModel:
     def translational_free_dofs(self) -> np.ndarray:
         """Global indices of the free translational dofs (the rows of the condensed matrices)."""
         return self._partition()[0]
-
-
-
-class ShellModel(FEModel):
-    """Linear shell finite-element model of a triangulated surface (6 dof per node).
-
-    Parameters
-    ----------
-    mesh : the surface.
-    material : :class:`~rtfem.Material`.
-    membrane : "opt" (Felippa's optimal drilling triangle, default) or "cst" (constant strain +
-        fictitious drilling spring; for comparison only, it locks in in-plane bending).
-    rotary_inertia : give the rotations mass rho t^3/12 * A/3 (default: massless rotations,
-        as the paper's condensation assumes).
-    constraints : "elimination" (fixed dofs removed, default) or "penalty" (the paper's method:
-        diagonal of K and rows of F at fixed dofs multiplied by ``penalty``).
-    penalty : the penalty factor. It multiplies each fixed dof's own diagonal stiffness, so it
-        is relative and scales with the organ's stiffness by construction: the default 1e8
-        leaves ~1e-8 relative motion at the supports on any mesh, and 1e4 .. 1e16 agree with
-        elimination to that order.
-    """
-
-    def __init__(
-        self,
-        mesh: TriMesh,
-        material: Material,
-        *,
-        membrane: str = "opt",
-        rotary_inertia: bool = False,
-        constraints: str = "elimination",
-        penalty: float = 1e8,
-    ) -> None:
-        if not isinstance(mesh, TriMesh):
-            raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
-        if not isinstance(material, Material):
-            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
-        validate.choice(membrane, "membrane", shell.MEMBRANES)
-        penalty = self._check_constraints(constraints, penalty)
-        rotary_inertia = validate.flag(rotary_inertia, "rotary_inertia")
-        self.membrane = membrane
-        self.rotary_inertia = bool(rotary_inertia)
-        self._setup(mesh, material, constraints, penalty)
-
-    # ------------------------------------------------------------ sizes
-    dofs_per_node = 6  # x, y, z, rx, ry, rz
-
-    @property
-    def metadata(self) -> dict:
-        """What a saved basis or map records about the model."""
-        return {"model": "shell", "membrane": self.membrane, "constraints": self.constraints}
-
-    def __repr__(self) -> str:
-        nf = int(self.fixed.any(axis=1).sum())
-        return (
-            f"ShellModel({self.n_nodes} nodes, {self.mesh.n_triangles} triangles, {self.n_dofs} dof, "
-            f"{nf} nodes fixed, membrane={self.membrane!r}, constraints={self.constraints!r})"
-        )
-
-    # ------------------------------------------------------------ assembly (Eq. 3)
-    def _assemble(self) -> None:
-        t0 = time.perf_counter()
-        T = np.asarray(self.mesh.triangles)
-        X = np.asarray(self.mesh.vertices)
-        ne = T.shape[0]
-        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18).astype(np.int32)
-        data, mass = [], np.zeros(self.n_dofs)
-        for s in range(0, ne, _CHUNK):
-            c = slice(s, min(s + _CHUNK, ne))
-            R, xy, area = shell.local_frames(X[T[c]])
-            ke = shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R)
-            data.append(ke.reshape(-1))
-            me = shell.element_mass(area, self.material, self.rotary_inertia)
-            np.add.at(mass, dofs[c].ravel(), np.tile(me, (1, 3)).ravel())
-        rows = np.repeat(dofs, 18, axis=1).ravel()
-        cols = np.tile(dofs, (1, 18)).ravel()
-        K = sp.coo_matrix((np.concatenate(data), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
-        K.sum_duplicates()
-        # exact symmetry (assembly round-off otherwise leaves ~1e-16 asymmetry)
-        self._K = ((K + K.T) * 0.5).tocsr()
-        self._M = mass
-        self.timings["assemble"] = time.perf_counter() - t0
-
-    def _node_graph(self) -> sp.csr_matrix:
-        return self.mesh.adjacency()
-
-    def rotation_field(self, U: np.ndarray) -> np.ndarray:
-        """The nodal rotations (n, 3, k) that go with translation fields U (n, 3, k) (mode shapes)
-        when the moments are zero: the rotations the condensation eliminates (Eq. 4),
-        -K_rr^-1 K_rt U_t. Fixed rotations read zero."""
-        c = self.condensation()
-        U = np.asarray(U, float)
-        out = np.zeros_like(U)
-        if c.Krr is None:
-            return out
-        Ut = U[c.t // 6, c.t % 6]
-        out[c.r // 6, c.r % 6 - 3] = -c.Krr.solve(c.Krt @ Ut)
-        return out
-
-    def _corotational(self) -> tuple[shell.CorotationalTriangles, np.ndarray]:
-        """The corotational element kernel and the cells (triangles) it acts on."""
-        T = np.asarray(self.mesh.triangles)
-        return shell.CorotationalTriangles(np.asarray(self.mesh.vertices)[T], self.material, self.membrane), T
-
-    def _pieces(self) -> tuple[int, np.ndarray]:
-        return self.mesh.components()
 
 
 @dataclass(frozen=True)

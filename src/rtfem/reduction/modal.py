@@ -30,7 +30,7 @@ from ..storage import load_versioned, save_versioned
 from .lanczos import BlockLanczosFailed, block_eigs
 from ..fe.linalg import factorize
 from ..threads import blas_limits
-from ..fe.model import check_model, is_diagonal
+from ..fe.protocol import check_model, is_diagonal
 from ..mesh.surface import TriMesh
 
 __all__ = ["ModalBasis", "modal_analysis", "mesh_fingerprint"]

@@ -78,7 +78,7 @@ class ReducedNonlinearModel:
     def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
                  progress: Callable[[int, int, str], None] | None = None) -> None:
         from .modal import ModalBasis
-        from ..fe.model import check_model
+        from ..fe.protocol import check_model
 
         t0 = time.perf_counter()
         check_model(model, "model")

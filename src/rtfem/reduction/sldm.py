@@ -41,7 +41,7 @@ from .. import validate
 from ..errors import ModelError, RtfemWarning
 from .lanczos import REORTHOGONALIZATIONS, Lanczos
 from ..fe.material import Damping
-from ..fe.model import check_model, require_lumped_mass
+from ..fe.protocol import check_model, require_lumped_mass
 from .oscillator import step_response as _step_fn
 from ..io.scenario import LoadSchedule
 

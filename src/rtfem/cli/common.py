@@ -1,0 +1,278 @@
+"""What the ``rtfem`` commands share: progress bars (tqdm, or plain lines when stderr is not a
+terminal), option parsing and checks, and building the mesh, the supports and the model from the
+command line's options."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import time
+
+import numpy as np
+
+from .. import validate
+from ..errors import RtfemError
+
+
+
+class _LineProgress:
+    """Plain progress lines, at most one a second (stderr is a file or a pipe: no bar to redraw)."""
+
+    def __init__(self, label: str, unit: str, stream) -> None:
+        self.label, self.unit, self.stream = label, unit, stream
+        self.t0 = self._last = time.perf_counter()
+        self.done = self.total = 0
+        self.message = ""
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        self.done, self.total, self.message = done, total, message
+        now = time.perf_counter()
+        if now - self._last >= 1.0:
+            self._last = now
+            self._write(now)
+
+    def _write(self, now: float) -> None:
+        self.stream.write(f"{self.label}: {self.done}/{self.total} {self.unit} {self.message} "
+                          f"({now - self.t0:.1f} s)\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        self._write(time.perf_counter())
+
+
+class _TqdmProgress:
+    """A tqdm bar on a terminal, fed by progress(done, total, message)."""
+
+    def __init__(self, label: str, unit: str, stream) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc=label, unit=unit, file=stream, total=None, dynamic_ncols=True, mininterval=0.1, leave=True)
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        bar = self.bar
+        if total != bar.total:
+            bar.total = total
+        if message:
+            bar.set_postfix_str(message, refresh=False)
+        bar.update(done - bar.n)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, unit: str = "it", stream=None):
+    """The CLI's rendering of the library's progress(done, total, message) callbacks: a tqdm bar on
+    a terminal, a plain line a second otherwise (logs, CI, pipes)."""
+    stream = stream or sys.stderr
+    bar = _TqdmProgress(label, unit, stream) if stream.isatty() else _LineProgress(label, unit, stream)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+# ---------------------------------------------------------------- option types (argparse type= checks)
+def _option(check, parse=float, expect: str = "a number"):
+    """An argparse ``type=``: the text parsed by ``parse``, then checked by a :mod:`rtfem.validate`
+    rule (the same rules as the library's arguments); a refusal becomes argparse's one-line error."""
+
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {expect}") from None
+        try:
+            return check(value)
+        except RtfemError as exc:
+            raise argparse.ArgumentTypeError(validate.one_line(str(exc))) from None
+
+    return convert
+
+
+def _comma_floats(text: str) -> list[float]:
+    """'0.01,0.1,0.5' -> [0.01, 0.1, 0.5]; empty items are an error."""
+    parts = [t.strip() for t in text.split(",")]
+    if any(not t for t in parts):
+        raise ValueError(text)
+    return [float(t) for t in parts]
+
+
+positive = _option(lambda x: validate.positive(x, "value"))
+nonnegative = _option(lambda x: validate.nonnegative(x, "value"))
+fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, hi_open=True))
+open_fraction = _option(lambda x: validate.in_range(x, "value", 0.0, 1.0, lo_open=True, hi_open=True))
+poisson = _option(lambda x: validate.in_range(x, "nu", -1.0, 0.5, lo_open=True, hi_open=True, what="Poisson's ratio"))
+count = _option(lambda x: validate.count(x, "value", 1), int, "a whole number")
+mode_count = _option(lambda x: validate.count(x, "value", 1, what="ask for at least one mode"), int, "a whole number")
+port = _option(lambda x: validate.count(x, "port", 0, 65535), int, "a whole number")
+time_list = _option(lambda x: validate.times(x, "times").tolist(), _comma_floats,
+                    "a comma-separated list of times in s, e.g. 0.01,0.1,0.5")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``rtfem: error: ...`` and exit 2, no usage dump."""
+
+    def error(self, message: str):  # type: ignore[override]
+        cmd = self.prog.split()[-1] if " " in self.prog else ""
+        hint = f"; see rtfem {cmd} --help" if cmd else "; see rtfem --help"
+        self.exit(2, f"rtfem: error: {_one_line(message)}{hint}\n")
+
+
+def _one_line(text) -> str:
+    return validate.one_line(str(text))
+
+
+def _vector(text: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise RtfemError(f"{what}={text!r}: give three numbers separated by commas, e.g. 0.05,0.05,0") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise RtfemError(f"{what}={text!r}: give three finite numbers separated by commas")
+    return v
+
+
+def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = False, edge_length: float | None = None):
+    """The mesh of a command: the file (a TetMesh for a volume file), or the embedded liver; with
+    ``solid`` a surface is meshed into tets first (kept on disk, so a second run reuses them);
+    ``solid="auto"``: a closed surface is, an open one is not."""
+    from ..mesh import meshes
+    from ..mesh.files import load_mesh
+    from ..mesh.meshing import cached_tetrahedralize, is_cached, mesher_available
+    from ..mesh.tetmesh import TetMesh
+
+    if solid == "auto" and not mesher_available():
+        print("shell       the mesh extra (pytetwild) is not installed, so the surface is modelled as a shell; "
+              "pip install 'rtfem[mesh]' (make installs it) to mesh a closed organ into tets", flush=True)
+        solid = False
+    if path is None:
+        if solid:  # True, or "auto": the embedded liver is closed
+            spacing = None if edge_length is None else edge_length / scale
+            if not is_cached(meshes.liver(3), spacing):
+                print("meshing     the embedded liver into tets (fTetWild, a few seconds; kept for later runs) ...",
+                      flush=True)
+            mesh = meshes.liver(solid=True, spacing=spacing)
+        else:
+            mesh = meshes.liver()
+        return mesh if scale == 1.0 else mesh.scaled(scale)
+    mesh = load_mesh(path, scale=scale)
+    if solid == "auto" and not isinstance(mesh, TetMesh):
+        solid = mesh.is_closed()
+        if not solid:
+            print(f"surface     {path} is open: modelled as a shell", flush=True)
+    if solid and not isinstance(mesh, TetMesh):
+        print(f"meshing     {path} into tets (fTetWild) ...", flush=True)
+        mesh = cached_tetrahedralize(mesh, edge_length)
+    return mesh
+
+
+def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
+    """Parse a region (--fix, --nodes) with :func:`rtfem.select_nodes`; None: the group 'attachment' if
+    the mesh has one, else bottom:0.1. An empty region is refused."""
+    from ..mesh.selection import describe_selection
+
+    if spec is None:
+        spec = "attachment" if "attachment" in mesh.groups else "bottom:0.1"
+    nodes, how = describe_selection(mesh, spec, option)
+    if nodes.size == 0:
+        what = "nothing would hold the organ" if option == "--fix" else "nothing to load"
+        raise RtfemError(f"{option} {spec!r} selects no vertex: {what}; choose another region")
+    return nodes, how
+
+
+def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> None:
+    from ..fe.material import Material
+
+    m = Material()
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
+    p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
+    g = p.add_argument_group("solid (tetrahedral) models: a volume file (VTU/VTK/MSH/MESH/INP with tets) is one already")
+    g.add_argument("--solid", action="store_true",
+                   help="mesh a surface into tets (fTetWild, the mesh extra) and model the volume instead of a shell")
+    g.add_argument("--edge-length", type=positive, default=None, metavar="M",
+                   help="target tet edge length in m for --solid (default 5 %% of the organ's diagonal)")
+    g.add_argument("--element", choices=("tet4", "tet10"), default="tet10",
+                   help="tet10 (quadratic, the default: does not lock at nu = 0.45) or tet4 (linear, fast; too stiff "
+                        "for nearly incompressible tissue)")
+    g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
+    g = p.add_argument_group("material and supports")
+    g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")
+    g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
+    g.add_argument("--thickness", type=positive, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
+    g.add_argument("--density", type=positive, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
+    g.add_argument("--fix", default=None, metavar="REGION",
+                   help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
+                        "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
+    if dynamics:
+        g = p.add_argument_group("dynamics")
+        g.add_argument("-n", "--modes", type=mode_count, default=40, help="number of modes r (default 40)")
+        g.add_argument("--alpha", type=nonnegative, default=8.0, help="mass-proportional damping B = alpha M, 1/s (default 8)")
+        g.add_argument("--dt", type=positive, default=1e-3, help="time step in s (default 1e-3: a 1 kHz haptic loop)")
+        g.add_argument("--large", action="store_true",
+                       help="large deformation: modal warping for the modal method, the corotational full order (Newton "
+                            "per step) for direct")
+
+
+def mesh_of_args(args):
+    return load_mesh_arg(args.mesh, args.scale, _solid_wanted(args), args.edge_length)
+
+
+def _solid_wanted(args):
+    """--solid (True), --shell or a command without it (False); ``rtfem view`` without either:
+    "auto", a closed surface is a solid organ, an open one (a hollow organ) a shell."""
+    if args.solid or not hasattr(args, "shell"):
+        return bool(args.solid)
+    return False if args.shell else "auto"
+
+
+def model_options(args, mesh) -> dict:
+    """The model options the arguments give for this mesh (a solid's element and mass)."""
+    from ..mesh.tetmesh import TetMesh
+
+    return {"element": args.element, "mass": args.mass} if isinstance(mesh, TetMesh) else {}
+
+
+def build_model(args, *, quiet: bool = False):
+    from ..fe.material import Material
+    from ..fe.build import make_model
+    from ..mesh.tetmesh import TetMesh
+
+    mesh = mesh_of_args(args)
+    material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
+    nodes, how = fixed_nodes(mesh, args.fix)
+    model = make_model(mesh, material, **model_options(args, mesh))
+    model.fix(nodes)
+    model.check_restrained()
+    if not quiet:
+        name = args.mesh or ("embedded default liver" + (", solid" if isinstance(mesh, TetMesh) else ""))
+        if isinstance(mesh, TetMesh):
+            size = (f"{model.n_nodes:,} nodes, {mesh.n_tets:,} {args.element} tets, "
+                    f"{model.mesh.n_triangles:,} surface triangles")
+        else:
+            size = f"{mesh.n_vertices:,} vertices, {mesh.n_triangles:,} triangles"
+        print(f"model       {name}: {size}, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
+    return model
+
+
+def damping_of(args):
+    from ..fe.material import Damping
+
+    return Damping(alpha=args.alpha)
+
+
+MAX_STEPS = 2_000_000  # steps of one `rtfem simulate` run (each keeps a CSV row in memory)
+MAX_FRAMES = 10_000  # VTU frames of one run
+
+
+def _modes(model, args, *, quiet=False):
+    from ..reduction.modal import modal_analysis
+
+    r = args.modes
+    if r < 1:
+        raise RtfemError(f"--modes {r}: ask for at least one mode")
+    if quiet:
+        return modal_analysis(model, r)
+    with progress_bar(f"modes (r = {r})", unit="solve") as bar:
+        return modal_analysis(model, r, progress=bar)
