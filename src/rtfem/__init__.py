@@ -22,7 +22,8 @@ from .fe.build import make_model
 from .fe.solidmodel import SolidModel
 from .mesh.meshing import tetrahedralize
 from .mesh.selection import select_nodes
-from .drivers.fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator, NonlinearNewmarkSimulator
+from .drivers.fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator
+from .drivers.nonlinear_newmark import NonlinearNewmarkSimulator
 from .drivers.base import Driver
 from .drivers.modal import ModalSimulator
 from .drivers.static import StaticDriver

@@ -13,7 +13,7 @@ shifted by mu diag(H) until the shifted Hessian is positive definite, mu adapted
 of actual to predicted decrease: Nocedal & Wright, Numerical Optimization, 2nd ed., ch. 4 and
 10.3); it ends at a stable equilibrium (positive definite Hessian), quadratically once the shift
 is zero. The dynamic reference (Newton inside implicit Newmark) is
-:class:`rtfem.drivers.fullorder.NonlinearNewmarkSimulator`.
+:class:`rtfem.drivers.nonlinear_newmark.NonlinearNewmarkSimulator`.
 """
 
 from __future__ import annotations
