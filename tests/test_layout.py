@@ -88,7 +88,7 @@ def test_ruff_passes():
 # Rooms still too large (issue 38 item 3: no file over 600 lines, no function over 80). The lists
 # only shrink: a file or function that grows past the limit fails, and so does one that is split
 # without being taken off the list.
-LONG_FILES = {"drivers/impedance.py"}
+LONG_FILES: set[str] = set()
 LONG_FUNCTIONS = {"cli/main.py::build_parser", "drivers/impedance.py::build", "drivers/kernels.py::_make_chunk",
                   "drivers/reduced_nonlinear.py::__init__", "fe/nonlinear.py::solve_static", "fe/nonlinear.py::_minimize",
                   "fe/shell.py::evaluate", "interaction/friction.py::_subspace", "interaction/contact_points.py::_faces",

@@ -15,7 +15,8 @@ from .interaction.haptics import Grasp, Probe
 from .interaction.loop import HapticLoop
 from .interaction.contact import Tool, ToolContact
 from .interaction import contact
-from .drivers.impedance import ImpedanceDriver, ImpedanceMap, Load
+from .drivers.impedance import ImpedanceMap, Load
+from .drivers.impedance_driver import ImpedanceDriver
 from .fe.protocol import Model
 from .fe.shellmodel import ShellModel
 from .fe.build import make_model

@@ -1,6 +1,6 @@
 """Run-time simulators behind the Driver protocol: modal, warped modal, full order, static,
 reduced nonlinear (built in reduction), the impedance map; compiled step kernels; the GPU field."""
 
-# the variants the base classes make (ModalSimulator(warping=True), DirectSimulator(large_deformation=True))
-# register themselves when imported
-from . import nonlinear_newmark, warping  # noqa: F401,E402
+# the classes others make (ModalSimulator(warping=True), DirectSimulator(large_deformation=True),
+# ImpedanceMap.as_driver()) register themselves when imported
+from . import impedance_driver, nonlinear_newmark, warping  # noqa: F401,E402

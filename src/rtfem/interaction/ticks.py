@@ -39,7 +39,7 @@ def _loop_paused(obj):
 
 
 def _is_impedance(driver) -> bool:
-    from ..drivers.impedance import ImpedanceDriver
+    from ..drivers.impedance_driver import ImpedanceDriver
 
     return type(driver) is ImpedanceDriver
 

@@ -32,7 +32,7 @@ from .. import validate
 from ..errors import ModelError
 from ..interaction.haptics import Grasp
 from ..drivers.fullorder import DirectSimulator
-from ..drivers.impedance import ImpedanceDriver
+from ..drivers.impedance_driver import ImpedanceDriver
 from ..fe.material import Damping, Material
 from ..mesh.surface import TriMesh
 from ..mesh.tetmesh import TetMesh
