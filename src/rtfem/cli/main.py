@@ -398,12 +398,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
-                                 "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
-                                 epilog="Every command runs on the embedded default liver when no MESH is given.")
-    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_info_and_modes(sub) -> None:
     p = sub.add_parser("info", help="check a mesh file (or the embedded liver) and report repairs")
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, STL, PLY, OFF, VTK, VTU, MSH, ...); default: the embedded liver")
     p.add_argument("--scale", type=positive, default=1.0, help="coordinate scale factor (1e-3 turns mm into m)")
@@ -416,6 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="liver.modes.npz", help="output file (default liver.modes.npz)")
     p.set_defaults(func=cmd_modes)
 
+def _add_simulate(sub) -> None:
     p = sub.add_parser("simulate", help="headless run: a scripted probe (default) or a load file; writes .pvd + .csv",
                        description="A point probe presses the organ along the inward normal (1 mm approach, press to "
                        "--depth over 20 % of the run, hold to 60 %, release by 80 %), or the loads of --load act. "
@@ -426,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "baseline), sldm (Krylov, --load only) or nonlinear (the reduced nonlinear model: the r modes "
                         "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
     p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
-                   "probed (or loaded) vertex in the basis, for pulls of centimetres (see README)")
+                   "probed (or loaded) vertex in the basis, for pulls of centimetres (see the manual: Which model when)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
@@ -438,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
     p.set_defaults(func=cmd_simulate)
 
+def _add_impedance(sub) -> None:
     p = sub.add_parser("impedance", help="precompute an impedance map (responses to unit loads) and save it (.npz)")
     add_model_options(p)
     p.add_argument("-o", "--output", default="liver.map.npz", help="output file (default liver.map.npz)")
@@ -453,6 +450,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-large", action="store_true", help="write a map estimated past 1 GiB (refused otherwise)")
     p.set_defaults(func=cmd_impedance)
 
+def _add_bench_and_pictures(sub) -> None:
     p = sub.add_parser("bench", help="time per step of the modal simulator against direct integration, measured now")
     add_model_options(p)
     p.add_argument("--modes-list", type=count, nargs="+", default=[10, 40, 100], help="r values (default 10 40 100)")
@@ -468,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-scaling", action="store_true", help="skip the scaling curves (they time the liver at 3 sizes)")
     p.set_defaults(func=cmd_pictures)
 
+def _add_view_and_demo(sub) -> None:
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
     add_model_options(p)
     p.add_argument("--shell", action="store_true",
@@ -497,6 +496,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.set_defaults(func=cmd_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
+                                 "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
+                                 epilog="Every command runs on the embedded default liver when no MESH is given.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_info_and_modes(sub)
+    _add_simulate(sub)
+    _add_impedance(sub)
+    _add_bench_and_pictures(sub)
+    _add_view_and_demo(sub)
     return ap
 
 

@@ -154,57 +154,22 @@ class ImpedanceMap:
         for) and can be saved; an interruption before the first node is re-raised.
         """
         check_model(model)
-        if damping is not None and not isinstance(damping, Damping):
-            raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
-        damping = damping if damping is not None else Damping()
-        t = validate.times(times, "times")
-        validate.choice(metric, "metric", ("euclidean", "geodesic"))
-        if radius is not None:
-            radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
-        if threshold is not None:
-            threshold = validate.in_range(threshold, "threshold", 0.0, 1.0, hi_open=True,
-                                          what="a fraction of each column's peak, or None")
-        validate.choice(method, "method", ("modal", "sldm"))
-        n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
-        tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
+        damping, t, radius, threshold, n_modes, tol = _check_build(damping, times, metric, radius, threshold, method,
+                                                                     n_modes, tol)
         memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
         progress = validate.progress(progress)
         workers = validate.count(workers, "workers", 1, 256)
         static = validate.choice(static, "static", ("solves", "condensation"))
-        if modes is not None:
-            from ..reduction.modal import ModalBasis
-
-            if (not isinstance(modes, ModalBasis) or modes.n_nodes != model.n_nodes
-                    or modes.fingerprint != mesh_fingerprint(model.mesh)
-                    or (modes.model is not None and modes.model is not model)):
-                raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
+        _check_modes(model, modes)
         model.check_restrained()
         loaded, held = _loaded_nodes(model, nodes)
         within = _NeighbourFinder(model.mesh, radius, metric)
         _check_memory(loaded, within, t.size, memory_limit)
         engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
                   else _SLDMColumns(model, damping, t, tol))
-        surface = None
-        if static == "condensation":
-            t_cond = time.perf_counter()
-            nodes_s, C = model.surface_compliance(np.union1d(_free_surface(model), loaded), method="condensation")
-            engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
-            engine.setup_seconds += time.perf_counter() - t_cond
-            surface = np.zeros(model.n_nodes, dtype=bool)
-            surface[nodes_s] = True
-
-        def one(j: int):
-            cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
-            keep = within(j)
-            if surface is not None:  # the static limit is known on the surface only
-                keep = keep[surface[keep]]
-            if threshold is not None and threshold > 0:
-                mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
-                keep = keep[mag >= threshold * mag.max()]
-            return j, keep, cols[keep], cols[j]
-
+        surface = _condensed_static(model, engine, loaded) if static == "condensation" else None
         t0 = time.perf_counter()
-        results, complete = _run_nodes(one, loaded, workers, progress)
+        results, complete = _run_nodes(_column_task(engine, within, surface, threshold), loaded, workers, progress)
         info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
                 "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
                 "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
@@ -389,6 +354,65 @@ class ImpedanceMap:
             return cls(n, fingerprint=fp, info=info, **z)
         except ModelError as exc:
             raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
+
+
+def _check_build(damping, times, metric, radius, threshold, method, n_modes, tol) -> tuple:
+    """:meth:`ImpedanceMap.build`'s options checked: (damping, times, radius, threshold, n_modes, tol)."""
+    if damping is not None and not isinstance(damping, Damping):
+        raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
+    damping = damping if damping is not None else Damping()
+    t = validate.times(times, "times")
+    validate.choice(metric, "metric", ("euclidean", "geodesic"))
+    if radius is not None:
+        radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
+    if threshold is not None:
+        threshold = validate.in_range(threshold, "threshold", 0.0, 1.0, hi_open=True,
+                                      what="a fraction of each column's peak, or None")
+    validate.choice(method, "method", ("modal", "sldm"))
+    n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
+    tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
+    return damping, t, radius, threshold, n_modes, tol
+
+
+def _check_modes(model, modes) -> None:
+    """Refuse a modal basis (given to :meth:`ImpedanceMap.build`) computed for another model."""
+    if modes is None:
+        return
+    from ..reduction.modal import ModalBasis
+
+    if (not isinstance(modes, ModalBasis) or modes.n_nodes != model.n_nodes
+            or modes.fingerprint != mesh_fingerprint(model.mesh)
+            or (modes.model is not None and modes.model is not model)):
+        raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
+
+
+def _condensed_static(model, engine, loaded: np.ndarray) -> np.ndarray:
+    """The engine's static limits from the surface's condensed compliance (Bro-Nielsen & Cotin);
+    returns the mask of the surface nodes it covers (the map keeps those only)."""
+    t_cond = time.perf_counter()
+    nodes_s, C = model.surface_compliance(np.union1d(_free_surface(model), loaded), method="condensation")
+    engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
+    engine.setup_seconds += time.perf_counter() - t_cond
+    surface = np.zeros(model.n_nodes, dtype=bool)
+    surface[nodes_s] = True
+    return surface
+
+
+def _column_task(engine, within, surface: np.ndarray | None, threshold: float | None):
+    """The work for one loaded node j: its response columns, kept within the radius (on the surface,
+    where the static limit is known there only) and above the threshold of the column's peak."""
+
+    def one(j: int):
+        cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
+        keep = within(j)
+        if surface is not None:
+            keep = keep[surface[keep]]
+        if threshold is not None and threshold > 0:
+            mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
+            keep = keep[mag >= threshold * mag.max()]
+        return j, keep, cols[keep], cols[j]
+
+    return one
 
 
 def _free_surface(model) -> np.ndarray:

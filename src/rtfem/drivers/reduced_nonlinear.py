@@ -147,26 +147,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self.n_nodes = model.n_nodes
         U = reduced.basis
         self._U = U
-        m = model.mass_diagonal[reduced.free]
-        M = U.T @ (m[:, None] * U)
-        K = U.T @ (reduced._K0 @ U)
-        self._M, self._K0r = 0.5 * (M + M.T), 0.5 * (K + K.T)
-        # the reduced model's linear modes: K y = w^2 M y; with K = L L^T, L^-1 M L^-T = V diag(mu) V^T
-        L = np.linalg.cholesky(self._K0r)
-        Linv = np.linalg.inv(L)
-        mu, V = np.linalg.eigh(Linv @ self._M @ Linv.T)
-        mu = np.clip(mu, 0.0, None)
-        zeta = np.full(mu.shape, float(damping.zeta or 0.0))
         local = reduced.local
         self.patch_zeta = validate.in_range(patch_zeta, "patch_zeta", 0.0, 10.0, what="a damping ratio")
-        if local is not None and self.patch_zeta > 0:
-            # the reduced modes mostly in the patch's coordinates (more than half of their
-            # stiffness norm: the basis is stiffness-orthonormal), damped at least by patch_zeta
-            Phi = np.linalg.solve(L.T, V)
-            share = (Phi[local["columns"]:] ** 2).sum(axis=0) / (Phi**2).sum(axis=0)
-            zeta = np.where(share > 0.5, np.maximum(zeta, self.patch_zeta), zeta)
-        c = damping.alpha * mu + damping.beta + 2.0 * zeta * np.sqrt(mu)  # alpha_i mu_i (finite as mu -> 0)
-        self._C = L @ (V * c) @ V.T @ L.T
+        self._reduced_matrices(damping)
         factor = validate.number(stiffening, "stiffening")
         if not 1.0 <= factor <= 1e6:
             raise ModelError(f"stiffening={validate.show(stiffening)} must be a factor from 1 to 1e6 (default 100)")
@@ -186,6 +169,43 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self._init_correction(validate.flag(static_correction, "static_correction"), model,
                               self._trans.reshape(-1, U.shape[1]), np.ones(U.shape[1]))
         self.spread = validate.count(spread, "spread", 1, 1024)
+        self._spread_groups()
+        self._worker = None
+        self._last_compliances = None  # (Sinv, nodes, loaded, W): W changes only with the tangent
+        # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
+        self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
+                                                             else Kref))
+        self.reset()
+
+    def _reduced_matrices(self, damping: Damping) -> None:
+        """The reduced mass and rest stiffness, and the damping: alpha M + beta K plus zeta on each of
+        the reduced model's linear modes (at least ``patch_zeta`` on the modes mostly in a localized
+        patch's coordinates)."""
+        reduced, U = self.reduced, self._U
+        m = reduced.model.mass_diagonal[reduced.free]
+        M = U.T @ (m[:, None] * U)
+        K = U.T @ (reduced._K0 @ U)
+        self._M, self._K0r = 0.5 * (M + M.T), 0.5 * (K + K.T)
+        # the reduced model's linear modes: K y = w^2 M y; with K = L L^T, L^-1 M L^-T = V diag(mu) V^T
+        L = np.linalg.cholesky(self._K0r)
+        Linv = np.linalg.inv(L)
+        mu, V = np.linalg.eigh(Linv @ self._M @ Linv.T)
+        mu = np.clip(mu, 0.0, None)
+        zeta = np.full(mu.shape, float(damping.zeta or 0.0))
+        local = reduced.local
+        if local is not None and self.patch_zeta > 0:
+            # the reduced modes mostly in the patch's coordinates (more than half of their
+            # stiffness norm: the basis is stiffness-orthonormal), damped at least by patch_zeta
+            Phi = np.linalg.solve(L.T, V)
+            share = (Phi[local["columns"]:] ** 2).sum(axis=0) / (Phi**2).sum(axis=0)
+            zeta = np.where(share > 0.5, np.maximum(zeta, self.patch_zeta), zeta)
+        c = damping.alpha * mu + damping.beta + 2.0 * zeta * np.sqrt(mu)  # alpha_i mu_i (finite as mu -> 0)
+        self._C = L @ (V * c) @ V.T @ L.T
+
+    def _spread_groups(self) -> None:
+        """With spread > 1, the cubature elements in ``spread`` groups refreshed in turn (a localized
+        model's patch elements every step); the cubature's rest tangent where the step uses it."""
+        reduced = self.reduced
         self._groups, self._always = [], None
         if self.spread > 1:
             if not self.cubature:
@@ -203,12 +223,6 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 self._always = (tuple(a[:p] for a in data), w[:p], Ke[:p], *_projection_rows(data[0][:p], self.single))
         elif self.cubature and self.tangent == "current":
             self._Kc = reduced.cubature_rest()[1]
-        self._worker = None
-        self._last_compliances = None  # (Sinv, nodes, loaded, W): W changes only with the tangent
-        # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
-        self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
-                                                             else Kref))
-        self.reset()
 
     def _use_rest(self) -> None:
         """The linearization about rest (the state reset() leaves), and no refresh in flight."""

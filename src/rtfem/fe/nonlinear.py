@@ -263,14 +263,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         if previous is not None:  # secant predictor: continue the last step's motion
             _extrapolate(trial, previous[0], (target - applied) / previous[1])
         _move_supports(trial, P, fixed_mask, applied, target)
-        used = "newton" if method != "trust-region" else "trust-region"
-        if used == "newton":
-            start = trial.copy() if method == "auto" and conservative else None
-            history, ok = _newton(system, trial, target * F, tol, max_iterations)
-            if not ok and start is not None:  # Newton stalled or diverged: minimize from the same start
-                used, trial = "trust-region", start
-        if used == "trust-region":
-            history, ok = _minimize(system, trial, target * F, tol, 5 * max_iterations)
+        trial, history, ok, used = _load_step(system, trial, target * F, tol, max_iterations, method, conservative)
         if ok:
             previous = (conf, target - applied)
             conf, applied = trial, target
@@ -286,18 +279,40 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         cuts += 1
         if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
             _fill(result, system, conf, t0, converged=False)
-            turned = system.turned
-            limit = f"; steps were refused where a {turn_refused(turned)}" if turned >= LOCAL_ROTATION_LIMIT else ""
-            exc = SolverError(
-                f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
-                f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
-                f"{history[-1]:.3g} after {len(history) - 1} iterations{limit}): the structure may buckle or snap "
-                "there, or the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
-            exc.result = result
-            raise exc
+            raise _stalled(result, system, used, applied, max_cuts, step, history)
         step *= 0.5
     _fill(result, system, conf, t0, converged=True)
     return result
+
+
+def _load_step(system, trial: Configuration, load: np.ndarray, tol: float, max_iterations: int, method: str,
+               conservative: bool) -> tuple:
+    """One load step from ``trial``: Newton, or the trust region (for method "trust-region", or with
+    "auto" where Newton did not converge and the loads have a potential). Returns (the configuration
+    reached, the residual history, whether it converged, the method that ran)."""
+    used = "newton" if method != "trust-region" else "trust-region"
+    if used == "newton":
+        start = trial.copy() if method == "auto" and conservative else None
+        history, ok = _newton(system, trial, load, tol, max_iterations)
+        if not ok and start is not None:  # Newton stalled or diverged: minimize from the same start
+            used, trial = "trust-region", start
+    if used == "trust-region":
+        history, ok = _minimize(system, trial, load, tol, 5 * max_iterations)
+    return trial, history, ok, used
+
+
+def _stalled(result: NonlinearResult, system, used: str, applied: float, max_cuts: int, step: float,
+             history: list) -> SolverError:
+    """The error of a solve that cannot go past ``applied``, holding the last equilibrium (``result``)."""
+    turned = system.turned
+    limit = f"; steps were refused where a {turn_refused(turned)}" if turned >= LOCAL_ROTATION_LIMIT else ""
+    exc = SolverError(
+        f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
+        f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
+        f"{history[-1]:.3g} after {len(history) - 1} iterations{limit}): the structure may buckle or snap "
+        "there, or the load tears elements inside out. Reduce the load, refine the mesh, or pass more steps")
+    exc.result = result
+    return exc
 
 
 MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
@@ -373,6 +388,16 @@ def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: fl
     return failed()
 
 
+def _potential(c: Configuration, energy: float, load: np.ndarray) -> float:
+    """The total potential E - F . u of dead forces ``load`` (n, 3)."""
+    return energy - float(np.sum(load * c.u))
+
+
+def _more_shift(mu: float) -> float:
+    """The trust region's shift after a refused step."""
+    return max(4.0 * mu, 1e-6)
+
+
 def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
               max_iterations: int) -> tuple[list[float], bool]:
     """Trust-region minimization of the total potential Pi = E(x) - F . u from ``conf`` (changed
@@ -389,21 +414,14 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
     free = system.free
     n, dpn = system.model.n_nodes, system.dpn
     load = F.reshape(n, dpn)[:, :3]  # dead forces; no moments (checked by the caller)
-
-    def potential(c: Configuration, energy: float) -> float:
-        return energy - float(np.sum(load * c.u))
-
     f, K, energy = system.evaluate(conf)
-    pi = potential(conf, energy)
+    pi = _potential(conf, energy, load)
     scale = float(np.linalg.norm(F))
     history: list[float] = []
     if not system.within_limit(conf):  # a start the shell cannot describe: a shorter step
         return [float(np.linalg.norm(f[free] - F[free]))], False
     mu, D = 0.0, None
-
-    def more(mu: float) -> float:  # the shift after a refused step
-        return max(4.0 * mu, 1e-6)
-
+    more = _more_shift
     for _ in range(max_iterations):
         r = f[free] - F[free]
         rn = float(np.linalg.norm(r))
@@ -436,7 +454,7 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
                 mu = more(mu)
                 continue
             ft, Kt, et = system.evaluate(trial)
-            pt = potential(trial, et)
+            pt = _potential(trial, et, load)
             ratio = (pi - pt) / predicted
             # near the end the decrease is below the round-off of Pi: judge by the residual there
             tiny = predicted <= 1e-12 * (abs(pi) + abs(energy)) and \

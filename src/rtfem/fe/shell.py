@@ -547,6 +547,13 @@ class CorotationalTriangles:
         if not tangent:
             return forces, None, energy
 
+        return forces, self._tangent(g, J, forces, trans, rot, Rv, Rg, Rh), energy
+
+    def _tangent(self, g, J, forces, trans, rot, Rv, Rg, Rh) -> np.ndarray:
+        """The consistent tangents (E, 18, 18) of :meth:`evaluate`: the local stiffness through the
+        frame's and the rotations' Jacobians, plus the local forces on their second derivatives, and
+        the multiplicative spins' correction."""
+        E = g.shape[0]
         Hz = np.zeros((E, 15, 15))
         Hz[:, :6, :6] = sum(g[:, row, None, None] * jet.h for row, jet in trans.items())
         for i, (C, w, Jy, Dt, Ht) in enumerate(rot):
@@ -573,4 +580,4 @@ class CorotationalTriangles:
             m = forces[:, 6 * i + 3:6 * i + 6]
             s = slice(6 * i + 3, 6 * i + 6)
             K[:, s, s] -= 0.5 * np.einsum("ek,kpq->epq", m, _SPIN)
-        return forces, K, energy
+        return K

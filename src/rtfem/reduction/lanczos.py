@@ -252,39 +252,18 @@ def block_eigs(
             raise SolverError("the operator returned NaN/inf or a wrong shape during block Lanczos")
         dim = j + b
         P = Q[:, :dim]
-        Qj = Q[:, j:dim]
-        A = Qj.T @ Z
-        Z -= Qj @ A
-        T[j:dim, j:dim] = A
-        if R_prev is not None:
-            Z -= Q[:, j - b:j] @ R_prev.T
-            T[j - b:j, j:dim] = R_prev.T
-        before = np.linalg.norm(Z, axis=0)
-        H = P.T @ Z
-        Z -= P @ H
-        if np.any(np.linalg.norm(Z, axis=0) < 0.5 * before):
-            H2 = P.T @ Z
-            Z -= P @ H2
-            H += H2
-            second += 1
-        T[:dim, j:dim] += H
+        second += _orthogonalize(Q, T, Z, j, b, R_prev)
         V, R = np.linalg.qr(Z)
         if report is not None:
             report(dim, max(dim + b, int(3.4 * k)))
         if dim >= k + b and (blocks % check_every == 0 or dim + b > max_dim):
-            Ts = 0.5 * (T[:dim, :dim] + T[:dim, :dim].T)
-            theta, S = sla.eigh(Ts, subset_by_index=[dim - k, dim - 1])
-            RS = R @ S[j:dim]
-            residual = np.linalg.norm(RS, axis=0)
-            if np.all(residual <= tol * np.abs(theta)):
-                order = np.argsort(theta)[::-1]
-                S, theta, RS = S[:, order], theta[order], RS[:, order]
+            ritz = _ritz_pairs(T, R, j, dim, k, tol)
+            if ritz is not None:
+                theta, S, RS, worst = ritz
                 Y = P @ S
-                image = Y * theta + V @ RS
                 info = {"solve_seconds": solve_seconds, "block_solves": blocks, "krylov_dim": dim, "block": b,
-                        "reorthogonalized": second, "coefficients": S, "image": image,
-                        "other_seconds": time.perf_counter() - t_start - solve_seconds,
-                        "max_residual": float((residual / np.abs(theta)).max())}
+                        "reorthogonalized": second, "coefficients": S, "image": Y * theta + V @ RS,
+                        "other_seconds": time.perf_counter() - t_start - solve_seconds, "max_residual": worst}
                 return theta, Y, info
         if dim + b > max_dim:
             raise BlockLanczosFailed(f"{k} eigenpairs did not converge within a basis of {max_dim} vectors")
@@ -295,3 +274,42 @@ def block_eigs(
         T[dim:dim + b, j:dim] = R
         R_prev = R
         j = dim
+
+
+def _orthogonalize(Q: np.ndarray, T: np.ndarray, Z: np.ndarray, j: int, b: int, R_prev: np.ndarray | None) -> bool:
+    """Z = C Q_j (n, b), in place: without its components on Q_j and Q_{j-1} (the block three-term
+    recurrence), then orthogonalized against the whole basis Q[:, :j+b] once (classical
+    Gram-Schmidt), and a second time when that pass cut a column below half its norm; the
+    coefficients go into T's block column. Returns whether the second pass was needed."""
+    dim = j + b
+    P = Q[:, :dim]
+    Qj = Q[:, j:dim]
+    A = Qj.T @ Z
+    Z -= Qj @ A
+    T[j:dim, j:dim] = A
+    if R_prev is not None:
+        Z -= Q[:, j - b:j] @ R_prev.T
+        T[j - b:j, j:dim] = R_prev.T
+    before = np.linalg.norm(Z, axis=0)
+    H = P.T @ Z
+    Z -= P @ H
+    second = bool(np.any(np.linalg.norm(Z, axis=0) < 0.5 * before))
+    if second:
+        H2 = P.T @ Z
+        Z -= P @ H2
+        H += H2
+    T[:dim, j:dim] += H
+    return second
+
+
+def _ritz_pairs(T: np.ndarray, R: np.ndarray, j: int, dim: int, k: int, tol: float):
+    """The k largest Ritz pairs of T[:dim, :dim] when each has |C y - theta y| <= tol theta (read off
+    the last block row, |R S_j|), else None: (theta descending, S, R S_j, the largest relative residual)."""
+    Ts = 0.5 * (T[:dim, :dim] + T[:dim, :dim].T)
+    theta, S = sla.eigh(Ts, subset_by_index=[dim - k, dim - 1])
+    RS = R @ S[j:dim]
+    residual = np.linalg.norm(RS, axis=0)
+    if not np.all(residual <= tol * np.abs(theta)):
+        return None
+    order = np.argsort(theta)[::-1]
+    return theta[order], S[:, order], RS[:, order], float((residual / np.abs(theta)).max())

@@ -53,75 +53,76 @@ def default_vertex(session: Session) -> int:
     return probe_vertex(session.model)
 
 
-def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30.0) -> dict:
-    """Run the scripted grab for ``seconds`` of wall-clock time and return the report."""
-    if not isinstance(session, Session):
-        raise ModelError(f"session={validate.show(session)} must be a viewer Session")
-    seconds = validate.in_range(seconds, "seconds", 0.0, 3600.0, lo_open=True, what="the benchmark's duration in s")
-    pull = validate.in_range(pull, "pull", 0.0, 1.0, lo_open=True, what="the pull in m")
-    fps = validate.in_range(fps, "fps", 0.0, 1000.0, lo_open=True, what="frames per second")
-    try:
-        from .app import surface_faces, surface_glb
-        import trimesh  # noqa: F401
+class _Drawer:
+    """The viewer's per-frame work on a thread, at up to ``fps``: the drawn surface's field, its
+    colours and the binary glTF (the field only without the viewer extra), the force record."""
 
-        draw = True
-    except ImportError:  # the viewer extra absent: the field only
-        draw = False
-    node = default_vertex(session)
-    X = session.X[node]
-    normal = session.mesh.vertex_normals()[node]
-    faces = surface_faces(session) if draw else None
-    peak = [0.0, 0.0]  # the largest displacement drawn (m), the largest force (N)
-    clipped = [0]
-    frames = [0]
-    stop = threading.Event()
+    def __init__(self, session: Session, fps: float) -> None:
+        try:
+            from .app import surface_faces, surface_glb
+            import trimesh  # noqa: F401
 
-    def frame_thread() -> None:
-        period = 1.0 / fps
-        while not stop.is_set():
+            self._glb, self._faces = surface_glb, surface_faces(session)
+        except ImportError:  # the viewer extra absent: the field only
+            self._glb = self._faces = None
+        self.session, self.period = session, 1.0 / fps
+        self.peak = 0.0  # the largest displacement drawn (m)
+        self.frames = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="rtfem-benchmark-frames", daemon=True)
+
+    @property
+    def draws(self) -> bool:
+        return self._glb is not None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _loop(self) -> None:
+        s = self.session
+        while not self._stop.is_set():
             t0 = time.perf_counter()
-            u = session.surface_displacements()
+            u = s.surface_displacements()
             top = float(np.linalg.norm(u, axis=1).max())
-            peak[0] = max(peak[0], top)
-            if draw:
-                surface_glb(session, u, faces, max(top, 1e-4))
-            session.record_force()
-            frames[0] += 1
-            time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+            self.peak = max(self.peak, top)
+            if self._glb is not None:
+                self._glb(s, u, self._faces, max(top, 1e-4))
+            s.record_force()
+            self.frames += 1
+            time.sleep(max(0.0, self.period - (time.perf_counter() - t0)))
 
-    steps0 = session.stats.steps
-    session.stats.computes.clear()
-    session.start()
-    drawer = threading.Thread(target=frame_thread, name="rtfem-benchmark-frames", daemon=True)
+
+def _script(session: Session, X: np.ndarray, normal: np.ndarray, seconds: float, pull: float) -> tuple[float, int]:
+    """The scripted hand until ``seconds`` have passed: grab at 10 % of the time, pull ``pull`` along
+    ``normal`` by 30 %, hold to 60 %, release. Returns the largest force (N) and the polls at which
+    the grasp clipped it."""
     wall0 = time.perf_counter()
-    drawer.start()
     grabbed = released = False
-    try:
-        while True:
-            now = time.perf_counter() - wall0
-            if now >= seconds:
-                break
-            f = now / seconds
-            if not grabbed and f >= 0.1:
-                session.grab(X)
-                grabbed = True
-            if grabbed and not released:
-                if f >= 0.6:
-                    session.release()
-                    released = True
-                else:
-                    session.drag(X + pull * min(1.0, (f - 0.1) / 0.2) * normal)
-                    peak[1] = max(peak[1], float(np.linalg.norm(session.force)))
-                    clipped[0] += bool(getattr(session.grasp, "clipped", False))
-            if session.error:
-                break
-            time.sleep(0.005)
-    finally:
-        wall = time.perf_counter() - wall0
-        stop.set()
-        drawer.join(timeout=5)
-        session.stop()
-    steps = session.stats.steps - steps0
+    force, clipped = 0.0, 0
+    while not session.error:
+        f = (time.perf_counter() - wall0) / seconds
+        if f >= 1.0:
+            break
+        if not grabbed and f >= 0.1:
+            session.grab(X)
+            grabbed = True
+        if grabbed and not released:
+            if f >= 0.6:
+                session.release()
+                released = True
+            else:
+                session.drag(X + pull * min(1.0, (f - 0.1) / 0.2) * normal)
+                force = max(force, float(np.linalg.norm(session.force)))
+                clipped += bool(getattr(session.grasp, "clipped", False))
+        time.sleep(0.005)
+    return force, clipped
+
+
+def _report(session: Session, node: int, wall: float, steps: int, drawer: _Drawer, force: float, clipped: int) -> dict:
     computes = np.array(session.stats.computes, dtype=float) * 1e6
     s = session.settings
     model = session.model
@@ -136,13 +137,36 @@ def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30
         "realtime": round(steps * session.driver.dt / wall, 4),
         "step_p50_us": round(float(np.median(computes)), 1) if computes.size else None,
         "step_p99_us": round(float(np.percentile(computes, 99)), 1) if computes.size else None,
-        "frames_per_s": round(frames[0] / wall, 1),
-        "frames_drawn": "glb" if draw else "field only",
-        "max_force_N": round(peak[1], 4),
+        "frames_per_s": round(drawer.frames / wall, 1),
+        "frames_drawn": "glb" if drawer.draws else "field only",
+        "max_force_N": round(force, 4),
         "force_limit_N": s.max_force,
-        "clipped": clipped[0] > 0,
-        "peak_mm": round(peak[0] * 1e3, 3),
+        "clipped": clipped > 0,
+        "peak_mm": round(drawer.peak * 1e3, 3),
         "vertex": node,
         "local": session.local_status or None,
         "error": session.error,
     }
+
+
+def run(session: Session, seconds: float, *, pull: float = PULL, fps: float = 30.0) -> dict:
+    """Run the scripted grab for ``seconds`` of wall-clock time and return the report."""
+    if not isinstance(session, Session):
+        raise ModelError(f"session={validate.show(session)} must be a viewer Session")
+    seconds = validate.in_range(seconds, "seconds", 0.0, 3600.0, lo_open=True, what="the benchmark's duration in s")
+    pull = validate.in_range(pull, "pull", 0.0, 1.0, lo_open=True, what="the pull in m")
+    fps = validate.in_range(fps, "fps", 0.0, 1000.0, lo_open=True, what="frames per second")
+    node = default_vertex(session)
+    drawer = _Drawer(session, fps)
+    steps0 = session.stats.steps
+    session.stats.computes.clear()
+    session.start()
+    wall0 = time.perf_counter()
+    drawer.start()
+    try:
+        force, clipped = _script(session, session.X[node], session.mesh.vertex_normals()[node], seconds, pull)
+    finally:
+        wall = time.perf_counter() - wall0
+        drawer.stop()
+        session.stop()
+    return _report(session, node, wall, session.stats.steps - steps0, drawer, force, clipped)
