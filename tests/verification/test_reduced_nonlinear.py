@@ -735,6 +735,49 @@ def test_a_solid_swung_to_30_and_60_percent_settles_at_1khz(tet10_cantilever, lo
         assert not old < 0.5 * linear, old  # measured 1.28-1.82 of the linear error at 30 %, 0.74 at 60 %
 
 
+def test_a_starved_background_tangent_is_replaced_before_the_step_diverges(tet10_cantilever):
+    """The background tangent's thread runs at the lowest priority: on a busy machine it may not
+    run for seconds (a concurrent test run made the test below diverge at step 2,394). A worker
+    that never answers (a stand-in) leaves the rest tangent in the step, which diverged at that
+    same step on this swing; past MAX_TANGENT_AGE steps the step refreshes the tangent itself, and
+    the swing settles where the synchronous refresh settles it."""
+    from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
+
+    class Starved:  # asked, never done
+        done, failed = 0, None
+
+        def ask(self, q):
+            return True
+
+        def take(self):
+            return None
+
+        def forget(self):
+            pass
+
+        def close(self):
+            pass
+
+    red = tet10_cantilever
+    model = red.model
+    tip = model.select_nodes("x1")
+    F = np.zeros((model.n_nodes, 3))
+    F[tip, 2] = 3.0 * 1e5 * 0.1**4 / 12 / tip.size
+    fields = []
+    for kwargs in ({"background": True}, {"refresh": 50}):
+        sim = ReducedNonlinearSimulator(red, 1e-3, rt.Damping(zeta=1.0), spread=4, static_correction=True, **kwargs)
+        if kwargs.get("background"):
+            sim._worker = Starved()
+        for k in range(7000):
+            sim.step(F * min(1.0, (k + 1) / 1000))
+        fields.append(sim.displacements())
+        if kwargs.get("background"):
+            # one refresh here per MAX_TANGENT_AGE + 1 steps (7000 / 201: 34)
+            assert sim.sync_refreshes == 7000 // (sim.MAX_TANGENT_AGE + 1)
+    assert np.abs(fields[0] - fields[1]).max() < 1e-3 * np.abs(fields[1]).max()  # measured 1.1e-5
+    assert fields[1][tip, 2].mean() > 0.55  # the tip lifted 60 % of the length (elastica 0.603)
+
+
 def test_background_tangent_refresh_settles_where_the_synchronous_one_does(tet10_cantilever):
     """background=True (the driver's and the viewer's setting): the tangent is computed on a
     thread from the state it was asked at and taken up at a later step, so the step never waits.

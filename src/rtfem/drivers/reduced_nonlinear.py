@@ -109,7 +109,10 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     background : refresh on a low-priority thread instead (the real-time setting): the step asks
         with its predictor every ``refresh`` steps and takes the newest result at a later step,
         never waiting; all such threads hold BLAS to the cores a step leaves, through one shared
-        limit. Results then depend on the timing (the equilibrium does not).
+        limit. Results then depend on the timing (the equilibrium does not). A worker starved by
+        a busy machine (its thread runs at the lowest priority) is not waited for past
+        ``MAX_TANGENT_AGE`` steps (200): the step then refreshes the tangent itself (counted in
+        ``sync_refreshes``; a starved worker let a swung cantilever diverge at step 2,394).
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` dt^2/4 U_i S^-1 U_i^T (+ D_ii), constant between tangent refreshes
@@ -119,6 +122,9 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
 
     compliance_changes = False
     warping = False
+    # background=True: a linearization older than this many steps (a worker starved by a busy
+    # machine: it runs at the lowest priority) is replaced by one computed on the stepping thread
+    MAX_TANGENT_AGE = 200
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
@@ -298,8 +304,14 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         done = self._worker.take()
         if done is not None:
             self._use(done[1], done[0])
+            self._tangent_at = self.steps
         if due and self._worker.ask(qs):
             self._tangent_step = self.steps
+        elif self.steps - self._tangent_at > self.MAX_TANGENT_AGE:  # the worker is starved (a busy machine)
+            self._worker.forget()
+            self._use(self._linearization(qs), qs)
+            self._tangent_at = self._tangent_step = self.steps
+            self.sync_refreshes += 1
 
     def _translation_rows(self) -> np.ndarray:
         """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
@@ -317,6 +329,8 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         self._lag = np.zeros((self.spread, r))  # each group's remainder, as last evaluated (zero at rest)
         self._lag_q = np.zeros((self.spread, r))  # and the coordinates it was evaluated at
         self._tangent_step = None  # the step the tangent was last refreshed at (None: at the next step)
+        self._tangent_at = 0  # the step the linearization in use was taken up at
+        self.sync_refreshes = 0  # background=True: refreshes made here because the worker was too late
         self._use_rest()
         self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*)), (group, its new remainder)) of the next step
         self._loads, self._load_array = {}, None
@@ -368,6 +382,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         if tangent_q is not None and tangent_q.size:
             self._use(self._linearization(tangent_q), tangent_q)
         self._tangent_step = steps - age if tangent_q is not None and age >= 0 else None
+        self._tangent_at = steps  # the linearization just installed
         self.steps = steps
         self.time = steps * self.dt
         self._free = None

@@ -145,6 +145,8 @@ def _report(session: Session, node: int, wall: float, steps: int, drawer: _Drawe
         "peak_mm": round(drawer.peak * 1e3, 3),
         "vertex": node,
         "local": session.local_status or None,
+        # tangents the step computed itself because the background worker was starved (a busy machine)
+        "sync_refreshes": getattr(session.driver, "sync_refreshes", None),
         "error": session.error,
     }
 
