@@ -18,6 +18,8 @@ numbers, slower).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import nnls
 
@@ -284,15 +286,19 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):  # noqa: C901 - a
             F[e, i] = f[i]
 
 
-def _polar_rotation(Fm, R, Y, Z):
+def _polar_rotation(Fm, R, Z):
     """R (3, 3) = the rotation of the polar decomposition F = R S, for det F > 0, by Higham's scaled
-    Newton iteration R <- (g R + R^-T / g) / 2 (quadratic; ~6-8 iterations from F). Returns False
-    when it does not apply (det F <= 0, or no convergence), for an SVD instead. Y, Z (3, 3) scratch."""
+    Newton iteration R <- (g R + R^-T / g) / 2 (Higham 1986; quadratic). The scaling g = (|R^-1| /
+    |R|)^1/2 (Frobenius) speeds the first iterations only. The iteration stops when a step changes
+    R by less than 1e-8 (Frobenius): the error it leaves is then about half the square of that
+    change, ~1e-17 (on the default liver's pulled cubature points, 3.2 iterations on average).
+    Returns False when it does not apply (det F <= 0, or no convergence), for an SVD instead.
+    Z (3, 3) scratch."""
     for i in range(3):
         for j in range(3):
             R[i, j] = Fm[i, j]
     for it in range(30):
-        # Z = R^-T = cof(R) / det R
+        # Z = cof(R) = det(R) R^-T
         Z[0, 0] = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
         Z[0, 1] = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
         Z[0, 2] = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
@@ -305,21 +311,25 @@ def _polar_rotation(Fm, R, Y, Z):
         det = R[0, 0] * Z[0, 0] + R[0, 1] * Z[0, 1] + R[0, 2] * Z[0, 2]
         if not det > 0.0:
             return False
-        nr = 0.0
-        nz = 0.0
-        for i in range(3):
-            for j in range(3):
-                Z[i, j] /= det
-                nr += R[i, j] * R[i, j]
-                nz += Z[i, j] * Z[i, j]
-        g = (nz / nr) ** 0.25 if it < 4 else 1.0  # scaling speeds the first iterations only
+        inv = 1.0 / det
+        if it < 4:
+            nr = 0.0
+            nz = 0.0
+            for i in range(3):
+                for j in range(3):
+                    nr += R[i, j] * R[i, j]
+                    nz += Z[i, j] * Z[i, j]
+            g = math.sqrt(math.sqrt(nz / nr) * inv)  # |R^-T| = |Z| / det
+            a, b = 0.5 * g, 0.5 * inv / g
+        else:
+            a, b = 0.5, 0.5 * inv
         change = 0.0
         for i in range(3):
             for j in range(3):
-                Y[i, j] = 0.5 * (g * R[i, j] + Z[i, j] / g)
-                change += (Y[i, j] - R[i, j]) ** 2
-                R[i, j] = Y[i, j]
-        if change < 1e-30 * 3.0:
+                y = a * R[i, j] + b * Z[i, j]
+                change += (y - R[i, j]) ** 2
+                R[i, j] = y
+        if change < 1e-16:
             return True
     return False
 
@@ -333,7 +343,6 @@ def _solid_element_forces(V, X, G, wdet, lm, F):
     x = np.zeros((k, 3))
     Fm = np.zeros((3, 3))
     R = np.zeros((3, 3))
-    Y = np.zeros((3, 3))
     Z = np.zeros((3, 3))
     P = np.zeros((3, 3))
     for e in range(E):
@@ -349,7 +358,7 @@ def _solid_element_forces(V, X, G, wdet, lm, F):
                     for i in range(k):
                         s += x[i, a] * G[e, q, i, b]
                     Fm[a, b] = s
-            if not _polar_rotation(Fm, R, Y, Z):  # inverted or degenerate: the SVD (a proper R)
+            if not _polar_rotation(Fm, R, Z):  # inverted or degenerate: the SVD (a proper R)
                 u, sv, vt = np.linalg.svd(Fm)
                 du = u[0, 0] * (u[1, 1] * u[2, 2] - u[1, 2] * u[2, 1]) - u[0, 1] * (u[1, 0] * u[2, 2] - u[1, 2] * u[2, 0]) \
                     + u[0, 2] * (u[1, 0] * u[2, 1] - u[1, 1] * u[2, 0])
