@@ -129,7 +129,10 @@ def node(value: Any, n: int, name: str = "node", *, error: type = ModelError) ->
 
 
 def nodes(value: Any, n: int, name: str = "nodes", *, allow_empty: bool = False, error: type = ModelError) -> np.ndarray:
-    """An integer array of node indices in 0..n-1 (a single index is accepted too)."""
+    """An integer array of node indices in 0..n-1 (a single index is accepted too); always a new array."""
+    if type(value) is np.ndarray and value.dtype == np.int64 and value.ndim == 1 and value.size:
+        if 0 <= value.min() and value.max() < n:  # the run-time fast path: a grasp's or a patch's nodes, each step
+            return value.copy()
     if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:
         raise error(f"{_label(name, value)}: give node indices (integers 0..{n - 1})")
     try:

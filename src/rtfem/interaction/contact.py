@@ -453,6 +453,12 @@ def hold_patch(W: np.ndarray, h: np.ndarray, g: np.ndarray, k: float, grip: floa
 
 def patch_system(W: np.ndarray, k: float, grip: float) -> np.ndarray:
     """The (3m + 3) matrix of :func:`hold_patch`: [[W + I/grip, -E], [E^T, k I]]."""
-    m = W.shape[0] // 3
-    E = np.tile(np.eye(3), (m, 1))
-    return np.block([[W + np.eye(3 * m) / grip, -E], [E.T, k * np.eye(3)]])
+    n = W.shape[0]
+    A = np.zeros((n + 3, n + 3))
+    A[:n, :n] = W
+    A[np.arange(n), np.arange(n)] += 1.0 / grip
+    E = np.arange(n)
+    A[E, n + E % 3] = -1.0
+    A[n + E % 3, E] = 1.0
+    A[n:, n:] = k * np.eye(3)
+    return A

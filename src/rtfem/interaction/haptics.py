@@ -32,13 +32,12 @@ from __future__ import annotations
 
 
 import numpy as np
-from scipy.linalg import lu_factor, lu_solve
 from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import ModelError
 from ..mesh.surface import TriMesh
-from .contact import hold_patch, nodes_to_prepare, patch_system
+from .contact import nodes_to_prepare, patch_system
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, predictions, prepare, step_compliances
 
 from .ticks import _cached_compliance, _compiled_driver, _compiled_loop, _CompiledTicks, _is_impedance, _loop_paused
@@ -226,7 +225,7 @@ class Grasp:
         self.clipped = False  # whether the last step's force was capped at max_force
         self._W: dict[int, np.ndarray] = {}
         self._block = None
-        self._patch_lu = None
+        self._patch_inv = None
 
     def compliance(self, node: int) -> np.ndarray:
         """The 3x3 step compliance W at ``node`` (the driver prepares the node the first time)."""
@@ -265,14 +264,14 @@ class Grasp:
         if nodes.size == 1:
             self.compliance(node)
             self._block = None
-            self._patch_lu = None
+            self._patch_inv = None
         else:
             prepare(self.driver, nodes)
             W = step_compliances(self.driver, nodes)
             nodes, keep = _movable(nodes, W, node)
             W = W[np.ix_(keep, keep)]
             self._block = None if getattr(self.driver, "compliance_changes", False) else W
-            self._patch_lu = None
+            self._patch_inv = None
         self.node, self.nodes = node, nodes
         self._hold = displacements_at(self.driver, nodes).reshape(-1)
         self._jaw = x
@@ -315,7 +314,7 @@ class Grasp:
         self.node = None
         self.nodes = np.zeros(0, dtype=np.int64)
         self._block = None
-        self._patch_lu = None
+        self._patch_inv = None
 
     def update(self, target=None) -> np.ndarray:
         """One step with the hand at ``target`` (None or no grab: the organ moves freely).
@@ -336,13 +335,15 @@ class Grasp:
             f = np.linalg.solve(np.eye(3) + k * self.compliance(p), k * (c - self.X[p] - d.predict(p)))[None]
         else:
             h = self._hold - predictions(d, self.nodes).reshape(-1)
-            if self._block is not None:  # a constant compliance: the jaw's system is factorized once per grip
-                key = (k, self.grip)
-                if self._patch_lu is None or self._patch_lu[0] != key:
-                    self._patch_lu = (key, lu_factor(patch_system(self._block, k, self.grip)))
-                f = lu_solve(self._patch_lu[1], np.concatenate([h, k * (c - self._jaw)]))[:-3].reshape(-1, 3)
-            else:
-                f, _ = hold_patch(step_compliances(d, self.nodes), h, k * (c - self._jaw), k, self.grip)
+            # the jaw's system (contact.hold_patch) inverted once per grip and compliance, as in the compiled
+            # tick: a constant compliance (_block), or the driver's until it changes (a reduced nonlinear
+            # driver's, at a tangent refresh); a (3m + 3) product per step
+            W = self._block if self._block is not None else step_compliances(d, self.nodes)
+            key = (k, self.grip)
+            inv = self._patch_inv
+            if inv is None or inv[0] != key or (inv[2] is not W and not np.array_equal(inv[2], W)):
+                self._patch_inv = inv = (key, np.linalg.inv(patch_system(W, k, self.grip)), W)
+            f = (inv[1] @ np.concatenate([h, k * (c - self._jaw)]))[:-3].reshape(-1, 3)
         total = f.sum(axis=0)
         self.demand = mag = float(np.linalg.norm(total))
         self.clipped = self.max_force is not None and mag > self.max_force
