@@ -18,10 +18,8 @@ import numpy as np
 from ..errors import RtfemError
 from ..fe.material import Material
 from ..threads import background
+from .gltf import SurfaceGlb, colormap
 from .session import METHODS, Session, Settings, default_session
-
-# viridis at five stops: perceptually uniform, readable by the colour-blind
-_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=float)
 
 HELP = (
     "**Drag the organ** with the left mouse button to pull it; **shift+drag** presses along the surface "
@@ -29,44 +27,15 @@ HELP = (
 )
 
 
-def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
-    """(n,) magnitudes -> (n, 4) uint8 RGBA on viridis, 0..vmax."""
-    s = np.clip(values / vmax, 0.0, 1.0) * (len(_VIRIDIS) - 1) if vmax > 0 else np.zeros_like(values)
-    i = np.minimum(s.astype(int), len(_VIRIDIS) - 2)
-    w = (s - i)[:, None]
-    rgb = (1 - w) * _VIRIDIS[i] + w * _VIRIDIS[i + 1]
-    out = np.full((values.size, 4), 255, dtype=np.uint8)
-    out[:, :3] = np.round(rgb).astype(np.uint8)
-    return out
+def surface_glb(session, glb: SurfaceGlb, u: np.ndarray, vmax: float) -> bytes:
+    """One frame: the drawn surface (``session.drawn``, encoded by ``glb``: :func:`surface_encoder`)
+    displaced by ``u`` (k, 3), coloured by the displacement magnitude on 0..vmax."""
+    return glb(session.X[session.drawn] + u, colormap(np.linalg.norm(u, axis=1), vmax))
 
 
-def srgb_to_linear(rgba: np.ndarray) -> np.ndarray:
-    """glTF vertex colours are linear; the colormap is in sRGB."""
-    c = rgba[:, :3] / 255.0
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    out = rgba.copy()
-    out[:, :3] = np.round(lin * 255).astype(np.uint8)
-    return out
-
-
-def glb_bytes(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> bytes:
-    """A binary glTF of the surface with per-vertex colours, smooth normals and a dielectric
-    material (glTF's default is a metal, black under anything but an environment map, which the
-    viewer does not use: see :meth:`Viewer._build_scene`)."""
-    import trimesh
-    from trimesh.visual import TextureVisuals
-    from trimesh.visual.material import PBRMaterial
-
-    material = PBRMaterial(baseColorFactor=[255, 255, 255, 255], metallicFactor=0.0, roughnessFactor=0.65)
-    tm = trimesh.Trimesh(vertices, triangles, process=False, visual=TextureVisuals(material=material))
-    tm.visual.vertex_attributes["color"] = srgb_to_linear(colors)
-    return tm.export(file_type="glb", include_normals=True)
-
-
-def surface_glb(session, u: np.ndarray, faces: np.ndarray, vmax: float) -> bytes:
-    """One frame: the drawn surface (``session.drawn``, ``faces`` over it) displaced by ``u``
-    (k, 3), coloured by the displacement magnitude on 0..vmax."""
-    return glb_bytes(session.X[session.drawn] + u, faces, colormap(np.linalg.norm(u, axis=1), vmax))
+def surface_encoder(session) -> SurfaceGlb:
+    """The frames' encoder of the session's drawn surface (:func:`surface_faces`)."""
+    return SurfaceGlb(surface_faces(session), session.drawn.size)
 
 
 def surface_faces(session) -> np.ndarray:
@@ -142,13 +111,14 @@ class Viewer:
         self.server.initial_camera.position = tuple(centre + size * np.array([0.1, -0.62, 0.5]))
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._faces = surface_faces(s)
-        self.organ = sc.add_glb("/organ", surface_glb(s, np.zeros((s.drawn.size, 3)), self._faces, 1.0))
+        self._glb = SurfaceGlb(self._faces, s.drawn.size)
+        self.organ = sc.add_glb("/organ", surface_glb(s, self._glb, np.zeros((s.drawn.size, 3)), 1.0))
         # The client disposes each replaced frame's material and with it the shader program, unless
         # another object uses one alike: every frame then compiled its shaders again, and a browser
         # without a GPU drew 2-3 of the 28 frames/s sent. A speck drawn with the same material (a
         # triangle of 1 um at the centre: below a pixel) keeps the program.
         speck = centre + 1e-6 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-        self._speck = sc.add_glb("/organ_speck", glb_bytes(speck, np.array([[0, 1, 2]]), colormap(np.zeros(3), 1.0)))
+        self._speck = sc.add_glb("/organ_speck", SurfaceGlb(np.array([[0, 1, 2]]), 3)(speck, colormap(np.zeros(3), 1.0)))
         # the mouse grabs a transparent copy of the surface, not the drawn organ: the drawn one is
         # replaced every frame, and a press that came while the client swapped it in (often, at a low
         # frame rate) missed it and orbited the camera. The copy moves only when the organ has moved
@@ -347,7 +317,7 @@ class Viewer:
                 self._last_u = full  # the field a grab looks for the nearest vertex on
                 peak = float(np.linalg.norm(u, axis=1).max())
                 self.vmax = max(peak, 0.97 * self.vmax, 1e-4)
-                self.organ.glb_data = surface_glb(s, u, self._faces, self.vmax)
+                self.organ.glb_data = surface_glb(s, self._glb, u, self.vmax)
                 self._move_pick(u)
                 s.record_force()
                 self._draw_hand(full)

@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
+from .app import surface_encoder, surface_glb
 from .session import Session
 
 PULL = 0.03  # m
@@ -55,25 +56,15 @@ def default_vertex(session: Session) -> int:
 
 class _Drawer:
     """The viewer's per-frame work on a thread, at up to ``fps``: the drawn surface's field, its
-    colours and the binary glTF (the field only without the viewer extra), the force record."""
+    colours and the binary glTF (:mod:`rtfem.viewer.gltf`), the force record."""
 
     def __init__(self, session: Session, fps: float) -> None:
-        try:
-            from .app import surface_faces, surface_glb
-            import trimesh  # noqa: F401
-
-            self._glb, self._faces = surface_glb, surface_faces(session)
-        except ImportError:  # the viewer extra absent: the field only
-            self._glb = self._faces = None
+        self._glb = surface_encoder(session)
         self.session, self.period = session, 1.0 / fps
         self.peak = 0.0  # the largest displacement drawn (m)
         self.frames = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="rtfem-benchmark-frames", daemon=True)
-
-    @property
-    def draws(self) -> bool:
-        return self._glb is not None
 
     def start(self) -> None:
         self._thread.start()
@@ -89,8 +80,7 @@ class _Drawer:
             u = s.surface_displacements()
             top = float(np.linalg.norm(u, axis=1).max())
             self.peak = max(self.peak, top)
-            if self._glb is not None:
-                self._glb(s, u, self._faces, max(top, 1e-4))
+            surface_glb(s, self._glb, u, max(top, 1e-4))
             s.record_force()
             self.frames += 1
             time.sleep(max(0.0, self.period - (time.perf_counter() - t0)))
@@ -138,7 +128,6 @@ def _report(session: Session, node: int, wall: float, steps: int, drawer: _Drawe
         "step_p50_us": round(float(np.median(computes)), 1) if computes.size else None,
         "step_p99_us": round(float(np.percentile(computes, 99)), 1) if computes.size else None,
         "frames_per_s": round(drawer.frames / wall, 1),
-        "frames_drawn": "glb" if drawer.draws else "field only",
         "max_force_N": round(force, 4),
         "force_limit_N": s.max_force,
         "clipped": clipped > 0,
