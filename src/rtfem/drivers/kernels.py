@@ -322,7 +322,64 @@ def _grasp_tick(c, a, fout):
     return 0
 
 
-def _make_chunk(gettime, usleep, clock_id, tick):
+def _slot(k, start, target, t0, period, deadline, n_script, counters):
+    """The slot a tick starting at ``start`` takes: k on time; past whole periods late, the
+    current one (the ones skipped counted); -1 when the loop is over (after the deadline or
+    the script: the slots skipped counted, counters[0] the next)."""
+    if start >= deadline:  # woke after the end: the slots still due are skipped, and counted
+        while period > 0.0 and t0 + k * period < deadline:
+            k += 1
+            counters[2] += 1
+        counters[0] = k
+        return -1
+    if period > 0.0 and start - target > period:  # behind by whole ticks: skip them
+        skip = int((start - target) / period)
+        if n_script > 0 and k + skip >= n_script:
+            counters[2] += n_script - k  # the rest of the script: skipped
+            counters[0] = n_script
+            return -1
+        k += skip
+        counters[2] += skip
+        counters[0] = k
+    return k
+
+
+def _record(start, target, end, k, fout, lateness, compute, forces, slots, counters):
+    """The tick's lateness, compute time, force and slot, while the record has room; returns
+    whether it is now full."""
+    i = counters[4]
+    if i < lateness.shape[0]:
+        lateness[i] = start - target
+        compute[i] = end - start
+        forces[i, 0] = fout[0]
+        forces[i, 1] = fout[1]
+        forces[i, 2] = fout[2]
+        slots[i] = k
+        counters[4] = i + 1
+    return i + 1 >= lateness.shape[0]
+
+
+def _make_chunk(gettime, usleep, clock_id, tick, jit):
+    """The compiled loop of ``tick`` on the monotonic clock (``gettime(clock_id, timespec)``,
+    ``usleep``), its named steps compiled with ``jit`` (numba.njit)."""
+
+    @jit
+    def now_s(clock):
+        gettime(clock_id, clock.ctypes)
+        return clock[0] + 1e-9 * clock[1]
+
+    @jit
+    def wait_until(target, spin, clock):
+        """Sleep until ``spin`` before target, then spin; returns the clock then."""
+        now = now_s(clock)
+        while now < target:
+            if target - now > spin:
+                usleep(int((target - now - spin) * 1e6))
+            now = now_s(clock)
+        return now
+
+    slot, record = jit(_slot), jit(_record)
+
     def chunk(targs, fout, sched, positions, mailbox, ctl, lateness, compute, forces, slots, counters, clock):
         """Ticks of a loop until the deadline, max steps, a stop request or a node to prepare;
         each tick is ``tick(c, targs, fout)`` (a probe's or a grasp's, on its packed arguments;
@@ -332,11 +389,8 @@ def _make_chunk(gettime, usleep, clock_id, tick):
         none), records written. Returns 0 (deadline/steps), 1 (a node to prepare: the probe's
         ist[2]), 2 (stopped) or 3 (paused: a grab or a release is waiting)."""
         c = np.empty(3)
-        t0 = sched[0]
-        period = sched[1]
-        deadline = sched[2]
-        spin = sched[3]
-        scripted = positions.shape[0] > 0
+        t0, period, deadline, spin = sched[0], sched[1], sched[2], sched[3]
+        n_script = positions.shape[0]
         while True:
             if ctl[0] != 0:
                 return 2 if ctl[0] == 1 else 3
@@ -346,62 +400,28 @@ def _make_chunk(gettime, usleep, clock_id, tick):
             target = t0 + k * period
             if target >= deadline:
                 return 0
-            gettime(clock_id, clock.ctypes)
-            now = clock[0] + 1e-9 * clock[1]
             if period <= 0.0:  # back to back (an offline replay): no schedule to keep
-                target = now
-            while now < target:
-                if target - now > spin:
-                    usleep(int((target - now - spin) * 1e6))
-                gettime(clock_id, clock.ctypes)
-                now = clock[0] + 1e-9 * clock[1]
-            start = now
-            if start >= deadline:  # woke after the end: the slots still due are skipped, and counted
-                while period > 0.0 and t0 + k * period < deadline:
-                    k += 1
-                    counters[2] += 1
-                counters[0] = k
-                return 0
-            if period > 0.0 and start - target > period:  # behind by whole ticks: skip them
-                skip = int((start - target) / period)
-                if scripted and k + skip >= positions.shape[0]:
-                    counters[2] += positions.shape[0] - k  # the rest of the script: skipped
-                    counters[0] = positions.shape[0]
-                    return 0
-                k += skip
-                counters[2] += skip
-                counters[0] = k
-                target = t0 + k * period
-            if scripted:
-                if k >= positions.shape[0]:
-                    return 0
-                c[0] = positions[k, 0]
-                c[1] = positions[k, 1]
-                c[2] = positions[k, 2]
+                start = target = now_s(clock)
             else:
-                c[0] = mailbox[0]
-                c[1] = mailbox[1]
-                c[2] = mailbox[2]
+                start = wait_until(target, spin, clock)
+            k = slot(k, start, target, t0, period, deadline, n_script, counters)
+            if k < 0:
+                return 0
+            target = t0 + k * period if period > 0.0 else target
+            if n_script > 0:
+                if k >= n_script:
+                    return 0
+                c[0], c[1], c[2] = positions[k, 0], positions[k, 1], positions[k, 2]
+            else:
+                c[0], c[1], c[2] = mailbox[0], mailbox[1], mailbox[2]
             if tick(c, targs, fout) < 0:
                 return 1
-            if not scripted:
-                mailbox[3] = fout[0]
-                mailbox[4] = fout[1]
-                mailbox[5] = fout[2]
-            gettime(clock_id, clock.ctypes)
-            end = clock[0] + 1e-9 * clock[1]
-            i = counters[4]
-            if i < lateness.shape[0]:
-                lateness[i] = start - target
-                compute[i] = end - start
-                forces[i, 0] = fout[0]
-                forces[i, 1] = fout[1]
-                forces[i, 2] = fout[2]
-                slots[i] = k
-                counters[4] = i + 1
+            if n_script == 0:
+                mailbox[3], mailbox[4], mailbox[5] = fout[0], fout[1], fout[2]
+            full = record(start, target, now_s(clock), k, fout, lateness, compute, forces, slots, counters)
             counters[0] = k + 1
             counters[1] += 1
-            if i + 1 >= lateness.shape[0]:
+            if full:
                 return 0  # the record is full: the caller makes room
     return chunk
 
@@ -423,12 +443,13 @@ def loop_kernels():
                 predict = numba.njit(**opts, cache=True)(_predict)
                 g = dict(_probe_tick.__globals__, _point_step=point_step, _point_displacement=point_displacement,
                          _knn=knn, _predict=predict)
-                tick = numba.njit(**opts)(type(_probe_tick)(_probe_tick.__code__, g, "_probe_tick"))
-                packed = numba.njit(**opts)(type(_probe_tick_packed)(_probe_tick_packed.__code__,
-                                                                     dict(g, _probe_tick=tick), "_probe_tick_packed"))
-                chunk = numba.njit(**opts)(_make_chunk(gettime, usleep, clock_id, packed))
-                grasp = numba.njit(**opts)(_make_chunk(gettime, usleep, clock_id, numba.njit(**opts)(
-                    type(_grasp_tick)(_grasp_tick.__code__, dict(g), "_grasp_tick"))))
+                jit = numba.njit(**opts)
+                tick = jit(type(_probe_tick)(_probe_tick.__code__, g, "_probe_tick"))
+                packed = jit(type(_probe_tick_packed)(_probe_tick_packed.__code__, dict(g, _probe_tick=tick),
+                                                      "_probe_tick_packed"))
+                chunk = jit(_make_chunk(gettime, usleep, clock_id, packed, jit))
+                grasp = jit(_make_chunk(gettime, usleep, clock_id, jit(
+                    type(_grasp_tick)(_grasp_tick.__code__, dict(g), "_grasp_tick")), jit))
                 _warm(chunk, grasp)
                 # a call with other types fails loudly instead of compiling in a tick
                 chunk.disable_compile()

@@ -109,26 +109,12 @@ def _closest_on_triangle(p, A, B, C, out, bary):
         out[i] = bary[0] * A[i] + bary[1] * B[i] + bary[2] * C[i]
 
 
-def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, bary, n, gaps,  # noqa: C901
-           keep):  # a compiled kernel, to split (issue 38)
-    """The ring's face contacts (every face of the ring is a contact of its own: where the probe
-    sits in its own dent, a concave crease, the closest point would jump across the crease, while
-    the set of faces' points moves continuously): for each triangle
-    (corners ``local``, rows of Y) the point closest to the tool's core at ``c`` (``iters`` alternating
-    projections), its weights ``bary``, push direction ``n`` and gap against the tool at ``cg`` (``gaps``, linearized to the
-    free positions Yf); kept (``keep``, the count returned) when inside the face or on an edge
-    (once per edge, judged by the edge's mean normal and its cone), its gap below ``reach`` before
-    and ``margin`` after the linearization, and not within ``same`` of a vertex contact (rows of V)
-    or of a face point kept before."""
-    f = local.shape[0]
-    P = np.empty((f, 3))
-    O = np.empty((f, 3))
-    q = np.empty(3)
-    p = np.empty(3)
-    A = np.empty(3)
-    B = np.empty(3)
-    C = np.empty(3)
-    for k in range(f):
+def _face_points(Y, local, c, R, half, iters, bary, P, O):
+    """For each triangle (corners ``local``, rows of Y): the point P[k] closest to the tool's core at c
+    (``iters`` alternating projections from the centroid's core point), its weights ``bary[k]`` and
+    the face's unit normal O[k]."""
+    q, p, A, B, C = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    for k in range(local.shape[0]):
         for i in range(3):
             A[i], B[i], C[i] = Y[local[k, 0], i], Y[local[k, 1], i], Y[local[k, 2], i]
         _core_into((A[0] + B[0] + C[0]) / 3.0, (A[1] + B[1] + C[1]) / 3.0, (A[2] + B[2] + C[2]) / 3.0, c, R, half, q)
@@ -141,7 +127,13 @@ def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, 
         o2 = (B[0] - A[0]) * (C[1] - A[1]) - (B[1] - A[1]) * (C[0] - A[0])
         size = max(math.sqrt(o0 * o0 + o1 * o1 + o2 * o2), 1e-300)
         O[k, 0], O[k, 1], O[k, 2] = o0 / size, o1 / size, o2 / size
-    # which faces' points count: inside, or on an edge once (the edge's normal: its faces' mean)
+
+
+def _counted(local, bary, O, outward, spread, ok):
+    """Which faces' points count (``ok``): inside a face, or on an edge once (the first face of the
+    edge), that edge's points taking the edge's normal (its faces' mean: ``outward``) and the cone
+    its faces spread around it (``spread``, the tangent of the half-angle)."""
+    f = local.shape[0]
     on = np.zeros(f, np.int64)
     lo = np.full(f, -1, np.int64)  # the edge's corners (rows of Y), for a point on an edge
     hi = np.full(f, -1, np.int64)
@@ -155,9 +147,6 @@ def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, 
                     hi[k] = local[k, a]
         if on[k] == 2 and lo[k] > hi[k]:
             lo[k], hi[k] = hi[k], lo[k]
-    spread = np.zeros(f)
-    outward = O.copy()
-    ok = np.zeros(f, np.bool_)
     for k in range(f):
         ok[k] = on[k] >= 2
         if on[k] != 2:
@@ -175,9 +164,15 @@ def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, 
         spread[k] = math.sqrt(max(1.0 - cos * cos, 0.0)) / max(cos, 1e-3)
         outward[k, 0], outward[k, 1], outward[k, 2] = u0, u1, u2
         ok[k] = first
-    _gaps(P, P, outward, spread, cg, R, half, radius, gaps, n)
+
+
+def _kept(P, ok, Y, Yf, local, bary, n, gaps, reach, margin, same, V, keep):
+    """The counted face points to keep (their indices into ``keep``; returns how many): a gap below
+    ``reach`` before and ``margin`` after the linearization to the free positions Yf (written back
+    into ``gaps``), and not within ``same`` of a vertex contact (rows of V) or of a face point kept
+    before."""
     kept = 0
-    for k in range(f):
+    for k in range(P.shape[0]):
         if not ok[k] or not gaps[k] < reach:
             continue
         g = gaps[k]
@@ -200,6 +195,28 @@ def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, 
             keep[kept] = k
             kept += 1
     return kept
+
+
+def _faces(Y, Yf, local, c, cg, R, half, radius, iters, reach, margin, same, V, bary, n, gaps, keep):
+    """The ring's face contacts (every face of the ring is a contact of its own: where the probe
+    sits in its own dent, a concave crease, the closest point would jump across the crease, while
+    the set of faces' points moves continuously): for each triangle
+    (corners ``local``, rows of Y) the point closest to the tool's core at ``c`` (``iters`` alternating
+    projections), its weights ``bary``, push direction ``n`` and gap against the tool at ``cg`` (``gaps``, linearized to the
+    free positions Yf); kept (``keep``, the count returned) when inside the face or on an edge
+    (once per edge, judged by the edge's mean normal and its cone), its gap below ``reach`` before
+    and ``margin`` after the linearization, and not within ``same`` of a vertex contact (rows of V)
+    or of a face point kept before."""
+    f = local.shape[0]
+    P = np.empty((f, 3))
+    O = np.empty((f, 3))
+    _face_points(Y, local, c, R, half, iters, bary, P, O)
+    spread = np.zeros(f)
+    outward = O.copy()
+    ok = np.zeros(f, np.bool_)
+    _counted(local, bary, O, outward, spread, ok)
+    _gaps(P, P, outward, spread, cg, R, half, radius, gaps, n)
+    return _kept(P, ok, Y, Yf, local, bary, n, gaps, reach, margin, same, V, keep)
 
 
 def _points(g, n, Y, Yf, verts, margin, loc, bw, nf, df, fid, pos, S, Bi, Bv, F, gaps, y_free, y_now, ids):
@@ -321,6 +338,9 @@ try:  # compiled when numba is present (the same code)
     _closest_on_triangle = _numba.njit(**_opts)(_closest_on_triangle)
     _gaps = _numba.njit("void(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8, f8[::1], "
                         "f8[:, ::1])", **_opts)(_gaps)
+    _face_points = _numba.njit(**_opts)(_face_points)
+    _counted = _numba.njit(**_opts)(_counted)
+    _kept = _numba.njit(**_opts)(_kept)
     _faces = _numba.njit("i8(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8, i8, f8, f8, "
                          "f8, f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], i8[::1])", **_opts)(_faces)
     _frame_into = _numba.njit(**_opts)(_frame_into)

@@ -116,7 +116,77 @@ def _slide(a11, a12, a21, a22, t1, t2, lim):
     return s1, s2
 
 
-def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol):  # noqa: C901 - a compiled kernel, to split (issue 38)
+def _slide_directions(r, status, mu, d1, d2):
+    """Each sliding contact's tangential direction (d1, d2) as its force has it now (zero else)."""
+    for c in range(status.shape[0]):
+        i = 3 * c
+        if status[c] == 1 and mu[c] > 0.0:
+            t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
+            if t > 0.0:
+                d1[c], d2[c] = r[i + 1] / t, r[i + 2] / t
+
+
+def _active_rows(status, rows):
+    """The unknowns the states leave (stuck: all three, pressed or sliding: the normal one) into
+    rows; returns how many."""
+    k = 0
+    for c in range(status.shape[0]):
+        i = 3 * c
+        if status[c] == 2:
+            rows[k], rows[k + 1], rows[k + 2] = i, i + 1, i + 2
+            k += 3
+        elif status[c] == 1:
+            rows[k] = i
+            k += 1
+    return k
+
+
+def _state_system(A, b, rows, k, status, mu, d1, d2):
+    """The equalities of the states on the unknowns ``rows[:k]``: M (k, k) x = -b[rows], a sliding
+    contact's tangential force mu r_n d carried by its normal unknown."""
+    M = np.empty((k, k))
+    x = np.empty(k)
+    for a in range(k):
+        ia = rows[a]
+        x[a] = -b[ia]
+        for j in range(k):
+            ij = rows[j]
+            c = ij // 3
+            v = A[ia, ij]
+            if status[c] == 1 and mu[c] > 0.0:  # r_t = mu r_n d: the normal unknown carries it
+                v += mu[c] * (d1[c] * A[ia, ij + 1] + d2[c] * A[ia, ij + 2])
+            M[a, j] = v
+    return M, x
+
+
+def _scatter(x, rows, k, status, mu, d1, d2, r):
+    """r from the system's solution x: its unknowns, a sliding contact's tangential force along d,
+    zero elsewhere."""
+    for i in range(r.shape[0]):
+        r[i] = 0.0
+    for j in range(k):
+        r[rows[j]] = x[j]
+    for c in range(status.shape[0]):
+        if status[c] == 1 and mu[c] > 0.0:
+            i = 3 * c
+            r[i + 1], r[i + 2] = mu[c] * r[i] * d1[c], mu[c] * r[i] * d2[c]
+
+
+def _project_onto_cone(r, mu):
+    """Each contact's force onto Coulomb's cone: r_n >= 0, |r_t| <= mu r_n."""
+    for c in range(mu.shape[0]):
+        i = 3 * c
+        if r[i] < 0.0:
+            r[i] = 0.0
+        lim = mu[c] * r[i]
+        t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
+        if t > lim:
+            s = lim / t if t > 0.0 else 0.0
+            r[i + 1] *= s
+            r[i + 2] *= s
+
+
+def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol):
     """The subspace step of PGS-SM (Silcowitz, Niebe & Erleben 2010): with the contacts' states
     as the last sweeps left them (status: 0 apart, 1 pressed and sliding or frictionless, 2 stuck),
     solve the equalities they imply in one linear system (pressed: w_n = 0, the tangential force
@@ -131,60 +201,29 @@ def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol):  # noqa: 
     rows = np.empty(n3, np.int64)
     d1 = np.zeros(m)
     d2 = np.zeros(m)
-    for c in range(m):
-        i = 3 * c
-        if status[c] == 1 and mu[c] > 0.0:
-            t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
-            if t > 0.0:
-                d1[c], d2[c] = r[i + 1] / t, r[i + 2] / t
+    _slide_directions(r, status, mu, d1, d2)
     r_in = r.copy()
     for _ in range(8):
-        k = 0
-        for c in range(m):
-            i = 3 * c
-            if status[c] == 2:
-                rows[k], rows[k + 1], rows[k + 2] = i, i + 1, i + 2
-                k += 3
-            elif status[c] == 1:
-                rows[k] = i
-                k += 1
+        k = _active_rows(status, rows)
         if k == 0:
             r[:] = r_in
             return False
         for j in range(k):  # the columns the system needs
             _column(W, Bi, Bv, F, inv_k, rows[j] // 3, A, have)
-        M = np.empty((k, k))
-        x = np.empty(k)
-        for a in range(k):
-            ia = rows[a]
-            x[a] = -b[ia]
-            for j in range(k):
-                ij = rows[j]
-                c = ij // 3
-                v = A[ia, ij]
-                if status[c] == 1 and mu[c] > 0.0:  # r_t = mu r_n d: the normal unknown carries it
-                    v += mu[c] * (d1[c] * A[ia, ij + 1] + d2[c] * A[ia, ij + 2])
-                M[a, j] = v
+        M, x = _state_system(A, b, rows, k, status, mu, d1, d2)
         if not _lu_solve(M, x):
             r[:] = r_in
             return False
-        for i in range(n3):
-            r[i] = 0.0
-        for j in range(k):
-            r[rows[j]] = x[j]
-        for c in range(m):
-            if status[c] == 1 and mu[c] > 0.0:
-                i = 3 * c
-                r[i + 1], r[i + 2] = mu[c] * r[i] * d1[c], mu[c] * r[i] * d2[c]
+        _scatter(x, rows, k, status, mu, d1, d2, r)
         switched = False
         size = 0.0
         for c in range(m):
             size = max(size, r[3 * c])
-        for c in range(m):
+        for c in range(m):  # a pulling contact is let go
             if status[c] != 0 and r[3 * c] < 0.0:
                 status[c] = 0
                 switched = True
-        if not switched:
+        if not switched:  # a contact left apart but penetrating is pressed
             _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w)
             for c in range(m):
                 i = 3 * c
@@ -193,16 +232,7 @@ def _subspace(A, have, W, Bi, Bv, F, inv_k, b, mu, r, w, status, tol):  # noqa: 
                     switched = True
         if not switched:
             break
-    for c in range(m):
-        i = 3 * c
-        if r[i] < 0.0:
-            r[i] = 0.0
-        lim = mu[c] * r[i]
-        t = math.sqrt(r[i + 1] * r[i + 1] + r[i + 2] * r[i + 2])
-        if t > lim:
-            s = lim / t if t > 0.0 else 0.0
-            r[i + 1] *= s
-            r[i + 2] *= s
+    _project_onto_cone(r, mu)
     _forces_into(A, have, W, Bi, Bv, F, inv_k, b, r, w)
     return True
 
@@ -360,6 +390,11 @@ try:  # compiled when numba is present (the same code)
     _lu_solve = _numba.njit(**_opts)(_lu_solve)
     _residual = _numba.njit(**_opts)(_residual)
     _slide = _numba.njit(**_opts)(_slide)
+    _slide_directions = _numba.njit(**_opts)(_slide_directions)
+    _active_rows = _numba.njit(**_opts)(_active_rows)
+    _state_system = _numba.njit(**_opts)(_state_system)
+    _scatter = _numba.njit(**_opts)(_scatter)
+    _project_onto_cone = _numba.njit(**_opts)(_project_onto_cone)
     _subspace = _numba.njit(**_opts)(_subspace)
     _pgs_compiled = _numba.njit("i8(f8[:, ::1], b1[::1], f8[:, ::1], i8[:, ::1], f8[:, ::1], f8[:, :, ::1], f8, f8[::1], "
                                 "f8[::1], f8[::1], i8, f8)", **_opts)(_pgs)

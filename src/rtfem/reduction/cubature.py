@@ -99,122 +99,193 @@ def _rotation_vector(y, th, D):
         D[a, 3] = y[a] * dk_c
 
 
-def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):  # noqa: C901 - a compiled kernel, to split (issue 38)
+def _element_frame(x, a, b, R, de1, de3, dR, dn):
+    """The deformed triangle's frame R (rows e1, e2, e3) from its corners x (3, 3), and its
+    derivatives over z = (a, b), the edges from corner 0 (de1, de3 (3, 6); dR (3, 3, 6)): e1 = a/|a|,
+    n = a x b, e3 = n/|n|, e2 = e3 x e1. Fills a and b; dn (3, 6) scratch. Returns |a|."""
+    for c in range(3):
+        a[c] = x[1, c] - x[0, c]
+        b[c] = x[2, c] - x[0, c]
+    la = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    n0 = a[1] * b[2] - a[2] * b[1]
+    n1 = a[2] * b[0] - a[0] * b[2]
+    n2 = a[0] * b[1] - a[1] * b[0]
+    ln = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    for c in range(3):
+        R[0, c] = a[c] / la
+    R[2, 0], R[2, 1], R[2, 2] = n0 / ln, n1 / ln, n2 / ln
+    R[1, 0] = R[2, 1] * R[0, 2] - R[2, 2] * R[0, 1]
+    R[1, 1] = R[2, 2] * R[0, 0] - R[2, 0] * R[0, 2]
+    R[1, 2] = R[2, 0] * R[0, 1] - R[2, 1] * R[0, 0]
+    for c in range(3):
+        for m in range(6):
+            de1[c, m] = 0.0
+            dn[c, m] = 0.0
+    for c in range(3):
+        for m in range(3):
+            de1[c, m] = ((1.0 if c == m else 0.0) - R[0, c] * R[0, m]) / la
+    for m in range(3):  # e_m x b and a x e_m
+        m1, m2 = (m + 1) % 3, (m + 2) % 3
+        dn[m1, m] = -b[m2]
+        dn[m2, m] = b[m1]
+        dn[m1, 3 + m] = a[m2]
+        dn[m2, 3 + m] = -a[m1]
+    for m in range(6):
+        s = R[2, 0] * dn[0, m] + R[2, 1] * dn[1, m] + R[2, 2] * dn[2, m]
+        for c in range(3):
+            de3[c, m] = (dn[c, m] - R[2, c] * s) / ln
+    for m in range(6):
+        for c in range(3):
+            dR[0, c, m] = de1[c, m]
+            dR[2, c, m] = de3[c, m]
+        # de2 = de3 x e1 + e3 x de1
+        dR[1, 0, m] = (de3[1, m] * R[0, 2] - de3[2, m] * R[0, 1]) + (R[2, 1] * de1[2, m] - R[2, 2] * de1[1, m])
+        dR[1, 1, m] = (de3[2, m] * R[0, 0] - de3[0, m] * R[0, 2]) + (R[2, 2] * de1[0, m] - R[2, 0] * de1[2, m])
+        dR[1, 2, m] = (de3[0, m] * R[0, 1] - de3[1, m] * R[0, 0]) + (R[2, 0] * de1[1, m] - R[2, 1] * de1[0, m])
+    return la
+
+
+def _corner_rotations(v, R, R0e, AP, AQ, trig, C, Dphi, d, t, Kx, Q, A, yv, th3):
+    """Each corner's rotation relative to the element frame: C_i = Q_i R0^T (Q_i = exp of the
+    corner's rotation vector in v), A = R C_i, its rotation vector into d[6 i + 3 ..] and that
+    vector's derivatives over y = (axial(skew(A)), (tr A - 1)/2) into Dphi[i]; trig[i] keeps the
+    corner's |theta|, sin and cos. t, Kx, Q, A, yv, th3 scratch."""
+    for i in range(3):
+        for c in range(3):
+            t[c] = v[6 * i + 3 + c]
+        th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+        trig[i, 0] = th
+        trig[i, 1] = np.sin(th)
+        trig[i, 2] = np.cos(th)
+        _exp_series(t, th, trig[i, 1], trig[i, 2], False, Kx, Q)
+        for p in range(3):
+            for s_ in range(3):
+                acc = 0.0
+                for m in range(3):
+                    acc += Q[p, m] * R0e[s_, m]
+                C[i, p, s_] = acc
+        for p in range(3):
+            for s_ in range(3):
+                acc = 0.0
+                for m in range(3):
+                    acc += R[p, m] * C[i, m, s_]
+                A[p, s_] = acc
+        for c in range(3):
+            yv[c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
+        yv[3] = 0.5 * (A[0, 0] + A[1, 1] + A[2, 2] - 1.0)
+        _rotation_vector(yv, th3, Dphi[i])
+        for c in range(3):
+            d[6 * i + 3 + c] = th3[c]
+
+
+def _translation_rows(g, R, de1, dR, b, fz):
+    """The local forces g's work through the frame on z = (a, b): fz[0:6] += d(d_6, d_12, d_13)/dz^T g
+    (d_6 = |a|, d_12 = e1 . b, d_13 = e2 . b: the corners' in-plane positions)."""
+    for m in range(3):
+        fz[m] += g[6] * R[0, m]
+        s12 = 0.0
+        s13 = 0.0
+        for c in range(3):
+            s12 += de1[c, m] * b[c]
+            s13 += dR[1, c, m] * b[c]
+        fz[m] += g[12] * s12 + g[13] * s13
+        s12 = 0.0
+        s13 = 0.0
+        for c in range(3):
+            s12 += de1[c, 3 + m] * b[c]
+            s13 += dR[1, c, 3 + m] * b[c]
+        fz[3 + m] += g[12] * (s12 + R[0, m]) + g[13] * (s13 + R[1, m])
+
+
+def _rotation_rows(g, R, C, dR, Dphi, AP, AQ, fz, dA, gy):
+    """The corners' rotation vectors' work: over z = (a, b) (through the frame) into fz[0:6] and over
+    each corner's spin w_l (d/dw_l of R exp([w]x) Q R0^T at w = 0: R [e_l]x C) into fz[6 + 3 i + l].
+    dA (3, 3, 6), gy (4,) scratch."""
+    for i in range(3):
+        for p in range(3):
+            for s_ in range(3):
+                for m in range(6):
+                    acc = 0.0
+                    for u in range(3):
+                        acc += dR[p, u, m] * C[i, u, s_]
+                    dA[p, s_, m] = acc
+        for m in range(4):  # the weights on y = (axial(skew(A)), (tr A - 1)/2): D^T g
+            acc = 0.0
+            for c in range(3):
+                acc += g[6 * i + 3 + c] * Dphi[i, c, m]
+            gy[m] = acc
+        for m in range(6):
+            fz[m] += gy[3] * 0.5 * (dA[0, 0, m] + dA[1, 1, m] + dA[2, 2, m])
+        for ll in range(3):
+            l1, l2 = (ll + 1) % 3, (ll + 2) % 3
+            acc = 0.0
+            for p in range(3):
+                acc += R[p, l2] * C[i, l1, p] - R[p, l1] * C[i, l2, p]
+            fz[6 + 3 * i + ll] += gy[3] * 0.5 * acc
+        for c in range(3):
+            gi = gy[c]
+            p, qq = AP[c], AQ[c]
+            for m in range(6):
+                fz[m] += gi * 0.5 * (dA[p, qq, m] - dA[qq, p, m])
+            for ll in range(3):
+                # (R [e_l]x C)[p, q] = R[p, l+2] C[l+1, q] - R[p, l+1] C[l+2, q]
+                l1, l2 = (ll + 1) % 3, (ll + 2) % 3
+                xp = R[p, l2] * C[i, l1, qq] - R[p, l1] * C[i, l2, qq]
+                xq = R[qq, l2] * C[i, l1, p] - R[qq, l1] * C[i, l2, p]
+                fz[6 + 3 * i + ll] += gi * 0.5 * (xp - xq)
+
+
+def _generalized_forces(v, trig, fz, f, t, Kx, Jl):
+    """f (18) from fz: the corners' translations (z = (x1 - x0, x2 - x0)) and the generalized moments
+    J(theta)^T m on the rotation vectors (J the left Jacobian of SO(3)). t, Kx, Jl scratch."""
+    for c in range(3):
+        f[c] = -fz[c] - fz[3 + c]
+        f[6 + c] = fz[c]
+        f[12 + c] = fz[3 + c]
+    for i in range(3):
+        for c in range(3):
+            t[c] = v[6 * i + 3 + c]
+        _exp_series(t, trig[i, 0], trig[i, 1], trig[i, 2], True, Kx, Jl)
+        for c in range(3):
+            s = 0.0
+            for m in range(3):
+                s += Jl[m, c] * fz[6 + 3 * i + m]
+            f[6 * i + 3 + c] = s
+
+
+def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
     """F (E, 18) = g_e(V_e), the generalized forces of corotational triangles at element dofs V
     (E, 18) (V_e = U_e q: one BLAS product before; the projection U_e^T F_e is one after).
     X (E, 3, 3) rest corners, R0 (E, 3, 3) rest frames, x2, x3, y3 (E,) local rest coordinates,
     k (E, 18, 18) local stiffnesses. g_e: the forces on the corners' translations and
-    J(theta)^T m on their rotation vectors."""
+    J(theta)^T m on their rotation vectors. Per element: the frame (:func:`_element_frame`), the
+    local deformation d (the corners' in-plane positions and rotations relative to the frame,
+    :func:`_corner_rotations`), g = k d, and g's work back on the element dofs
+    (:func:`_translation_rows`, :func:`_rotation_rows`, :func:`_generalized_forces`)."""
     E = V.shape[0]
-    Kx = np.zeros((3, 3))
+    Kx, Q, Jl, A, R = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
     trig = np.zeros((3, 3))  # each corner's |theta|, sin and cos (for its exponential and its Jacobian)
-    v = np.zeros(18)
     x = np.zeros((3, 3))
-    Q = np.zeros((3, 3))
-    Jl = np.zeros((3, 3))
     C = np.zeros((3, 3, 3))  # each corner's Q_i R0^T
-    A = np.zeros((3, 3))
-    R = np.zeros((3, 3))
-    dR = np.zeros((3, 3, 6))
-    dA = np.zeros((3, 3, 6))
-    de1 = np.zeros((3, 6))
-    dn = np.zeros((3, 6))
-    de3 = np.zeros((3, 6))
-    d = np.zeros(18)
-    g = np.zeros(18)
-    fz = np.zeros(15)
-    f = np.zeros(18)
-    a = np.zeros(3)
-    b = np.zeros(3)
-    n = np.zeros(3)
-    t = np.zeros(3)
-    em = np.zeros(3)
-    yv = np.zeros(4)
-    th3 = np.zeros(3)
+    dR, dA = np.zeros((3, 3, 6)), np.zeros((3, 3, 6))
+    de1, dn, de3 = np.zeros((3, 6)), np.zeros((3, 6)), np.zeros((3, 6))
+    v, d, g, f, fz = np.zeros(18), np.zeros(18), np.zeros(18), np.zeros(18), np.zeros(15)
+    a, b, t, th3 = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    yv, gy = np.zeros(4), np.zeros(4)
     Dphi = np.zeros((3, 3, 4))  # each corner's rotation vector's derivatives over its y
-    gy = np.zeros(4)
     for e in range(E):
         for i in range(18):
             v[i] = V[e, i]
         for i in range(3):
             for c in range(3):
                 x[i, c] = X[e, i, c] + v[6 * i + c]
-        for c in range(3):
-            a[c] = x[1, c] - x[0, c]
-            b[c] = x[2, c] - x[0, c]
-        la = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-        n[0] = a[1] * b[2] - a[2] * b[1]
-        n[1] = a[2] * b[0] - a[0] * b[2]
-        n[2] = a[0] * b[1] - a[1] * b[0]
-        ln = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-        for c in range(3):
-            R[0, c] = a[c] / la
-            R[2, c] = n[c] / ln
-        R[1, 0] = R[2, 1] * R[0, 2] - R[2, 2] * R[0, 1]
-        R[1, 1] = R[2, 2] * R[0, 0] - R[2, 0] * R[0, 2]
-        R[1, 2] = R[2, 0] * R[0, 1] - R[2, 1] * R[0, 0]
-        # gradients over z = (a, b): e1 = a/|a|, n = a x b, e3 = n/|n|, e2 = e3 x e1
-        for c in range(3):
-            for m in range(6):
-                de1[c, m] = 0.0
-                dn[c, m] = 0.0
-        for c in range(3):
-            for m in range(3):
-                de1[c, m] = ((1.0 if c == m else 0.0) - R[0, c] * R[0, m]) / la
-        for m in range(3):  # e_m x b and a x e_m
-            em[0] = 0.0
-            em[1] = 0.0
-            em[2] = 0.0
-            em[m] = 1.0
-            dn[0, m] = em[1] * b[2] - em[2] * b[1]
-            dn[1, m] = em[2] * b[0] - em[0] * b[2]
-            dn[2, m] = em[0] * b[1] - em[1] * b[0]
-            dn[0, 3 + m] = a[1] * em[2] - a[2] * em[1]
-            dn[1, 3 + m] = a[2] * em[0] - a[0] * em[2]
-            dn[2, 3 + m] = a[0] * em[1] - a[1] * em[0]
-        for m in range(6):
-            s = R[2, 0] * dn[0, m] + R[2, 1] * dn[1, m] + R[2, 2] * dn[2, m]
-            for c in range(3):
-                de3[c, m] = (dn[c, m] - R[2, c] * s) / ln
-        for m in range(6):
-            for c in range(3):
-                dR[0, c, m] = de1[c, m]
-                dR[2, c, m] = de3[c, m]
-            # de2 = de3 x e1 + e3 x de1
-            dR[1, 0, m] = (de3[1, m] * R[0, 2] - de3[2, m] * R[0, 1]) + (R[2, 1] * de1[2, m] - R[2, 2] * de1[1, m])
-            dR[1, 1, m] = (de3[2, m] * R[0, 0] - de3[0, m] * R[0, 2]) + (R[2, 2] * de1[0, m] - R[2, 0] * de1[2, m])
-            dR[1, 2, m] = (de3[0, m] * R[0, 1] - de3[1, m] * R[0, 0]) + (R[2, 0] * de1[1, m] - R[2, 1] * de1[0, m])
+        la = _element_frame(x, a, b, R, de1, de3, dR, dn)
         for i in range(18):
             d[i] = 0.0
         d[6] = la - x2[e]
         d[12] = R[0, 0] * b[0] + R[0, 1] * b[1] + R[0, 2] * b[2] - x3[e]
         d[13] = R[1, 0] * b[0] + R[1, 1] * b[1] + R[1, 2] * b[2] - y3[e]
-        for i in range(3):  # corner rotations relative to the element frame: C_i = Q_i R0^T, A = R C_i
-            for c in range(3):
-                t[c] = v[6 * i + 3 + c]
-            th = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-            trig[i, 0] = th
-            trig[i, 1] = np.sin(th)
-            trig[i, 2] = np.cos(th)
-            _exp_series(t, th, trig[i, 1], trig[i, 2], False, Kx, Q)
-            for p in range(3):
-                for s_ in range(3):
-                    acc = 0.0
-                    for m in range(3):
-                        acc += Q[p, m] * R0[e, s_, m]
-                    C[i, p, s_] = acc
-            for p in range(3):
-                for s_ in range(3):
-                    acc = 0.0
-                    for m in range(3):
-                        acc += R[p, m] * C[i, m, s_]
-                    A[p, s_] = acc
-            for c in range(3):
-                yv[c] = 0.5 * (A[AP[c], AQ[c]] - A[AQ[c], AP[c]])
-            yv[3] = 0.5 * (A[0, 0] + A[1, 1] + A[2, 2] - 1.0)
-            _rotation_vector(yv, th3, Dphi[i])
-            for c in range(3):
-                d[6 * i + 3 + c] = th3[c]
+        _corner_rotations(v, R, R0[e], AP, AQ, trig, C, Dphi, d, t, Kx, Q, A, yv, th3)
         for i in range(18):
             s = 0.0
             for j in range(18):
@@ -222,66 +293,9 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):  # noqa: C901 - a
             g[i] = s
         for m in range(15):
             fz[m] = 0.0
-        for m in range(3):  # the translational rows
-            fz[m] += g[6] * R[0, m]
-            s12 = 0.0
-            s13 = 0.0
-            for c in range(3):
-                s12 += de1[c, m] * b[c]
-                s13 += dR[1, c, m] * b[c]
-            fz[m] += g[12] * s12 + g[13] * s13
-            s12 = 0.0
-            s13 = 0.0
-            for c in range(3):
-                s12 += de1[c, 3 + m] * b[c]
-                s13 += dR[1, c, 3 + m] * b[c]
-            fz[3 + m] += g[12] * (s12 + R[0, m]) + g[13] * (s13 + R[1, m])
-        for i in range(3):  # the rotational rows: over (a, b) and over the corner's spins
-            for p in range(3):
-                for s_ in range(3):
-                    for m in range(6):
-                        acc = 0.0
-                        for u in range(3):
-                            acc += dR[p, u, m] * C[i, u, s_]
-                        dA[p, s_, m] = acc
-            for m in range(4):  # the weights on y = (axial(skew(A)), (tr A - 1)/2): D^T g
-                acc = 0.0
-                for c in range(3):
-                    acc += g[6 * i + 3 + c] * Dphi[i, c, m]
-                gy[m] = acc
-            for m in range(6):
-                fz[m] += gy[3] * 0.5 * (dA[0, 0, m] + dA[1, 1, m] + dA[2, 2, m])
-            for ll in range(3):
-                l1, l2 = (ll + 1) % 3, (ll + 2) % 3
-                acc = 0.0
-                for p in range(3):
-                    acc += R[p, l2] * C[i, l1, p] - R[p, l1] * C[i, l2, p]
-                fz[6 + 3 * i + ll] += gy[3] * 0.5 * acc
-            for c in range(3):
-                gi = gy[c]
-                p, qq = AP[c], AQ[c]
-                for m in range(6):
-                    fz[m] += gi * 0.5 * (dA[p, qq, m] - dA[qq, p, m])
-                # d/dw_l of R exp([w]x) Q R0^T at w = 0: R [e_l]x C; [e_l]x[u, s] = -eps(l, u, s)
-                for ll in range(3):
-                    # (R [e_l]x C)[p, q] = sum_u R[p, u] (e_l x C[:, q])_u = R[p, l+2] C[l+1, q] - R[p, l+1] C[l+2, q]
-                    l1, l2 = (ll + 1) % 3, (ll + 2) % 3
-                    xp = R[p, l2] * C[i, l1, qq] - R[p, l1] * C[i, l2, qq]
-                    xq = R[qq, l2] * C[i, l1, p] - R[qq, l1] * C[i, l2, p]
-                    fz[6 + 3 * i + ll] += gi * 0.5 * (xp - xq)
-        for c in range(3):
-            f[c] = -fz[c] - fz[3 + c]
-            f[6 + c] = fz[c]
-            f[12 + c] = fz[3 + c]
-        for i in range(3):  # generalized moments J(theta)^T m on the rotation vectors
-            for c in range(3):
-                t[c] = v[6 * i + 3 + c]
-            _exp_series(t, trig[i, 0], trig[i, 1], trig[i, 2], True, Kx, Jl)
-            for c in range(3):
-                s = 0.0
-                for m in range(3):
-                    s += Jl[m, c] * fz[6 + 3 * i + m]
-                f[6 * i + 3 + c] = s
+        _translation_rows(g, R, de1, dR, b, fz)
+        _rotation_rows(g, R, C, dR, Dphi, AP, AQ, fz, dA, gy)
+        _generalized_forces(v, trig, fz, f, t, Kx, Jl)
         for i in range(18):
             F[e, i] = f[i]
 
@@ -416,7 +430,9 @@ def _compiled(key: str, kernel, *helpers):
             import numba
 
             opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            g = dict(kernel.__globals__, **{h.__name__: numba.njit(**opts)(h) for h in helpers})
+            g = dict(kernel.__globals__)  # shared: a helper calling another finds its compiled twin
+            for h in helpers:
+                g[h.__name__] = numba.njit(**opts)(type(h)(h.__code__, g, h.__name__))
             _COMPILED[key] = numba.njit(**opts)(type(kernel)(kernel.__code__, g, kernel.__name__))
         except Exception:  # pragma: no cover - numba absent or unable to compile here
             _COMPILED[key] = None
@@ -425,7 +441,8 @@ def _compiled(key: str, kernel, *helpers):
 
 def compiled_forces():
     """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
-    return _compiled("shell", _shell_element_forces, _exp_series, _rotation_vector)
+    return _compiled("shell", _shell_element_forces, _exp_series, _rotation_vector, _element_frame, _corner_rotations,
+                     _translation_rows, _rotation_rows, _generalized_forces)
 
 
 def compiled_solid_forces():
