@@ -23,16 +23,16 @@ from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
-from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import ModelError
 from ..storage import load_versioned, save_versioned
 from ..fe.material import Damping
 from ..fe.protocol import check_model
-from ..reduction.modal import mesh_fingerprint, modal_analysis
-from ..reduction.oscillator import step_response
+from ..reduction.modal import mesh_fingerprint
+
+from .impedance_columns import (_check_build, _check_memory, _check_modes, _column_task, _condensed_static,
+                                _estimate, _loaded_nodes, _ModalColumns, _NeighbourFinder, _run_nodes, _SLDMColumns)
 
 __all__ = ["ImpedanceMap", "Load"]
 
@@ -41,7 +41,19 @@ FORMAT_VERSION = 1
 
 @dataclass(frozen=True)
 class Load:
-    """A force (fx, fy, fz) on ``node`` switched on at ``onset`` (s) and held."""
+    """A force switched on at ``onset`` and held: the loads of :meth:`ImpedanceMap.response`.
+
+    Parameters
+    ----------
+    node : the loaded node.
+    force : (fx, fy, fz) in N.
+    onset : when it is switched on (s).
+
+    Raises
+    ------
+    ModelError
+        From the map's methods, for a node it does not load or a non-finite force.
+    """
 
     node: int
     force: tuple[float, float, float]
@@ -49,7 +61,26 @@ class Load:
 
 
 class ImpedanceMap:
-    """Precomputed unit-load responses (see the module docstring); build with :meth:`build`."""
+    """Precomputed unit-load responses (see the module docstring); build with :meth:`build`, read
+    with :meth:`load`. The constructor takes the arrays as :meth:`save` writes them.
+
+    Parameters
+    ----------
+    n_nodes : nodes of the mesh the map belongs to.
+    times : (nt,) increasing sample times (s) of the step responses.
+    loaded : (L,) the loaded nodes, each once.
+    offsets : (L + 1,) each loaded node's slice of ``neighbours`` (rising from 0).
+    neighbours : the nodes whose responses are kept for each loaded node.
+    responses : (len(neighbours), 3, 3, nt + 1) the responses at the sample times and the static one.
+    point : (L, 3, 3, nt + 1) each loaded node's own (point) response, kept exactly.
+    fingerprint : the mesh's fingerprint.
+    info : what :meth:`build` recorded (radius, damping, model key, ...).
+
+    Raises
+    ------
+    ModelError
+        Arrays that do not fit together (each message names the array and what it must be).
+    """
 
     def __init__(self, n_nodes: int, times: np.ndarray, loaded: np.ndarray, offsets: np.ndarray,
                  neighbours: np.ndarray, responses: np.ndarray, point: np.ndarray, fingerprint: str,
@@ -354,238 +385,3 @@ class ImpedanceMap:
             return cls(n, fingerprint=fp, info=info, **z)
         except ModelError as exc:
             raise ModelError(f"{where}: {exc}; the file is damaged or altered") from None
-
-
-def _check_build(damping, times, metric, radius, threshold, method, n_modes, tol) -> tuple:
-    """:meth:`ImpedanceMap.build`'s options checked: (damping, times, radius, threshold, n_modes, tol)."""
-    if damping is not None and not isinstance(damping, Damping):
-        raise ModelError(f"damping={validate.show(damping)} must be an rt.Damping (or None)")
-    damping = damping if damping is not None else Damping()
-    t = validate.times(times, "times")
-    validate.choice(metric, "metric", ("euclidean", "geodesic"))
-    if radius is not None:
-        radius = validate.positive(radius, "radius", "a radius of influence in m, or None")
-    if threshold is not None:
-        threshold = validate.in_range(threshold, "threshold", 0.0, 1.0, hi_open=True,
-                                      what="a fraction of each column's peak, or None")
-    validate.choice(method, "method", ("modal", "sldm"))
-    n_modes = validate.count(n_modes, "n_modes", 1, what="modes of the modal route")
-    tol = validate.in_range(tol, "tol", 0.0, 1.0, lo_open=True, hi_open=True, what="SLDM's relative accuracy")
-    return damping, t, radius, threshold, n_modes, tol
-
-
-def _check_modes(model, modes) -> None:
-    """Refuse a modal basis (given to :meth:`ImpedanceMap.build`) computed for another model."""
-    if modes is None:
-        return
-    from ..reduction.modal import ModalBasis
-
-    if (not isinstance(modes, ModalBasis) or modes.n_nodes != model.n_nodes
-            or modes.fingerprint != mesh_fingerprint(model.mesh)
-            or (modes.model is not None and modes.model is not model)):
-        raise ModelError("modes must be a ModalBasis computed for this model (rt.modal_analysis(model, r))")
-
-
-def _condensed_static(model, engine, loaded: np.ndarray) -> np.ndarray:
-    """The engine's static limits from the surface's condensed compliance (Bro-Nielsen & Cotin);
-    returns the mask of the surface nodes it covers (the map keeps those only)."""
-    t_cond = time.perf_counter()
-    nodes_s, C = model.surface_compliance(np.union1d(_free_surface(model), loaded), method="condensation")
-    engine.static = _CondensedStatic(model.n_nodes, nodes_s, C)
-    engine.setup_seconds += time.perf_counter() - t_cond
-    surface = np.zeros(model.n_nodes, dtype=bool)
-    surface[nodes_s] = True
-    return surface
-
-
-def _column_task(engine, within, surface: np.ndarray | None, threshold: float | None):
-    """The work for one loaded node j: its response columns, kept within the radius (on the surface,
-    where the static limit is known there only) and above the threshold of the column's peak."""
-
-    def one(j: int):
-        cols = engine.columns(j)  # (n, n_t + 1, 3, 3)
-        keep = within(j)
-        if surface is not None:
-            keep = keep[surface[keep]]
-        if threshold is not None and threshold > 0:
-            mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
-            keep = keep[mag >= threshold * mag.max()]
-        return j, keep, cols[keep], cols[j]
-
-    return one
-
-
-def _free_surface(model) -> np.ndarray:
-    """The surface's nodes that can move (all free nodes on a shell; a solid is touched on its surface)."""
-    surface = model.mesh.used_vertices()
-    return surface[~model.held_nodes[surface]]
-
-
-def _loaded_nodes(model, nodes) -> tuple[np.ndarray, np.ndarray]:
-    """The nodes to load (default every free surface node) and those given that are held (skipped: a
-    load on a fixed node moves nothing)."""
-    if nodes is None:
-        loaded = _free_surface(model)
-    else:
-        loaded = np.unique(model.select_nodes(nodes))
-    held = loaded[model.held_nodes[loaded]]
-    loaded = np.setdiff1d(loaded, held)
-    if loaded.size == 0:
-        raise ModelError("no free nodes to load (every node given is fixed)")
-    return loaded, held
-
-
-def _estimate(loaded: np.ndarray, within, n_times: int) -> tuple[float, float]:
-    """(bytes, mean kept nodes per loaded node) of a map's responses, its kept neighbourhoods
-    sampled at 20 loaded nodes (before any threshold, which keeps fewer)."""
-    sample = loaded[np.linspace(0, loaded.size - 1, min(20, loaded.size)).astype(int)]
-    mean_kept = float(np.mean([within(j).size for j in sample]))
-    return loaded.size * mean_kept * (n_times + 1) * 9 * 8, mean_kept
-
-
-def _check_memory(loaded: np.ndarray, within, n_times: int, memory_limit: float) -> None:
-    """Refuse before starting when the map would exceed ``memory_limit``."""
-    estimate, mean_kept = _estimate(loaded, within, n_times)
-    if estimate > memory_limit:
-        raise ModelError(
-            f"the map would need about {estimate / 2**30:.1f} GiB ({mean_kept:.0f} nodes kept per loaded "
-            f"node, {n_times + 1} samples, {loaded.size} loaded nodes), above memory_limit = "
-            f"{memory_limit / 2**30:.1f} GiB; use a smaller radius, a threshold, fewer times or fewer nodes"
-        )
-
-
-def _run_nodes(one, loaded: np.ndarray, workers: int, progress) -> tuple[list, bool]:
-    """``one(j)`` for every loaded node, in order, on ``workers`` threads; a KeyboardInterrupt
-    keeps the finished nodes (complete = False) unless there are none (re-raised)."""
-    # one append per finished node: a Ctrl-C between two bytecodes cannot leave the
-    # partial results inconsistent
-    results: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-    t0 = time.perf_counter()
-    complete = True
-
-    def collect(result) -> None:
-        results.append(result)
-        if progress is not None:
-            progress(len(results), loaded.size, f"node {result[0]}, {time.perf_counter() - t0:.1f} s")
-
-    try:
-        if workers == 1:
-            for j in loaded:
-                collect(one(int(j)))
-        else:
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(max_workers=workers) as pool:
-                pending = []  # in order, a window of 2 x workers in flight
-                for j in loaded:
-                    pending.append(pool.submit(one, int(j)))
-                    if len(pending) >= 2 * workers:
-                        collect(pending.pop(0).result())
-                while pending:
-                    collect(pending.pop(0).result())
-    except KeyboardInterrupt:
-        complete = False
-    if not results:
-        raise KeyboardInterrupt  # nothing to keep: an ordinary interruption
-    return results, complete
-
-
-class _NeighbourFinder:
-    def __init__(self, mesh, radius, metric):
-        self.mesh, self.radius, self.metric = mesh, radius, metric
-        self.X = np.asarray(mesh.vertices)
-        self.all = np.arange(mesh.n_vertices)
-        if radius is not None and metric == "euclidean":
-            self.tree = cKDTree(self.X)
-
-    def __call__(self, j: int) -> np.ndarray:
-        if self.radius is None:
-            return self.all
-        if self.metric == "euclidean":
-            return np.array(sorted(self.tree.query_ball_point(self.X[j], self.radius)), dtype=np.int64)
-        d = dijkstra(self.mesh.adjacency(), directed=False, indices=j, limit=self.radius)
-        return np.flatnonzero(np.isfinite(d))
-
-
-class _ModalColumns:
-    """Unit-step columns from r modes with the static correction (mode acceleration)."""
-
-    def __init__(self, model, damping, times, n_modes, modes=None):
-        t0 = time.perf_counter()
-        self.model = model
-        self.basis = modal_analysis(model, n_modes) if modes is None else modes
-        lam = self.basis.omega**2
-        self.lam = lam
-        g = step_response(lam[:, None], damping.modal_alpha(self.basis.omega)[:, None], times[None, :])
-        self.g = np.concatenate([g, (1.0 / lam)[:, None]], axis=1)  # (r, n_t + 1): samples + static
-        self.static = _SolvedStatic(model)
-        self.setup_seconds = time.perf_counter() - t0
-
-    def columns(self, j: int) -> np.ndarray:
-        phi = self.basis.shapes  # (n, 3, r)
-        pj = phi[j]  # (3, r): load direction k -> modal force pj[k]
-        # modal part: u(t) = sum_i phi_i g_i(t) phi_i(j)^T e_k
-        cols = np.einsum("nir,rt,kr->ntik", phi, self.g, pj, optimize=True)
-        # static correction: D = K^-1 e_jk - Phi Lambda^-1 Phi^T e_jk, added at every time
-        static = self.static(j)
-        modal_static = cols[:, -1]
-        cols += (static - modal_static)[:, None]
-        return cols
-
-
-class _SLDMColumns:
-    """Unit-step columns from SLDM, three Krylov bases per loaded node."""
-
-    def __init__(self, model, damping, times, tol):
-        from ..reduction.sldm import SLDM
-
-        t0 = time.perf_counter()
-        self.model = model
-        self.sldm = SLDM(model, damping, tol=tol)
-        self.times = times
-        self.static = _SolvedStatic(model)
-        self.setup_seconds = time.perf_counter() - t0
-
-    def columns(self, j: int) -> np.ndarray:
-        n = self.model.n_nodes
-        cols = np.zeros((n, self.times.size + 1, 3, 3))
-        F = np.zeros((n, 6))
-        static = self.static(j)
-        for k in range(3):
-            if self.model.fixed[j, k]:
-                continue  # a load on a fixed dof goes into the support: a zero column
-            F[:] = 0.0
-            F[j, k] = 1.0
-            U = self.sldm.step_response(F[:, :3], self.times)  # (n_t, n, 3)
-            cols[:, :-1, :, k] = U.transpose(1, 0, 2)
-            cols[:, -1, :, k] = static[:, :, k]
-        return cols
-
-
-class _SolvedStatic:
-    """A loaded node's static responses (n, 3, 3) by three sparse solves."""
-
-    def __init__(self, model) -> None:
-        self.model = model
-
-    def __call__(self, j: int) -> np.ndarray:
-        static = np.empty((self.model.n_nodes, 3, 3))
-        for k in range(3):
-            static[:, :, k] = self.model.unit_load_response(j, k)
-        return static
-
-
-class _CondensedStatic:
-    """A loaded node's static responses from the condensed surface compliance (zero off the surface,
-    where the map then keeps nothing)."""
-
-    def __init__(self, n_nodes: int, nodes: np.ndarray, C: np.ndarray) -> None:
-        self.n, self.nodes, self.C = n_nodes, nodes, C
-        self.pos = np.full(n_nodes, -1, dtype=np.int64)
-        self.pos[nodes] = np.arange(nodes.size)
-
-    def __call__(self, j: int) -> np.ndarray:
-        static = np.zeros((self.n, 3, 3))
-        b = 3 * self.pos[j]
-        static[self.nodes] = self.C[:, b:b + 3].reshape(-1, 3, 3)
-        return static

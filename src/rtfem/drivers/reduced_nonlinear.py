@@ -13,14 +13,14 @@ from .. import validate
 from ..errors import ModelError, SolverError
 from ..fe.material import Damping
 from .base import ForceInput, StaticCorrection
-from .tangent import TangentWorker
+from .tangent import Linearization
 
 from ..reduction.reduced import ReducedNonlinearModel, _projection_rows
 
 __all__ = ["ReducedNonlinearSimulator", "reduced_nonlinear_driver"]
 
 
-class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
+class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
     """A Driver on a :class:`ReducedNonlinearModel`: its reduced coordinates integrated by the
     average-acceleration Newmark rule, linearized once per step about the predictor (one cubature
     force evaluation and one r x r product, no Newton iterations: a linearly implicit step). At
@@ -103,7 +103,7 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
         carried to the predictor along the group's tangent (nearly second order in the lag). On a
         localized model the patch then needs no over-stiff reference (``stiffening`` is for
         "rest"). "rest": T the rest stiffness, fixed.
-    refresh : steps between tangent refreshes (default 10; a refresh costs ~35 ms on the default
+    refresh : steps between tangent refreshes (default 10; a refresh costs ~11 ms on the default
         liver: element tangents and an r x r projection; the swung cantilever of the tests settles
         to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
     background : refresh on a low-priority thread instead (the real-time setting): the step asks
@@ -118,13 +118,21 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
     ``step_compliance(node)`` dt^2/4 U_i S^-1 U_i^T (+ D_ii), constant between tangent refreshes
     (``compliance_changes`` is True with the current tangent), so Probe and Grasp work as on a
     linear driver. Loads are dead forces on the translations.
+
+    Raises
+    ------
+    ModelError
+        A reduced model that is not one or has no cubature (with ``cubature=True``), a bad dt,
+        damping, precision, tangent, refresh, spread, stiffening or patch_zeta, or options that
+        do not go together (``background`` with ``tangent="rest"``, single precision without
+        cubature).
+    SolverError
+        At run time: the state diverged (forces no longer finite), or the background tangent
+        refresh failed.
     """
 
     compliance_changes = False
     warping = False
-    # background=True: a linearization older than this many steps (a worker starved by a busy
-    # machine: it runs at the lowest priority) is replaced by one computed on the stepping thread
-    MAX_TANGENT_AGE = 200
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",
@@ -229,89 +237,6 @@ class ReducedNonlinearSimulator(StaticCorrection, ForceInput):
                 self._always = (tuple(a[:p] for a in data), w[:p], Ke[:p], *_projection_rows(data[0][:p], self.single))
         elif self.cubature and self.tangent == "current":
             self._Kc = reduced.cubature_rest()[1]
-
-    def _use_rest(self) -> None:
-        """The linearization about rest (the state reset() leaves), and no refresh in flight."""
-        if self._worker is not None:
-            self._worker.forget()
-        self._dK, self._Sinv = self._rest_linearization
-        self._tangent_q = None  # where the linearization was computed (None: rest)
-
-    def _step_inverse(self, K: np.ndarray) -> np.ndarray | None:
-        """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K, kept positive definite: a
-        tangent with negative eigenvalues (compressed, past a limit point: a grasp jumping
-        centimetres passes through such states) has them clipped at zero, since the step's fixed
-        point does not depend on this matrix, only its stability does, and an indefinite one made
-        the one-step compliances (and a stiff grasp's force) blow up. None where it is not finite."""
-        h = self.dt
-        K = 0.5 * (K + K.T)
-        S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
-        S = 0.5 * (S + S.T)
-        try:
-            np.linalg.cholesky(S)
-        except np.linalg.LinAlgError:
-            lam, V = np.linalg.eigh(K)
-            S = self._M + 0.5 * h * self._C + 0.25 * h * h * ((V * np.maximum(lam, 0.0)) @ V.T)
-            S = 0.5 * (S + S.T)
-        try:
-            Sinv = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            return None
-        return Sinv if np.isfinite(Sinv).all() else None
-
-    def _linearization(self, q: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The step's linearization about the force model's tangent at q: (each group's change of
-        tangent (spread > 1, to carry its lagged remainder from where it was evaluated; else None),
-        the step matrix's inverse (None where singular)). The tangent is the cubature's (every
-        element's with ``cubature=False``). Reads nothing that a step changes (the worker thread's
-        work)."""
-        red = self.reduced
-        dK = None
-        if not self.cubature:
-            T = red.reduced_forces(q)[1]
-            T = 0.5 * (T + T.T)
-        elif self.spread == 1:
-            data, w = red._cubature
-            Ke, _ = red.cubature_rest()
-            T = self._Kc + red.tangent_change(q, data, w, Ke)
-        else:
-            dK = np.stack([red.tangent_change(q, data, w, Ke) for data, w, Ke, _, _ in self._groups])
-            T = self._Kc + dK.sum(axis=0)
-            if self._always is not None:
-                data, w, Ke, _, _ = self._always
-                T = T + red.tangent_change(q, data, w, Ke)
-        return dK, self._step_inverse(T)
-
-    def _use(self, linearization, q: np.ndarray) -> None:
-        """Step from now on with ``linearization`` (:meth:`_linearization` at coordinates q)."""
-        dK, Sinv = linearization
-        if Sinv is not None:  # else the last good one stays: the step is still consistent, only less implicit
-            # the groups' tangents side by side (r, groups r): their sum over the lags in one product
-            self._dK = None if dK is None else np.ascontiguousarray(dK.transpose(1, 0, 2).reshape(dK.shape[1], -1))
-            self._Sinv, self._tangent_q = Sinv, np.array(q, dtype=float)
-
-    def _refresh_tangent(self, qs: np.ndarray) -> None:
-        """Before a step (at its predictor qs): refresh the linearization every ``refresh`` steps,
-        here, or with ``background`` take the worker's newest and ask it for the next."""
-        due = self._tangent_step is None or self.steps - self._tangent_step >= self.refresh
-        if not self.background:
-            if due:
-                self._use(self._linearization(qs), qs)
-                self._tangent_step = self.steps
-            return
-        if self._worker is None:
-            self._worker = TangentWorker(self)
-        done = self._worker.take()
-        if done is not None:
-            self._use(done[1], done[0])
-            self._tangent_at = self.steps
-        if due and self._worker.ask(qs):
-            self._tangent_step = self.steps
-        elif self.steps - self._tangent_at > self.MAX_TANGENT_AGE:  # the worker is starved (a busy machine)
-            self._worker.forget()
-            self._use(self._linearization(qs), qs)
-            self._tangent_at = self._tangent_step = self.steps
-            self.sync_refreshes += 1
 
     def _translation_rows(self) -> np.ndarray:
         """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
@@ -571,7 +496,7 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     the basis also holds every dof within radius (m) of those nodes (:meth:`ReducedNonlinearModel.localize`:
     where a grasp or probe will pull far; its cubature keeps the patch's elements exact). The step is
     linearized about the cubature's tangent, refreshed every ``refresh`` steps (20: reproducible,
-    for offline runs; on the default liver a refresh costs ~35 ms) or, with ``background``, on a
+    for offline runs; on the default liver a refresh costs ~11 ms) or, with ``background``, on a
     thread so that the step never waits (the real-time setting: the viewer's). Shells and solids:
     the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
     if local is not None:

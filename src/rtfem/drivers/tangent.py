@@ -1,5 +1,7 @@
-"""The reduced nonlinear driver's tangent, refreshed on a background thread: the step keeps the
-last finished tangent while the next one is computed from a recent state."""
+"""The reduced nonlinear driver's linearization: the step's matrix for a tangent (kept positive
+definite), the cubature's tangent at a state, and its refresh, in the step or on a background
+thread (the step keeps the last finished tangent while the next one is computed from a recent
+state)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from .. import threads
 from ..errors import SolverError
 
 
-__all__ = ["TangentWorker"]
+__all__ = ["Linearization", "TangentWorker"]
 
 
 class TangentWorker:
@@ -109,3 +111,96 @@ class TangentWorker:
                 if epoch == self._epoch:
                     self._result = (epoch, (q, out))
                 self.done += 1
+
+
+class Linearization:
+    """For :class:`rtfem.drivers.reduced_nonlinear.ReducedNonlinearSimulator`: the step's
+    linearization (its state: ``_Sinv``, ``_dK``, ``_tangent_q``, ``_tangent_step``,
+    ``_tangent_at``, ``_worker``, ``sync_refreshes``, set by the simulator's reset and set_state)."""
+
+    # background=True: a linearization older than this many steps (a worker starved by a busy
+    # machine: it runs at the lowest priority) is replaced by one computed on the stepping thread
+    MAX_TANGENT_AGE = 200
+
+    def _use_rest(self) -> None:
+        """The linearization about rest (the state reset() leaves), and no refresh in flight."""
+        if self._worker is not None:
+            self._worker.forget()
+        self._dK, self._Sinv = self._rest_linearization
+        self._tangent_q = None  # where the linearization was computed (None: rest)
+
+    def _step_inverse(self, K: np.ndarray) -> np.ndarray | None:
+        """(M + dt/2 C + dt^2/4 K)^-1, the step's matrix for a tangent K, kept positive definite: a
+        tangent with negative eigenvalues (compressed, past a limit point: a grasp jumping
+        centimetres passes through such states) has them clipped at zero, since the step's fixed
+        point does not depend on this matrix, only its stability does, and an indefinite one made
+        the one-step compliances (and a stiff grasp's force) blow up. None where it is not finite."""
+        h = self.dt
+        K = 0.5 * (K + K.T)
+        S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
+        S = 0.5 * (S + S.T)
+        try:
+            np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            lam, V = np.linalg.eigh(K)
+            S = self._M + 0.5 * h * self._C + 0.25 * h * h * ((V * np.maximum(lam, 0.0)) @ V.T)
+            S = 0.5 * (S + S.T)
+        try:
+            Sinv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return None
+        return Sinv if np.isfinite(Sinv).all() else None
+
+    def _linearization(self, q: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The step's linearization about the force model's tangent at q: (each group's change of
+        tangent (spread > 1, to carry its lagged remainder from where it was evaluated; else None),
+        the step matrix's inverse (None where singular)). The tangent is the cubature's (every
+        element's with ``cubature=False``). Reads nothing that a step changes (the worker thread's
+        work)."""
+        red = self.reduced
+        dK = None
+        if not self.cubature:
+            T = red.reduced_forces(q)[1]
+            T = 0.5 * (T + T.T)
+        elif self.spread == 1:
+            data, w = red._cubature
+            Ke, _ = red.cubature_rest()
+            T = self._Kc + red.tangent_change(q, data, w, Ke)
+        else:
+            dK = np.stack([red.tangent_change(q, data, w, Ke) for data, w, Ke, _, _ in self._groups])
+            T = self._Kc + dK.sum(axis=0)
+            if self._always is not None:
+                data, w, Ke, _, _ = self._always
+                T = T + red.tangent_change(q, data, w, Ke)
+        return dK, self._step_inverse(T)
+
+    def _use(self, linearization, q: np.ndarray) -> None:
+        """Step from now on with ``linearization`` (:meth:`_linearization` at coordinates q)."""
+        dK, Sinv = linearization
+        if Sinv is not None:  # else the last good one stays: the step is still consistent, only less implicit
+            # the groups' tangents side by side (r, groups r): their sum over the lags in one product
+            self._dK = None if dK is None else np.ascontiguousarray(dK.transpose(1, 0, 2).reshape(dK.shape[1], -1))
+            self._Sinv, self._tangent_q = Sinv, np.array(q, dtype=float)
+
+    def _refresh_tangent(self, qs: np.ndarray) -> None:
+        """Before a step (at its predictor qs): refresh the linearization every ``refresh`` steps,
+        here, or with ``background`` take the worker's newest and ask it for the next."""
+        due = self._tangent_step is None or self.steps - self._tangent_step >= self.refresh
+        if not self.background:
+            if due:
+                self._use(self._linearization(qs), qs)
+                self._tangent_step = self.steps
+            return
+        if self._worker is None:
+            self._worker = TangentWorker(self)
+        done = self._worker.take()
+        if done is not None:
+            self._use(done[1], done[0])
+            self._tangent_at = self.steps
+        if due and self._worker.ask(qs):
+            self._tangent_step = self.steps
+        elif self.steps - self._tangent_at > self.MAX_TANGENT_AGE:  # the worker is starved (a busy machine)
+            self._worker.forget()
+            self._use(self._linearization(qs), qs)
+            self._tangent_at = self._tangent_step = self.steps
+            self.sync_refreshes += 1
