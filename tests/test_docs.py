@@ -48,3 +48,38 @@ def test_the_manual_builds_without_a_warning(tmp_path):
     # the guide's images resolve (a missing one is a warning, which failed the build above)
     assert re.search(r'<img[^>]+viewer\.png', (out / "index.html").read_text())
     assert re.search(r'<img[^>]+modes\.png', (out / "guide" / "getting-started.html").read_text())
+
+
+def test_public_classes_and_functions_carry_parameters_returns_and_raises_sections():
+    """Issue 38 item 4: every public class documents its Parameters and what it Raises (or Warns);
+    every public function its Parameters (when it takes any), Returns and Raises. The exceptions
+    and the two protocols (Driver, Model: no constructor of their own) are exempt."""
+    import inspect
+
+    import rtfem as rt
+
+    def sections(doc: str) -> set[str]:
+        lines = doc.splitlines()
+        return {a.strip() for a, b in zip(lines, lines[1:]) if b.strip() and set(b.strip()) == {"-"}
+                and len(b.strip()) >= len(a.strip()) > 0}
+
+    missing = []
+    for name in rt.__all__:
+        obj = getattr(rt, name)
+        if inspect.ismodule(obj) or name in ("Driver", "Model"):
+            continue
+        if inspect.isclass(obj) and issubclass(obj, (Exception, Warning)):
+            continue
+        have = sections(inspect.getdoc(obj) or "")
+        if inspect.isclass(obj):
+            want = {"Parameters"}
+        elif inspect.isfunction(obj):
+            takes = [p for p in inspect.signature(obj).parameters.values() if p.kind is not p.VAR_KEYWORD]
+            want = {"Returns"} | ({"Parameters"} if takes else set())
+        else:
+            continue
+        if not (have & {"Raises", "Warns"}):
+            want.add("Raises")
+        if want - have:
+            missing.append(f"{name}: {sorted(want - have)}")
+    assert not missing, missing

@@ -41,6 +41,16 @@ class DirectSimulator(ForceInput):
     damping : :class:`~rtfem.Damping` with alpha and/or beta (B = alpha M + beta K).
     method : "newmark" (implicit, average acceleration, unconditionally stable) or "central"
         (explicit central differences; stable only for dt <= T_n / pi).
+    large_deformation : the corotational full order (Newton inside implicit Newmark:
+        :class:`~rtfem.NonlinearNewmarkSimulator`, which takes the ``options``).
+    numerical_damping : Newmark only: Hilber-Hughes-Taylor's d (see :class:`~rtfem.NewmarkSimulator`).
+
+    Raises
+    ------
+    ModelError
+        A model that is not one (or has nothing fixed where the method needs supports), a dt
+        that is not a positive time step, damping that is not an :class:`~rtfem.Damping` (or
+        modal ratios, which have no full matrix), an unknown method, options of another method.
     """
 
     method = ""
@@ -223,6 +233,18 @@ class NewmarkSimulator(DirectSimulator):
     acceleration rule keeps them ringing (a sphere on the 16 x 16 plate at dt = 0.01 s: the force
     still swings by 440 % of itself over the sixth second; with d = 0.1 it settles to the
     quasi-static force, tests/verification/test_tool_contact.py).
+
+    Parameters
+    ----------
+    model, dt, damping : as :class:`~rtfem.DirectSimulator`.
+    numerical_damping : HHT's d in 0 .. 1/3 (default 0: average acceleration).
+
+    Raises
+    ------
+    ModelError
+        As :class:`~rtfem.DirectSimulator`; d outside 0 .. 1/3.
+    SolverError
+        The effective stiffness cannot be factorized (a mechanism).
     """
 
     method = "newmark"
@@ -366,7 +388,20 @@ class NewmarkSimulator(DirectSimulator):
 class CentralDifferenceSimulator(DirectSimulator):
     """Explicit central differences on the condensed system (Eq. 5) with diagonal mass and
     mass-proportional damping: m u_{k+1} (1 + dt a/2) = dt^2 (F_k - K_c u_k) + 2 m u_k
-    - m (1 - dt a/2) u_{k-1}. Forces act at the start of the step; stable for dt <= T_n / pi."""
+    - m (1 - dt a/2) u_{k-1}. Forces act at the start of the step; stable for dt <= T_n / pi.
+
+    Parameters
+    ----------
+    model, dt, damping : as :class:`~rtfem.DirectSimulator`; the model's constraints must be
+        "elimination" (a penalty puts a huge eigenvalue in every fixed massed dof) and the damping
+        mass-proportional (a diagonal B).
+
+    Raises
+    ------
+    ModelError
+        As :class:`~rtfem.DirectSimulator`; beta or modal damping, penalty constraints, or a dt
+        above the stability limit T_n / pi (the message gives the limit).
+    """
 
     method = "central"
     _state = ("_u", "_u_old")

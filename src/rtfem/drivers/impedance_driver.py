@@ -39,6 +39,21 @@ class ImpedanceDriver:
     Maps: one :class:`ImpedanceMap` or several of the same mesh; :meth:`on_demand` builds a
     node's map the first time it is prepared (:meth:`prepare`, called by Grasp and Probe
     when a vertex is first touched, outside the force loop).
+
+    Parameters
+    ----------
+    maps : an :class:`~rtfem.ImpedanceMap` or a list of maps of the same mesh.
+    dt : time step (s).
+    dynamic : the drawn field by Duhamel superposition of the force history (True) or the
+        static columns of the current loads (False).
+    resolution : with ``dynamic``, changes of a node's load closer than this (s) are merged
+        (default: the maps' first sample time).
+
+    Raises
+    ------
+    ModelError
+        No maps, maps of different meshes, a bad dt or resolution; at run time, a load on a
+        node no map has (prepare it, or build its map).
     """
 
     def __init__(self, maps, dt: float = 1e-3, *, dynamic: bool = False, resolution: float | None = None) -> None:

@@ -49,6 +49,14 @@ class ModalSimulator(StaticCorrection, ForceInput):
     warping : rotation-aware (modal warping, Choi & Ko 2005): gives a
         :class:`~rtfem.drivers.warping.WarpedModalSimulator`, whose displacements follow each node's
         rotation and whose loads act in each node's frame. Needs ``modes.model``.
+
+    Raises
+    ------
+    ModelError
+        Modes that are not a ModalBasis, a dt that is not a positive time step, damping that is
+        not an :class:`~rtfem.Damping`, an unknown integrator, the static correction or warping
+        without ``modes.model`` (a basis loaded without its model); at run time, loads on nodes
+        off the mesh or not finite, a driver stepped after its model's supports changed.
     """
 
     def __new__(cls, modes=None, dt=None, damping=None, *, integrator: str = "exact", static_correction: bool = False,

@@ -41,6 +41,20 @@ class NonlinearNewmarkSimulator(DirectSimulator):
     step with the last step's loads held, so that a consumer's u = predict + W f is exact for the
     loads it holds and off only to second order in their change (a tool resting on the tissue);
     linearized at no load it is off by the nonlinearity of the whole load.
+
+    Parameters
+    ----------
+    model, dt, damping : as :class:`~rtfem.DirectSimulator` (a model with ``nonlinear()``).
+    numerical_damping : HHT's d in 0 .. 1/3 (default 0.05).
+    tol : Newton's tolerance relative to the force scale (default 1e-8).
+    max_iterations : Newton iterations per step before it fails (default 25).
+
+    Raises
+    ------
+    ModelError
+        As :class:`~rtfem.DirectSimulator`; d, tol or max_iterations out of range.
+    SolverError
+        At run time: Newton does not converge in a step (take a smaller dt or more damping).
     """
 
     method = "newmark"

@@ -42,6 +42,14 @@ class StaticDriver(ForceInput):
     ``predict(node)`` is the equilibrium under the held loads alone and ``step_compliance(node)``
     the static 3x3 compliance (K^-1)_pp, so ``rt.ToolContact(mesh, rt.StaticDriver(model), ...)``
     solves the static contact problem each step (its ``coupling="constraint"``: a rigid tool).
+
+    Raises
+    ------
+    ModelError
+        A model that is not one, loads off the mesh or not finite, a bad dt; at run time, a
+        step after the model's supports changed.
+    SolverError
+        The stiffness cannot be factorized (nothing fixed: a mechanism).
     """
 
     compliance_changes = False

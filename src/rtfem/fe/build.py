@@ -11,9 +11,25 @@ __all__ = ["make_model"]
 
 
 def make_model(mesh, material: Material, **options):
-    """The model of ``mesh``: a :class:`ShellModel` for a triangle surface, a
-    :class:`~rtfem.SolidModel` for a :class:`~rtfem.TetMesh` (``element``, ``mass`` among the
-    options). Where the CLI and the viewer build models, so that a new kind is added in one place."""
+    """The model of ``mesh``: where the CLI and the viewer build models, so that a new kind is
+    added in one place.
+
+    Parameters
+    ----------
+    mesh : a :class:`~rtfem.TriMesh` (a shell) or a :class:`~rtfem.TetMesh` (a solid).
+    material : the :class:`~rtfem.Material`.
+    options : the model's keyword arguments (a solid's ``element``, ``mass``; a shell's
+        ``membrane``, ...).
+
+    Returns
+    -------
+    ShellModel or SolidModel
+
+    Raises
+    ------
+    ModelError, MeshError
+        What the model's constructor raises (an unknown option, a degenerate mesh).
+    """
     if isinstance(mesh, TetMesh):
         return SolidModel(mesh, material, **options)
     return ShellModel(mesh, material, **options)

@@ -59,8 +59,19 @@ _PARDISO = False  # not looked for yet
 
 
 def available_backends() -> list[str]:
-    """Backends that :func:`factorize` can use here, best first (the first is the default for
-    symmetric positive definite matrices)."""
+    """The sparse direct solvers :func:`factorize` can use here.
+
+    Returns
+    -------
+    list of str
+        Best first, among "pardiso" (MKL's supernodal Cholesky: the ``fast`` extra), "cholmod"
+        (scikit-sparse) and "superlu" (scipy, always): the first is the default for symmetric
+        positive definite matrices (``RTFEM_BACKEND`` overrides it).
+
+    Raises
+    ------
+    Nothing: a solver that cannot be loaded is left out.
+    """
     return (["pardiso"] if _mkl_pardiso() is not None else []) + (["cholmod"] if _HAVE_CHOLMOD else []) + ["superlu"]
 
 

@@ -19,14 +19,19 @@ def finite_positive(name: str, value: float, what: str, owner: str = "Material "
 
 @dataclass(frozen=True)
 class Material:
-    """Linear isotropic elastic shell material.
+    """Linear isotropic elastic material of shells and solids (frozen).
 
     Parameters
     ----------
-    E : Young's modulus in Pa (soft tissue: 1e3 .. 1e6 Pa).
-    nu : Poisson's ratio, -1 < nu < 0.5 (tissue is nearly incompressible: 0.45 .. 0.49).
-    thickness : shell thickness in m.
+    E : Young's modulus in Pa, 1e-6 .. 1e13 (soft tissue: 1e3 .. 1e6 Pa).
+    nu : Poisson's ratio, -1 < nu <= 0.4999 (tissue is nearly incompressible: 0.45 .. 0.49).
+    thickness : shell thickness in m (ignored by solids).
     density : mass density in kg/m^3 (tissue: about 1000 .. 1100).
+
+    Raises
+    ------
+    ModelError
+        A value that is not a finite number, or outside those ranges.
     """
 
     E: float = 3.0e4
@@ -77,14 +82,21 @@ class Material:
 
 @dataclass(frozen=True)
 class Damping:
-    """Viscous damping, mapped to one damping coefficient per mode (Eq. 9).
-
-    * ``alpha``: mass-proportional, B = alpha M (the paper's choice), in 1/s;
-    * ``beta``: stiffness-proportional, B = alpha M + beta K (Rayleigh), in s;
-    * ``zeta``: modal damping ratios (a scalar for all modes, or one per mode).
-
-    They add up: mode i gets alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i, so that
+    """Viscous damping, mapped to one damping coefficient per mode (Eq. 9). The three kinds add
+    up: mode i gets alpha_i = alpha + beta w_i^2 + 2 zeta_i w_i, so that
     x_i'' + alpha_i x_i' + w_i^2 x_i = f_i.
+
+    Parameters
+    ----------
+    alpha : mass-proportional, B = alpha M (the paper's choice), in 1/s; >= 0.
+    beta : stiffness-proportional, B = alpha M + beta K (Rayleigh), in s; >= 0.
+    zeta : modal damping ratios >= 0: a scalar for all modes, or one per mode (modal drivers
+        only: there is no full-system matrix for them).
+
+    Raises
+    ------
+    ModelError
+        A negative or non-finite value, or zeta that is not ratios.
     """
 
     alpha: float = 0.0

@@ -36,6 +36,13 @@ class ShellModel(FEModel):
         is relative and scales with the organ's stiffness by construction: the default 1e8
         leaves ~1e-8 relative motion at the supports on any mesh, and 1e4 .. 1e16 agree with
         elimination to that order.
+
+    Raises
+    ------
+    ModelError
+        A mesh that is not a TriMesh, a material that is not a Material, an unknown membrane or
+        constraints, a penalty that is not a factor > 1. (Degenerate triangles never get here:
+        :class:`~rtfem.TriMesh` removes or refuses them.)
     """
 
     def __init__(

@@ -38,6 +38,14 @@ class SolidModel(FEModel):
         generalized mode); SLDM and the central-difference simulator need a diagonal M and ask
         for ``mass='lumped'``.
     constraints, penalty : as for :class:`~rtfem.ShellModel`.
+
+    Raises
+    ------
+    ModelError
+        A mesh that is not a TetMesh, a material that is not a Material, an unknown element,
+        mass or constraints.
+    MeshError
+        Inverted or degenerate tets (a non-positive Jacobian at a quadrature point).
     """
 
     dofs_per_node = 3  # x, y, z

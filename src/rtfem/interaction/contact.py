@@ -70,6 +70,19 @@ class Tool:
     rotation whose columns are the frame's axes in the world): a = b = 0 a point (a sphere), b = 0 a
     segment along the first axis (a capsule), both > 0 a rectangle (a jaw, whose face normal is the
     third axis). Use the constructors :meth:`sphere`, :meth:`capsule` and :meth:`jaw`.
+
+    Parameters
+    ----------
+    radius : the radius swept around the core (m); 0 with a point core is a point probe.
+    half_extents : (a, b), the core's half-lengths along the frame's first two axes (m).
+    orientation : the tool frame's rotation, a 3x3 matrix whose columns are its axes in the world; default identity.
+    kind : a name for messages ("sphere", "capsule", "jaw" from the constructors).
+
+    Raises
+    ------
+    ModelError
+        A negative radius or half-length, half_extents that are not two numbers, an orientation
+        that is not a rotation.
     """
 
     def __init__(self, radius: float, half_extents=(0.0, 0.0), orientation=None, *, kind: str = "tool") -> None:
@@ -190,6 +203,14 @@ class ToolContact:
         are prepared on a background thread before the tool touches them (their static-correction
         or compliance columns: a few ms each), so that a tool sliding onto new vertices does not
         stall the force loop; 0: prepared in the loop when touched. Either way the same numbers.
+
+    Raises
+    ------
+    ModelError
+        A driver that is not one or is of another mesh, a tool that is not a Tool, an unknown
+        coupling, a non-positive stiffness, a negative friction, margin or lookahead; in
+        :meth:`update`, a position that is not a finite point within 1e6 m or a tool starting
+        deeper in the tissue than its radius or an edge.
     """
 
     def __init__(self, mesh: TriMesh, driver, tool: Tool | None = None, *, coupling: str = "spring",

@@ -15,7 +15,19 @@ __all__ = ["ScriptedDevice", "Press", "CallbackDevice", "SharedDevice"]
 
 
 class ScriptedDevice:
-    """A probe that follows a trajectory: ``trajectory(t) -> (3,)`` position in metres."""
+    """A device that follows a script: where the hand is at each time, and a record of the forces
+    handed back (``times``, ``forces``).
+
+    Parameters
+    ----------
+    trajectory : a callable ``t -> (3,)``, the position in metres at time t (s); :meth:`press`
+        makes the usual one.
+
+    Raises
+    ------
+    ModelError
+        ``trajectory`` is not callable.
+    """
 
     def __init__(self, trajectory: Callable[[float], np.ndarray]) -> None:
         if not callable(trajectory):
@@ -71,7 +83,19 @@ class Press:
 
 
 class CallbackDevice:
-    """Plug a real device driver (or the viewer) in: ``get_position() -> (3,)``, ``set_force(f)``."""
+    """A device behind two callables: plug in a real device's driver (or the viewer).
+
+    Parameters
+    ----------
+    get_position : ``get_position() -> (3,)``, the device's position in metres now.
+    set_force : ``set_force(f)``, hands the force (3,) in newtons to the device.
+
+    Raises
+    ------
+    ModelError
+        Either is not callable; a position that is not three finite numbers within 1e6 m, when
+        it is read.
+    """
 
     def __init__(self, get_position: Callable[[], np.ndarray], set_force: Callable[[np.ndarray], None]) -> None:
         for name, fn in (("get_position", get_position), ("set_force", set_force)):
@@ -89,7 +113,17 @@ class CallbackDevice:
 class SharedDevice:
     """A device whose position any thread writes (:meth:`move_to`: a device driver's thread, the
     viewer's mouse) and whose force any thread reads (:attr:`force`), through one shared array,
-    so a compiled HapticLoop reads and writes it without the GIL."""
+    so a compiled HapticLoop reads and writes it without the GIL.
+
+    Parameters
+    ----------
+    position : the starting position (3,) in metres.
+
+    Raises
+    ------
+    ModelError
+        A position that is not three finite numbers within 1e6 m (here or in :meth:`move_to`).
+    """
 
     def __init__(self, position=(0.0, 0.0, 0.0)) -> None:
         self.mailbox = np.zeros(6)  # position (3), force on the probe (3)

@@ -57,6 +57,13 @@ class Probe:
     coupling : "spring" (virtual coupling, default) or "constraint" (hard displacement).
     stiffness : virtual coupling stiffness k (N/m).
     candidates : how many vertices near the probe are tested for contact.
+
+    Raises
+    ------
+    ModelError
+        A driver that is not one or is of another mesh, an unknown coupling, a negative radius, a
+        non-positive stiffness or candidates; in :meth:`update`, a position that is not a finite
+        point within 1e6 m.
     """
 
     def __init__(self, mesh: TriMesh, driver, *, radius: float = 0.0, coupling: str = "spring",
@@ -200,6 +207,21 @@ class Grasp:
     u_free = 0) or any Driver. ``max_force`` caps the total force (N), for a mouse that can be
     dragged anywhere; ``clipped`` says whether the last step's force was capped and ``demand`` is
     the force the spring asked for (N).
+
+    Parameters
+    ----------
+    mesh : the organ's :class:`~rtfem.TriMesh` (a solid's boundary surface: ``model.mesh``).
+    driver : any Driver on that mesh (an :class:`~rtfem.ImpedanceMap` is wrapped as its driver).
+    stiffness : the grasp spring k between hand and jaw (N/m).
+    max_force : a cap on the total force (N); None: no cap.
+    radius : the jaw holds the surface vertices within this of the grabbed one (m); 0: one vertex.
+    grip : each held vertex's spring to the jaw (N/m; default 100 k).
+
+    Raises
+    ------
+    ModelError
+        A driver that is not one or is of another mesh, a non-positive stiffness, max_force or
+        grip, a negative radius; in :meth:`grab`, a node off the surface or held by the supports.
     """
 
     def __init__(self, mesh: TriMesh, driver, *, stiffness: float = 200.0, max_force: float | None = None,

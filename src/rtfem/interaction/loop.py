@@ -92,6 +92,23 @@ class HapticLoop:
     ImpedanceDriver, read from a ScriptedDevice (with ``seconds``) or a SharedDevice, ticks in
     compiled code without the GIL (``compiled``: None = when it can, True = insist, False = the
     Python ticks); ``loop.compiled`` and ``stats.compiled`` say which ran.
+
+    Parameters
+    ----------
+    probe : an :class:`~rtfem.Probe` or :class:`~rtfem.Grasp` (anything with ``update(position)``
+        and a ``driver``).
+    device : a device: ``position(t)`` and ``set_force(t, f)`` (:class:`~rtfem.ScriptedDevice`,
+        :class:`~rtfem.CallbackDevice`, :class:`~rtfem.SharedDevice`).
+    rate : ticks per second (Hz), up to 1e5.
+    spin : seconds of busy-waiting before each tick (sleep alone is too coarse for 1 ms), 0 .. 0.1.
+    compiled : None (compiled ticks where they can run), True (insist), False (Python ticks).
+
+    Raises
+    ------
+    ModelError
+        A probe or device without those methods, a rate or spin out of range, ``compiled=True``
+        where the compiled loop cannot run (the message says why); in :meth:`run`/:meth:`start`,
+        a second loop on the same simulator.
     """
 
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)

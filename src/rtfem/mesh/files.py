@@ -37,6 +37,17 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
     scale : factor applied to the coordinates; organ meshes are usually in millimetres and
         the model works in SI units, so ``scale=1e-3`` turns mm into m.
     repair, merge_tol : see :class:`TriMesh`; the repairs are listed in ``mesh.report``.
+
+    Returns
+    -------
+    TriMesh or TetMesh
+
+    Raises
+    ------
+    MeshError
+        A missing or unreadable file (named), an unknown format, no triangles or tets in it, a
+        bad scale, a mesh its checks refuse (non-manifold, degenerate, tangled: the message says
+        what to repair).
     """
     p = Path(validate.path_like(path, "path", error=MeshError))
     s = validate.positive(scale, "scale", "a factor on the coordinates (1e-3 turns mm into m)", error=MeshError)
@@ -64,6 +75,22 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
 
     The file is written beside the target and renamed over it: an interrupted save leaves
     any previous file intact.
+
+    Parameters
+    ----------
+    mesh : a :class:`~rtfem.TriMesh` or :class:`~rtfem.TetMesh`.
+    path : the file; its suffix names the format (.stl, .obj, .ply, .vtk, .vtu, .msh, .mesh, ...).
+    point_data : {name: (n,) or (n, k) array}, per-vertex fields written with it.
+
+    Returns
+    -------
+    None
+
+    Raises
+    ------
+    MeshError
+        Not a mesh, a suffix that names no format, a field of the wrong length, or the writer
+        failing (the message names the file).
     """
     import meshio
 

@@ -28,7 +28,28 @@ def _listing(idx: np.ndarray) -> str:
 
 @dataclass
 class MeshReport:
-    """What validation found and what repair changed."""
+    """What validation found and what repair changed (``mesh.report``; ``str(report)`` says it in
+    words). Filled in by the mesh's checks, which raise :class:`~rtfem.MeshError` for what they
+    cannot repair.
+
+    Parameters
+    ----------
+    n_vertices_in, n_triangles_in : the input mesh's sizes.
+    merged_vertices : coincident vertices merged (within ``merge_tol``).
+    dropped_unreferenced : vertices no triangle used, dropped.
+    removed_degenerate, removed_duplicate_triangles : triangles removed.
+    flipped_triangles : triangles turned to agree with their neighbours' orientation.
+    n_components : connected pieces.
+    closed, n_boundary_edges : whether the surface is closed; its boundary edges.
+    orientable : whether a consistent orientation exists.
+    nonmanifold_vertices : vertices where the surface is not a disc.
+    min_angle_deg : the smallest triangle angle (degrees).
+    notes : remarks in words.
+
+    Raises
+    ------
+    Nothing itself: a record.
+    """
 
     n_vertices_in: int = 0
     n_triangles_in: int = 0

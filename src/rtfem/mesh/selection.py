@@ -67,8 +67,28 @@ def _parse(mesh, spec, name: str) -> tuple[np.ndarray, str]:
 
 
 def select_nodes(mesh, spec, name: str = "nodes") -> np.ndarray:
-    """The node indices ``spec`` selects on ``mesh`` (sorted for slabs, groups and lists of
-    ``nodes:``; indices given as integers keep their order). May be empty."""
+    """The node indices ``spec`` selects on ``mesh``.
+
+    Parameters
+    ----------
+    mesh : any mesh with ``vertices``, ``groups`` and ``n_vertices`` (TriMesh, TetMesh).
+    spec : node indices, a boolean mask over the nodes, a vertex group's name, a slab
+        ``"z<0.01"`` / ``"x>0.1"`` (m), ``"bottom:0.1"`` (the lowest 10 % of the height) or
+        ``"nodes:3,7,12"``.
+    name : what the selection is for, in error messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 node indices, sorted for slabs, groups and ``nodes:`` lists (indices given as
+        integers keep their order); may be empty.
+
+    Raises
+    ------
+    ModelError
+        An index off the mesh, a mask of the wrong shape, an unknown group or a malformed slab
+        (the message lists the groups and the forms).
+    """
     return _parse(mesh, spec, name)[0]
 
 

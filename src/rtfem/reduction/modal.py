@@ -81,6 +81,17 @@ class ModalBasis:
     fingerprint : hash of the mesh the basis belongs to.
     model : the ShellModel it was computed from, when known (needed for the static
         correction); ``None`` after :meth:`load` without a model.
+
+    Parameters
+    ----------
+    omega, shapes, fingerprint, model : as the attributes (:func:`~rtfem.modal_analysis` makes
+        bases; :meth:`load` reads them).
+    info : what the analysis recorded (solver, residuals, model key).
+
+    Raises
+    ------
+    ModelError
+        Shapes and frequencies that do not fit (count, finiteness, ascending order).
     """
 
     def __init__(self, omega: np.ndarray, shapes: np.ndarray, fingerprint: str, model=None, info: dict | None = None):
@@ -208,6 +219,15 @@ def modal_analysis(
     Returns
     -------
     ModalBasis with ascending w, mass-normalized shapes (Phi^T M Phi = I).
+
+    Raises
+    ------
+    ModelError
+        A model that is not one, n_modes out of range (at least 1, fewer than the free dofs), an
+        unknown solver, "block" with sigma > 0, a mechanism's zero-frequency modes on a model
+        that is supposed to be held.
+    SolverError
+        The eigensolver does not converge, or the shifted matrix cannot be factorized.
     """
     check_model(model)
     if not (isinstance(n_modes, str) and n_modes == "all"):

@@ -71,6 +71,14 @@ class ReducedNonlinearModel:
 
     ``basis`` (free dofs x r) is stiffness-orthonormal (basis^T K basis = I at rest); ``info``
     holds the sizes and the time split.
+
+    Raises
+    ------
+    ModelError
+        A model without corotational forces, modes of another model (mesh, supports or material:
+        the basis's model key), a negative derivatives or size.
+    SolverError
+        A modal derivative's solve fails (a mechanism).
     """
 
     local = None  # a localized copy's patch (see :meth:`localize`)

@@ -88,6 +88,18 @@ class SLDM:
     reorth : "cgs2" (classical Gram-Schmidt twice, default) or "householder" (the paper's).
     progress : ``progress(done, total, message)`` as the Krylov basis grows: its dimension m and
         the dimension expected (which grows when the estimate is short).
+
+    Raises
+    ------
+    ModelError
+        A model that is not one (or needs a lumped mass: SLDM takes M^-1/2), damping that is not
+        an :class:`~rtfem.Damping`, tol, m or m_max out of range, an unknown reorth.
+
+    Warns
+    -----
+    RtfemWarning
+        When evaluated: the Krylov dimension reaches m_max before the error estimate meets tol
+        (the message gives the estimate and what to change).
     """
 
     def __init__(
