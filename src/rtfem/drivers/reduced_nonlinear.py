@@ -103,7 +103,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         carried to the predictor along the group's tangent (nearly second order in the lag). On a
         localized model the patch then needs no over-stiff reference (``stiffening`` is for
         "rest"). "rest": T the rest stiffness, fixed.
-    refresh : steps between tangent refreshes (default 10; a refresh costs ~11 ms on the default
+    refresh : steps between tangent refreshes (default 10; a refresh costs ~13 ms on the default
         liver: element tangents and an r x r projection; the swung cantilever of the tests settles
         to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
     background : refresh on a low-priority thread instead (the real-time setting): the step asks
@@ -496,7 +496,7 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     the basis also holds every dof within radius (m) of those nodes (:meth:`ReducedNonlinearModel.localize`:
     where a grasp or probe will pull far; its cubature keeps the patch's elements exact). The step is
     linearized about the cubature's tangent, refreshed every ``refresh`` steps (20: reproducible,
-    for offline runs; on the default liver a refresh costs ~11 ms) or, with ``background``, on a
+    for offline runs; on the default liver a refresh costs ~13 ms) or, with ``background``, on a
     thread so that the step never waits (the real-time setting: the viewer's). Shells and solids:
     the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
     if local is not None:

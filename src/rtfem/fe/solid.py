@@ -6,11 +6,13 @@ gradient of shape function i (Zienkiewicz & Taylor, The Finite Element Method, v
 the same B^T D B written without forming B). Mass: consistent rho int N_i N_j dV (x I_3), or
 lumped: rho V / 4 per corner for the linear tet, HRZ diagonal scaling for the quadratic one
 (Hinton, Rock & Zienkiewicz 1976: the consistent diagonal scaled to the element mass; row sums
-would give negative corner masses). Quadrature: the quadratic tet's stiffness and its corotational
-forces with the symmetric 4-point rule exact to degree 2 (:func:`tet10_rule`: the stiffness of a
-straight-sided tet10 exactly, as CalculiX's and Abaqus's C3D10), the consistent mass with Stroud's
-conical product rule (Gauss-Jacobi in collapsed coordinates, :func:`tet_rule`), exact to degree
-2n - 1 with n points per direction.
+would give negative corner masses). Quadrature: Stroud's conical product rule (Gauss-Jacobi in
+collapsed coordinates), exact to degree 2n - 1 with n points per direction: 8 points for the
+quadratic tet's stiffness and corotational forces. (CalculiX's C3D10 takes 4 points, exact to
+degree 2: the same linear stiffness on a straight-sided tet10, tests/verification/test_calculix.py.
+With them the corotational forces cost half, but the default liver's reduced model moved from 6.0
+to 10.1 % of its own full order's grasped equilibrium, benchmarks/viewer_settings.py: the grasp's
+local large strain is where the two rules differ.)
 
 Element dof order is node-major: dof 3 i + a is node i's translation a.
 """
@@ -26,7 +28,7 @@ from ..errors import MeshError
 from .material import Material
 from .rotations import cross_matrices
 
-__all__ = ["ELEMENTS", "MASSES", "shape_functions", "tet_rule", "tet10_rule", "element_matrices"]
+__all__ = ["ELEMENTS", "MASSES", "shape_functions", "tet_rule", "element_matrices"]
 
 ELEMENTS = ("tet4", "tet10")
 MASSES = ("lumped", "consistent")
@@ -48,21 +50,6 @@ def tet_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
     y = ((1 - A) * B).ravel()
     z = ((1 - A) * (1 - B) * C).ravel()
     return np.column_stack([x, y, z]), W
-
-
-@lru_cache(maxsize=None)
-def tet10_rule() -> tuple[np.ndarray, np.ndarray]:
-    """The quadratic tet's stiffness rule: 4 points (a, b, b), (b, a, b), (b, b, a), (b, b, b) with
-    a = (5 + 3 sqrt 5) / 20, b = (5 - sqrt 5) / 20 and weights 1/24, exact for polynomials of degree
-    2 (Hammer, Marlowe & Stroud 1956; Keast 1986), so the stiffness of a straight-sided tet10
-    (linear gradients: a quadratic integrand) is exact, as with the 8 points of ``tet_rule(2)``,
-    at half the cost per element. CalculiX and Abaqus integrate C3D10 with these 4 points. On a
-    tet10 cantilever swung to 30-60 % of its length the corotational tip moved by less than 1e-4
-    of the ccx C3D10 NLGEOM difference between this rule and the 8-point one
-    (tests/verification/test_calculix.py)."""
-    a, b = (5.0 + 3.0 * np.sqrt(5.0)) / 20.0, (5.0 - np.sqrt(5.0)) / 20.0
-    pts = np.array([[b, b, b], [a, b, b], [b, a, b], [b, b, a]])
-    return pts, np.full(4, 1.0 / 24.0)
 
 
 def shape_functions(element: str, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -116,7 +103,7 @@ def element_matrices(X: np.ndarray, material: Material, element: str, mass: str)
         else:
             Me = (rho * vol / 20)[:, None, None] * (np.ones((4, 4)) + np.eye(4))[None]
         return Ke, Me
-    pts, w = tet10_rule()
+    pts, w = tet_rule(2)
     _, dN = shape_functions("tet10", pts)
     Ke = np.zeros((m, 3 * k, 3 * k))
     for q in range(pts.shape[0]):
@@ -211,7 +198,7 @@ class CorotationalTets:
 
     def __init__(self, X: np.ndarray, material: Material, element: str) -> None:
         self.lam, self.mu = _lame(material)
-        pts, wts = (np.zeros((1, 3)), np.full(1, 1.0 / 6.0)) if element == "tet4" else tet10_rule()
+        pts, wts = (np.zeros((1, 3)), np.full(1, 1.0 / 6.0)) if element == "tet4" else tet_rule(2)
         _, dN = shape_functions(element, pts)
         self.G, self.wdet = [], []
         for q in range(pts.shape[0]):

@@ -73,10 +73,7 @@ class SolidModel(FEModel):
     @property
     def metadata(self) -> dict:
         """What a saved basis or map records about the model."""
-        meta = {"model": "solid", "element": self.element, "mass": self.mass, "constraints": self.constraints}
-        if self.element == "tet10":  # the stiffness rule (fe.solid.tet10_rule): a basis of the 8-point one does not load
-            meta["stiffness_rule"] = "4-point"
-        return meta
+        return {"model": "solid", "element": self.element, "mass": self.mass, "constraints": self.constraints}
 
     def __repr__(self) -> str:
         nf = int(self.fixed.any(axis=1).sum())
