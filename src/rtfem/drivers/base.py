@@ -313,31 +313,40 @@ class StaticCorrection:
         for i, n in enumerate(missing.tolist()):
             self._D[n] = Kinv[i] - modal[i]
 
+    def _current_loads(self):
+        """(loads {node: f}, load array or None) as one step left them. A step replaces both (never
+        mutates them), so the references taken here stay one step's loads while another thread
+        steps the driver (a loop stepping it while a bridge or a viewer reads its field)."""
+        return self._loads, self._load_array
+
     def _add_correction(self, u: np.ndarray) -> None:
         """Add the static correction of the current loads to the field u (n, 3), in place (a
         float32 field takes each float64 term rounded)."""
-        if self._load_array is not None:
-            u += self._array_correction(self._load_array)
-        for node, f in self._loads.items():
+        loads, array = self._current_loads()
+        if array is not None:
+            u += self._array_correction(array)
+        for node, f in loads.items():
             u += self._correction_column(node) @ f
 
     def _point_correction(self, i: int):
         """The static correction (3,) of the current loads at node i, or None with no loads."""
-        if self._load_array is not None:
-            return self._array_correction(self._load_array)[i]
+        loads, array = self._current_loads()
+        if array is not None:
+            return self._array_correction(array)[i]
         c = None
-        for j, f in self._loads.items():
+        for j, f in loads.items():
             c = self._correction_column(j)[i] @ f if c is None else c + self._correction_column(j)[i] @ f
         return c
 
     def _correction_at(self, nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
         """u (k, 3) at ``nodes`` plus the static correction of the current loads there."""
-        if self._load_array is not None:
-            return u + self._array_correction(self._load_array)[nodes]
-        if len(self._loads) > 2:  # a contact patch, asked again about the same nodes next tick
-            G = self._gathered(nodes)
-            return u + (G @ np.array(list(self._loads.values())).reshape(-1)).reshape(-1, 3)
-        for j, f in self._loads.items():
+        loads, array = self._current_loads()
+        if array is not None:
+            return u + self._array_correction(array)[nodes]
+        if len(loads) > 2:  # a contact patch, asked again about the same nodes next tick
+            G = self._gathered(nodes, tuple(loads))
+            return u + (G @ np.array(list(loads.values())).reshape(-1)).reshape(-1, 3)
+        for j, f in loads.items():
             u = u + self._correction_column(j)[nodes] @ f
         return u
 
@@ -350,11 +359,10 @@ class StaticCorrection:
             return np.concatenate([self._D[j][loaded].reshape(-1, 3) for j in nodes.tolist()], axis=1).T
         return np.concatenate([self._correction_column(j)[nodes].reshape(-1, 3) for j in loaded.tolist()], axis=1)
 
-    def _gathered(self, nodes: np.ndarray) -> np.ndarray:
-        """The loaded nodes' static-correction columns at ``nodes`` as one (3k, 3 loads) matrix, kept
-        while the loaded nodes and the nodes asked about stay the same (a tool resting on a patch:
-        one matrix-vector product instead of a gather per load each tick)."""
-        keys = tuple(self._loads)
+    def _gathered(self, nodes: np.ndarray, keys: tuple) -> np.ndarray:
+        """The static-correction columns of the loaded nodes ``keys`` at ``nodes`` as one (3k, 3 loads)
+        matrix, kept while the loaded nodes and the nodes asked about stay the same (a tool resting
+        on a patch: one matrix-vector product instead of a gather per load each tick)."""
         hit = self._patch_rows
         same = hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes)
         if same and hit[1] == keys:
