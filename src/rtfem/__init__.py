@@ -1,7 +1,7 @@
 """rtfem: real-time simulation of dynamically deformable finite-element models (shells and solids)."""
 
 from .mesh import meshes
-from .errors import MeshError, ModelError, RtfemError, RtfemWarning, SolverError
+from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .fe.material import Damping, Material
 from .mesh.repair import MeshReport
 from .mesh.surface import TriMesh
@@ -10,6 +10,7 @@ from .mesh.files import load_mesh, save_mesh
 from .fe import linalg
 from .fe.linalg import available_backends
 from .reduction.modal import ModalBasis, modal_analysis
+from .interaction import devices
 from .interaction.devices import CallbackDevice, ScriptedDevice, SharedDevice
 from .interaction.haptics import Grasp, Probe
 from .interaction.loop import HapticLoop
@@ -63,6 +64,7 @@ __all__ = [
     "ReducedNonlinearSimulator",
     "modal_analysis",
     "MeshError",
+    "DeviceError",
     "MeshReport",
     "Material",
     "ModelError",
@@ -80,6 +82,7 @@ __all__ = [
     "meshes",
     "linalg",
     "contact",
+    "devices",
     "nonlinear",
     "save_mesh",
 ]

@@ -23,5 +23,10 @@ class SolverError(RtfemError, RuntimeError):
     """A numerical solver failed (factorization, eigen-solver, Lanczos)."""
 
 
+class DeviceError(RtfemError, RuntimeError):
+    """A haptic device or its service that cannot be used: its library or service not found, an
+    error it reported (named as its SDK names it), a disconnection."""
+
+
 class RtfemWarning(UserWarning):
     """Something was done that the user should know about (a repair, a dropped load)."""

@@ -418,6 +418,8 @@ def _make_chunk(gettime, usleep, clock_id, tick, jit):
                 return 1
             if n_script == 0:
                 mailbox[3], mailbox[4], mailbox[5] = fout[0], fout[1], fout[2]
+                if mailbox.shape[0] > 6:  # a SharedDevice's count of the forces written (its watchdog reads it)
+                    mailbox[6] += 1.0
             full = record(start, target, now_s(clock), k, fout, lateness, compute, forces, slots, counters)
             counters[0] = k + 1
             counters[1] += 1

@@ -13,7 +13,7 @@ import numpy as np
 from .. import validate
 from ..errors import ModelError, SolverError
 
-from .devices import ScriptedDevice, SharedDevice
+from .devices.base import ScriptedDevice, SharedDevice
 from .haptics import Grasp, Probe, _CompiledGrasp, _CompiledProbe, _foreign_loads
 from .ticks import _OWNERS, _OWNERS_LOCK, _compiled_driver, _compiled_loop
 
@@ -158,8 +158,9 @@ class HapticLoop:
         if not _compiled_driver(self.probe.driver):
             return ("only a (linear) ModalSimulator with its compiled step, or a quasi-static ImpedanceDriver "
                     "(dynamic=False: a dynamic one keeps its force history in Python), drives the compiled loop")
-        if type(self.device) not in (ScriptedDevice, SharedDevice):
-            return "the compiled loop reads an rt.ScriptedDevice (sampled in advance) or an rt.SharedDevice"
+        if type(self.device) is not ScriptedDevice and not isinstance(self.device, SharedDevice):
+            return ("the compiled loop reads an rt.ScriptedDevice (sampled in advance) or an rt.SharedDevice (the "
+                    "hardware adapters of rt.devices are)")
         return None
 
     def _run(self, stats: LoopStats, max_steps: int | None, seconds: float | None) -> None:
@@ -289,6 +290,9 @@ class HapticLoop:
                 raise ModelError(f"a compiled loop samples a ScriptedDevice in advance: {seconds * self.rate:.3g} ticks is "
                                  f"more than {MAX_PRESAMPLED:,}; run it in parts, or pass compiled=False")
             compiled = False
+        attach = getattr(self.device, "attach", None)  # a hardware adapter fits its workspace to the organ
+        if attach is not None and hasattr(self.probe, "mesh"):
+            attach(self.probe.mesh.bounds())
         try:  # the device's first answer, here: a device giving text or NaN fails now, not at stop()
             validate.point(self.device.position(0.0), "the device's position")
         except ModelError as exc:

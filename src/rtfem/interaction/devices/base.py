@@ -1,6 +1,7 @@
-"""Devices: where the hand is, and what it feels. A scripted press (:class:`ScriptedDevice`,
-:class:`Press`), a device behind two callbacks (:class:`CallbackDevice`) or one shared with another
-thread (:class:`SharedDevice`)."""
+"""Devices: where the hand is, and what it feels. The :class:`Device` base (position, force, buttons,
+close, a stop reason), a scripted press (:class:`ScriptedDevice`, :class:`Press`), a device behind
+two callbacks (:class:`CallbackDevice`) or one shared with another thread (:class:`SharedDevice`,
+which the hardware adapters are)."""
 
 from __future__ import annotations
 
@@ -8,13 +9,50 @@ from typing import Callable
 
 import numpy as np
 
-from .. import validate
-from ..errors import ModelError
+from ... import validate
+from ...errors import ModelError
 
-__all__ = ["ScriptedDevice", "Press", "CallbackDevice", "SharedDevice"]
+__all__ = ["Device", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "MAILBOX"]
+
+#: SharedDevice's mailbox: position (3, organ frame, m), force on the tool (3, N), forces written
+#: (a count the loops advance: the adapters' watchdog reads it), buttons (a bit mask)
+MAILBOX = 8
 
 
-class ScriptedDevice:
+class Device:
+    """What a HapticLoop, a Probe's or a tool's loop, and the viewer ask of a device: where the hand
+    is (``position(t)``, metres, the organ's frame) and what it feels (``set_force(t, f)``, newtons);
+    ``buttons`` (a bit mask, 0 where there are none), ``close()`` (also on leaving a ``with``), and
+    ``stop_reason``: None while it renders forces, else why it stopped (the simulation fell
+    behind, the device reported an error, it disconnected, it was closed). A user's class with
+    ``position`` and ``set_force`` works too; this base gives it the rest."""
+
+    stop_reason: str | None = None
+
+    def position(self, t: float) -> np.ndarray:  # pragma: no cover - every device defines it
+        raise NotImplementedError
+
+    def set_force(self, t: float, force: np.ndarray) -> None:  # pragma: no cover - every device defines it
+        raise NotImplementedError
+
+    @property
+    def buttons(self) -> int:
+        """The pressed buttons as a bit mask (bit 0: the first button); 0 without buttons."""
+        return 0
+
+    def close(self) -> None:
+        """Release the device (no force is rendered after it); closing twice does nothing."""
+        if self.stop_reason is None:
+            self.stop_reason = "closed"
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ScriptedDevice(Device):
     """A device that follows a script: where the hand is at each time, and a record of the forces
     handed back (``times``, ``forces``).
 
@@ -82,7 +120,7 @@ class Press:
         return self.point - self.depth_at(t) * self.normal
 
 
-class CallbackDevice:
+class CallbackDevice(Device):
     """A device behind two callables: plug in a real device's driver (or the viewer).
 
     Parameters
@@ -110,7 +148,7 @@ class CallbackDevice:
         self._set(force)
 
 
-class SharedDevice:
+class SharedDevice(Device):
     """A device whose position any thread writes (:meth:`move_to`: a device driver's thread, the
     viewer's mouse) and whose force any thread reads (:attr:`force`), through one shared array,
     so a compiled HapticLoop reads and writes it without the GIL.
@@ -126,7 +164,7 @@ class SharedDevice:
     """
 
     def __init__(self, position=(0.0, 0.0, 0.0)) -> None:
-        self.mailbox = np.zeros(6)  # position (3), force on the probe (3)
+        self.mailbox = np.zeros(MAILBOX)  # see MAILBOX
         self.move_to(position)
 
     def move_to(self, position) -> None:
@@ -142,3 +180,8 @@ class SharedDevice:
 
     def set_force(self, t: float, force: np.ndarray) -> None:
         self.mailbox[3:6] = force
+        self.mailbox[6] += 1.0  # a force was written (the compiled loops count it too)
+
+    @property
+    def buttons(self) -> int:
+        return int(self.mailbox[7])

@@ -1,0 +1,87 @@
+"""Finding and loading a device SDK's shared library (ctypes), and the servo thread of the adapters
+whose SDK has no scheduler of its own."""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+import threading
+import time
+
+from ...errors import DeviceError
+
+__all__ = ["load_library", "find_library", "ServoThread"]
+
+
+def find_library(library, env: str, names: tuple[str, ...]) -> str | None:
+    """The library to load: ``library`` (a path or a name), else ``$env``, else the first of
+    ``names`` the system's loader finds; None when none is found."""
+    for candidate in (library, os.environ.get(env)):
+        if candidate:
+            return str(candidate)
+    for name in names:
+        found = ctypes.util.find_library(name)
+        if found:
+            return found
+    return None
+
+
+def load_library(library, env: str, names: tuple[str, ...], what: str, how: str) -> ctypes.CDLL:
+    """``ctypes.CDLL`` of :func:`find_library`'s answer, or a :class:`DeviceError` saying where it was
+    looked for and ``how`` to get it (``what`` names the SDK)."""
+    path = find_library(library, env, names)
+    if path is None:
+        raise DeviceError(f"{what}: its library was not found (looked for library=, ${env}, then "
+                          f"{', '.join(names)} on the system's library path). {how}")
+    try:
+        return ctypes.CDLL(path)
+    except OSError as exc:
+        raise DeviceError(f"{what}: cannot load {path!r} ({exc}). {how}") from None
+
+
+class ServoThread:
+    """A thread calling ``tick()`` at ``rate`` Hz on an absolute schedule (sleep, then spin the last
+    ``spin`` seconds), until ``stop()`` or until ``tick`` returns False; an exception in ``tick``
+    ends it and is kept in ``error``. For SDKs without a scheduler of their own (Force Dimension's)."""
+
+    def __init__(self, tick, rate: float, name: str, spin: float = 2e-4) -> None:
+        self._tick, self.period, self.spin = tick, 1.0 / rate, spin
+        self._stop = threading.Event()
+        self.error: BaseException | None = None
+        self.ticks = 0
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> "ServoThread":
+        from ...threads import background
+
+        background(self.thread, self.stop)
+        self.thread.start()
+        return self
+
+    def _run(self) -> None:
+        t0 = time.perf_counter()
+        k = 0
+        try:
+            while not self._stop.is_set():
+                target = t0 + k * self.period
+                wait = target - time.perf_counter()
+                if wait > self.spin:
+                    time.sleep(wait - self.spin)
+                while time.perf_counter() < target:
+                    pass
+                if self._tick() is False:
+                    return
+                self.ticks += 1
+                k = max(k + 1, int((time.perf_counter() - t0) / self.period))  # late: no burst
+        except BaseException as exc:  # noqa: BLE001 - kept for the owner to report
+            self.error = exc
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self.thread.is_alive() and threading.current_thread() is not self.thread:
+            self.thread.join(timeout)
+
+
+SHARED_SUFFIX = ".dll" if sys.platform == "win32" else (".dylib" if sys.platform == "darwin" else ".so")
