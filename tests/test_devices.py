@@ -540,3 +540,66 @@ def test_igtl_bridge_serves_a_pyigtl_client(plate, monkeypatch):
             assert np.allclose(np.asarray(force.matrix)[:3, 3], 0.0, atol=1e-9)
         finally:
             client.stop()
+
+
+# ------------------------------------------------------------------------------------------- CLI
+
+
+def test_rtfem_devices_says_what_is_found_here(libhd, libdhd, tmp_path, monkeypatch, capsys):
+    from rtfem.cli.main import main
+
+    service = FakeInverseService(np.zeros((1, 3)))
+    try:
+        monkeypatch.setenv("RTFEM_OPENHAPTICS_LIB", str(libhd[0]))
+        monkeypatch.setenv("RTFEM_DHD_LIB", str(tmp_path / "missing.so"))
+        assert main(["devices", "--haply-url", service.url]) == 0
+    finally:
+        service.stop()
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+            for line in capsys.readouterr().out.splitlines()[2:]}
+    assert rows["openhaptics"][1] == "yes" and str(libhd[0]) in rows["openhaptics"][2]
+    assert rows["forcedimension"][1] == "no" and "cannot load" in rows["forcedimension"][2]
+    assert rows["haply"][1] == "yes"
+    assert set(rows) == {"openhaptics", "forcedimension", "haply", "igtl"}
+
+
+def test_rtfem_igtl_serves_a_mesh_file(tmp_path):
+    """`rtfem igtl MESH` as a user runs it: a pyigtl client presses a tool into the plate's free edge
+    and feels it pushed back out; a bad option is one line and exit 2 before any work."""
+    import os
+    import sys
+
+    pyigtl = pytest.importorskip("pyigtl", reason="the igtl extra (pyigtl) is not installed: pip install 'rtfem[igtl]'")
+    rt.save_mesh(rt.meshes.plate(0.1, nx=8), tmp_path / "plate.stl")
+    port = _free_port()
+    cmd = [sys.executable, "-m", "rtfem.cli.main", "igtl", str(tmp_path / "plate.stl"), "--fix", "x<0.001", "-n", "10",
+           "--E", "300000", "--port", str(port), "--seconds", "20"]
+    bad = subprocess.run(cmd[:5] + ["--tool-radius", "-2"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--tool-radius" in bad.stderr and "Traceback" not in bad.stderr
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        for line in proc.stdout:
+            if "serving OpenIGTLink" in line:
+                break
+        client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
+        try:
+            _until(client.is_connected, timeout=10.0)
+            tip = np.array([95.0, 50.0, 5.0 - 2.0])  # mm: the sphere's bottom 2 mm into the free edge
+            t0 = time.perf_counter()
+            force = None
+            while time.perf_counter() - t0 < 5.0:
+                client.send_message(_pose(pyigtl, tip), wait=True)
+                got = [m for m in client.get_latest_messages() if m.device_name == "Force"]
+                if got:
+                    force = np.asarray(got[-1].matrix)[:3, 3]
+                time.sleep(0.02)
+            assert force is not None and force[2] > 1e-3  # N, pushing the tool back up out of the plate
+        finally:
+            client.stop()
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "poses taken" in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()

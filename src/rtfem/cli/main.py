@@ -7,6 +7,8 @@
     rtfem bench [MESH]                     time per step: modal vs direct, measured now
     rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
     rtfem view [MESH]                      the interactive web viewer
+    rtfem devices                          the haptic device adapters: found here, or what to install
+    rtfem igtl [MESH]                      an OpenIGTLink server: a tracked tool in, the organ and its force out
     rtfem demo                             the scripted demo of `make demo HEADLESS=1`
 
 Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupted.
@@ -508,6 +510,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_impedance(sub)
     _add_bench_and_pictures(sub)
     _add_view_and_demo(sub)
+    from .devices import add_device_commands
+
+    add_device_commands(sub)
     return ap
 
 
