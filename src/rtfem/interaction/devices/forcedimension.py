@@ -36,14 +36,7 @@ OMEGA_BOX = (np.array([-0.08, -0.08, -0.055]), np.array([0.08, 0.08, 0.055]))
 
 def dhd_library(library=None) -> ctypes.CDLL:
     """The DHD library with its functions' signatures declared."""
-    lib = load_library(library, "RTFEM_DHD_LIB", ("dhd", "libdhd.so", "dhd64"), "Force Dimension", HOW)
-    for name, (args, res) in _SIGNATURES.items():
-        try:
-            fn = getattr(lib, name)
-        except AttributeError:
-            raise DeviceError(f"Force Dimension: {lib._name} has no {name}(): not the DHD library. {HOW}") from None
-        fn.argtypes, fn.restype = args, res
-    return lib
+    return load_library(library, "RTFEM_DHD_LIB", ("dhd", "libdhd.so", "dhd64"), "Force Dimension", HOW, _SIGNATURES)
 
 
 class ForceDimension(HardwareDevice):

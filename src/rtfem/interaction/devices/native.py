@@ -28,17 +28,25 @@ def find_library(library, env: str, names: tuple[str, ...]) -> str | None:
     return None
 
 
-def load_library(library, env: str, names: tuple[str, ...], what: str, how: str) -> ctypes.CDLL:
-    """``ctypes.CDLL`` of :func:`find_library`'s answer, or a :class:`DeviceError` saying where it was
-    looked for and ``how`` to get it (``what`` names the SDK)."""
+def load_library(library, env: str, names: tuple[str, ...], what: str, how: str, signatures: dict) -> ctypes.CDLL:
+    """``ctypes.CDLL`` of :func:`find_library`'s answer with the functions of ``signatures`` ({name:
+    (argtypes, restype)}) declared, or a :class:`DeviceError` saying where it was looked for, or which
+    function it lacks, and ``how`` to get the SDK (``what`` names it)."""
     path = find_library(library, env, names)
     if path is None:
         raise DeviceError(f"{what}: its library was not found (looked for library=, ${env}, then "
                           f"{', '.join(names)} on the system's library path). {how}")
     try:
-        return ctypes.CDLL(path)
+        lib = ctypes.CDLL(path)
     except OSError as exc:
         raise DeviceError(f"{what}: cannot load {path!r} ({exc}). {how}") from None
+    for name, (args, res) in signatures.items():
+        try:
+            fn = getattr(lib, name)
+        except AttributeError:
+            raise DeviceError(f"{what}: {path} has no {name}(): not the {what} library. {how}") from None
+        fn.argtypes, fn.restype = args, res
+    return lib
 
 
 class ServoThread:

@@ -66,14 +66,7 @@ HOW = ("Install 3D Systems' OpenHaptics (the Touch device drivers and the OpenHa
 
 def hd_library(library=None) -> ctypes.CDLL:
     """The HD API's library with its functions' signatures declared."""
-    lib = load_library(library, "RTFEM_OPENHAPTICS_LIB", ("HD", "libHD.so"), "OpenHaptics", HOW)
-    for name, (args, res) in _SIGNATURES.items():
-        try:
-            fn = getattr(lib, name)
-        except AttributeError:
-            raise DeviceError(f"OpenHaptics: {lib._name} has no {name}(): not the HD library. {HOW}") from None
-        fn.argtypes, fn.restype = args, res
-    return lib
+    return load_library(library, "RTFEM_OPENHAPTICS_LIB", ("HD", "libHD.so"), "OpenHaptics", HOW, _SIGNATURES)
 
 
 def error_name(code: int) -> str:
