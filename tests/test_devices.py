@@ -603,3 +603,14 @@ def test_rtfem_igtl_serves_a_mesh_file(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_igtl_server_refuses_bad_arguments_before_listening(plate):
+    pytest.importorskip("pyigtl", reason="the igtl extra (pyigtl) is not installed: pip install 'rtfem[igtl]'")
+    mesh, _, sim = plate
+    for bad, match in ((dict(port=0), "port"), (dict(port=70000), "port"), (dict(tool_radius=-0.001), "radius"),
+                       (dict(surface_rate=0), "surface_rate"), (dict(rate=-5), "rate")):
+        with pytest.raises(rt.ModelError, match=match):
+            rt.devices.IGTLServer(mesh, sim, **bad)
+    with pytest.raises(rt.ModelError):
+        rt.devices.IGTLServer(rt.meshes.plate(0.1, nx=4), sim)  # a driver of another mesh
