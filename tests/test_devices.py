@@ -614,3 +614,57 @@ def test_igtl_server_refuses_bad_arguments_before_listening(plate):
             rt.devices.IGTLServer(mesh, sim, **bad)
     with pytest.raises(rt.ModelError):
         rt.devices.IGTLServer(rt.meshes.plate(0.1, nx=4), sim)  # a driver of another mesh
+
+
+# ------------------------------------------------------------------------------- the viewer's hand
+
+
+def test_a_device_drives_the_viewers_hand_and_feels_the_grasp(libhd):
+    """Session.attach_device (rtfem view --device): the stylus over the plate's centre presses its
+    first button (the jaw closes on the centre vertex), lifts 1 cm (the organ follows, the stylus
+    is pulled back down: the grasp's force, opposite to the organ's), lets go (no force)."""
+    from rtfem.viewer.session import Session, Settings
+
+    path, lib = libhd
+    mesh = rt.meshes.plate(0.1, nx=10)
+    session = Session(mesh, rt.Material(E=3e5, nu=0.45, thickness=0.004, density=1060), "boundary",
+                      Settings(method="modal", n_modes=20, alpha=30.0, grab_radius=0.0))
+    centre = np.asarray(mesh.vertices)[mesh.groups["center"][0]] * 1e3  # mm
+    n = 3000
+    t = np.arange(n)
+    stylus = centre + np.outer(np.clip((t - 300) / 500, 0, 1) * 10.0, [0, 0, 1])  # up 1 cm over 0.3-0.8 s
+    buttons = ((t >= 200) & (t < 2000)).astype(np.int32)  # held from 0.2 s to 2 s
+    _script(lib, stylus, buttons)
+    with rt.devices.OpenHaptics(library=path, workspace=Workspace(), max_rate=1e5) as dev:
+        session.attach_device(dev)
+        session.start()
+        try:
+            _wait_frames(lib, 1800, timeout=10.0)
+            assert session.node == mesh.groups["center"][0]  # the button closed the jaw there
+            k = lib.stub_frame()
+            f = _recorded(lib, k)[k - 50:k].mean(axis=0)  # the force on the stylus (N, the device's frame = organ's)
+            lift = session.displacements()[session.node]
+            assert f[2] < -0.05 and abs(f[2]) > 10 * np.abs(f[:2]).max()  # pulled back down, towards the organ
+            assert np.allclose(-f, session.force, rtol=0.05, atol=1e-3)  # what the grasp puts on the organ
+            assert 1e-3 < lift[2] < 10e-3  # the organ follows the hand up, not all the way
+            _wait_frames(lib, 2300, timeout=10.0)
+            assert session.node is None  # the button let go: released
+            k = lib.stub_frame()
+            assert np.abs(_recorded(lib, k)[k - 20:k]).max() < 1e-9
+            assert dev.stop_reason is None
+        finally:
+            session.stop()
+
+
+def test_rtfem_view_device_refusals_come_before_any_work(tmp_path, monkeypatch, capsys):
+    from rtfem.cli.main import main
+
+    monkeypatch.setenv("RTFEM_OPENHAPTICS_LIB", str(tmp_path / "libHD.so"))  # not there
+    t0 = time.perf_counter()
+    assert main(["view", "--device", "openhaptics", "--port", str(_free_port())]) == 2
+    assert time.perf_counter() - t0 < 5.0  # no precompute first
+    err = capsys.readouterr().err
+    assert "OpenHaptics: cannot load" in err and "Install 3D Systems' OpenHaptics" in err
+    assert main(["view", "--device", "haply", "--benchmark", "1"]) == 2
+    assert "the benchmark's hand is scripted" in capsys.readouterr().err
+    assert main(["view", "--device", "mouse"]) == 2  # not an adapter: argparse's one line

@@ -57,6 +57,22 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
     ]
 
 
+DEVICES = ("openhaptics", "forcedimension", "haply")
+
+
+def open_device(name: str, max_force: float, haply_url: str = "ws://localhost:10001"):
+    """The adapter ``name`` (one of :data:`DEVICES`) opened with its defaults and ``max_force`` (N) at most."""
+    from ..interaction import devices
+
+    if name == "openhaptics":
+        return devices.OpenHaptics(max_force=max_force)
+    if name == "forcedimension":
+        return devices.ForceDimension(max_force=max_force)
+    if name == "haply":
+        return devices.Haply(haply_url, max_force=max_force)
+    raise RtfemError(f"--device {name}: choose one of {', '.join(DEVICES)} (rtfem igtl serves OpenIGTLink)")
+
+
 def cmd_devices(args: argparse.Namespace) -> int:
     from .bench import format_table
 

@@ -335,7 +335,7 @@ class _StageBars:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from ..viewer.session import Session, Settings
+    from ..viewer.session import Settings
 
     if args.benchmark is None:
         check_address(args.host, args.port)
@@ -344,9 +344,26 @@ def cmd_view(args: argparse.Namespace) -> int:
                          "nonlinear")
     if args.shell and args.solid:
         raise RtfemError("--shell and --solid contradict each other: give one (a closed surface is a solid by default)")
+    if args.device and args.benchmark is not None:
+        raise RtfemError("--device and --benchmark: the benchmark's hand is scripted; drop one")
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
                         local=(args.local or 0.0) * 1e-3, max_force=args.max_force).check()  # before any work
+    device = None
+    if args.device:  # opened before the precompute: a missing SDK says so at once
+        from .devices import open_device
+
+        device = open_device(args.device, args.max_force, args.haply_url)
+    try:
+        return _view(args, settings, device)
+    finally:
+        if device is not None:
+            device.close()
+
+
+def _view(args: argparse.Namespace, settings, device) -> int:
+    from ..viewer.session import Session
+
     model = build_model(args)
     mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
     t0 = time.perf_counter()
@@ -368,6 +385,10 @@ def cmd_view(args: argparse.Namespace) -> int:
         return 0 if report["error"] is None else 1
     from ..viewer.app import serve
 
+    if device is not None:
+        session.attach_device(device)
+        print(f"rtfem view: the hand is the {args.device} device's; its first button grabs (rtfem devices checks it)",
+              flush=True)
     serve(session=session, host=args.host, port=args.port)
     return 0
 
@@ -485,6 +506,10 @@ def _add_view_and_demo(sub) -> None:
                    help="no server: run the viewer's session headless for SECONDS with a scripted grab of the default "
                         "vertex pulled 3 cm and released, and print one JSON line (rates, step percentiles, force, "
                         "peak displacement)")
+    p.add_argument("--device", choices=("openhaptics", "forcedimension", "haply"),
+                   help="drive the hand from a haptic device instead of the mouse: its first button grabs the surface "
+                        "nearest it, the grasp's force goes back to it (rtfem devices says which are found here)")
+    p.add_argument("--haply-url", default="ws://localhost:10001", help="--device haply: the Inverse Service's address")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")

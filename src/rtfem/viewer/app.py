@@ -348,13 +348,16 @@ class Viewer:
 
     def _draw_hand(self, u: np.ndarray) -> None:
         s = self.session
-        node, target = s.node, s.target
-        if node is None or target is None:
+        node = s.node
+        hand = s.target if s.target is not None else s.device_hand  # a device's hand is drawn ungrabbed too
+        if hand is None:
             self.marker.visible = self.hand.visible = False
             return
-        self.marker.position = tuple(s.X[node] + u[node])
-        self.hand.position = tuple(target)
-        self.marker.visible = self.hand.visible = True
+        self.hand.position = tuple(hand)
+        self.hand.visible = True
+        self.marker.visible = node is not None
+        if node is not None:
+            self.marker.position = tuple(s.X[node] + u[node])
 
     def _update_panel(self, peak: float) -> None:
         s = self.session
@@ -380,6 +383,10 @@ class Viewer:
             lines.append(f"precomputing: {s.building}")
         if s.local_status:
             lines.append(s.local_status)
+        if s.device is not None:
+            reason = getattr(s.device, "stop_reason", None)
+            lines.append(f"device: {type(s.device).__name__}, " + (f"**stopped: {reason}**" if reason else
+                         "rendering (its first button grabs)"))
         if s.error:
             lines.append(f"**error:** {s.error}")
         self.stats_md.content = "  \n".join(lines)

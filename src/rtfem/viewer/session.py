@@ -143,6 +143,9 @@ class Session:
         self._thread: threading.Thread | None = None
         self.stats = Stats()
         self.target: np.ndarray | None = None
+        self.device = None  # a haptic device driving the hand (attach_device), or None: the mouse
+        self.device_hand: np.ndarray | None = None  # where the device's hand is (organ frame, m)
+        self._grabbing: threading.Thread | None = None  # a device's grab being prepared
         self.error: str | None = None
         self.local_status = ""  # what the per-grab localization is doing (settings.local > 0)
         self.localizing: threading.Thread | None = None
@@ -332,13 +335,63 @@ class Session:
                 self._local_gen += 1  # a patch still training is for this grab: dropped when it arrives
                 self.local_status = "released before the patch was ready: it is dropped, the running basis goes on"
 
+    def attach_device(self, device) -> None:
+        """Drive the hand from a haptic device (``rt.devices``) instead of the mouse: each step its
+        position is the hand, its first button closes the jaw on the free surface vertex nearest the
+        hand (and opens it when let go), and the force the hand feels goes back to it. A device with
+        a workspace to fit is fitted to this organ. None detaches it.
+
+        Raises
+        ------
+        ModelError
+            An object without ``position(t)`` and ``set_force(t, f)``.
+        """
+        if device is not None:
+            if not (callable(getattr(device, "position", None)) and callable(getattr(device, "set_force", None))):
+                raise ModelError(f"device={validate.show(device)} must have position(t) and set_force(t, f) "
+                                 "(an rt.devices adapter)")
+            attach = getattr(device, "attach", None)
+            if attach is not None:
+                attach(self.mesh.bounds())
+        with self._lock:
+            self.device, self.device_hand = device, None
+
+    def _device_hand(self, t: float) -> None:
+        """Before a step: the device's hand as the grasp's target, its first button as the jaw. A
+        grab prepares the held vertices' columns (sparse solves, tens of ms) on a thread of its own,
+        as the mouse's does, so that the steps, and the forces the device's watchdog waits for, go on."""
+        p = validate.point(self.device.position(t), "the device's position")
+        self.device_hand = p
+        pressed = bool(int(getattr(self.device, "buttons", 0)) & 1)
+        grabbing = self._grabbing is not None and self._grabbing.is_alive()
+        if pressed and self.node is None and not grabbing:
+            self._grabbing = background(threading.Thread(target=self._device_grab, args=(p,), daemon=True,
+                                                         name="rtfem-viewer-device-grab"))
+            self._grabbing.start()
+        elif not pressed and self.node is not None and not grabbing:
+            self.release()
+        if self.node is not None:
+            self.target = p
+
+    def _device_grab(self, p: np.ndarray) -> None:
+        try:
+            self.grab(p)
+        except Exception as exc:  # shown in the panel; the device goes on
+            self.error = f"the device's grab failed ({type(exc).__name__}: {exc})"
+
     # ---------------------------------------------------------------- stepping
     def step(self) -> None:
-        """One time step of the driver under the current grasp."""
+        """One time step of the driver under the current grasp (and the device's hand, when one is
+        attached: it gets the force the hand feels)."""
         with self._lock:
+            t = self._t0_sim + self.stats.steps * self.driver.dt
+            if self.device is not None:
+                self._device_hand(t)
             self.grasp.update(self.target)
             self.stats.steps += 1
             self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
+            if self.device is not None:
+                self.device.set_force(t, -self.grasp.force)
 
     @property
     def kind(self) -> str:
