@@ -668,3 +668,36 @@ def test_rtfem_view_device_refusals_come_before_any_work(tmp_path, monkeypatch, 
     assert main(["view", "--device", "haply", "--benchmark", "1"]) == 2
     assert "the benchmark's hand is scripted" in capsys.readouterr().err
     assert main(["view", "--device", "mouse"]) == 2  # not an adapter: argparse's one line
+
+
+def test_igtl_device_takes_poses_and_buttons_and_sends_the_force():
+    """rt.devices.IGTLDevice (rtfem view --device igtl): a pyigtl client's ToolToReference pose (mm)
+    is the hand (m), its 'Buttons' string the buttons, the loop's force comes back as 'Force' (clamped
+    to max_force), a non-finite pose or a Buttons that is not a mask is refused with a Status."""
+    pyigtl = pytest.importorskip("pyigtl", reason="the igtl extra (pyigtl) is not installed: pip install 'rtfem[igtl]'")
+    port = _free_port()
+    with rt.devices.IGTLDevice(port, max_force=2.0, max_rate=1e5, force_rate=500.0) as dev:
+        client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
+        try:
+            _until(client.is_connected, timeout=10.0)
+            client.send_message(_pose(pyigtl, [12.0, -30.0, 45.0]), wait=True)
+            client.send_message(pyigtl.StringMessage("1", device_name="Buttons"), wait=True)
+            _until(lambda: np.allclose(dev.position(0.0), [0.012, -0.030, 0.045]) and dev.buttons == 1)
+            t0 = time.perf_counter()
+            force = None
+            while time.perf_counter() - t0 < 1.0:
+                dev.set_force(0.0, [0.0, 0.0, 9.0])  # the loop's force: beyond the 2 N
+                got = [m for m in client.get_latest_messages() if m.device_name == "Force"]
+                if got:
+                    force = np.asarray(got[-1].matrix)[:3, 3]
+                time.sleep(0.002)
+            assert force is not None and np.allclose(force, [0.0, 0.0, 2.0])
+            client.send_message(pyigtl.TransformMessage(np.full((4, 4), np.inf), device_name="ToolToReference"),
+                                wait=True)
+            client.send_message(pyigtl.StringMessage("left", device_name="Buttons"), wait=True)
+            _until(lambda: dev.link.refused == 2)
+            assert np.allclose(dev.position(0.0), [0.012, -0.030, 0.045]) and dev.buttons == 1  # kept
+        finally:
+            client.stop()
+    # the first stop's reason stays: closed, or the watchdog's once the test stopped feeding forces
+    assert dev.stop_reason == "closed" or dev.stop_reason.startswith("the simulation fell behind")

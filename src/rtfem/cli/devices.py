@@ -57,10 +57,10 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
     ]
 
 
-DEVICES = ("openhaptics", "forcedimension", "haply")
+DEVICES = ("openhaptics", "forcedimension", "haply", "igtl")
 
 
-def open_device(name: str, max_force: float, haply_url: str = "ws://localhost:10001"):
+def open_device(name: str, max_force: float, haply_url: str = "ws://localhost:10001", igtl_port: int = 18944):
     """The adapter ``name`` (one of :data:`DEVICES`) opened with its defaults and ``max_force`` (N) at most."""
     from ..interaction import devices
 
@@ -70,7 +70,9 @@ def open_device(name: str, max_force: float, haply_url: str = "ws://localhost:10
         return devices.ForceDimension(max_force=max_force)
     if name == "haply":
         return devices.Haply(haply_url, max_force=max_force)
-    raise RtfemError(f"--device {name}: choose one of {', '.join(DEVICES)} (rtfem igtl serves OpenIGTLink)")
+    if name == "igtl":
+        return devices.IGTLDevice(igtl_port, max_force=max_force)
+    raise RtfemError(f"--device {name}: choose one of {', '.join(DEVICES)}")
 
 
 def cmd_devices(args: argparse.Namespace) -> int:

@@ -353,7 +353,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.device:  # opened before the precompute: a missing SDK says so at once
         from .devices import open_device
 
-        device = open_device(args.device, args.max_force, args.haply_url)
+        device = open_device(args.device, args.max_force, args.haply_url, args.igtl_port)
     try:
         return _view(args, settings, device)
     finally:
@@ -506,10 +506,12 @@ def _add_view_and_demo(sub) -> None:
                    help="no server: run the viewer's session headless for SECONDS with a scripted grab of the default "
                         "vertex pulled 3 cm and released, and print one JSON line (rates, step percentiles, force, "
                         "peak displacement)")
-    p.add_argument("--device", choices=("openhaptics", "forcedimension", "haply"),
+    p.add_argument("--device", choices=("openhaptics", "forcedimension", "haply", "igtl"),
                    help="drive the hand from a haptic device instead of the mouse: its first button grabs the surface "
-                        "nearest it, the grasp's force goes back to it (rtfem devices says which are found here)")
+                        "nearest it, the grasp's force goes back to it (rtfem devices says which are found here; igtl: "
+                        "an OpenIGTLink ToolToReference pose, a STRING 'Buttons' its mask, the force back as 'Force')")
     p.add_argument("--haply-url", default="ws://localhost:10001", help="--device haply: the Inverse Service's address")
+    p.add_argument("--igtl-port", type=port, default=18944, help="--device igtl: the OpenIGTLink port (default 18944)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="grasp spring in N/m (default 200)")
     p.add_argument("--grab-radius", type=nonnegative, default=10.0, help="the jaw holds the surface within this radius "
                    "of the picked point, in mm (default 10; 0: one vertex)")

@@ -13,9 +13,10 @@ from .base import MAILBOX, CallbackDevice, Device, Press, ScriptedDevice, Shared
 from .forcedimension import ForceDimension
 from .haply import Haply
 from .hardware import HardwareDevice
-from .igtl import IGTLServer
+from .igtl import IGTLDevice, IGTLServer
 from .openhaptics import OpenHaptics
 from .workspace import Workspace
 
 __all__ = ["Device", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "Workspace", "HardwareDevice",
-           "OpenHaptics", "ForceDimension", "Haply", "IGTLServer", "MAILBOX"]
+           "OpenHaptics", "ForceDimension", "Haply", "IGTLServer", "IGTLDevice",
+           "MAILBOX"]

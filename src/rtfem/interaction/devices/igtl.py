@@ -9,6 +9,10 @@ the organ. Out: a POLYDATA ``Organ`` (the deformed surface, millimetres, triangl
 PLUS toolkit's convention for haptic devices) at up to ``force_rate``, and a STRING ``Status`` when a
 message is refused. A malformed or non-finite transform is refused with a ``Status`` and the server
 keeps serving.
+
+:class:`IGTLDevice` is the same link as a haptic Device (``rtfem view --device igtl``): the pose is
+the hand, a STRING ``Buttons`` holding a bit mask is its buttons (OpenIGTLink has no button message:
+this is rtfem's convention), and the force the hand feels goes back as ``Force``.
 """
 
 from __future__ import annotations
@@ -22,8 +26,11 @@ import numpy as np
 from ... import validate
 from ...errors import DeviceError
 from .base import SharedDevice
+from .hardware import HardwareDevice
+from .native import ServoThread
+from .workspace import Workspace
 
-__all__ = ["IGTLServer"]
+__all__ = ["IGTLServer", "IGTLDevice", "IGTLLink"]
 
 
 def _pyigtl():
@@ -32,6 +39,81 @@ def _pyigtl():
     except ImportError:
         raise DeviceError("the OpenIGTLink bridge needs pyigtl: pip install 'rtfem[igtl]' (make installs it)") from None
     return pyigtl
+
+
+class IGTLLink:
+    """One OpenIGTLink server and its messages: the tool's pose in, Status and Force out.
+
+    Parameters
+    ----------
+    port, host : where to listen (127.0.0.1: this machine only).
+
+    Raises
+    ------
+    DeviceError
+        pyigtl missing, not on the main thread (pyigtl installs signal handlers), the port in use.
+    ModelError
+        A port that is not 1..65535.
+    """
+
+    TOOL, ORGAN, FORCE, STATUS, BUTTONS = "ToolToReference", "Organ", "Force", "Status", "Buttons"
+
+    def __init__(self, port: int = 18944, host: str = "127.0.0.1") -> None:
+        pyigtl = _pyigtl()
+        self.port = validate.count(port, "port", 1, 65535, what="a TCP port")
+        if threading.current_thread() is not threading.main_thread():
+            raise DeviceError("an OpenIGTLink server must be made on the main thread (pyigtl installs signal handlers)")
+        loopback = host in ("127.0.0.1", "localhost", "::1")
+        try:
+            self.server = pyigtl.OpenIGTLinkServer(port=self.port, local_server=loopback,
+                                                   iface=None if loopback else host, start_now=False)
+        except OSError as exc:
+            raise DeviceError(f"OpenIGTLink: cannot listen on {host}:{self.port} ({exc.strerror or exc}); choose "
+                              "another --port") from None
+        self.pyigtl = pyigtl
+        self.refused = self.received = 0
+        self.buttons = 0
+
+    def status(self, text: str) -> None:
+        self.server.send_message(self.pyigtl.StringMessage(text, device_name=self.STATUS), wait=False)
+
+    def send(self, message) -> None:
+        if self.server.is_connected():
+            self.server.send_message(message, wait=False)
+
+    def send_force(self, force) -> None:
+        M = np.eye(4)
+        M[:3, 3] = force
+        self.send(self.pyigtl.TransformMessage(M, device_name=self.FORCE))
+
+    def poll(self) -> np.ndarray | None:
+        """The newest valid tool pose's position (m) among the messages that arrived, or None; a
+        ``Buttons`` string sets :attr:`buttons`; what cannot be taken gets a Status."""
+        position = None
+        for message in self.server.get_latest_messages():
+            try:
+                if message.device_name == self.TOOL:
+                    if message.message_type != "TRANSFORM":
+                        raise ValueError(f"a {message.message_type} message, not a TRANSFORM")
+                    M = np.asarray(message.matrix, dtype=float)
+                    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+                        raise ValueError(f"a 4x4 matrix of finite numbers is needed, got {M.shape}"
+                                         f"{' with non-finite values' if M.size and not np.all(np.isfinite(M)) else ''}")
+                    position = M[:3, 3] * 1e-3
+                    self.received += 1
+                elif message.device_name == self.BUTTONS:
+                    self.buttons = validate.count(int(str(message.string).strip()), "Buttons", 0, 2**31 - 1)
+            except Exception as exc:  # the link keeps serving
+                self.refused += 1
+                self.status(f"refused {message.device_name}: {exc}")
+        return position
+
+    def close(self) -> None:
+        """Stop the server; pyigtl's signal handlers are put back."""
+        self.server.stop()
+        if threading.current_thread() is threading.main_thread():
+            for sig, previous in getattr(self.server, "_previous_signal_handlers", {}).items():
+                signal.signal(sig, previous)
 
 
 class IGTLServer:
@@ -55,7 +137,7 @@ class IGTLServer:
         A bad driver, radius, stiffness, port or rate (ToolContact's and HapticLoop's checks).
     """
 
-    TOOL, ORGAN, FORCE, STATUS = "ToolToReference", "Organ", "Force", "Status"
+    TOOL, ORGAN, FORCE, STATUS = IGTLLink.TOOL, IGTLLink.ORGAN, IGTLLink.FORCE, IGTLLink.STATUS
 
     def __init__(self, mesh, driver, *, port: int = 18944, host: str = "127.0.0.1", tool_radius: float = 0.005,
                  stiffness: float = 200.0, rate: float = 1000.0, surface_rate: float = 30.0,
@@ -63,7 +145,7 @@ class IGTLServer:
         from ..contact import Tool, ToolContact
         from ..loop import HapticLoop
 
-        pyigtl = _pyigtl()
+        _pyigtl()
         self.port = validate.count(port, "port", 1, 65535, what="a TCP port")
         self.surface_period = 1.0 / validate.positive(surface_rate, "surface_rate", "messages per second")
         self.force_period = 1.0 / validate.positive(force_rate, "force_rate", "messages per second")
@@ -78,70 +160,45 @@ class IGTLServer:
         local[self._surface] = np.arange(self._surface.size)
         tri = local[np.asarray(mesh.triangles)]
         self._polygons = np.column_stack([np.full(len(tri), 3), tri]).ravel().astype(np.int64)
-        self.refused = 0
-        self.received = 0
-        if threading.current_thread() is not threading.main_thread():
-            raise DeviceError("rt.devices.IGTLServer must be made on the main thread (pyigtl installs signal handlers)")
-        loopback = host in ("127.0.0.1", "localhost", "::1")
-        try:
-            self.server = pyigtl.OpenIGTLinkServer(port=self.port, local_server=loopback,
-                                                   iface=None if loopback else host, start_now=False)
-        except OSError as exc:
-            raise DeviceError(f"OpenIGTLink: cannot listen on {host}:{self.port} ({exc.strerror or exc}); choose "
-                              "another --port") from None
-        self._pyigtl = pyigtl
+        self.link = IGTLLink(port, host)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._bridge, name="rtfem-igtl", daemon=True)
+
+    @property
+    def received(self) -> int:
+        return self.link.received
+
+    @property
+    def refused(self) -> int:
+        return self.link.refused
 
     def start(self) -> "IGTLServer":
         """Serve: the server, the contact loop and the bridge between them."""
         from ...threads import background
 
-        self.server.start()
+        self.link.server.start()
         self.loop.start()
         background(self._thread, self._stop.set)
         self._thread.start()
         return self
 
-    def _status(self, text: str) -> None:
-        self.server.send_message(self._pyigtl.StringMessage(text, device_name=self.STATUS), wait=False)
-
-    def _pose(self, message) -> None:
-        """A ToolToReference transform: the tool there (mm -> m), or a Status saying why not."""
-        try:
-            M = np.asarray(message.matrix, dtype=float)
-            if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-                raise ValueError(f"a 4x4 matrix of finite numbers is needed, got {M.shape} "
-                                 f"{'with non-finite values' if M.size and not np.all(np.isfinite(M)) else ''}")
-            self.device.move_to(M[:3, 3] * 1e-3)
-            self.received += 1
-        except Exception as exc:  # the bridge keeps serving
-            self.refused += 1
-            self._status(f"refused {self.TOOL}: {exc}")
-
     def _bridge(self) -> None:
+        link = self.link
         last_surface = last_force = 0.0
         while not self._stop.is_set():
-            for message in self.server.get_latest_messages():
-                if message.device_name == self.TOOL:
-                    if message.message_type == "TRANSFORM":
-                        self._pose(message)
-                    else:
-                        self.refused += 1
-                        self._status(f"refused {self.TOOL}: a {message.message_type} message, not a TRANSFORM")
+            position = link.poll()
+            if position is not None:
+                self.device.move_to(position)
             now = time.perf_counter()
             if self.loop.error is not None:
-                self._status(f"the contact loop stopped: {self.loop.error}")
+                link.status(f"the contact loop stopped: {self.loop.error}")
                 return
-            if now - last_force >= self.force_period and self.server.is_connected():
-                M = np.eye(4)
-                M[:3, 3] = self.device.force
-                self.server.send_message(self._pyigtl.TransformMessage(M, device_name=self.FORCE), wait=False)
+            if now - last_force >= self.force_period:
+                link.send_force(self.device.force)
                 last_force = now
-            if now - last_surface >= self.surface_period and self.server.is_connected():
-                self.server.send_message(self._pyigtl.PolyDataMessage(
-                    points=(self._X + self.surface_displacements()) * 1e3, polygons=self._polygons,
-                    device_name=self.ORGAN), wait=False)
+            if now - last_surface >= self.surface_period:
+                link.send(link.pyigtl.PolyDataMessage(points=(self._X + self.surface_displacements()) * 1e3,
+                                                      polygons=self._polygons, device_name=link.ORGAN))
                 last_surface = now
             time.sleep(0.001)
 
@@ -159,13 +216,70 @@ class IGTLServer:
         try:
             self.loop.stop()
         finally:
-            self.server.stop()
-        if threading.current_thread() is threading.main_thread():
-            for sig, previous in getattr(self.server, "_previous_signal_handlers", {}).items():
-                signal.signal(sig, previous)
+            self.link.close()
 
     def __enter__(self) -> "IGTLServer":
         return self.start()
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class IGTLDevice(HardwareDevice):
+    """A tracked tool over OpenIGTLink as a haptic Device (``rtfem view --device igtl``): the
+    ``ToolToReference`` pose (mm, the organ's coordinates) is the hand, a STRING ``Buttons`` (a bit
+    mask, e.g. "1" to close the viewer's jaw; rtfem's convention) its buttons, and the force the hand
+    feels goes back as the ``Force`` TRANSFORM (N) at up to ``force_rate``. The servo runs on a thread
+    of its own at ``rate``, with the adapters' safety (a clamp, a rate limit, the watchdog).
+
+    Parameters
+    ----------
+    port, host : where to listen.
+    workspace : from the pose's frame to the organ's (default: the identity, the poses being in the
+        organ's coordinates).
+    max_force, max_rate, watchdog, rate : the servo's (N, N/s, servo ticks, Hz).
+    force_rate : the most Force messages sent per second.
+
+    Raises
+    ------
+    DeviceError
+        pyigtl missing, not on the main thread, the port in use.
+    ModelError
+        A bad port, workspace, max_force, max_rate, watchdog, rate or force_rate.
+    """
+
+    NAME = "an OpenIGTLink tool"
+
+    def __init__(self, port: int = 18944, host: str = "127.0.0.1", *, workspace: Workspace | None = None,
+                 max_force: float = 10.0, max_rate: float = 1000.0, watchdog: int = 50, rate: float = 1000.0,
+                 force_rate: float = 100.0) -> None:
+        self.force_period = 1.0 / validate.positive(force_rate, "force_rate", "messages per second")
+        self._start_servo(Workspace() if workspace is None else workspace, ((-0.1,) * 3, (0.1,) * 3),
+                          validate.positive(max_force, "max_force", "the largest force in N"), max_rate, watchdog, rate)
+        self.link = IGTLLink(port, host)
+        self.link.server.start()
+        self._x = np.zeros(3)
+        self._last_force = 0.0
+        self._thread = ServoThread(self._servo, rate, "rtfem-igtl-servo").start()
+
+    def _servo(self) -> bool:
+        position = self.link.poll()
+        if position is not None:
+            self._x = position
+        f = self.servo.tick(self._x, self.link.buttons)
+        now = time.perf_counter()
+        if now - self._last_force >= self.force_period:
+            self.link.send_force(f)
+            self._last_force = now
+        return True
+
+    def _open(self) -> bool:
+        return self._thread is not None
+
+    def close(self) -> None:
+        """Stop the servo and the server; closing twice does nothing."""
+        if self._thread is not None:
+            self.servo.stop(4)
+            self._thread.stop()
+            self._thread = None
+            self.link.close()
