@@ -128,13 +128,8 @@ class ForceDimension(HardwareDevice):
         """An exception that ended the servo thread (None while it runs)."""
         return None if self._thread is None else self._thread.error
 
-    def close(self) -> None:
-        """Stop the servo thread, zero the force and close the device; closing twice does nothing."""
-        if self._id is not None:
-            self.servo.stop(4)
-        self._shutdown()
-
     def _shutdown(self) -> None:
+        """Stop the servo thread, zero the force and close the device."""
         if self._thread is not None:
             self._thread.stop()
             self._thread = None

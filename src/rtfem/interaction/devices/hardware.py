@@ -38,6 +38,17 @@ class HardwareDevice(SharedDevice):
     def _open(self) -> bool:  # pragma: no cover - every adapter defines it
         raise NotImplementedError
 
+    def _shutdown(self) -> None:  # pragma: no cover - every adapter defines it
+        """Release the device (idempotent: also what a failed constructor calls)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop rendering (the reason: closed, unless it had stopped already) and release the device;
+        closing twice does nothing."""
+        if self._open():
+            self.servo.stop(4)
+        self._shutdown()
+
     def attach(self, organ_bounds) -> None:
         """Fit the default workspace to an organ's bounds (lo, hi), as a loop does when it starts (a
         workspace given to the constructor is kept)."""

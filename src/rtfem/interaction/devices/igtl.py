@@ -276,10 +276,9 @@ class IGTLDevice(HardwareDevice):
     def _open(self) -> bool:
         return self._thread is not None
 
-    def close(self) -> None:
-        """Stop the servo and the server; closing twice does nothing."""
+    def _shutdown(self) -> None:
+        """Stop the servo thread and the server."""
         if self._thread is not None:
-            self.servo.stop(4)
             self._thread.stop()
             self._thread = None
             self.link.close()

@@ -160,13 +160,8 @@ class OpenHaptics(HardwareDevice):
     def _open(self) -> bool:
         return self._handle is not None
 
-    def close(self) -> None:
-        """Stop the scheduler, unschedule the servo and disable the device; closing twice does nothing."""
-        if self._handle is not None:
-            self.servo.stop(4)
-        self._shutdown()
-
     def _shutdown(self) -> None:
+        """Stop the scheduler, unschedule the servo and disable the device."""
         hd = self._hd
         if self._handle is not None:
             hd.hdStopScheduler()
