@@ -15,6 +15,7 @@ from .interaction.devices import CallbackDevice, ScriptedDevice, SharedDevice
 from .interaction.haptics import Grasp, Probe
 from .interaction.loop import HapticLoop
 from .interaction.contact import Tool, ToolContact
+from .interaction.scene import Scene
 from .interaction import contact
 from .drivers.impedance import ImpedanceMap, Load
 from .drivers.impedance_driver import ImpedanceDriver
@@ -53,6 +54,7 @@ __all__ = [
     "Grasp",
     "Tool",
     "ToolContact",
+    "Scene",
     "HapticLoop",
     "Probe",
     "ScriptedDevice",

@@ -3,6 +3,7 @@
     rtfem info [MESH]                      mesh check and repair report
     rtfem modes [MESH] -n 40 -o FILE       precompute the modal basis (.npz)
     rtfem simulate [MESH] ...              headless run: scripted probe or load file -> .pvd + .csv
+    rtfem simulate SCENE.toml ...          a scene file: bodies under gravity on obstacles -> .pvd each + contacts.csv
     rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
     rtfem bench [MESH]                     time per step: modal vs direct, measured now
     rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
@@ -187,6 +188,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ..io.scenario import LoadSchedule
     from ..drivers.modal import ModalSimulator
 
+    if args.mesh and str(args.mesh).lower().endswith(".toml"):  # a scene file: its bodies, obstacles, gravity
+        from .scene import simulate_scene
+
+        return simulate_scene(args)
     n_steps, frame_every = _check_simulate(args)
     model = build_model(args)
     if not args.load and args.depth > 0.5 * model.mesh.diagonal():  # before any precompute

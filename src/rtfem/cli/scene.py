@@ -1,0 +1,66 @@
+"""``rtfem simulate scene.toml``: a scene file run headless (each body's .pvd series and contacts.csv)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import RtfemError
+from .common import MAX_FRAMES, MAX_STEPS, progress_bar
+
+
+def simulate_scene(args: argparse.Namespace) -> int:
+    """Run the scene file ``args.mesh`` for ``args.duration`` s into ``args.out``: a folder per body with
+    its ``<body>.pvd`` frames (``--fps``) and ``<body>.csv`` (t and the total contact force on it), and
+    ``contacts.csv`` with t, a, b, fx, fy, fz: the force on body a from obstacle b, every step."""
+    from ..interaction.scene_file import contact_rows, load_scene
+    from ..io.scenario import RunWriter
+    from ..storage import atomic_target
+    from ..threads import runtime
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
+    scene = load_scene(args.mesh, progress=lambda message: print(f"scene       {message}", flush=True))
+    dt = scene.dt
+    n_steps = int(round(args.duration / dt))
+    if not 1 <= n_steps <= MAX_STEPS:
+        raise RtfemError(f"--duration {args.duration:g} s is {args.duration / dt:.3g} steps of the scene's dt = {dt:g} s: "
+                         f"give 1 .. {MAX_STEPS:,} steps")
+    frame_every = max(1, int(round(1 / args.fps / dt)))
+    if n_steps // frame_every > MAX_FRAMES:
+        raise RtfemError(f"--fps {args.fps:g} writes {n_steps // frame_every:,} frames a body, more than {MAX_FRAMES:,}")
+    writers = {b.name: RunWriter(out / b.name, getattr(b.model, "tetmesh", b.mesh), ["t", "fx", "fy", "fz"],
+                                 frame_every, name=b.name) for b in scene.bodies}
+    rows = []
+    t0 = time.perf_counter()
+    with runtime(), progress_bar("simulate (scene)", unit="steps") as bar:
+        for k in range(n_steps):
+            scene.step()
+            step_rows = contact_rows(scene)
+            rows += step_rows
+            for b in scene.bodies:
+                total = np.sum([r[3:] for r in step_rows if r[1] == b.name], axis=0) if step_rows else np.zeros(3)
+                writers[b.name].row([scene.time, *np.atleast_1d(total).tolist()])
+                writers[b.name].frame(k, scene.time, b.driver.displacements)
+            if k % 100 == 99 or k == n_steps - 1:
+                bar(k + 1, n_steps)
+    elapsed = time.perf_counter() - t0
+    for w in writers.values():
+        w.close()
+    path = out / "contacts.csv"
+    with atomic_target(path) as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "a", "b", "fx", "fy", "fz"])
+        w.writerows([[f"{r[0]:.9g}", r[1], r[2], *(f"{v:.9g}" for v in r[3:])] for r in rows])
+    print(f"ran         {n_steps} steps of {dt * 1e3:g} ms in {elapsed:.2f} s ({n_steps * dt / elapsed:.2f} x real time)")
+    for b in scene.bodies:
+        f = sum((f for (a, _), f in scene.contacts.items() if a == b.name), np.zeros(3))
+        print(f"body        {b.name}: {b.mass:.4g} kg (weight {b.mass * np.linalg.norm(scene.gravity):.4g} N); "
+              f"obstacles' force now {np.round(f, 4).tolist()} N")
+    print(f"wrote       {path} ({len(rows)} rows) and {', '.join(f'{b.name}/{b.name}.pvd' for b in scene.bodies)}")
+    return 0

@@ -1,0 +1,176 @@
+"""Scene files: a :class:`~rtfem.Scene` from TOML (read with the standard library's ``tomllib``).
+
+::
+
+    gravity = [0, 0, -9.81]        # m/s^2 (default: this)
+    dt = 0.001                     # s (default)
+
+    [[body]]
+    name = "box"
+    mesh = "box.vtu"               # a path relative to this file; a surface with kind = "solid" is meshed into tets
+    scale = 1.0                    # coordinates' factor (1e-3: a mesh in mm)
+    kind = "solid"                 # or "shell" (default: a volume file is a solid, a surface a shell)
+    element = "tet10"              # solids: tet4 or tet10 (default tet10)
+    material = { E = 3e4, nu = 0.45, density = 1060, thickness = 0.004 }
+    fix = "bottom:0.1"             # a node selection (rt.select_nodes); absent: a free body
+    modes = 20                     # the modal basis (a free body's six rigid-body modes among them)
+    alpha = 10.0                   # mass-proportional damping (1/s)
+
+    [[obstacle]]
+    name = "table"
+    plane = { point = [0, 0, 0], normal = [0, 0, 1] }
+    friction = 0.3
+
+Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError, RtfemError
+from .scene import Scene
+
+__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS"]
+
+TOP_KEYS = {"gravity", "dt", "body", "obstacle"}
+BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
+OBSTACLE_KEYS = {"name", "plane", "friction"}
+MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
+NOT_YET = {"attachment": "attachments (springs or constraints between bodies)", "tool": "tools",
+           "mesh": "fixed-mesh obstacles"}
+
+
+class _Where:
+    """Names a place in the file for messages, and checks one value there."""
+
+    def __init__(self, path: Path, table: str) -> None:
+        self.path, self.table = path, table
+
+    def error(self, key: str | None, what: str) -> ModelError:
+        at = f"{self.path}: {self.table}" + (f": key {key!r}" if key else "")
+        return ModelError(f"{at}: {what}")
+
+    def check(self, key: str, fn, *args, **kw):
+        try:
+            return fn(*args, **kw)
+        except RtfemError as exc:
+            raise self.error(key, str(exc)) from None
+
+    def keys(self, table: dict, allowed: set, required: tuple = ()) -> None:
+        for k in required:
+            if k not in table:
+                raise self.error(k, "missing")
+        for k in table:
+            if k in NOT_YET and k not in allowed:
+                raise self.error(k, f"{NOT_YET[k]} are not supported in scene files yet")
+            if k not in allowed:
+                raise self.error(k, f"unknown (known: {', '.join(sorted(allowed))})")
+
+
+def load_scene(path, *, progress=None) -> Scene:
+    """The scene a TOML file describes (see the module's docstring), its bodies' modes computed.
+
+    Parameters
+    ----------
+    path : the scene file.
+    progress : ``progress(message)`` called before each body's precompute (a line for the CLI).
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    ModelError
+        A file that is not TOML, an unknown, missing or bad key (the message names the file, the
+        table and the key), a mesh file that cannot be read, a body that cannot be modelled.
+    """
+    import tomllib
+
+    p = Path(validate.path_like(path, "path"))
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ModelError(f"{p}: cannot read the scene file ({exc.strerror or exc})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelError(f"{p}: not a TOML scene file: {exc}") from None
+    top = _Where(p, "the top level")
+    top.keys(doc, TOP_KEYS)
+    gravity = top.check("gravity", validate.vector, doc.get("gravity", (0.0, 0.0, -9.81)), "gravity", 3)
+    dt = top.check("dt", validate.time_step, doc.get("dt", 1e-3), "dt")
+    scene = Scene(gravity)
+    bodies, obstacles = doc.get("body", []), doc.get("obstacle", [])
+    if not isinstance(bodies, list) or not bodies:
+        raise top.error("body", "a scene needs at least one [[body]] table")
+    for i, table in enumerate(bodies):
+        where = _Where(p, _table_name("body", i, table))
+        if progress is not None:
+            progress(f"body {table.get('name', i + 1)}: modes ...")
+        _add_body(scene, table, where, p.parent, dt)
+    for i, table in enumerate(obstacles if isinstance(obstacles, list) else [obstacles]):
+        where = _Where(p, _table_name("obstacle", i, table))
+        where.keys(table, OBSTACLE_KEYS, ("name", "plane"))
+        plane = table["plane"]
+        if not isinstance(plane, dict) or set(plane) != {"point", "normal"}:
+            raise where.error("plane", "must be { point = [x, y, z], normal = [nx, ny, nz] } (m)")
+        where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], table.get("friction", 0.0))
+    return scene
+
+
+def _table_name(kind: str, i: int, table) -> str:
+    """``[[body]] 2 'liver'`` (the name when the table has one)."""
+    name = table.get("name") if isinstance(table, dict) else None
+    return f"[[{kind}]] {i + 1}" + (f" {name!r}" if name is not None else "")
+
+
+def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> None:
+    from ..drivers.modal import ModalSimulator
+    from ..fe.build import make_model
+    from ..fe.material import Damping, Material
+    from ..mesh.files import load_mesh
+    from ..mesh.tetmesh import TetMesh
+    from ..reduction.modal import modal_analysis
+
+    if not isinstance(table, dict):
+        raise where.error(None, "must be a table")
+    where.keys(table, BODY_KEYS, ("name", "mesh"))
+    scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
+    mesh_path = folder / str(table["mesh"])
+    mesh = where.check("mesh", load_mesh, mesh_path, scale=scale)
+    kind = table.get("kind", "solid" if isinstance(mesh, TetMesh) else "shell")
+    if kind not in ("solid", "shell"):
+        raise where.error("kind", f"{kind!r}: give 'solid' or 'shell'")
+    if kind == "solid" and not isinstance(mesh, TetMesh):
+        from ..mesh.meshing import tetrahedralize
+
+        mesh = where.check("mesh", tetrahedralize, mesh)
+    if kind == "shell" and isinstance(mesh, TetMesh):
+        mesh = mesh.surface
+    material = table.get("material", {})
+    if not isinstance(material, dict) or not set(material) <= MATERIAL_KEYS:
+        raise where.error("material", f"must be a table of {', '.join(sorted(MATERIAL_KEYS))}")
+    mat = where.check("material", Material, **material)
+    options = {"element": table.get("element", "tet10")} if kind == "solid" else {}
+    model = where.check("element" if options else "mesh", make_model, mesh, mat, **options)
+    fix = table.get("fix")
+    if fix is not None:
+        where.check("fix", model.fix, fix)
+        where.check("fix", model.check_restrained)
+    modes = where.check("modes", validate.count, table.get("modes", 20), "modes", 1, 2000)
+    alpha = where.check("alpha", validate.nonnegative, table.get("alpha", 10.0), "alpha", "damping in 1/s")
+    basis = where.check("modes", modal_analysis, model, modes)
+    driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
+    where.check("name", scene.add_body, table["name"], driver, model.mesh)
+    scene.bodies[-1].model = model
+
+
+def contact_rows(scene: Scene) -> list[list]:
+    """The scene's contact records of this step as CSV rows t, a, b, fx, fy, fz (the force on body a
+    from obstacle b)."""
+    return [[scene.time, a, b, *np.asarray(f).tolist()] for (a, b), f in scene.contacts.items()]

@@ -1,0 +1,93 @@
+"""Scene files and `rtfem simulate scene.toml` (rtfem.interaction.scene_file, rtfem.cli.scene): a body
+resting on a plane settles with the plane's force in contacts.csv equal to its weight; every bad
+file names the file, the table and the key, before any precompute where it can."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.cli.main import main
+from rtfem.interaction.scene_file import load_scene
+
+SCENE = """gravity = [0, 0, -9.81]
+
+[[body]]
+name = "box"
+mesh = "box.vtu"
+element = "tet4"
+material = { E = 3e4, nu = 0.3, density = 1000 }
+modes = 20
+alpha = 20.0
+
+[[obstacle]]
+name = "table"
+plane = { point = [0, 0, -0.002], normal = [0, 0, 1] }
+friction = 0.3
+"""
+
+
+@pytest.fixture()
+def folder(tmp_path):
+    rt.save_mesh(rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2), tmp_path / "box.vtu")
+    (tmp_path / "scene.toml").write_text(SCENE)
+    return tmp_path
+
+
+def test_rtfem_simulate_a_scene_file_settles_on_the_plane_with_its_weight(folder, capsys):
+    assert main(["simulate", str(folder / "scene.toml"), "--duration", "1.5", "--out", str(folder / "out")]) == 0
+    with open(folder / "out" / "contacts.csv") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["t", "a", "b", "fx", "fy", "fz"] and len(rows) == 1501
+    t, a, b, *f = rows[-1]
+    weight = 0.1 * 0.1 * 0.05 * 1000 * 9.81
+    assert (a, b) == ("box", "table") and abs(float(f[2]) - weight) < 0.01 * weight
+    assert (folder / "out" / "box" / "box.pvd").exists()
+    assert "weight 4.905 N" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda s: s.replace('name = "box"\n', ""), r"scene.toml: \[\[body\]\] 1: key 'name': missing"),
+    (lambda s: s.replace("modes = 20", "modes = 0"), r"\[\[body\]\] 1 'box': key 'modes'"),
+    (lambda s: s.replace("modes = 20", "modez = 20"), r"key 'modez': unknown \(known: "),
+    (lambda s: s.replace("nu = 0.3", "nu = 0.7"), r"\[\[body\]\] 1 'box': key 'material': .*nu"),
+    (lambda s: s.replace('mesh = "box.vtu"', 'mesh = "nothing.vtu"'), r"\[\[body\]\] 1 'box': key 'mesh'"),
+    (lambda s: s.replace("normal = [0, 0, 1]", "normal = [0, 0, 0]"), r"\[\[obstacle\]\] 1 'table': key 'plane'"),
+    (lambda s: s.replace("plane = {", "plain = {"), r"\[\[obstacle\]\] 1 'table': key 'plane': missing"),
+    (lambda s: s + "\n[[attachment]]\na = 'box'\n", r"the top level: key 'attachment': attachments .* not supported"),
+    (lambda s: s.replace("gravity = [0, 0, -9.81]", "gravity = [0, -9.81]"), r"the top level: key 'gravity'"),
+    (lambda s: s.replace("[[body]]", "[[bodies]]"), r"the top level: key 'bodies': unknown"),
+    (lambda s: s.replace('name = "table"', 'name = "box"'), r"\[\[obstacle\]\] 1 'box'.*named 'box'"),
+    (lambda s: "gravity = [0, 0, -9.81\n", r"scene.toml: not a TOML scene file"),
+])
+def test_bad_scene_files_name_the_file_the_table_and_the_key(folder, edit, match):
+    (folder / "scene.toml").write_text(edit(SCENE))
+    with pytest.raises(rt.ModelError, match=match):
+        load_scene(folder / "scene.toml")
+
+
+def test_scene_refusals(folder):
+    sc = rt.Scene()
+    with pytest.raises(rt.ModelError, match="no body"):
+        sc.step()
+    with pytest.raises(rt.ModelError, match="gravity"):
+        rt.Scene(gravity=(0, 0))
+    model = rt.SolidModel(rt.meshes.box(0.1, 0.1, 0.05, nx=2, ny=2, nz=1), rt.Material(E=3e4, nu=0.3, density=1000.0),
+                          element="tet4")
+    sim = rt.ModalSimulator(rt.modal_analysis(model, 8), dt=1e-3)
+    with pytest.raises(rt.ModelError, match="another mesh|mesh of"):
+        sc.add_body("a", sim, rt.meshes.plate(0.1, nx=2))
+    sc.add_body("a", sim, model.mesh)
+    with pytest.raises(rt.ModelError, match="already has a body or obstacle named 'a'"):
+        sc.add_plane("a", (0, 0, 0), (0, 0, 1))
+    with pytest.raises(rt.ModelError, match="friction"):
+        sc.add_plane("p", (0, 0, 0), (0, 0, 1), friction=-1)
+    other = rt.ModalSimulator(rt.modal_analysis(model, 8), dt=2e-3)
+    with pytest.raises(rt.ModelError, match="dt = 0.002 s"):
+        sc.add_body("b", other, model.mesh)
+    assert [b.name for b in sc.bodies] == ["a"] and sc.obstacles == []  # nothing half added
+    assert main(["simulate", str(folder / "nothing.toml")]) == 2  # one line, exit 2
+    np.testing.assert_equal(sc.time, 0.0)
