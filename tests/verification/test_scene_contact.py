@@ -51,3 +51,74 @@ def test_coulomb_on_an_incline(mu, sticks):
         assert abs(fn - weight * np.cos(theta)) < 0.01 * weight and abs(ft - weight * np.sin(theta)) < 0.01 * weight
     else:
         assert abs(ft - mu * fn) < 0.01 * fn
+
+
+def _free(mesh, E=3e4, modes=20, alpha=20.0, dt=1e-3):
+    model = rt.SolidModel(mesh, rt.Material(E=E, nu=0.3, density=1000.0), element="tet4")
+    return model, rt.ModalSimulator(rt.modal_analysis(model, modes), dt=dt, damping=rt.Damping(alpha=alpha))
+
+
+def _moved(mesh, offset):
+    return rt.TetMesh(np.asarray(mesh.vertices) + np.asarray(offset, float), np.asarray(mesh.tets))
+
+
+def test_stacked_bodies_the_lower_carries_both_the_interface_the_upper():
+    """Box B (6 x 6 x 3 cm) dropped 1 mm onto box A (10 x 10 x 5 cm) on a table: settled, the table
+    carries both weights, A carries B's, and the two bodies' forces on each other are opposite."""
+    ma, A = _free(rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2))
+    mb, B = _free(_moved(rt.meshes.box(0.06, 0.06, 0.03, nx=3, ny=3, nz=2), (0.02, 0.02, 0.051)))
+    scene = rt.Scene()
+    scene.add_body("A", A, ma.mesh)
+    scene.add_body("B", B, mb.mesh)
+    scene.add_plane("table", (0.0, 0.0, -0.001), (0.0, 0.0, 1.0))
+    scene.run(2000)
+    g = 9.81
+    wa, wb = scene.body("A").mass * g, scene.body("B").mass * g
+    assert abs(scene.contacts[("A", "table")][2] - (wa + wb)) < 0.01 * (wa + wb)
+    assert abs(scene.contacts[("B", "A")][2] - wb) < 0.01 * wb
+    assert np.allclose(scene.contacts[("A", "B")], -scene.contacts[("B", "A")])
+    # B rests on A, not in it: each of B's bottom vertices against A's deformed surface beneath it
+    from rtfem.interaction.contact_points import closest_points_on_triangles
+
+    xa = np.asarray(ma.mesh.vertices) + A.displacements()
+    xb = np.asarray(mb.mesh.vertices) + B.displacements()
+    bottom = xb[np.isclose(np.asarray(mb.mesh.vertices)[:, 2], 0.051)]
+    tri = np.asarray(ma.mesh.triangles)
+    top = tri[np.isclose(np.asarray(ma.mesh.vertices)[tri][:, :, 2], 0.05).all(axis=1)]
+    for p in bottom:
+        q, _ = closest_points_on_triangles(np.repeat(p[None], len(top), axis=0), xa[top[:, 0]], xa[top[:, 1]],
+                                           xa[top[:, 2]])
+        below = q[np.argmin(np.linalg.norm(q[:, :2] - p[:2], axis=1))]
+        assert p[2] - below[2] > -1e-6
+
+
+def test_a_frictionless_collision_keeps_the_momentum():
+    """Two free boxes, no gravity, no damping: B pushed at A for 20 ms, then let go; their total
+    momentum sum m_i v_i is the same before they touch and after the collision (the contact forces
+    are equal and opposite; the rigid-body modes carry the translations exactly)."""
+    ma, A = _free(rt.meshes.box(0.05, 0.05, 0.05, nx=2, ny=2, nz=2), E=1e5, modes=12, alpha=0.0)
+    mb, B = _free(_moved(rt.meshes.box(0.03, 0.03, 0.03, nx=2, ny=2, nz=2), (0.01, 0.01, 0.055)), E=1e5, modes=12,
+                  alpha=0.0)
+    scene = rt.Scene(gravity=(0.0, 0.0, 0.0))
+    a, b = scene.add_body("A", A, ma.mesh), scene.add_body("B", B, mb.mesh)
+
+    def momentum():
+        return sum(body.masses @ ((body.driver.displacements() - body.last) / scene.dt) for body in (a, b))
+
+    b.loads[:, 2] = -0.5 * b.masses / b.mass  # 0.5 N down, spread by mass
+    for _ in range(20):
+        scene.step()
+    b.loads[:] = 0.0
+    for body in (a, b):
+        body.last = body.driver.displacements()
+    scene.step()
+    before = momentum()
+    touched = False
+    for _ in range(400):
+        for body in (a, b):
+            body.last = body.driver.displacements()
+        scene.step()
+        touched |= bool(np.any(scene.contacts[("B", "A")]))
+    after = momentum()
+    assert touched and abs(before[2]) > 1e-4
+    assert np.abs(after - before).max() < 1e-6 * np.abs(before).max(), (before, after)

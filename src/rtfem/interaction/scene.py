@@ -1,15 +1,19 @@
-"""Scenes: several bodies under gravity against rigid obstacles (issue 40's first part).
+"""Scenes: several bodies under gravity, touching rigid obstacles and each other (issue 40, in part).
 
 A :class:`Scene` holds bodies (any Driver with the surface it is touched on) and rigid planes, and
 steps them together. Each step of each body:
 
 1. the body's trial step under its weight (and any loads held), from its saved state: where its
    surface would be with no contact (the step is affine in the loads, so this is exact);
-2. the contact points: the surface vertices within ``margin`` of a plane there, each with its gap,
-   its slip over the step and the plane's frame (normal, two tangents);
-3. the frictional contact problem w = b + A r of those points (A = F^T W F, W the driver's one-step
-   compliances of their nodes), solved by the projected Gauss-Seidel of
-   :mod:`rtfem.interaction.friction` (Signorini's conditions and Coulomb's law);
+2. the contact points: the surface vertices within ``margin`` of a plane there, and of another
+   body's surface (against its closest point, in both directions of every pair), each with its
+   gap, its slip over the step relative to the other side and a frame (the normal from the other
+   side, two tangents);
+3. the frictional contact problem w = b + A r of all the points together, A = G^T (sum_k P_k W_k
+   P_k^T) G with W_k each body's one-step compliances of its nodes in contact (so both bodies'
+   compliances add for their relative motion), solved by the projected Gauss-Seidel of
+   :mod:`rtfem.interaction.friction` (Signorini's conditions and Coulomb's law); a point's force acts
+   on its vertex and, opposite, on the other body's triangle (momentum is kept);
 4. the body's step from its state under its weight and the contact forces.
 
 The force of each obstacle on each body is recorded every step (:attr:`Scene.contacts`).
@@ -129,6 +133,20 @@ class Body:
         return float(self.masses.sum())
 
 
+@dataclass
+class _Point:
+    """A contact point: its frame (columns: the normal from the other side, two tangents), its gap and
+    slip after the trial steps, Coulomb's coefficient, and its sides: (body index, nodes, weights)
+    (the first side gets +frame r at weight 1, a second -frame r spread by its barycentric weights)."""
+
+    frame: np.ndarray
+    gap: float
+    slip: np.ndarray
+    friction: float
+    sides: tuple
+    pair: tuple[str, str]
+
+
 def _model_of(driver):
     for path in (("model",), ("modes", "model"), ("reduced", "model")):
         obj = driver
@@ -145,19 +163,21 @@ class Scene:
     Parameters
     ----------
     gravity : (3,) m/s^2 (default (0, 0, -9.81): +z up).
-    margin : points within this fraction of a body's median edge of an obstacle (after the trial
-        step) enter its contact problem (default 0.5).
+    margin : points within this fraction of a body's median edge of an obstacle or of another body
+        (after the trial steps) enter the contact problem (default 0.5).
+    friction : Coulomb's coefficient between bodies (each plane has its own).
 
     Raises
     ------
     ModelError
-        A gravity that is not three finite numbers, a non-positive margin; from :meth:`add_body`
+        A gravity that is not three finite numbers, a non-positive margin, a negative friction; from :meth:`add_body`
         and :meth:`add_plane`, their checks, a name used twice, bodies with different time steps.
     """
 
-    def __init__(self, gravity=(0.0, 0.0, -9.81), *, margin: float = 0.5) -> None:
+    def __init__(self, gravity=(0.0, 0.0, -9.81), *, margin: float = 0.5, friction: float = 0.0) -> None:
         self.gravity = np.array(validate.vector(gravity, "gravity", 3), dtype=float)
         self.margin = validate.positive(margin, "margin", "a fraction of an edge")
+        self.friction = validate.in_range(friction, "friction", 0.0, 10.0, what="Coulomb's coefficient between bodies")
         self.bodies: list[Body] = []
         self.obstacles: list[Plane] = []
         self.time = 0.0
@@ -199,12 +219,21 @@ class Scene:
         raise ModelError(f"no body named {name!r} (bodies: {', '.join(b.name for b in self.bodies) or 'none'})")
 
     def step(self) -> None:
-        """One step of every body (see the module's docstring)."""
+        """One step of every body (see the module's docstring), their contacts solved together."""
         if not self.bodies:
             raise ModelError("the scene has no body: add_body first")
+        trials = [self._trial(b) for b in self.bodies]  # (weight, surface now, surface after a free step)
+        points = self._plane_points(trials) + self._pair_points(trials)
+        loads = [F.copy() for F, _, _ in trials]
         contacts = {}
-        for body in self.bodies:
-            contacts.update(self._step_body(body))
+        for a in self.bodies:
+            for other in (*self.obstacles, *self.bodies):
+                if other is not a:
+                    contacts[(a.name, other.name)] = np.zeros(3)
+        if points:
+            self._solve(points, trials, loads, contacts)
+        for body, F in zip(self.bodies, loads):
+            body.driver.step(F)
         self.contacts = contacts
         self.steps += 1
         self.time = self.steps * self.dt
@@ -213,51 +242,116 @@ class Scene:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):
             self.step()
 
-    def _weight(self, body: Body) -> np.ndarray:
-        return body.masses[:, None] * self.gravity[None, :] + body.loads
-
-    def _step_body(self, body: Body) -> dict:
+    def _trial(self, body: Body):
+        """The body's weight, and its surface's displacements now and after a step under it alone."""
         d = body.driver
-        F = self._weight(body)
+        F = body.masses[:, None] * self.gravity[None, :] + body.loads
         state = d.get_state()
         now = displacements_at(d, body.surface)
         d.step(F)
         trial = displacements_at(d, body.surface)
         d.set_state(state)
-        x = body.X[body.surface] + trial
-        points = []  # (obstacle index, surface row, gap)
-        for k, obstacle in enumerate(self.obstacles):
-            gaps = obstacle.gaps(x)
-            near = np.flatnonzero(gaps < self.margin * body.edge)
-            points += [(k, int(i), float(gaps[i])) for i in near]
-        out = {(body.name, o.name): np.zeros(3) for o in self.obstacles}
-        if not points:
-            d.step(F)
-            return out
-        nodes = np.array([body.surface[i] for _, i, _ in points], dtype=np.int64)
-        unique, slot = np.unique(nodes, return_inverse=True)
-        W = step_compliances(d, unique)
+        return F, now, trial
+
+    def _plane_points(self, trials) -> list[_Point]:
+        points = []
+        for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
+            x = body.X[body.surface] + trial
+            for obstacle in self.obstacles:
+                gaps = obstacle.gaps(x)
+                for i in np.flatnonzero(gaps < self.margin * body.edge).tolist():
+                    points.append(_Point(obstacle.frame, float(gaps[i]), trial[i] - now[i], obstacle.friction,
+                                         ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, obstacle.name)))
+        return points
+
+    def _pair_points(self, trials) -> list[_Point]:
+        """Each body's surface vertices within ``margin`` edges of another body's surface (after the
+        trial steps), against the closest point of that surface: both directions of every pair."""
+        from scipy.spatial import cKDTree
+
+        from .contact_points import closest_points_on_triangles
+
+        points = []
+        for kb, (b, (_, now_b, trial_b)) in enumerate(zip(self.bodies, trials)):
+            if len(self.bodies) < 2:
+                break
+            local = np.full(b.X.shape[0], -1, dtype=np.int64)
+            local[b.surface] = np.arange(b.surface.size)
+            tri = np.asarray(b.mesh.triangles)
+            Y = b.X[tri] + trial_b[local[tri]]  # (t, 3, 3) b's deformed triangles
+            centres = Y.mean(axis=1)
+            reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2)))
+            tree = cKDTree(centres)
+            normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
+            normals /= np.linalg.norm(normals, axis=1)[:, None]
+            for ka, (a, (_, now_a, trial_a)) in enumerate(zip(self.bodies, trials)):
+                if a is b:
+                    continue
+                margin = self.margin * max(a.edge, b.edge)
+                x = a.X[a.surface] + trial_a
+                dist, near = tree.query(x, k=min(8, len(centres)), distance_upper_bound=reach + margin)
+                near = np.atleast_2d(near.T).T if near.ndim == 1 else near
+                cand = np.flatnonzero(np.isfinite(np.atleast_2d(dist.T).T if dist.ndim == 1 else dist).any(axis=1))
+                if cand.size == 0:
+                    continue
+                tris = np.where(near[cand] < len(centres), near[cand], 0)  # (c, k); misses point at 0, masked below
+                valid = near[cand] < len(centres)
+                P = np.repeat(x[cand], tris.shape[1], axis=0)
+                q, w = closest_points_on_triangles(P, Y[tris.ravel(), 0], Y[tris.ravel(), 1], Y[tris.ravel(), 2])
+                d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
+                best = np.argmin(d, axis=1)
+                rows = np.arange(cand.size) * tris.shape[1] + best
+                t_best = tris[np.arange(cand.size), best]
+                n = normals[t_best]
+                delta = x[cand] - q[rows]
+                gap = np.einsum("ij,ij->i", delta, n)
+                lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
+                # beside the surface, or through the body: not this face's contact
+                keep = (np.abs(gap) < margin) & (lateral <= 1e-3 * b.edge + 1e-12)
+                for c in np.flatnonzero(keep).tolist():
+                    i, corners, wc = int(cand[c]), tri[t_best[c]], w[rows[c]]
+                    slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[local[corners]] - now_b[local[corners]])
+                    points.append(_Point(_frame(n[c]), float(gap[c]), slip, self.friction,
+                                         ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
+        return points
+
+    def _solve(self, points, trials, loads, contacts) -> None:
+        """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G."""
         m = len(points)
-        frames = np.stack([self.obstacles[k].frame for k, _, _ in points])  # (m, 3, 3)
-        rows = (3 * slot[:, None] + np.arange(3)).ravel()
-        G = np.zeros((3 * m, 3 * m))  # the points' frames on the diagonal
-        for a in range(m):
-            G[3 * a:3 * a + 3, 3 * a:3 * a + 3] = frames[a]
-        A = G.T @ W[np.ix_(rows, rows)] @ G  # F^T W F
-        slip = trial - now
+        G = np.zeros((3 * m, 3 * m))
         b = np.empty((m, 3))
-        for a, (k, i, gap) in enumerate(points):
-            b[a, 0] = gap
-            b[a, 1:] = frames[a][:, 1:].T @ slip[i]
-        mu = np.array([self.obstacles[k].friction for k, _, _ in points])
-        warm = getattr(body, "_warm", None)
-        r0 = warm.get(tuple(nodes.tolist())) if warm else None
-        r, self.sweeps = pgs(A, b.reshape(-1), mu, r0)
-        r = r.reshape(m, 3)
-        body._warm = {tuple(nodes.tolist()): r.reshape(-1)}
-        f = np.einsum("mij,mj->mi", frames, r)  # each point's force on the body
-        for a, (k, i, _) in enumerate(points):
-            F[body.surface[i]] += f[a]
-            out[(body.name, self.obstacles[k].name)] += f[a]
-        d.step(F)
-        return out
+        for c, pt in enumerate(points):
+            G[3 * c:3 * c + 3, 3 * c:3 * c + 3] = pt.frame
+            b[c, 0] = pt.gap
+            b[c, 1:] = pt.frame[:, 1:].T @ pt.slip
+        A = np.zeros((3 * m, 3 * m))
+        maps = []
+        for k, body in enumerate(self.bodies):
+            nodes = np.unique(np.concatenate([n for pt in points for kk, n, _ in pt.sides if kk == k] or [[]])
+                              ).astype(np.int64)
+            if nodes.size == 0:
+                maps.append(None)
+                continue
+            slot = {v: i for i, v in enumerate(nodes.tolist())}
+            P = np.zeros((3 * m, 3 * nodes.size))  # point c's displacement from body k's nodes' forces
+            for c, pt in enumerate(points):
+                for kk, ns, ws in pt.sides:
+                    if kk == k:
+                        for v, wt in zip(ns.tolist(), ws.tolist()):
+                            P[3 * c:3 * c + 3, 3 * slot[v]:3 * slot[v] + 3] += wt * np.eye(3)
+            W = step_compliances(body.driver, nodes)
+            A += P @ W @ P.T
+            maps.append((nodes, P))
+        A = G.T @ A @ G
+        mu = np.array([pt.friction for pt in points])
+        r, self.sweeps = pgs(A, b.reshape(-1), mu)
+        f = (G @ r).reshape(m, 3)  # each point's force on its first side (the reaction on the second)
+        for k, mp in enumerate(maps):
+            if mp is not None:
+                nodes, P = mp
+                loads[k][nodes] += (P.T @ f.reshape(-1)).reshape(-1, 3)
+        for pt, fc in zip(points, f):
+            a, other = pt.pair
+            contacts[(a, other)] += fc
+            if any(x.name == other for x in self.bodies):
+                contacts[(other, a)] -= fc

@@ -4,6 +4,7 @@
 
     gravity = [0, 0, -9.81]        # m/s^2 (default: this)
     dt = 0.001                     # s (default)
+    friction = 0.2                 # Coulomb between bodies (default 0)
 
     [[body]]
     name = "box"
@@ -36,7 +37,7 @@ from .scene import Scene
 
 __all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS"]
 
-TOP_KEYS = {"gravity", "dt", "body", "obstacle"}
+TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "friction"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
@@ -104,7 +105,9 @@ def load_scene(path, *, progress=None) -> Scene:
     top.keys(doc, TOP_KEYS)
     gravity = top.check("gravity", validate.vector, doc.get("gravity", (0.0, 0.0, -9.81)), "gravity", 3)
     dt = top.check("dt", validate.time_step, doc.get("dt", 1e-3), "dt")
-    scene = Scene(gravity)
+    friction = top.check("friction", validate.in_range, doc.get("friction", 0.0), "friction", 0.0, 10.0,
+                         what="Coulomb's coefficient between bodies")
+    scene = Scene(gravity, friction=friction)
     bodies, obstacles = doc.get("body", []), doc.get("obstacle", [])
     if not isinstance(bodies, list) or not bodies:
         raise top.error("body", "a scene needs at least one [[body]] table")
