@@ -30,6 +30,16 @@ friction = 0.3
 """
 
 
+HANG = """
+[[attachment]]
+name = "ligament"
+body = "box"
+nodes = "z>0.049"
+to = "world"
+stiffness = 500.0
+"""
+
+
 @pytest.fixture()
 def folder(tmp_path):
     rt.save_mesh(rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2), tmp_path / "box.vtu")
@@ -49,6 +59,16 @@ def test_rtfem_simulate_a_scene_file_settles_on_the_plane_with_its_weight(folder
     assert "weight 4.905 N" in capsys.readouterr().out
 
 
+def test_a_scene_file_body_hung_on_springs_they_carry_its_weight(folder):
+    """The box hung by its top face, nothing under it: the springs' force in contacts.csv is its weight."""
+    (folder / "scene.toml").write_text(SCENE.split("[[obstacle]]")[0] + HANG)
+    assert main(["simulate", str(folder / "scene.toml"), "--duration", "1.0", "--out", str(folder / "out")]) == 0
+    with open(folder / "out" / "contacts.csv") as fh:
+        t, a, b, *f = list(csv.reader(fh))[-1]
+    weight = 0.1 * 0.1 * 0.05 * 1000 * 9.81
+    assert (a, b) == ("box", "ligament") and abs(float(f[2]) - weight) < 0.01 * weight
+
+
 @pytest.mark.parametrize("edit, match", [
     (lambda s: s.replace('name = "box"\n', ""), r"scene.toml: \[\[body\]\] 1: key 'name': missing"),
     (lambda s: s.replace("modes = 20", "modes = 0"), r"\[\[body\]\] 1 'box': key 'modes'"),
@@ -57,7 +77,13 @@ def test_rtfem_simulate_a_scene_file_settles_on_the_plane_with_its_weight(folder
     (lambda s: s.replace('mesh = "box.vtu"', 'mesh = "nothing.vtu"'), r"\[\[body\]\] 1 'box': key 'mesh'"),
     (lambda s: s.replace("normal = [0, 0, 1]", "normal = [0, 0, 0]"), r"\[\[obstacle\]\] 1 'table': key 'plane'"),
     (lambda s: s.replace("plane = {", "plain = {"), r"\[\[obstacle\]\] 1 'table': key 'plane': missing"),
-    (lambda s: s + "\n[[attachment]]\na = 'box'\n", r"the top level: key 'attachment': attachments .* not supported"),
+    (lambda s: s + "\n[[tool]]\nname = 'jaw'\n", r"the top level: key 'tool': tools are not supported"),
+    (lambda s: s + HANG.replace('"box"', '"boxx"'), r"\[\[attachment\]\] 1 'ligament': key 'body': no body named 'boxx'"),
+    (lambda s: s + HANG.replace('to = "world"', 'to = "sky"'), r"key 'to': no body named 'sky' .*or 'world'"),
+    (lambda s: s + HANG.replace("z>0.049", "z>0.2"), r"key 'nodes': .*'z>0.2' selects no node of box"),
+    (lambda s: s + HANG.replace("500.0", "-5"), r"key 'stiffness': .*> 0"),
+    (lambda s: s + HANG.replace('to = "world"', 'to = "box"'), r"key 'nodes': .*attached to itself"),
+    (lambda s: s + HANG.replace("stiffness", "stifness"), r"key 'stifness': unknown"),
     (lambda s: s.replace("gravity = [0, 0, -9.81]", "gravity = [0, -9.81]"), r"the top level: key 'gravity'"),
     (lambda s: s.replace("[[body]]", "[[bodies]]"), r"the top level: key 'bodies': unknown"),
     (lambda s: s.replace('name = "table"', 'name = "box"'), r"\[\[obstacle\]\] 1 'box'.*named 'box'"),

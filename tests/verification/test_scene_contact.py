@@ -122,3 +122,49 @@ def test_a_frictionless_collision_keeps_the_momentum():
     after = momentum()
     assert touched and abs(before[2]) > 1e-4
     assert np.abs(after - before).max() < 1e-6 * np.abs(before).max(), (before, after)
+
+
+def test_a_body_hung_on_springs_bounces_at_sqrt_nk_over_m_and_keeps_its_energy():
+    """A stiff free box (E = 10 MPa: its first elastic mode at 261 Hz) hung from the world by n = 25
+    springs of k = 500 N/m on its top face, released unstretched under gravity without damping: a
+    rigid body on n springs, it bounces at omega = sqrt(n k / m) (25.2 Hz) about the sag m g / (n k),
+    the springs' force between 0 and 2 m g. Newmark's period elongation at omega dt = 0.16 is 0.2 %;
+    implicit springs keep the amplitude (explicit ones, the force from the start of the step, grew it
+    20-fold in 0.6 s)."""
+    model = _free_box(E=1e7)
+    scene = rt.Scene()
+    scene.add_body("box", rt.ModalSimulator(rt.modal_analysis(model, 20), dt=1e-3, integrator="newmark"), model.mesh)
+    spring = scene.attach("ligament", "box", "z>0.049", stiffness=500.0)
+    n, m, g = spring.nodes_a.size, scene.body("box").mass, 9.81
+    assert n == 25
+    F = []
+    for _ in range(600):
+        scene.step()
+        F.append(scene.contacts[("box", "ligament")][2] - m * g)
+    F = np.array(F)
+    i = np.flatnonzero(np.sign(F[1:]) != np.sign(F[:-1]))
+    crossings = (i + 1 + F[i] / (F[i] - F[i + 1])) * 1e-3
+    period = 2.0 * np.median(np.diff(crossings))
+    assert abs(period / (2 * np.pi * np.sqrt(m / (n * 500.0))) - 1.0) < 0.006
+    assert abs(np.ptp(F[:80]) / (2 * m * g) - 1.0) < 0.01 and abs(np.ptp(F[-80:]) / (2 * m * g) - 1.0) < 0.01
+
+
+def test_a_chain_of_bodies_on_springs_carries_the_weights_below():
+    """Box A hung from the world by its top face, box B hung from A's bottom face (each of B's top
+    nodes to the nearest node of A), with damping: settled, the world's springs carry both weights,
+    the A-B springs B's weight, and A and B feel opposite forces from them (1e-6)."""
+    ma, A = _free(rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2), E=1e5)
+    mb, B = _free(_moved(rt.meshes.box(0.06, 0.06, 0.03, nx=3, ny=3, nz=2), (0.02, 0.02, -0.035)), E=1e5)
+    scene = rt.Scene()
+    scene.add_body("A", A, ma.mesh)
+    scene.add_body("B", B, mb.mesh)
+    scene.attach("top", "A", "z>0.049", stiffness=2000.0)
+    link = scene.attach("link", "B", "z>-0.0051", "A", stiffness=2000.0)
+    assert np.all(ma.mesh.vertices[link.nodes_b][:, 2] < 1e-9)  # the nearest nodes of A: on its bottom face
+    scene.run(1500)
+    g = 9.81
+    wa, wb = scene.body("A").mass * g, scene.body("B").mass * g
+    assert abs(scene.contacts[("A", "top")][2] - (wa + wb)) < 0.01 * (wa + wb)
+    assert abs(scene.contacts[("B", "link")][2] - wb) < 0.01 * wb
+    assert np.allclose(scene.contacts[("A", "link")], -scene.contacts[("B", "link")], atol=1e-6 * wb)
+    assert np.abs(scene.contacts[("A", "top")][:2]).max() < 1e-3 * wa

@@ -16,7 +16,7 @@ from .common import MAX_FRAMES, MAX_STEPS, progress_bar
 def simulate_scene(args: argparse.Namespace) -> int:
     """Run the scene file ``args.mesh`` for ``args.duration`` s into ``args.out``: a folder per body with
     its ``<body>.pvd`` frames (``--fps``) and ``<body>.csv`` (t and the total contact force on it), and
-    ``contacts.csv`` with t, a, b, fx, fy, fz: the force on body a from obstacle b, every step."""
+    ``contacts.csv`` with t, a, b, fx, fy, fz: the force on body a from obstacle, body or attachment b, every step."""
     from ..interaction.scene_file import contact_rows, load_scene
     from ..io.scenario import RunWriter
     from ..storage import atomic_target
@@ -61,6 +61,6 @@ def simulate_scene(args: argparse.Namespace) -> int:
     for b in scene.bodies:
         f = sum((f for (a, _), f in scene.contacts.items() if a == b.name), np.zeros(3))
         print(f"body        {b.name}: {b.mass:.4g} kg (weight {b.mass * np.linalg.norm(scene.gravity):.4g} N); "
-              f"obstacles' force now {np.round(f, 4).tolist()} N")
+              f"force of obstacles, bodies and attachments now {np.round(f, 4).tolist()} N")
     print(f"wrote       {path} ({len(rows)} rows) and {', '.join(f'{b.name}/{b.name}.pvd' for b in scene.bodies)}")
     return 0

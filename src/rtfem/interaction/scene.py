@@ -33,7 +33,7 @@ from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_
 from ..mesh.surface import TriMesh
 from .friction import pgs
 
-__all__ = ["Scene", "Plane", "Body"]
+__all__ = ["Scene", "Plane", "Body", "Attachment"]
 
 
 def _frame(normal: np.ndarray) -> np.ndarray:
@@ -134,6 +134,53 @@ class Body:
 
 
 @dataclass
+class Attachment:
+    """Springs holding nodes of a body to the world, or to nodes of another body (ligaments, vessels):
+    each pair keeps its rest offset, the force k (x_b - x_a - (X_b - X_a)) on a's node and its opposite
+    on b's (to the world: the node's rest position). Implicit: the forces are those at the end of the
+    step, solved with the bodies' one-step compliances (the step is affine in the loads), so a spring
+    of any stiffness is stable and an undamped one keeps its energy.
+
+    Parameters
+    ----------
+    name : its name in the contact records.
+    a : the body whose nodes are held; nodes_a : their indices.
+    b : the other body, or None: the world; nodes_b : b's nodes paired with nodes_a (default: the
+        nearest node of b's surface to each, at rest).
+    stiffness : each spring's stiffness (N/m).
+
+    Raises
+    ------
+    ModelError
+        Nodes off a body, pairs of different lengths, a non-positive stiffness.
+    """
+
+    name: str
+    a: "Body"
+    nodes_a: np.ndarray
+    b: "Body | None"
+    nodes_b: np.ndarray | None
+    stiffness: float
+
+    def __post_init__(self) -> None:
+        self.nodes_a = validate.nodes(self.nodes_a, self.a.driver.n_nodes, f"attachment {self.name}: nodes")
+        self.stiffness = validate.positive(self.stiffness, f"attachment {self.name}: stiffness", "a spring in N/m")
+        if self.b is None:
+            self.anchor = self.a.X[self.nodes_a].copy()
+            return
+        if self.nodes_b is None:
+            from scipy.spatial import cKDTree
+
+            surface = self.b.surface
+            self.nodes_b = surface[cKDTree(self.b.X[surface]).query(self.a.X[self.nodes_a])[1]]
+        self.nodes_b = validate.nodes(self.nodes_b, self.b.driver.n_nodes, f"attachment {self.name}: nodes of {self.b.name}")
+        if self.nodes_b.shape != self.nodes_a.shape:
+            raise ModelError(f"attachment {self.name}: {self.nodes_a.size} nodes of {self.a.name} against "
+                             f"{self.nodes_b.size} of {self.b.name}: give pairs")
+        self.rest = self.b.X[self.nodes_b] - self.a.X[self.nodes_a]
+
+
+@dataclass
 class _Point:
     """A contact point: its frame (columns: the normal from the other side, two tangents), its gap and
     slip after the trial steps, Coulomb's coefficient, and its sides: (body index, nodes, weights)
@@ -180,6 +227,7 @@ class Scene:
         self.friction = validate.in_range(friction, "friction", 0.0, 10.0, what="Coulomb's coefficient between bodies")
         self.bodies: list[Body] = []
         self.obstacles: list[Plane] = []
+        self.attachments: list[Attachment] = []
         self.time = 0.0
         self.steps = 0
         #: the force (N) of each obstacle on each body in the last step: {(body, obstacle): (3,)}
@@ -187,7 +235,7 @@ class Scene:
         self.sweeps = 0
 
     def _name_free(self, name: str) -> None:
-        if any(x.name == name for x in (*self.bodies, *self.obstacles)):
+        if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments)):
             raise ModelError(f"the scene already has a body or obstacle named {name!r}: give each its own name")
 
     def add_body(self, name: str, driver, mesh: TriMesh, masses=None) -> Body:
@@ -198,6 +246,25 @@ class Scene:
             raise ModelError(f"body {name}: dt = {body.driver.dt:g} s, the scene's bodies step with {self.dt:g} s")
         self.bodies.append(body)
         return body
+
+    def attach(self, name: str, a: str, nodes, b: str | None = None, nodes_b=None, *,
+               stiffness: float = 500.0) -> Attachment:
+        """Springs from ``nodes`` of body ``a`` to the world (``b`` None) or to body ``b`` (see
+        :class:`Attachment`; ``nodes`` also a selection as :func:`rtfem.select_nodes` takes)."""
+        from ..mesh.selection import select_nodes
+
+        self._name_free(name)
+        body = self.body(a)
+        spec = nodes
+        nodes = select_nodes(body.mesh, nodes, f"attachment {name}")  # the surface numbers all the nodes
+        if nodes.size == 0:
+            raise ModelError(f"attachment {name}: {validate.show(spec)} selects no node of {a}")
+        other = None if b is None else self.body(b)
+        if other is body:
+            raise ModelError(f"attachment {name}: a body attached to itself; give b another body or None (the world)")
+        att = Attachment(name, body, nodes, other, nodes_b, stiffness)
+        self.attachments.append(att)
+        return att
 
     def add_plane(self, name: str, point, normal, friction: float = 0.0) -> Plane:
         """A rigid plane (see :class:`Plane`)."""
@@ -222,7 +289,8 @@ class Scene:
         """One step of every body (see the module's docstring), their contacts solved together."""
         if not self.bodies:
             raise ModelError("the scene has no body: add_body first")
-        trials = [self._trial(b) for b in self.bodies]  # (weight, surface now, surface after a free step)
+        held = self._attachment_loads()
+        trials = [self._trial(b, held[k]) for k, b in enumerate(self.bodies)]  # (loads, surface now, after a step)
         points = self._plane_points(trials) + self._pair_points(trials)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
@@ -230,6 +298,10 @@ class Scene:
             for other in (*self.obstacles, *self.bodies):
                 if other is not a:
                     contacts[(a.name, other.name)] = np.zeros(3)
+        for att in self.attachments:
+            contacts[(att.a.name, att.name)] = self._held_force[att.name]
+            if att.b is not None:
+                contacts[(att.b.name, att.name)] = -self._held_force[att.name]
         if points:
             self._solve(points, trials, loads, contacts)
         for body, F in zip(self.bodies, loads):
@@ -242,10 +314,60 @@ class Scene:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):
             self.step()
 
-    def _trial(self, body: Body):
-        """The body's weight, and its surface's displacements now and after a step under it alone."""
+    def _attachment_loads(self) -> list[np.ndarray]:
+        """Each body's attachment forces (n, 3) at the end of this step; the total of each
+        attachment on its first body in :attr:`_held_force`.
+
+        With e the springs' stretch after a step under the weights and loads alone (a's node past
+        its anchor or its pair's), and A = J (sum_k W_k) J^T the stretch per unit spring force
+        (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f): (I / k + A) f = -e."""
+        out = [np.zeros((b.driver.n_nodes, 3)) for b in self.bodies]
+        self._held_force = {}
+        if not self.attachments:
+            return out
+        index = {b.name: k for k, b in enumerate(self.bodies)}
+        ends = [(index[att.a.name], att.nodes_a, 1.0) for att in self.attachments] + \
+               [(index[att.b.name], att.nodes_b, -1.0) for att in self.attachments if att.b is not None]
+        sizes = [att.nodes_a.size for att in self.attachments]
+        start = np.concatenate([[0], np.cumsum(sizes)])
+        n_springs = int(start[-1])
+        e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in self.attachments])
+        J = {}  # body -> (its attached nodes, (3 S, 3 n) Jacobian)
+        for k in sorted({k for k, _, _ in ends}):
+            nodes = np.unique(np.concatenate([n for kk, n, _ in ends if kk == k]))
+            J[k] = (nodes, np.zeros((3 * n_springs, 3 * nodes.size)))
+        for a_index, att in enumerate(self.attachments):
+            for k, nodes, sign in ((index[att.a.name], att.nodes_a, 1.0),
+                                   *(((index[att.b.name], att.nodes_b, -1.0),) if att.b is not None else ())):
+                all_nodes, Jk = J[k]
+                slots = np.searchsorted(all_nodes, nodes)
+                for s_local, slot in enumerate(slots.tolist()):
+                    row = 3 * (start[a_index] + s_local)
+                    Jk[row:row + 3, 3 * slot:3 * slot + 3] += sign * np.eye(3)
+        A = np.zeros((3 * n_springs, 3 * n_springs))
+        for k, (nodes, Jk) in J.items():
+            body, d = self.bodies[k], self.bodies[k].driver
+            state = d.get_state()
+            d.step(body.masses[:, None] * self.gravity[None, :] + body.loads)
+            x = body.X[nodes] + displacements_at(d, nodes)
+            d.set_state(state)
+            e += (Jk @ x.reshape(-1)).reshape(-1, 3)
+            A += Jk @ step_compliances(d, nodes) @ Jk.T
+        inv_k = np.repeat([1.0 / att.stiffness for att in self.attachments], np.asarray(sizes) * 3)
+        f = np.linalg.solve(A + np.diag(inv_k), -e.reshape(-1)).reshape(-1, 3)
+        for a_index, att in enumerate(self.attachments):
+            fa = f[start[a_index]:start[a_index + 1]]
+            np.add.at(out[index[att.a.name]], att.nodes_a, fa)
+            if att.b is not None:
+                np.add.at(out[index[att.b.name]], att.nodes_b, -fa)
+            self._held_force[att.name] = fa.sum(axis=0)
+        return out
+
+    def _trial(self, body: Body, held: np.ndarray):
+        """The body's weight and held loads, and its surface's displacements now and after a step
+        under them alone."""
         d = body.driver
-        F = body.masses[:, None] * self.gravity[None, :] + body.loads
+        F = body.masses[:, None] * self.gravity[None, :] + body.loads + held
         state = d.get_state()
         now = displacements_at(d, body.surface)
         d.step(F)

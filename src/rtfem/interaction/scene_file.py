@@ -22,6 +22,13 @@
     plane = { point = [0, 0, 0], normal = [0, 0, 1] }
     friction = 0.3
 
+    [[attachment]]                 # springs holding nodes of a body (ligaments, vessels)
+    name = "ligament"
+    body = "box"
+    nodes = "z>0.049"              # a node selection of that body
+    to = "world"                   # or another body's name: each node to its nearest surface node
+    stiffness = 500.0              # each spring (N/m)
+
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
 """
 
@@ -35,14 +42,14 @@ from .. import validate
 from ..errors import ModelError, RtfemError
 from .scene import Scene
 
-__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS"]
+__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS"]
 
-TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle"}
+TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle", "attachment"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "friction"}
+ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
-NOT_YET = {"attachment": "attachments (springs or constraints between bodies)", "tool": "tools",
-           "mesh": "fixed-mesh obstacles"}
+NOT_YET = {"tool": "tools", "mesh": "fixed-mesh obstacles"}
 
 
 class _Where:
@@ -123,6 +130,21 @@ def load_scene(path, *, progress=None) -> Scene:
         if not isinstance(plane, dict) or set(plane) != {"point", "normal"}:
             raise where.error("plane", "must be { point = [x, y, z], normal = [nx, ny, nz] } (m)")
         where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], table.get("friction", 0.0))
+    attachments = doc.get("attachment", [])
+    for i, table in enumerate(attachments if isinstance(attachments, list) else [attachments]):
+        where = _Where(p, _table_name("attachment", i, table))
+        if not isinstance(table, dict):
+            raise where.error(None, "must be a table")
+        where.keys(table, ATTACHMENT_KEYS, ("name", "body", "nodes"))
+        names = [b.name for b in scene.bodies]
+        for key in ("body", "to"):
+            if key in table and table[key] not in names and not (key == "to" and table[key] == "world"):
+                raise where.error(key, f"no body named {table[key]!r} (bodies: {', '.join(names)}"
+                                  + (", or 'world')" if key == "to" else ")"))
+        to = table.get("to", "world")
+        where.check("stiffness", validate.positive, table.get("stiffness", 500.0), "stiffness", "a spring in N/m")
+        where.check("nodes", scene.attach, table["name"], table["body"], table["nodes"],
+                    None if to == "world" else to, stiffness=table.get("stiffness", 500.0))
     return scene
 
 
@@ -175,5 +197,5 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
 
 def contact_rows(scene: Scene) -> list[list]:
     """The scene's contact records of this step as CSV rows t, a, b, fx, fy, fz (the force on body a
-    from obstacle b)."""
+    from obstacle, body or attachment b)."""
     return [[scene.time, a, b, *np.asarray(f).tolist()] for (a, b), f in scene.contacts.items()]
