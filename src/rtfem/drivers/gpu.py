@@ -7,7 +7,8 @@ dtype, and a frame is one matrix-vector product there plus the (n, 3) result cop
 drawing; the static correction (a few loaded nodes) is added on the host as before.
 
 CuPy is not installed by ``make``: it needs a CUDA GPU and the wheel that matches its CUDA
-(``pip install cupy-cuda12x``). :func:`module` finds it, and checks that it can run a product,
+(``pip install cupy-cuda12x`` or ``cupy-cuda13x``; run on an H100 with CuPy 14.2 for CUDA 13:
+benchmarks/results/haptic_loop_gpu_h100.txt). :func:`module` finds it, and checks that it can run a product,
 once per process; :func:`status` says what was found and, when nothing is, why.
 """
 
@@ -34,7 +35,7 @@ def module():
             name = cupy.cuda.runtime.getDeviceProperties(cupy.cuda.Device().id)["name"]
             _FOUND.update(xp=cupy, why=f"CuPy {cupy.__version__} on {name.decode() if isinstance(name, bytes) else name}")
         except ImportError:
-            _FOUND.update(xp=None, why="CuPy is not installed (pip install cupy-cuda12x, with a CUDA GPU)")
+            _FOUND.update(xp=None, why="CuPy is not installed (pip install cupy-cuda12x or cupy-cuda13x, with a CUDA GPU)")
         except Exception as exc:  # a CuPy without a usable device or driver
             _FOUND.update(xp=None, why=f"CuPy found no usable CUDA device ({type(exc).__name__}: {exc})")
     return _FOUND["xp"]
