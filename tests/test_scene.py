@@ -40,6 +40,17 @@ stiffness = 500.0
 """
 
 
+LIFT = """
+[[tool]]
+name = "hand"
+kind = "grasper"
+path = [[0.0, 0.05, 0.05, 0.049], [0.3, 0.05, 0.05, 0.049], [0.8, 0.05, 0.05, 0.079]]
+closed = [[0.2, 9.0]]
+radius = 0.015
+stiffness = 2000.0
+"""
+
+
 @pytest.fixture()
 def folder(tmp_path):
     rt.save_mesh(rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2), tmp_path / "box.vtu")
@@ -69,6 +80,18 @@ def test_a_scene_file_body_hung_on_springs_they_carry_its_weight(folder):
     assert (a, b) == ("box", "ligament") and abs(float(f[2]) - weight) < 0.01 * weight
 
 
+def test_a_scene_file_grasper_lifts_the_box_off_the_table(folder):
+    """A scripted grasper closes on the box's top and lifts it 3 cm: contacts.csv ends with the
+    grasper carrying the weight and the table nothing."""
+    (folder / "scene.toml").write_text(SCENE + LIFT)
+    assert main(["simulate", str(folder / "scene.toml"), "--duration", "1.6", "--out", str(folder / "out")]) == 0
+    with open(folder / "out" / "contacts.csv") as fh:
+        last = {(a, b): np.array(f, float) for t, a, b, *f in list(csv.reader(fh))[-2:]}
+    weight = 0.1 * 0.1 * 0.05 * 1000 * 9.81
+    assert np.abs(last[("box", "table")]).max() == 0.0
+    assert abs(last[("box", "hand")][2] - weight) < 0.01 * weight
+
+
 @pytest.mark.parametrize("edit, match", [
     (lambda s: s.replace('name = "box"\n', ""), r"scene.toml: \[\[body\]\] 1: key 'name': missing"),
     (lambda s: s.replace("modes = 20", "modes = 0"), r"\[\[body\]\] 1 'box': key 'modes'"),
@@ -77,7 +100,14 @@ def test_a_scene_file_body_hung_on_springs_they_carry_its_weight(folder):
     (lambda s: s.replace('mesh = "box.vtu"', 'mesh = "nothing.vtu"'), r"\[\[body\]\] 1 'box': key 'mesh'"),
     (lambda s: s.replace("normal = [0, 0, 1]", "normal = [0, 0, 0]"), r"\[\[obstacle\]\] 1 'table': key 'plane'"),
     (lambda s: s.replace("plane = {", "plain = {"), r"\[\[obstacle\]\] 1 'table': key 'plane': missing"),
-    (lambda s: s + "\n[[tool]]\nname = 'jaw'\n", r"the top level: key 'tool': tools are not supported"),
+    (lambda s: s + "\n[[tool]]\nname = 'jaw'\n", r"\[\[tool\]\] 1 'jaw': key 'path': missing"),
+    (lambda s: s + LIFT.replace('"grasper"\npath', '"scissors"\npath'), r"\[\[tool\]\] 1 'hand': key 'kind'"),
+    (lambda s: s + LIFT.replace("[0.8, 0.05", "[0.1, 0.05"), r"key 'path': .*times must increase"),
+    (lambda s: s + LIFT.replace("[[0.2, 9.0]]", "[[0.2, 0.1]]"), r"key 'closed': .*t_off > t_on"),
+    (lambda s: s + LIFT.replace("radius = 0.015", "radius = -1"), r"key 'radius'"),
+    (lambda s: s + LIFT.replace('kind = "grasper"', 'kind = "probe"'), r"key 'closed': only a grasper closes"),
+    (lambda s: s.replace("friction = 0.3", "friction = 0.3\nmesh = 'liver.stl'"),
+     r"\[\[obstacle\]\] 1 'table': key 'mesh': fixed-mesh obstacles are not supported"),
     (lambda s: s + HANG.replace('"box"', '"boxx"'), r"\[\[attachment\]\] 1 'ligament': key 'body': no body named 'boxx'"),
     (lambda s: s + HANG.replace('to = "world"', 'to = "sky"'), r"key 'to': no body named 'sky' .*or 'world'"),
     (lambda s: s + HANG.replace("z>0.049", "z>0.2"), r"key 'nodes': .*'z>0.2' selects no node of box"),
@@ -107,13 +137,23 @@ def test_scene_refusals(folder):
     with pytest.raises(rt.ModelError, match="another mesh|mesh of"):
         sc.add_body("a", sim, rt.meshes.plate(0.1, nx=2))
     sc.add_body("a", sim, model.mesh)
-    with pytest.raises(rt.ModelError, match="already has a body or obstacle named 'a'"):
+    with pytest.raises(rt.ModelError, match="already has a body, obstacle, attachment or tool named 'a'"):
         sc.add_plane("a", (0, 0, 0), (0, 0, 1))
     with pytest.raises(rt.ModelError, match="friction"):
         sc.add_plane("p", (0, 0, 0), (0, 0, 1), friction=-1)
     other = rt.ModalSimulator(rt.modal_analysis(model, 8), dt=2e-3)
     with pytest.raises(rt.ModelError, match="dt = 0.002 s"):
         sc.add_body("b", other, model.mesh)
+    with pytest.raises(rt.ModelError, match="kind='scissors'; give one of 'probe', 'grasper'"):
+        sc.add_tool("t", rt.ScriptedDevice(lambda t: (0, 0, 0)), kind="scissors")
+    with pytest.raises(rt.ModelError, match="position\\(t\\) and set_force"):
+        sc.add_tool("t", lambda t: (0, 0, 0))
+    with pytest.raises(rt.ModelError, match="radius"):
+        sc.add_tool("t", rt.ScriptedDevice(lambda t: (0, 0, 0)), radius=0.0)
+    tool = sc.add_tool("t", rt.ScriptedDevice(lambda t: (0.0, np.nan, 0.0)))
+    with pytest.raises(rt.ModelError, match="tool t: the device's position.*non-finite"):
+        sc.step()
+    sc.tools.remove(tool)
     assert [b.name for b in sc.bodies] == ["a"] and sc.obstacles == []  # nothing half added
     assert main(["simulate", str(folder / "nothing.toml")]) == 2  # one line, exit 2
     np.testing.assert_equal(sc.time, 0.0)

@@ -16,6 +16,7 @@ from .interaction.haptics import Grasp, Probe
 from .interaction.loop import HapticLoop
 from .interaction.contact import Tool, ToolContact
 from .interaction.scene import Scene
+from .interaction.scene_tools import Keyframes
 from .interaction import contact
 from .drivers.impedance import ImpedanceMap, Load
 from .drivers.impedance_driver import ImpedanceDriver
@@ -55,6 +56,7 @@ __all__ = [
     "Tool",
     "ToolContact",
     "Scene",
+    "Keyframes",
     "HapticLoop",
     "Probe",
     "ScriptedDevice",

@@ -32,6 +32,7 @@ from ..errors import ModelError
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances
 from ..mesh.surface import TriMesh
 from .friction import pgs
+from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
 
@@ -124,6 +125,7 @@ class Body:
             raise ModelError(f"body {self.name}: masses must be ({n},) values >= 0, got {self.masses.shape}")
         self.surface = self.mesh.used_vertices()
         self.X = np.asarray(self.mesh.vertices)
+        self.normals = self.mesh.vertex_normals()[self.surface]
         edges = np.linalg.norm(np.diff(self.X[np.asarray(self.mesh.triangles)][:, [0, 1]], axis=1)[:, 0], axis=1)
         self.edge = float(np.median(edges))
         self.loads = np.zeros((n, 3))
@@ -192,6 +194,7 @@ class _Point:
     friction: float
     sides: tuple
     pair: tuple[str, str]
+    tool: int = -1  # the scene tool it touches (its coupling adds to A), or -1
 
 
 def _model_of(driver):
@@ -228,6 +231,7 @@ class Scene:
         self.bodies: list[Body] = []
         self.obstacles: list[Plane] = []
         self.attachments: list[Attachment] = []
+        self.tools: list[SceneTool] = []
         self.time = 0.0
         self.steps = 0
         #: the force (N) of each obstacle on each body in the last step: {(body, obstacle): (3,)}
@@ -235,8 +239,9 @@ class Scene:
         self.sweeps = 0
 
     def _name_free(self, name: str) -> None:
-        if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments)):
-            raise ModelError(f"the scene already has a body or obstacle named {name!r}: give each its own name")
+        if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools)):
+            raise ModelError(f"the scene already has a body, obstacle, attachment or tool named {name!r}: "
+                             "give each its own name")
 
     def add_body(self, name: str, driver, mesh: TriMesh, masses=None) -> Body:
         """A body (see :class:`Body`); all bodies step with the same dt."""
@@ -273,6 +278,14 @@ class Scene:
         self.obstacles.append(plane)
         return plane
 
+    def add_tool(self, name: str, device, *, kind: str = "probe", radius: float = 0.005, shape=None,
+                 stiffness: float | None = None, friction: float = 0.0) -> SceneTool:
+        """A probe or a grasper following ``device`` (see :class:`~rtfem.interaction.scene_tools.SceneTool`)."""
+        self._name_free(name)
+        tool = SceneTool(name, device, kind=kind, radius=radius, shape=shape, stiffness=stiffness, friction=friction)
+        self.tools.append(tool)
+        return tool
+
     @property
     def dt(self) -> float:
         if not self.bodies:
@@ -289,23 +302,29 @@ class Scene:
         """One step of every body (see the module's docstring), their contacts solved together."""
         if not self.bodies:
             raise ModelError("the scene has no body: add_body first")
-        held = self._attachment_loads()
+        t1 = (self.steps + 1) * self.dt
+        for tool in self.tools:
+            tool.begin(t1, self.bodies)
+        springs = self.attachments + [tool.held for tool in self.tools if tool.held is not None]
+        held = self._attachment_loads(springs)
         trials = [self._trial(b, held[k]) for k, b in enumerate(self.bodies)]  # (loads, surface now, after a step)
-        points = self._plane_points(trials) + self._pair_points(trials)
+        points = self._plane_points(trials) + self._pair_points(trials) + self._tool_points(trials)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
         for a in self.bodies:
-            for other in (*self.obstacles, *self.bodies):
+            for other in (*self.obstacles, *self.bodies, *self.tools):
                 if other is not a:
                     contacts[(a.name, other.name)] = np.zeros(3)
-        for att in self.attachments:
-            contacts[(att.a.name, att.name)] = self._held_force[att.name]
+        for att in springs:
+            contacts[(att.a.name, att.name)] = self._held_force[att.name].copy()
             if att.b is not None:
                 contacts[(att.b.name, att.name)] = -self._held_force[att.name]
         if points:
             self._solve(points, trials, loads, contacts)
         for body, F in zip(self.bodies, loads):
             body.driver.step(F)
+        for tool in self.tools:
+            tool.end(t1, sum((contacts[(b.name, tool.name)] for b in self.bodies), np.zeros(3)))
         self.contacts = contacts
         self.steps += 1
         self.time = self.steps * self.dt
@@ -314,29 +333,29 @@ class Scene:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):
             self.step()
 
-    def _attachment_loads(self) -> list[np.ndarray]:
-        """Each body's attachment forces (n, 3) at the end of this step; the total of each
-        attachment on its first body in :attr:`_held_force`.
+    def _attachment_loads(self, springs) -> list[np.ndarray]:
+        """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
+        graspers' springs); the total of each set on its first body in :attr:`_held_force`.
 
         With e the springs' stretch after a step under the weights and loads alone (a's node past
         its anchor or its pair's), and A = J (sum_k W_k) J^T the stretch per unit spring force
         (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f): (I / k + A) f = -e."""
         out = [np.zeros((b.driver.n_nodes, 3)) for b in self.bodies]
         self._held_force = {}
-        if not self.attachments:
+        if not springs:
             return out
         index = {b.name: k for k, b in enumerate(self.bodies)}
-        ends = [(index[att.a.name], att.nodes_a, 1.0) for att in self.attachments] + \
-               [(index[att.b.name], att.nodes_b, -1.0) for att in self.attachments if att.b is not None]
-        sizes = [att.nodes_a.size for att in self.attachments]
+        ends = [(index[att.a.name], att.nodes_a, 1.0) for att in springs] + \
+               [(index[att.b.name], att.nodes_b, -1.0) for att in springs if att.b is not None]
+        sizes = [att.nodes_a.size for att in springs]
         start = np.concatenate([[0], np.cumsum(sizes)])
         n_springs = int(start[-1])
-        e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in self.attachments])
+        e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in springs])
         J = {}  # body -> (its attached nodes, (3 S, 3 n) Jacobian)
         for k in sorted({k for k, _, _ in ends}):
             nodes = np.unique(np.concatenate([n for kk, n, _ in ends if kk == k]))
             J[k] = (nodes, np.zeros((3 * n_springs, 3 * nodes.size)))
-        for a_index, att in enumerate(self.attachments):
+        for a_index, att in enumerate(springs):
             for k, nodes, sign in ((index[att.a.name], att.nodes_a, 1.0),
                                    *(((index[att.b.name], att.nodes_b, -1.0),) if att.b is not None else ())):
                 all_nodes, Jk = J[k]
@@ -353,9 +372,9 @@ class Scene:
             d.set_state(state)
             e += (Jk @ x.reshape(-1)).reshape(-1, 3)
             A += Jk @ step_compliances(d, nodes) @ Jk.T
-        inv_k = np.repeat([1.0 / att.stiffness for att in self.attachments], np.asarray(sizes) * 3)
+        inv_k = np.repeat([1.0 / att.stiffness for att in springs], np.asarray(sizes) * 3)
         f = np.linalg.solve(A + np.diag(inv_k), -e.reshape(-1)).reshape(-1, 3)
-        for a_index, att in enumerate(self.attachments):
+        for a_index, att in enumerate(springs):
             fa = f[start[a_index]:start[a_index + 1]]
             np.add.at(out[index[att.a.name]], att.nodes_a, fa)
             if att.b is not None:
@@ -437,6 +456,64 @@ class Scene:
                                          ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
         return points
 
+    def _tool_points(self, trials) -> list[_Point]:
+        """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
+        the tool where last step's force leaves it, with their slip relative to its move."""
+        points = []
+        for j, tool in enumerate(self.tools):
+            if tool.kind != "probe":
+                continue
+            x_e, move = tool.expected(), tool.target - tool.proxy
+            for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
+                x = body.X[body.surface] + trial
+                margin = self.margin * body.edge
+                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin)
+                if cand.size == 0:
+                    continue
+                gaps, n = tool.shape.distance(x[cand], x_e, body.normals[cand])
+                for c in np.flatnonzero(gaps < margin).tolist():
+                    i = int(cand[c])
+                    points.append(_Point(_frame(n[c]), float(gaps[c]), trial[i] - now[i] - move, tool.friction,
+                                         ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, tool.name), j))
+                face = self._face_point(body, now, trial, tool, x_e, margin)
+                if face is not None:  # a probe smaller than the triangles does not pass between the vertices
+                    frame, gap, corners, w, slip = face
+                    points.append(_Point(frame, gap, slip - move, tool.friction, ((k, corners, w),),
+                                         (body.name, tool.name), j))
+        return points
+
+    @staticmethod
+    def _face_point(body: Body, now, trial, tool, x_e, margin):
+        """The point of the body's deformed surface (after the trial step) closest to a probe's core,
+        on a triangle: (frame, gap, corners, barycentric weights, slip), or None beyond ``margin``."""
+        from .contact_points import closest_points_on_triangles
+
+        local = np.full(body.X.shape[0], -1, dtype=np.int64)
+        local[body.surface] = np.arange(body.surface.size)
+        tri = np.asarray(body.mesh.triangles)
+        Y = body.X[tri] + trial[local[tri]]
+        core = tool.shape.core(Y.mean(axis=1), x_e)
+        near = np.flatnonzero(np.linalg.norm(Y - core[:, None], axis=2).min(axis=1)
+                              < tool.shape.reach + margin + np.linalg.norm(Y[:, 0] - Y[:, 1], axis=1))
+        if near.size == 0:
+            return None
+        Yn = Y[near]
+        q, w = closest_points_on_triangles(core[near], Yn[:, 0], Yn[:, 1], Yn[:, 2])
+        core_q = tool.shape.core(q, x_e)
+        v = q - core_q
+        dist = np.linalg.norm(v, axis=1)
+        best = int(np.argmin(dist))
+        normal = np.cross(Yn[best, 1] - Yn[best, 0], Yn[best, 2] - Yn[best, 0])
+        normal /= np.linalg.norm(normal)
+        outside = v[best] @ normal < 0  # the core on the outer side of the face
+        gap = (dist[best] if outside else -dist[best]) - tool.shape.radius
+        if gap >= margin:
+            return None
+        n = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
+        corners = tri[near[best]]
+        slip = w[best] @ (trial[local[corners]] - now[local[corners]])
+        return _frame(n), float(gap), corners, w[best], slip
+
     def _solve(self, points, trials, loads, contacts) -> None:
         """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G."""
         m = len(points)
@@ -464,6 +541,13 @@ class Scene:
             W = step_compliances(body.driver, nodes)
             A += P @ W @ P.T
             maps.append((nodes, P))
+        for j, tool in enumerate(self.tools):  # a coupled probe's proxy moves by the sum of its forces / k
+            on = np.flatnonzero([pt.tool == j for pt in points])
+            if on.size and tool.stiffness is not None:
+                rows = (3 * on[:, None] + np.arange(3)).ravel()
+                A[np.ix_(rows, rows)] += np.tile(np.eye(3), (on.size, on.size)) / tool.stiffness
+                for c in on.tolist():
+                    b[c, 0] -= points[c].frame[:, 0] @ tool.force / tool.stiffness
         A = G.T @ A @ G
         mu = np.array([pt.friction for pt in points])
         r, self.sweeps = pgs(A, b.reshape(-1), mu)

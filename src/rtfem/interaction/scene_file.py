@@ -29,6 +29,15 @@
     to = "world"                   # or another body's name: each node to its nearest surface node
     stiffness = 500.0              # each spring (N/m)
 
+    [[tool]]                       # a probe or a grasper on a scripted hand
+    name = "grasper"
+    kind = "grasper"               # or "probe" (a sphere of radius, pressing)
+    radius = 0.01                  # the probe's radius; the grasper's reach from its tip (m)
+    stiffness = 300.0              # probe: its virtual coupling (absent: at the hand); grasper: its hold (N/m)
+    friction = 0.0                 # probe: Coulomb against the bodies
+    path = [[0, 0.05, 0.05, 0.06], [0.5, 0.05, 0.05, 0.049]]   # rows t, x, y, z (s, m): linear between
+    closed = [[0.6, 2.0]]          # grasper: closed from t_on to t_off (s)
+
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
 """
 
@@ -42,14 +51,15 @@ from .. import validate
 from ..errors import ModelError, RtfemError
 from .scene import Scene
 
-__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS"]
+__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_KEYS"]
 
-TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle", "attachment"}
+TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle", "attachment", "tool"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
+TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
-NOT_YET = {"tool": "tools", "mesh": "fixed-mesh obstacles"}
+NOT_YET = {"mesh": "fixed-mesh obstacles", "device": "live devices"}
 
 
 class _Where:
@@ -145,7 +155,30 @@ def load_scene(path, *, progress=None) -> Scene:
         where.check("stiffness", validate.positive, table.get("stiffness", 500.0), "stiffness", "a spring in N/m")
         where.check("nodes", scene.attach, table["name"], table["body"], table["nodes"],
                     None if to == "world" else to, stiffness=table.get("stiffness", 500.0))
+    tools = doc.get("tool", [])
+    for i, table in enumerate(tools if isinstance(tools, list) else [tools]):
+        _add_tool(scene, table, _Where(p, _table_name("tool", i, table)))
     return scene
+
+
+def _add_tool(scene: Scene, table, where: _Where) -> None:
+    from .scene_tools import Keyframes
+
+    if not isinstance(table, dict):
+        raise where.error(None, "must be a table")
+    where.keys(table, TOOL_KEYS, ("name", "path"))
+    kind = table.get("kind", "probe")
+    where.check("kind", validate.choice, kind, "kind", ("probe", "grasper"))
+    path = where.check("path", Keyframes, table["path"])
+    hand = where.check("closed", Keyframes, path.path, table.get("closed", []))
+    if kind == "probe" and "closed" in table:
+        raise where.error("closed", "only a grasper closes; a probe presses where its path takes it")
+    options = {k: table[k] for k in ("radius", "stiffness", "friction") if k in table}
+    for key, fn, args in (("radius", validate.positive, ("a length in m",)), ("stiffness", validate.positive, ("N/m",)),
+                          ("friction", validate.in_range, (0.0, 10.0))):
+        if key in options:
+            where.check(key, fn, options[key], key, *args)
+    where.check("name", scene.add_tool, table["name"], hand.device(), kind=kind, **options)
 
 
 def _table_name(kind: str, i: int, table) -> str:

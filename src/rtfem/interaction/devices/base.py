@@ -60,17 +60,21 @@ class ScriptedDevice(Device):
     ----------
     trajectory : a callable ``t -> (3,)``, the position in metres at time t (s); :meth:`press`
         makes the usual one.
+    buttons : a callable ``t -> int``, the buttons held at time t (a bit mask; default none), read
+        at the time of the last :meth:`position`.
 
     Raises
     ------
     ModelError
-        ``trajectory`` is not callable.
+        ``trajectory`` or ``buttons`` is not callable.
     """
 
-    def __init__(self, trajectory: Callable[[float], np.ndarray]) -> None:
+    def __init__(self, trajectory: Callable[[float], np.ndarray], buttons: Callable[[float], int] | None = None) -> None:
         if not callable(trajectory):
             raise ModelError(f"trajectory={validate.show(trajectory)} must be a callable t -> (3,) position")
-        self.trajectory = trajectory
+        if buttons is not None and not callable(buttons):
+            raise ModelError(f"buttons={validate.show(buttons)} must be a callable t -> bit mask")
+        self.trajectory, self._buttons, self._t = trajectory, buttons, 0.0
         self.forces: list[np.ndarray] = []
         self.times: list[float] = []
 
@@ -84,7 +88,12 @@ class ScriptedDevice(Device):
         return cls(Press(point, normal, depth, duration, approach, ramp, release, repeat))
 
     def position(self, t: float) -> np.ndarray:
+        self._t = t
         return np.asarray(self.trajectory(t), dtype=float)
+
+    @property
+    def buttons(self) -> int:
+        return 0 if self._buttons is None else int(self._buttons(self._t))
 
     def set_force(self, t: float, force: np.ndarray) -> None:
         self.times.append(t)
