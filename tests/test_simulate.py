@@ -91,6 +91,24 @@ def test_static_correction_for_array_loads(setup):
     assert np.abs(sim.displacements_at([node, 0]) - u[[node, 0]]).max() < 1e-9 * np.abs(u[node]).max()
 
 
+def test_static_correction_of_a_weight_plus_a_few_changing_loads(setup):
+    """A scene body's load: its weight on every node plus contact forces on a few that change each
+    step. The correction is then the kept weight's plus the changed nodes' columns: the same field
+    as a static solve of the whole load (settled with 5 modes, where the correction is most of it)."""
+    model, basis, node = setup
+    weight = np.tile([0.0, 0.0, -0.01], (model.n_nodes, 1))
+    sim = rt.ModalSimulator(basis.truncated(5), 0.5, rt.Damping(alpha=2 * basis.omega[0]), static_correction=True)
+    sim.step(weight)
+    sim.displacements()  # the weight's correction: one static solve
+    F = weight.copy()
+    F[[node, 3, 40]] += [(0.0, -0.1, 0.05), (0.02, 0.0, 0.0), (0.0, 0.0, 0.03)]
+    sim.run(F, 200)
+    u = model.solve_static(F)
+    assert len(sim._D_array) == 1  # the weight's one solve kept; this load from its columns
+    assert np.linalg.norm(sim.displacements() - u) < 1e-9 * np.linalg.norm(u)
+    assert np.abs(sim.displacements_at([node, 0]) - u[[node, 0]]).max() < 1e-9 * np.abs(u).max()
+
+
 def test_central_difference_refuses_unstable_dt_and_agrees_below(setup):
     mesh = rt.meshes.plate(0.1, 0.05, 6, 3)
     model = rt.ShellModel(mesh, rt.Material(E=1e5, thickness=2e-3))

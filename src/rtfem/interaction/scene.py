@@ -37,13 +37,20 @@ from .scene_tools import SceneTool
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
 
 
+def _frames(normals: np.ndarray) -> np.ndarray:
+    """(k, 3, 3): for each normal (k, 3), columns the unit normal and two unit tangents."""
+    n = normals / np.linalg.norm(normals, axis=1)[:, None]
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    use_x = np.abs(x) < 0.9  # n x e_x = (0, z, -y); else n x e_y = (-z, 0, x)
+    t1 = np.where(use_x[:, None], np.column_stack([0 * x, z, -y]), np.column_stack([-z, 0 * x, x]))
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    t2 = np.column_stack([y * t1[:, 2] - z * t1[:, 1], z * t1[:, 0] - x * t1[:, 2], x * t1[:, 1] - y * t1[:, 0]])
+    return np.stack([n, t1, t2], axis=2)
+
+
 def _frame(normal: np.ndarray) -> np.ndarray:
     """(3, 3) columns: the unit normal and two unit tangents."""
-    n = normal / np.linalg.norm(normal)
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    t1 = np.cross(n, a)
-    t1 /= np.linalg.norm(t1)
-    return np.column_stack([n, t1, np.cross(n, t1)])
+    return _frames(np.asarray(normal, dtype=float)[None])[0]
 
 
 @dataclass
@@ -349,8 +356,34 @@ class Scene:
                [(index[att.b.name], att.nodes_b, -1.0) for att in springs if att.b is not None]
         sizes = [att.nodes_a.size for att in springs]
         start = np.concatenate([[0], np.cumsum(sizes)])
-        n_springs = int(start[-1])
         e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in springs])
+        J, solve = self._spring_system(springs, index, ends, start, sizes)
+        for k, (nodes, Jk) in J.items():
+            body, d = self.bodies[k], self.bodies[k].driver
+            state = d.get_state()
+            d.step(body.masses[:, None] * self.gravity[None, :] + body.loads)
+            x = body.X[nodes] + displacements_at(d, nodes)
+            d.set_state(state)
+            e += (Jk @ x.reshape(-1)).reshape(-1, 3)
+        f = solve(-e.reshape(-1)).reshape(-1, 3)
+        for a_index, att in enumerate(springs):
+            fa = f[start[a_index]:start[a_index + 1]]
+            np.add.at(out[index[att.a.name]], att.nodes_a, fa)
+            if att.b is not None:
+                np.add.at(out[index[att.b.name]], att.nodes_b, -fa)
+            self._held_force[att.name] = fa.sum(axis=0)
+        return out
+
+    def _spring_system(self, springs, index, ends, start, sizes):
+        """The springs' Jacobians {body: (nodes, J_k)} and the solve of (I / k + A) f = rhs, kept
+        while the springs are the same and no body's one-step compliances change with its motion."""
+        from scipy.linalg import cho_factor, cho_solve, lu_factor, lu_solve
+
+        key = tuple((att.name, att.nodes_a.tobytes(), att.stiffness) for att in springs)
+        kept = getattr(self, "_springs_kept", None)
+        if kept is not None and kept[0] == key:
+            return kept[1], kept[2]
+        n_springs = int(start[-1])
         J = {}  # body -> (its attached nodes, (3 S, 3 n) Jacobian)
         for k in sorted({k for k, _, _ in ends}):
             nodes = np.unique(np.concatenate([n for kk, n, _ in ends if kk == k]))
@@ -365,22 +398,22 @@ class Scene:
                     Jk[row:row + 3, 3 * slot:3 * slot + 3] += sign * np.eye(3)
         A = np.zeros((3 * n_springs, 3 * n_springs))
         for k, (nodes, Jk) in J.items():
-            body, d = self.bodies[k], self.bodies[k].driver
-            state = d.get_state()
-            d.step(body.masses[:, None] * self.gravity[None, :] + body.loads)
-            x = body.X[nodes] + displacements_at(d, nodes)
-            d.set_state(state)
-            e += (Jk @ x.reshape(-1)).reshape(-1, 3)
-            A += Jk @ step_compliances(d, nodes) @ Jk.T
-        inv_k = np.repeat([1.0 / att.stiffness for att in springs], np.asarray(sizes) * 3)
-        f = np.linalg.solve(A + np.diag(inv_k), -e.reshape(-1)).reshape(-1, 3)
-        for a_index, att in enumerate(springs):
-            fa = f[start[a_index]:start[a_index + 1]]
-            np.add.at(out[index[att.a.name]], att.nodes_a, fa)
-            if att.b is not None:
-                np.add.at(out[index[att.b.name]], att.nodes_b, -fa)
-            self._held_force[att.name] = fa.sum(axis=0)
-        return out
+            A += Jk @ step_compliances(self.bodies[k].driver, nodes) @ Jk.T
+        A += np.diag(np.repeat([1.0 / att.stiffness for att in springs], np.asarray(sizes) * 3))
+        try:  # symmetric positive definite: the compliances and 1/k
+            factor = cho_factor(A)
+
+            def solve(rhs):
+                return cho_solve(factor, rhs)
+        except np.linalg.LinAlgError:  # a user's driver with compliances that are not
+            factor = lu_factor(A)
+
+            def solve(rhs):
+                return lu_solve(factor, rhs)
+
+        if not any(getattr(self.bodies[k].driver, "compliance_changes", True) for k in J):
+            self._springs_kept = (key, J, solve)
+        return J, solve
 
     def _trial(self, body: Body, held: np.ndarray):
         """The body's weight and held loads, and its surface's displacements now and after a step
@@ -423,6 +456,7 @@ class Scene:
             centres = Y.mean(axis=1)
             reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2)))
             tree = cKDTree(centres)
+            lo, hi = Y.reshape(-1, 3).min(axis=0), Y.reshape(-1, 3).max(axis=0)
             normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
             normals /= np.linalg.norm(normals, axis=1)[:, None]
             for ka, (a, (_, now_a, trial_a)) in enumerate(zip(self.bodies, trials)):
@@ -430,13 +464,17 @@ class Scene:
                     continue
                 margin = self.margin * max(a.edge, b.edge)
                 x = a.X[a.surface] + trial_a
-                dist, near = tree.query(x, k=min(8, len(centres)), distance_upper_bound=reach + margin)
-                near = np.atleast_2d(near.T).T if near.ndim == 1 else near
-                cand = np.flatnonzero(np.isfinite(np.atleast_2d(dist.T).T if dist.ndim == 1 else dist).any(axis=1))
-                if cand.size == 0:
+                inside = np.flatnonzero(np.all((x >= lo - margin) & (x <= hi + margin), axis=1))  # b's box
+                if inside.size == 0:
                     continue
-                tris = np.where(near[cand] < len(centres), near[cand], 0)  # (c, k); misses point at 0, masked below
-                valid = near[cand] < len(centres)
+                dist, near = tree.query(x[inside], k=min(8, len(centres)), distance_upper_bound=reach + margin)
+                near = np.atleast_2d(near.T).T if near.ndim == 1 else near
+                hit = np.flatnonzero(np.isfinite(np.atleast_2d(dist.T).T if dist.ndim == 1 else dist).any(axis=1))
+                if hit.size == 0:
+                    continue
+                cand = inside[hit]
+                tris = np.where(near[hit] < len(centres), near[hit], 0)  # (c, k); misses point at 0, masked below
+                valid = near[hit] < len(centres)
                 P = np.repeat(x[cand], tris.shape[1], axis=0)
                 q, w = closest_points_on_triangles(P, Y[tris.ravel(), 0], Y[tris.ravel(), 1], Y[tris.ravel(), 2])
                 d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
@@ -448,11 +486,12 @@ class Scene:
                 gap = np.einsum("ij,ij->i", delta, n)
                 lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
                 # beside the surface, or through the body: not this face's contact
-                keep = (np.abs(gap) < margin) & (lateral <= 1e-3 * b.edge + 1e-12)
-                for c in np.flatnonzero(keep).tolist():
+                keep = np.flatnonzero((np.abs(gap) < margin) & (lateral <= 1e-3 * b.edge + 1e-12))
+                frames = _frames(n[keep])
+                for c, frame in zip(keep.tolist(), frames):
                     i, corners, wc = int(cand[c]), tri[t_best[c]], w[rows[c]]
                     slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[local[corners]] - now_b[local[corners]])
-                    points.append(_Point(_frame(n[c]), float(gap[c]), slip, self.friction,
+                    points.append(_Point(frame, float(gap[c]), slip, self.friction,
                                          ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
         return points
 
@@ -471,9 +510,10 @@ class Scene:
                 if cand.size == 0:
                     continue
                 gaps, n = tool.shape.distance(x[cand], x_e, body.normals[cand])
-                for c in np.flatnonzero(gaps < margin).tolist():
+                touching = np.flatnonzero(gaps < margin)
+                for c, frame in zip(touching.tolist(), _frames(n[touching])):
                     i = int(cand[c])
-                    points.append(_Point(_frame(n[c]), float(gaps[c]), trial[i] - now[i] - move, tool.friction,
+                    points.append(_Point(frame, float(gaps[c]), trial[i] - now[i] - move, tool.friction,
                                          ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, tool.name), j))
                 face = self._face_point(body, now, trial, tool, x_e, margin)
                 if face is not None:  # a probe smaller than the triangles does not pass between the vertices
