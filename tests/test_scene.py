@@ -157,3 +157,22 @@ def test_scene_refusals(folder):
     assert [b.name for b in sc.bodies] == ["a"] and sc.obstacles == []  # nothing half added
     assert main(["simulate", str(folder / "nothing.toml")]) == 2  # one line, exit 2
     np.testing.assert_equal(sc.time, 0.0)
+
+
+def test_the_example_scene_the_grasper_and_the_cystic_plate_hold_the_gallbladder(tmp_path):
+    """rtfem simulate --example gallbladder: by 1.3 s the grasper has retracted the fundus and stopped,
+    the probe presses the liver, and the gallbladder is in equilibrium: the grasper's and the cystic
+    plate's forces on it carry its weight, rho t A of its 2 mm wall (2 %), and balance across."""
+    out = tmp_path / "out"
+    assert main(["simulate", "--example", "gallbladder", "--duration", "1.3", "--fps", "10", "--out", str(out)]) == 0
+    with open(out / "contacts.csv") as fh:
+        rows = list(csv.reader(fh))
+    last = {(a, b): np.array(f, float) for t, a, b, *f in rows[1:] if t == rows[-1][0]}
+    X = np.asarray(rt.meshes.gallbladder().vertices)[np.asarray(rt.meshes.gallbladder().triangles)]
+    area = 0.5 * np.linalg.norm(np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1).sum()
+    weight = 1030 * 0.002 * area * 9.81  # the scene file's wall
+    held = last[("gallbladder", "grasper")] + last[("gallbladder", "cystic plate")]
+    assert np.linalg.norm(last[("gallbladder", "grasper")]) > 1.0  # retracting: a newton or more
+    assert abs(held[2] - weight) < 0.02 * weight and np.abs(held[:2]).max() < 0.02 * weight
+    assert last[("liver", "probe")][2] < -0.1  # the probe presses the liver down
+    assert np.allclose(last[("liver", "cystic plate")], -last[("gallbladder", "cystic plate")])

@@ -4,6 +4,7 @@
     rtfem modes [MESH] -n 40 -o FILE       precompute the modal basis (.npz)
     rtfem simulate [MESH] ...              headless run: scripted probe or load file -> .pvd + .csv
     rtfem simulate SCENE.toml ...          a scene file: bodies under gravity on obstacles -> .pvd each + contacts.csv
+    rtfem simulate --example gallbladder   the scene shipped with rtfem: liver, gallbladder, grasper and probe
     rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
     rtfem bench [MESH]                     time per step: modal vs direct, measured now
     rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
@@ -188,6 +189,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ..io.scenario import LoadSchedule
     from ..drivers.modal import ModalSimulator
 
+    if getattr(args, "example", None):  # a scene shipped with the package
+        if args.mesh:
+            raise RtfemError(f"give a mesh or scene file, or --example {args.example}, not both")
+        from importlib import resources
+
+        args.mesh = str(resources.files("rtfem") / "scenes" / f"{args.example}.toml")
     if args.mesh and str(args.mesh).lower().endswith(".toml"):  # a scene file: its bodies, obstacles, gravity
         from .scene import simulate_scene
 
@@ -451,6 +458,8 @@ def _add_simulate(sub) -> None:
                         "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
     p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
                    "probed (or loaded) vertex in the basis, for pulls of centimetres (see the manual: Which model when)")
+    p.add_argument("--example", choices=("gallbladder",), help="run a scene shipped with rtfem: gallbladder (the "
+                   "liver and the gallbladder hung beneath it, a grasper retracting its fundus, a probe on the liver)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "

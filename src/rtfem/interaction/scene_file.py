@@ -8,7 +8,8 @@
 
     [[body]]
     name = "box"
-    mesh = "box.vtu"               # a path relative to this file; a surface with kind = "solid" is meshed into tets
+    mesh = "box.vtu"               # a path relative to this file (a surface with kind = "solid" is meshed
+                                   # into tets), or an embedded mesh: "rtfem:liver", "rtfem:gallbladder:3"
     scale = 1.0                    # coordinates' factor (1e-3: a mesh in mm)
     kind = "solid"                 # or "shell" (default: a volume file is a solid, a surface a shell)
     element = "tet10"              # solids: tet4 or tet10 (default tet10)
@@ -59,6 +60,7 @@ OBSTACLE_KEYS = {"name", "plane", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
 TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
+BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
 NOT_YET = {"mesh": "fixed-mesh obstacles", "device": "live devices"}
 
 
@@ -199,8 +201,10 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
         raise where.error(None, "must be a table")
     where.keys(table, BODY_KEYS, ("name", "mesh"))
     scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
-    mesh_path = folder / str(table["mesh"])
-    mesh = where.check("mesh", load_mesh, mesh_path, scale=scale)
+    if str(table["mesh"]).startswith(BUILTIN):
+        mesh = _builtin(str(table["mesh"]), where)
+    else:
+        mesh = where.check("mesh", load_mesh, folder / str(table["mesh"]), scale=scale)
     kind = table.get("kind", "solid" if isinstance(mesh, TetMesh) else "shell")
     if kind not in ("solid", "shell"):
         raise where.error("kind", f"{kind!r}: give 'solid' or 'shell'")
@@ -226,6 +230,19 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
     driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
     where.check("name", scene.add_body, table["name"], driver, model.mesh)
     scene.bodies[-1].model = model
+
+
+def _builtin(spec: str, where: _Where):
+    """``rtfem:liver`` (level 3), ``rtfem:gallbladder`` (level 2), or ``rtfem:NAME:LEVEL``: the embedded meshes."""
+    from ..mesh import meshes
+
+    parts = spec[len(BUILTIN):].split(":")
+    makers = {"liver": (meshes.liver, 3), "gallbladder": (meshes.gallbladder, 2)}
+    if parts[0] not in makers or len(parts) > 2 or (len(parts) == 2 and not parts[1].isdigit()):
+        raise where.error("mesh", f"{spec!r}: the embedded meshes are {', '.join(BUILTIN + m for m in makers)}, "
+                          f"with a level as {BUILTIN}liver:4")
+    make, level = makers[parts[0]]
+    return where.check("mesh", make, int(parts[1]) if len(parts) == 2 else level)
 
 
 def contact_rows(scene: Scene) -> list[list]:

@@ -32,9 +32,25 @@ from ..errors import ModelError
 from ..drivers.base import displacements_at
 from .contact import Tool
 
-__all__ = ["SceneTool", "Keyframes"]
+__all__ = ["SceneTool", "Keyframes", "face_point"]
 
 KINDS = ("probe", "grasper")
+
+
+def _frames(normals: np.ndarray) -> np.ndarray:
+    """(k, 3, 3): for each normal (k, 3), columns the unit normal and two unit tangents."""
+    n = normals / np.linalg.norm(normals, axis=1)[:, None]
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    use_x = np.abs(x) < 0.9  # n x e_x = (0, z, -y); else n x e_y = (-z, 0, x)
+    t1 = np.where(use_x[:, None], np.column_stack([0 * x, z, -y]), np.column_stack([-z, 0 * x, x]))
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    t2 = np.column_stack([y * t1[:, 2] - z * t1[:, 1], z * t1[:, 0] - x * t1[:, 2], x * t1[:, 1] - y * t1[:, 0]])
+    return np.stack([n, t1, t2], axis=2)
+
+
+def _frame(normal: np.ndarray) -> np.ndarray:
+    """(3, 3) columns: the unit normal and two unit tangents."""
+    return _frames(np.asarray(normal, dtype=float)[None])[0]
 
 
 @dataclass
@@ -187,3 +203,35 @@ class Keyframes:
         from .devices.base import ScriptedDevice
 
         return ScriptedDevice(self, buttons=self.buttons)
+
+
+def face_point(body, now, trial, tool, x_e, margin):
+    """The point of the body's deformed surface (after the trial step) closest to a probe's core,
+    on a triangle: (frame, gap, corners, barycentric weights, slip), or None beyond ``margin``."""
+    from .contact_points import closest_points_on_triangles
+
+    local = np.full(body.X.shape[0], -1, dtype=np.int64)
+    local[body.surface] = np.arange(body.surface.size)
+    tri = np.asarray(body.mesh.triangles)
+    Y = body.X[tri] + trial[local[tri]]
+    core = tool.shape.core(Y.mean(axis=1), x_e)
+    near = np.flatnonzero(np.linalg.norm(Y - core[:, None], axis=2).min(axis=1)
+                          < tool.shape.reach + margin + np.linalg.norm(Y[:, 0] - Y[:, 1], axis=1))
+    if near.size == 0:
+        return None
+    Yn = Y[near]
+    q, w = closest_points_on_triangles(core[near], Yn[:, 0], Yn[:, 1], Yn[:, 2])
+    core_q = tool.shape.core(q, x_e)
+    v = q - core_q
+    dist = np.linalg.norm(v, axis=1)
+    best = int(np.argmin(dist))
+    normal = np.cross(Yn[best, 1] - Yn[best, 0], Yn[best, 2] - Yn[best, 0])
+    normal /= np.linalg.norm(normal)
+    outside = v[best] @ normal < 0  # the core on the outer side of the face
+    gap = (dist[best] if outside else -dist[best]) - tool.shape.radius
+    if gap >= margin:
+        return None
+    n = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
+    corners = tri[near[best]]
+    slip = w[best] @ (trial[local[corners]] - now[local[corners]])
+    return _frame(n), float(gap), corners, w[best], slip

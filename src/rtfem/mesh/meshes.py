@@ -15,7 +15,7 @@ from ..errors import MeshError
 from .surface import TriMesh
 from .tetmesh import TetMesh
 
-__all__ = ["plate", "cylinder", "hemisphere", "icosphere", "liver", "box", "hollow_sphere", "PROBE_POINT"]
+__all__ = ["plate", "cylinder", "hemisphere", "icosphere", "liver", "gallbladder", "box", "hollow_sphere", "PROBE_POINT"]
 
 #: where the default liver is pressed: its vertex group "probe" is the vertex nearest this point (m)
 PROBE_POINT = (0.055, 0.05, 0.0)
@@ -226,6 +226,23 @@ def liver(level: int = 4, *, solid: bool = False, spacing: float | None = None):
     if not solid:
         return surface
     return _solid_liver(min(level, 3), None if spacing is None else _length("spacing", spacing))
+
+
+def gallbladder(level: int = 2) -> TriMesh:
+    """A gallbladder in the default liver's frame: a closed pear-shaped sac about 8 cm long and 3 cm
+    across, its long axis along +y (the wide fundus anterior, the neck posterior), lying 1.5 mm below
+    the visceral face of :func:`liver`'s right lobe (its fossa). ``level`` 2 gives 162 vertices, 3
+    gives 642. Groups: ``"bed"``, the upper face that the cystic plate joins to the liver (where a
+    scene attaches it), and ``"fundus"``, the vertex at its anterior tip (where a grasper takes it).
+    A hollow organ: model it as a shell."""
+    level = _count("level", level, 0, 6)
+    P = np.asarray(icosphere(1.0, level).vertices)
+    x, y, z = P[:, 0], P[:, 1], P[:, 2]
+    widen = 1.0 + 0.3 * y  # the fundus wider than the neck
+    V = np.column_stack([0.015 * x * widen, 0.04 * y, 0.013 * z * widen]) + [-0.03, 0.005, -0.0445]
+    bed = np.flatnonzero((z > 0.45) & (np.abs(y) < 0.8))
+    return TriMesh(V, icosphere(1.0, level).triangles, repair=False,
+                   groups={"bed": bed, "fundus": [int(np.argmax(y))]})
 
 
 @lru_cache(maxsize=4)
