@@ -62,3 +62,21 @@ def wait_for_viewer_address(p, timeout: float = 120.0) -> str:
         if not line and p.poll() is not None:
             break
     return line
+
+
+def interrupt(p, timeout: float = 30.0) -> tuple[str, str]:
+    """Ctrl-C a subprocess and collect its output. One that has not stopped within ``timeout`` s
+    is killed (a test that fails must not leave a viewer running, holding a port and a core for
+    the tests after it) and the test fails saying so."""
+    import signal
+    import subprocess
+
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+    try:
+        return p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, err = p.communicate()
+        raise AssertionError(f"the process did not stop within {timeout:g} s of Ctrl-C (killed); "
+                             f"its output: {out[-2000:]!r} {err[-2000:]!r}") from None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import signal
 import subprocess
 import sys
 import urllib.request
@@ -13,7 +12,7 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli.main import main
-from conftest import organ, wait_for_viewer_address
+from conftest import interrupt, organ, wait_for_viewer_address
 
 GB = ["--scale", "1e-3", "--fix", "bottom:0.2"]  # the gallbladder file is in mm, free-floating
 
@@ -163,8 +162,7 @@ def test_view_serves_a_mesh_file_and_stops_on_ctrl_c():
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read()
         assert b"<html" in page.lower()
     finally:
-        p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=30)
+        out, err = interrupt(p, 30)
     assert p.returncode == 130 and "stopped" in out and "Traceback" not in err
 
 

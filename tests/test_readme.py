@@ -14,13 +14,13 @@ import json
 import re
 import shlex
 import shutil
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from conftest import interrupt
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -108,8 +108,7 @@ def test_the_readme_view_command_serves_and_stops_on_ctrl_c(folder):
                 break
         assert "open http://127.0.0.1:" in said[-1], said
     finally:
-        p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=60)
+        out, err = interrupt(p, 60)
     out = "".join(said) + out
     assert p.returncode == 130 and "Traceback" not in err, (out, err)
     # a closed surface file is meshed into tets and modelled as a solid of tet10, with progress shown

@@ -21,7 +21,7 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli.main import main
-from conftest import liver_model, organ, wait_for_viewer_address
+from conftest import interrupt, liver_model, organ, wait_for_viewer_address
 
 PY = sys.executable
 NAN = float("nan")
@@ -647,8 +647,7 @@ def test_view_warns_loudly_when_serving_the_network_and_exits_130_on_ctrl_c():
         line = wait_for_viewer_address(p)
         assert "open http" in line
     finally:
-        p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=30)
+        out, err = interrupt(p, 30)
     assert p.returncode == 130, (out, err)
     assert "WARNING" in err and "authentication" in err and "Traceback" not in err
 
@@ -663,7 +662,6 @@ def test_view_says_when_its_port_is_busy():
         try:
             line = wait_for_viewer_address(p)
         finally:
-            p.send_signal(signal.SIGINT)
-            out, err = p.communicate(timeout=30)
+            out, err = interrupt(p, 30)
     assert f"port {port} is in use" in out + err, (out, err)
     assert f":{port}" not in line and "open http" in line
