@@ -90,3 +90,43 @@ def test_a_grasper_lifts_a_box_and_carries_its_weight():
     assert np.allclose(device.forces[-1], -scene.contacts[("box", "grasper")])
     x = np.asarray(model.mesh.vertices) + scene.body("box").driver.displacements()
     assert x[:, 2].min() > 0.02  # off the table by about the lift
+
+
+def _incline_mesh(theta, size=3.0, n=5):
+    """A square of the plane through the origin tilted by theta about y (rising toward -x), in n x n
+    squares of two triangles (60 cm): far coarser than the box, its vertices nowhere near the box's."""
+    s = np.linspace(-size / 2, size / 2, n + 1) + 0.013
+    X, Y = np.meshgrid(s, s, indexing="ij")
+    P = np.column_stack([X.ravel() * np.cos(theta), Y.ravel(), -X.ravel() * np.sin(theta)])
+    ids = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    return rt.TriMesh(P, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])]))
+
+
+@pytest.mark.parametrize("mu, sticks", [(0.5, True), (0.1, False)])
+def test_a_box_on_a_tilted_mesh_obstacle_sticks_or_slides_by_coulomb(mu, sticks):
+    """A free box on a triangulated incline (a mesh obstacle, not a plane; 15 degrees): with
+    mu > tan 15 it sticks, the obstacle's force is the weight (1 %), along -g; with mu < tan 15 it
+    slides with |F_t| = mu F_n (1 %) along the face."""
+    theta = np.radians(15.0)
+    R = np.array([[np.cos(theta), 0.0, np.sin(theta)], [0.0, 1.0, 0.0], [-np.sin(theta), 0.0, np.cos(theta)]])
+    mesh = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
+    lifted = (np.asarray(mesh.vertices) - [0.05, 0.05, -1e-4]) @ R.T  # resting on the tilted face
+    model = rt.SolidModel(rt.TetMesh(lifted, np.asarray(mesh.tets)), rt.Material(E=1e5, nu=0.3, density=1000.0),
+                          element="tet4")
+    scene = rt.Scene()
+    scene.add_body("box", rt.ModalSimulator(rt.modal_analysis(model, 20), dt=1e-3, damping=rt.Damping(alpha=20.0)),
+                   model.mesh)
+    incline = _incline_mesh(theta)
+    scene.add_obstacle("incline", incline, friction=mu)
+    scene.run(1200 if sticks else 800)  # sliding at 1.6 m/s^2: 0.5 m down the 3 m incline by 0.8 s
+    f = scene.contacts[("box", "incline")]
+    weight = scene.body("box").mass * 9.81
+    normal = R @ [0.0, 0.0, 1.0]
+    fn = f @ normal
+    ft = np.linalg.norm(f - fn * normal)
+    assert abs(fn - weight * np.cos(theta)) < 0.01 * weight
+    if sticks:
+        assert np.abs(f - [0.0, 0.0, weight]).max() < 0.01 * weight
+    else:
+        assert abs(ft - mu * fn) < 0.01 * fn

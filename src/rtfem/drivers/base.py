@@ -301,10 +301,10 @@ class StaticCorrection:
             diff = F - np.frombuffer(base_key, dtype=F.dtype).reshape(F.shape)
             nodes = np.flatnonzero(np.any(diff != 0.0, axis=1))
             if nodes.size <= self.DIFF_NODES:
-                self.prepare(nodes)
-                hit = base.copy()
-                for j in nodes.tolist():
-                    hit += self._D[j] @ diff[j]
+                slots = self._pooled(nodes)
+                z = np.zeros(self._pool_used)
+                z[(3 * slots[:, None] + np.arange(3)).ravel()] = diff[nodes].reshape(-1)
+                hit = base + (self._pool[:, :self._pool_used] @ z).reshape(-1, 3)
                 self._D_last = (key, hit)
                 return hit
         self._check_correction_supports()
@@ -315,6 +315,27 @@ class StaticCorrection:
             self._D_array.pop(next(iter(self._D_array)))
         hit = self._D_array[key] = Kinv_f - modal
         return hit
+
+    def _pooled(self, nodes: np.ndarray) -> np.ndarray:
+        """The slots of ``nodes``' correction columns in one (3n, 3 slots) pool (columns added once,
+        the pool grown by doubling), so that a load on any of them is one matrix-vector product."""
+        pool_slot = self.__dict__.setdefault("_pool_slot", {})
+        missing = [j for j in nodes.tolist() if j not in pool_slot]
+        if missing:
+            self.prepare(np.array(missing, dtype=np.int64))
+            used = 3 * len(pool_slot)
+            need = used + 3 * len(missing)
+            pool = getattr(self, "_pool", None)
+            if pool is None or pool.shape[1] < need:
+                grown = np.zeros((3 * self.n_nodes, max(need, 2 * (0 if pool is None else pool.shape[1]), 48)))
+                if pool is not None:
+                    grown[:, :used] = pool[:, :used]
+                self._pool = pool = grown
+            for j in missing:
+                pool[:, 3 * len(pool_slot):3 * len(pool_slot) + 3] = self._D[j].reshape(-1, 3)
+                pool_slot[j] = len(pool_slot)
+            self._pool_used = 3 * len(pool_slot)
+        return np.array([pool_slot[j] for j in nodes.tolist()], dtype=np.int64)
 
     def prepare(self, nodes) -> None:
         """Precompute the static-correction columns of the nodes that will be loaded (the missing

@@ -32,6 +32,7 @@ from ..errors import ModelError
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances
 from ..mesh.surface import TriMesh
 from .friction import pgs
+from .scene_obstacles import MeshObstacle
 from .scene_tools import SceneTool, _frame, _frames, face_point
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -74,6 +75,12 @@ class Plane:
     def gaps(self, x: np.ndarray) -> np.ndarray:
         """Signed distances (m) of points x (k, 3) in front of the plane."""
         return (x - self.point) @ self.normal
+
+    def contacts(self, x: np.ndarray, margin: float):
+        """The points x (k, 3) within ``margin`` of the plane or behind it: (indices, gaps, normals)."""
+        gaps = self.gaps(x)
+        i = np.flatnonzero(gaps < margin)
+        return i, gaps[i], np.broadcast_to(self.normal, (i.size, 3))
 
 
 @dataclass
@@ -220,7 +227,7 @@ class Scene:
         self.margin = validate.positive(margin, "margin", "a fraction of an edge")
         self.friction = validate.in_range(friction, "friction", 0.0, 10.0, what="Coulomb's coefficient between bodies")
         self.bodies: list[Body] = []
-        self.obstacles: list[Plane] = []
+        self.obstacles: list[Plane | MeshObstacle] = []
         self.attachments: list[Attachment] = []
         self.tools: list[SceneTool] = []
         self.time = 0.0
@@ -268,6 +275,14 @@ class Scene:
         plane = Plane(name, point, normal, friction)
         self.obstacles.append(plane)
         return plane
+
+    def add_obstacle(self, name: str, mesh: TriMesh, friction: float = 0.0) -> MeshObstacle:
+        """A rigid obstacle given by a triangle surface (see
+        :class:`~rtfem.interaction.scene_obstacles.MeshObstacle`)."""
+        self._name_free(name)
+        obstacle = MeshObstacle(name, mesh, friction)
+        self.obstacles.append(obstacle)
+        return obstacle
 
     def add_tool(self, name: str, device, *, kind: str = "probe", radius: float = 0.005, shape=None,
                  stiffness: float | None = None, friction: float = 0.0) -> SceneTool:
@@ -416,9 +431,9 @@ class Scene:
         for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
             x = body.X[body.surface] + trial
             for obstacle in self.obstacles:
-                gaps = obstacle.gaps(x)
-                for i in np.flatnonzero(gaps < self.margin * body.edge).tolist():
-                    points.append(_Point(obstacle.frame, float(gaps[i]), trial[i] - now[i], obstacle.friction,
+                idx, gaps, normals = obstacle.contacts(x, self.margin * body.edge)
+                for i, gap, frame in zip(idx.tolist(), gaps.tolist(), _frames(normals)):
+                    points.append(_Point(frame, gap, trial[i] - now[i], obstacle.friction,
                                          ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, obstacle.name)))
         return points
 
@@ -490,7 +505,8 @@ class Scene:
             for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
                 x = body.X[body.surface] + trial
                 margin = self.margin * body.edge
-                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin)
+                # vertices within an edge beyond reach: the face point between them may touch
+                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin + body.edge)
                 if cand.size == 0:
                     continue
                 gaps, n = tool.shape.distance(x[cand], x_e, body.normals[cand])

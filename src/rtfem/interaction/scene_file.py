@@ -23,6 +23,10 @@
     plane = { point = [0, 0, 0], normal = [0, 0, 1] }
     friction = 0.3
 
+    [[obstacle]]                   # a fixed rigid surface: its triangles' winding gives the free side
+    name = "spine"
+    mesh = "spine.stl"             # a path relative to this file (scale as for bodies)
+
     [[attachment]]                 # springs holding nodes of a body (ligaments, vessels)
     name = "ligament"
     body = "box"
@@ -56,12 +60,12 @@ __all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_
 
 TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle", "attachment", "tool"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
-OBSTACLE_KEYS = {"name", "plane", "friction"}
+OBSTACLE_KEYS = {"name", "plane", "mesh", "scale", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
 TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
 BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
-NOT_YET = {"mesh": "fixed-mesh obstacles", "device": "live devices"}
+NOT_YET = {"device": "live devices"}
 
 
 class _Where:
@@ -137,11 +141,7 @@ def load_scene(path, *, progress=None) -> Scene:
         _add_body(scene, table, where, p.parent, dt)
     for i, table in enumerate(obstacles if isinstance(obstacles, list) else [obstacles]):
         where = _Where(p, _table_name("obstacle", i, table))
-        where.keys(table, OBSTACLE_KEYS, ("name", "plane"))
-        plane = table["plane"]
-        if not isinstance(plane, dict) or set(plane) != {"point", "normal"}:
-            raise where.error("plane", "must be { point = [x, y, z], normal = [nx, ny, nz] } (m)")
-        where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], table.get("friction", 0.0))
+        _add_obstacle(scene, table, where, p.parent)
     attachments = doc.get("attachment", [])
     for i, table in enumerate(attachments if isinstance(attachments, list) else [attachments]):
         where = _Where(p, _table_name("attachment", i, table))
@@ -161,6 +161,32 @@ def load_scene(path, *, progress=None) -> Scene:
     for i, table in enumerate(tools if isinstance(tools, list) else [tools]):
         _add_tool(scene, table, _Where(p, _table_name("tool", i, table)))
     return scene
+
+
+def _add_obstacle(scene: Scene, table, where: _Where, folder: Path) -> None:
+    from ..mesh.files import load_mesh
+    from ..mesh.tetmesh import TetMesh
+
+    if not isinstance(table, dict):
+        raise where.error(None, "must be a table")
+    where.keys(table, OBSTACLE_KEYS, ("name",))
+    if ("plane" in table) == ("mesh" in table):
+        raise where.error("plane", "give plane = { point, normal } or mesh = a surface file, one of them")
+    friction = where.check("friction", validate.in_range, table.get("friction", 0.0), "friction", 0.0, 10.0,
+                           what="Coulomb's coefficient")
+    if "mesh" in table:
+        scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
+        spec = str(table["mesh"])
+        mesh = _builtin(spec, where) if spec.startswith(BUILTIN) else where.check(
+            "mesh", load_mesh, folder / spec, scale=scale)
+        if isinstance(mesh, TetMesh):
+            mesh = mesh.surface
+        where.check("mesh", scene.add_obstacle, table["name"], mesh, friction)
+        return
+    plane = table["plane"]
+    if not isinstance(plane, dict) or set(plane) != {"point", "normal"}:
+        raise where.error("plane", "must be { point = [x, y, z], normal = [nx, ny, nz] } (m)")
+    where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], friction)
 
 
 def _add_tool(scene: Scene, table, where: _Where) -> None:
