@@ -1,10 +1,18 @@
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import rtfem as rt
+
+# A suite started in the background of a non-interactive shell (`make test &`, nohup) inherits
+# SIGINT ignored, and so would every `rtfem` subprocess the Ctrl-C tests start: they would run on,
+# and fail those tests. A handled SIGINT is reset to the default in a child at exec; an ignored one
+# is not. So the suite takes it back.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 #: reference data shipped beside the project (../shared/data), never inside it
 SHARED_DATA = Path(os.environ.get("RTFEM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
