@@ -124,8 +124,12 @@ class Body:
         self.surface = self.mesh.used_vertices()
         self.X = np.asarray(self.mesh.vertices)
         self.normals = self.mesh.vertex_normals()[self.surface]
+        self.local = np.full(self.X.shape[0], -1, dtype=np.int64)  # a node's place in surface, -1 off it
+        self.local[self.surface] = np.arange(self.surface.size)
         edges = np.linalg.norm(np.diff(self.X[np.asarray(self.mesh.triangles)][:, [0, 1]], axis=1)[:, 0], axis=1)
         self.edge = float(np.median(edges))
+        self.longest = float(np.max(np.linalg.norm(self.X[np.asarray(self.mesh.triangles)]
+                                                   - np.roll(self.X[np.asarray(self.mesh.triangles)], 1, axis=1), axis=2)))
         self.loads = np.zeros((n, 3))
 
     @property
@@ -437,62 +441,105 @@ class Scene:
                                          ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, obstacle.name)))
         return points
 
+    #: a body pair's candidate lists (which vertices of a near which triangles of b) are searched
+    #: again once the two surfaces moved this fraction of the margin since the last search
+    SLACK = 0.25
+
     def _pair_points(self, trials) -> list[_Point]:
         """Each body's surface vertices within ``margin`` edges of another body's surface (after the
-        trial steps), against the closest point of that surface: both directions of every pair."""
-        from scipy.spatial import cKDTree
+        trial steps), against the closest point of that surface: both directions of every pair.
 
+        The candidates (a's vertices and the eight triangles of b with the nearest centres within
+        reach + margin + slack) are kept from step to step while the two surfaces move less than
+        the slack since they were searched (Verlet lists): a vertex left out was then further than
+        the margin plus the slack, and cannot have come within the margin."""
         from .contact_points import closest_points_on_triangles
 
         points = []
+        if len(self.bodies) < 2:
+            return points
+        cache = self.__dict__.setdefault("_pair_cache", {})
         for kb, (b, (_, now_b, trial_b)) in enumerate(zip(self.bodies, trials)):
-            if len(self.bodies) < 2:
-                break
-            local = np.full(b.X.shape[0], -1, dtype=np.int64)
-            local[b.surface] = np.arange(b.surface.size)
             tri = np.asarray(b.mesh.triangles)
-            Y = b.X[tri] + trial_b[local[tri]]  # (t, 3, 3) b's deformed triangles
-            centres = Y.mean(axis=1)
-            reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2)))
-            tree = cKDTree(centres)
-            lo, hi = Y.reshape(-1, 3).min(axis=0), Y.reshape(-1, 3).max(axis=0)
-            normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
-            normals /= np.linalg.norm(normals, axis=1)[:, None]
             for ka, (a, (_, now_a, trial_a)) in enumerate(zip(self.bodies, trials)):
                 if a is b:
                     continue
                 margin = self.margin * max(a.edge, b.edge)
-                x = a.X[a.surface] + trial_a
-                inside = np.flatnonzero(np.all((x >= lo - margin) & (x <= hi + margin), axis=1))  # b's box
-                if inside.size == 0:
+                slack = self.SLACK * margin
+                kept = cache.get((ka, kb))
+                if kept is None or (np.abs(trial_a - kept[0]).max() + np.abs(trial_b - kept[1]).max()) * 1.7321 > slack:
+                    kept = cache[(ka, kb)] = (trial_a.copy(), trial_b.copy(), *self._pair_search(a, b, trial_a, trial_b,
+                                                                                               margin + slack))
+                cand, tris, valid = kept[2:]
+                if cand.size == 0:
                     continue
-                dist, near = tree.query(x[inside], k=min(8, len(centres)), distance_upper_bound=reach + margin)
-                near = np.atleast_2d(near.T).T if near.ndim == 1 else near
-                hit = np.flatnonzero(np.isfinite(np.atleast_2d(dist.T).T if dist.ndim == 1 else dist).any(axis=1))
-                if hit.size == 0:
-                    continue
-                cand = inside[hit]
-                tris = np.where(near[hit] < len(centres), near[hit], 0)  # (c, k); misses point at 0, masked below
-                valid = near[hit] < len(centres)
-                P = np.repeat(x[cand], tris.shape[1], axis=0)
-                q, w = closest_points_on_triangles(P, Y[tris.ravel(), 0], Y[tris.ravel(), 1], Y[tris.ravel(), 2])
+                x = a.X[a.surface[cand]] + trial_a[cand]
+                used, inverse = np.unique(tris, return_inverse=True)
+                Y = b.X[tri[used]] + trial_b[b.local[tri[used]]]  # only the listed triangles, deformed
+                normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
+                normals /= np.linalg.norm(normals, axis=1)[:, None]
+                t_loc = inverse.reshape(tris.shape)
+                P = np.repeat(x, tris.shape[1], axis=0)
+                q, w = closest_points_on_triangles(P, *(Y[t_loc.ravel(), c] for c in range(3)))
                 d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
                 best = np.argmin(d, axis=1)
                 rows = np.arange(cand.size) * tris.shape[1] + best
                 t_best = tris[np.arange(cand.size), best]
-                n = normals[t_best]
-                delta = x[cand] - q[rows]
+                n = normals[t_loc[np.arange(cand.size), best]]
+                delta = x - q[rows]
                 gap = np.einsum("ij,ij->i", delta, n)
                 lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
                 # beside the surface, or through the body: not this face's contact
                 keep = np.flatnonzero((np.abs(gap) < margin) & (lateral <= 1e-3 * b.edge + 1e-12))
-                frames = _frames(n[keep])
-                for c, frame in zip(keep.tolist(), frames):
+                for c, frame in zip(keep.tolist(), _frames(n[keep])):
                     i, corners, wc = int(cand[c]), tri[t_best[c]], w[rows[c]]
-                    slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[local[corners]] - now_b[local[corners]])
+                    slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[b.local[corners]] - now_b[b.local[corners]])
                     points.append(_Point(frame, float(gap[c]), slip, self.friction,
                                          ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
         return points
+
+    @staticmethod
+    def _pair_search(a: Body, b: Body, trial_a, trial_b, reach_beyond: float):
+        """a's surface vertices (indices into a.surface) within ``reach_beyond`` of b's deformed
+        surface, each with b's triangles whose centres are the eight nearest within b's largest
+        triangle radius + ``reach_beyond``: (cand, tris, valid)."""
+        from scipy.spatial import cKDTree
+
+        tri = np.asarray(b.mesh.triangles)
+        Y = b.X[tri] + trial_b[b.local[tri]]
+        centres = Y.mean(axis=1)
+        reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2))) + reach_beyond
+        lo, hi = Y.reshape(-1, 3).min(axis=0) - reach_beyond, Y.reshape(-1, 3).max(axis=0) + reach_beyond
+        x = a.X[a.surface] + trial_a
+        inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))  # b's box
+        k = min(8, len(centres))
+        if inside.size == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, k), dtype=np.int64), np.zeros((0, k), dtype=bool)
+        dist, near = cKDTree(centres).query(x[inside], k=k, distance_upper_bound=reach)
+        near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
+        hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
+        valid = near[hit] < len(centres)
+        tris = np.where(valid, near[hit], 0)
+        # kept: the vertices whose closest point on b is within the margin and the slack now
+        from .contact_points import closest_points_on_triangles
+
+        P = np.repeat(x[inside[hit]], k, axis=0)
+        q, _ = closest_points_on_triangles(P, *(Y[tris.ravel(), c] for c in range(3)))
+        d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
+        close = d.min(axis=1) < reach_beyond
+        return inside[hit][close], tris[close], valid[close]
+
+    def _compliances(self, k: int, nodes: np.ndarray) -> np.ndarray:
+        """Body k's one-step compliances of ``nodes`` (3n, 3n), the last set's kept while it is the
+        same and the driver's compliances do not change with its motion."""
+        driver = self.bodies[k].driver
+        kept = self.__dict__.setdefault("_compliance_cache", {}).get(k)
+        if kept is not None and np.array_equal(kept[0], nodes):
+            return kept[1]
+        W = step_compliances(driver, nodes)
+        if not getattr(driver, "compliance_changes", True):
+            self._compliance_cache[k] = (nodes.copy(), W)
+        return W
 
     def _tool_points(self, trials) -> list[_Point]:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
@@ -506,7 +553,7 @@ class Scene:
                 x = body.X[body.surface] + trial
                 margin = self.margin * body.edge
                 # vertices within an edge beyond reach: the face point between them may touch
-                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin + body.edge)
+                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin + body.longest)
                 if cand.size == 0:
                     continue
                 gaps, n = tool.shape.distance(x[cand], x_e, body.normals[cand])
@@ -515,7 +562,7 @@ class Scene:
                     i = int(cand[c])
                     points.append(_Point(frame, float(gaps[c]), trial[i] - now[i] - move, tool.friction,
                                          ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, tool.name), j))
-                face = face_point(body, now, trial, tool, x_e, margin)
+                face = face_point(body, now, trial, tool, x_e, margin, cand)
                 if face is not None:  # a probe smaller than the triangles does not pass between the vertices
                     frame, gap, corners, w, slip = face
                     points.append(_Point(frame, gap, slip - move, tool.friction, ((k, corners, w),),
@@ -525,45 +572,44 @@ class Scene:
     def _solve(self, points, trials, loads, contacts) -> None:
         """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G."""
         m = len(points)
-        G = np.zeros((3 * m, 3 * m))
+        F = np.stack([pt.frame for pt in points])  # (m, 3, 3): G's diagonal blocks
         b = np.empty((m, 3))
+        b[:, 0] = [pt.gap for pt in points]
+        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], np.array([pt.slip for pt in points]))
+        rows, ks, nodes, weights = [], [], [], []  # each side's nodes: (point, body, node, weight)
         for c, pt in enumerate(points):
-            G[3 * c:3 * c + 3, 3 * c:3 * c + 3] = pt.frame
-            b[c, 0] = pt.gap
-            b[c, 1:] = pt.frame[:, 1:].T @ pt.slip
-        A = np.zeros((3 * m, 3 * m))
+            for k, ns, ws in pt.sides:
+                rows += [c] * len(ns)
+                ks += [k] * len(ns)
+                nodes += ns.tolist()
+                weights += ws.tolist()
+        rows, ks, nodes, weights = np.array(rows), np.array(ks), np.array(nodes, dtype=np.int64), np.array(weights)
+        A = np.zeros((m, 3, m, 3))
         maps = []
-        for k, body in enumerate(self.bodies):
-            nodes = np.unique(np.concatenate([n for pt in points for kk, n, _ in pt.sides if kk == k] or [[]])
-                              ).astype(np.int64)
-            if nodes.size == 0:
-                maps.append(None)
-                continue
-            slot = {v: i for i, v in enumerate(nodes.tolist())}
-            P = np.zeros((3 * m, 3 * nodes.size))  # point c's displacement from body k's nodes' forces
-            for c, pt in enumerate(points):
-                for kk, ns, ws in pt.sides:
-                    if kk == k:
-                        for v, wt in zip(ns.tolist(), ws.tolist()):
-                            P[3 * c:3 * c + 3, 3 * slot[v]:3 * slot[v] + 3] += wt * np.eye(3)
-            W = step_compliances(body.driver, nodes)
-            A += P @ W @ P.T
-            maps.append((nodes, P))
+        for k in np.unique(ks).tolist():
+            on = ks == k
+            used, slot = np.unique(nodes[on], return_inverse=True)
+            Pw = np.zeros((m, used.size))  # point c's displacement per unit displacement of body k's node
+            np.add.at(Pw, (rows[on], slot), weights[on])
+            W = self._compliances(k, used).reshape(used.size, 3, used.size, 3)
+            A += np.tensordot(np.tensordot(Pw, W, axes=(1, 0)), Pw, axes=(2, 1)).transpose(0, 1, 3, 2)
+            maps.append((k, used, Pw))
+        A = A.reshape(3 * m, 3 * m)
         for j, tool in enumerate(self.tools):  # a coupled probe's proxy moves by the sum of its forces / k
             on = np.flatnonzero([pt.tool == j for pt in points])
             if on.size and tool.stiffness is not None:
-                rows = (3 * on[:, None] + np.arange(3)).ravel()
-                A[np.ix_(rows, rows)] += np.tile(np.eye(3), (on.size, on.size)) / tool.stiffness
-                for c in on.tolist():
-                    b[c, 0] -= points[c].frame[:, 0] @ tool.force / tool.stiffness
+                rows3 = (3 * on[:, None] + np.arange(3)).ravel()
+                A[np.ix_(rows3, rows3)] += np.tile(np.eye(3), (on.size, on.size)) / tool.stiffness
+                b[on, 0] -= F[on, :, 0] @ tool.force / tool.stiffness
+        G = np.zeros((m, 3, m, 3))
+        G[np.arange(m), :, np.arange(m), :] = F
+        G = G.reshape(3 * m, 3 * m)
         A = G.T @ A @ G
         mu = np.array([pt.friction for pt in points])
         r, self.sweeps = pgs(A, b.reshape(-1), mu)
-        f = (G @ r).reshape(m, 3)  # each point's force on its first side (the reaction on the second)
-        for k, mp in enumerate(maps):
-            if mp is not None:
-                nodes, P = mp
-                loads[k][nodes] += (P.T @ f.reshape(-1)).reshape(-1, 3)
+        f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))  # each point's force on its first side (the reaction on the second)
+        for k, used, Pw in maps:
+            loads[k][used] += Pw.T @ f
         for pt, fc in zip(points, f):
             a, other = pt.pair
             contacts[(a, other)] += fc

@@ -205,22 +205,23 @@ class Keyframes:
         return ScriptedDevice(self, buttons=self.buttons)
 
 
-def face_point(body, now, trial, tool, x_e, margin):
+def face_point(body, now, trial, tool, x_e, margin, cand):
     """The point of the body's deformed surface (after the trial step) closest to a probe's core,
-    on a triangle: (frame, gap, corners, barycentric weights, slip), or None beyond ``margin``."""
+    on a triangle: (frame, gap, corners, barycentric weights, slip), or None beyond ``margin``.
+    ``cand``: the surface vertices (indices into ``body.surface``) within the tool's reach, the
+    margin and the body's longest edge: the triangles looked at are those with a corner among them."""
     from .contact_points import closest_points_on_triangles
 
-    local = np.full(body.X.shape[0], -1, dtype=np.int64)
-    local[body.surface] = np.arange(body.surface.size)
-    tri = np.asarray(body.mesh.triangles)
-    Y = body.X[tri] + trial[local[tri]]
-    core = tool.shape.core(Y.mean(axis=1), x_e)
-    near = np.flatnonzero(np.linalg.norm(Y - core[:, None], axis=2).min(axis=1)
-                          < tool.shape.reach + margin + np.linalg.norm(Y[:, 0] - Y[:, 1], axis=1))
+    local = body.local
+    mark = np.zeros(body.surface.size, dtype=bool)
+    mark[cand] = True
+    tri_all = np.asarray(body.mesh.triangles)
+    near = np.flatnonzero(mark[local[tri_all]].any(axis=1))
     if near.size == 0:
         return None
-    Yn = Y[near]
-    q, w = closest_points_on_triangles(core[near], Yn[:, 0], Yn[:, 1], Yn[:, 2])
+    tri = tri_all[near]
+    Yn = body.X[tri] + trial[local[tri]]
+    q, w = closest_points_on_triangles(tool.shape.core(Yn.mean(axis=1), x_e), Yn[:, 0], Yn[:, 1], Yn[:, 2])
     core_q = tool.shape.core(q, x_e)
     v = q - core_q
     dist = np.linalg.norm(v, axis=1)
@@ -232,6 +233,6 @@ def face_point(body, now, trial, tool, x_e, margin):
     if gap >= margin:
         return None
     n = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
-    corners = tri[near[best]]
+    corners = tri[best]
     slip = w[best] @ (trial[local[corners]] - now[local[corners]])
     return _frame(n), float(gap), corners, w[best], slip
