@@ -189,14 +189,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ..io.scenario import LoadSchedule
     from ..drivers.modal import ModalSimulator
 
-    if getattr(args, "example", None):  # a scene shipped with the package
-        if args.mesh:
-            raise RtfemError(f"give a mesh or scene file, or --example {args.example}, not both")
-        from importlib import resources
+    from .scene import is_scene, simulate_scene
 
-        args.mesh = str(resources.files("rtfem") / "scenes" / f"{args.example}.toml")
-    if args.mesh and str(args.mesh).lower().endswith(".toml"):  # a scene file: its bodies, obstacles, gravity
-        from .scene import simulate_scene
+    if is_scene(args):  # a scene file (or --example): its bodies, obstacles, gravity
 
         return simulate_scene(args)
     n_steps, frame_every = _check_simulate(args)
@@ -348,6 +343,11 @@ class _StageBars:
 
 def cmd_view(args: argparse.Namespace) -> int:
     from ..viewer.session import Settings
+    from .scene import is_scene, view_scene
+
+    if is_scene(args):
+        check_address(args.host, args.port)
+        return view_scene(args)
 
     if args.benchmark is None:
         check_address(args.host, args.port)
@@ -534,6 +534,8 @@ def _add_view_and_demo(sub) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")
+    p.add_argument("--example", choices=("gallbladder",), help="show a scene shipped with rtfem (MESH may also be a "
+                   "scene file, .toml): gallbladder, the liver and the gallbladder beneath it, a grasper and a probe")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")

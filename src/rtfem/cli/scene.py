@@ -1,4 +1,5 @@
-"""``rtfem simulate scene.toml``: a scene file run headless (each body's .pvd series and contacts.csv)."""
+"""``rtfem simulate scene.toml``: a scene file run headless (each body's .pvd series and contacts.csv);
+``rtfem view scene.toml``: the scene viewer; ``--example NAME``: a scene shipped with rtfem."""
 
 from __future__ import annotations
 
@@ -11,6 +12,51 @@ import numpy as np
 
 from ..errors import RtfemError
 from .common import MAX_FRAMES, MAX_STEPS, progress_bar
+
+
+def is_scene(args: argparse.Namespace) -> bool:
+    """Whether the command runs a scene: a .toml MESH, or ``--example`` (MESH set to its file)."""
+    example = getattr(args, "example", None)
+    if example:
+        if args.mesh:
+            raise RtfemError(f"give a mesh or scene file, or --example {example}, not both")
+        from importlib import resources
+
+        args.mesh = str(resources.files("rtfem") / "scenes" / f"{example}.toml")
+    return bool(args.mesh) and str(args.mesh).lower().endswith(".toml")
+
+
+#: the time steps the viewer may step a scene at to keep real time (s)
+VIEW_STEPS = (0.001, 0.002, 0.0025, 0.004, 0.005, 0.01, 0.02)
+
+
+def view_scene(args: argparse.Namespace) -> int:
+    """``rtfem view scene.toml`` / ``--example``: the scene viewer. The scene is stepped at the file's dt
+    when a step takes under 70 % of it, else at the smallest of VIEW_STEPS that keeps real time (said)."""
+    from ..interaction.scene_file import load_scene
+    from ..viewer.scene_view import SceneSession, serve_scene
+
+    for flag, what in (("device", "--device"), ("benchmark", "--benchmark")):
+        if getattr(args, flag, None):
+            raise RtfemError(f"{what} is for a single organ; a scene's tools are in its file and the mouse")
+
+    def progress(message: str) -> None:
+        print(f"scene       {message}", flush=True)
+
+    scene = load_scene(args.mesh, progress=progress)
+    steps = []
+    for _ in range(60):
+        t0 = time.perf_counter()
+        scene.step()
+        steps.append(time.perf_counter() - t0)
+    cost, dt = float(np.median(steps[10:])), scene.dt
+    if cost > 0.7 * dt:
+        new = next((d for d in VIEW_STEPS if d > dt and cost <= 0.7 * d), VIEW_STEPS[-1])
+        print(f"scene       a step takes {cost * 1e3:.1f} ms: the viewer steps the scene at dt = {new * 1e3:g} ms to keep "
+              f"real time (at the file's {dt * 1e3:g} ms it would run at {dt / cost:.2f}x)", flush=True)
+        scene = load_scene(args.mesh, progress=progress, dt=new)
+    serve_scene(SceneSession(scene), host=args.host, port=args.port)
+    return 0
 
 
 def simulate_scene(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ from ..errors import ModelError
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances
 from ..mesh.surface import TriMesh
 from .friction import pgs
-from .scene_obstacles import MeshObstacle
+from .scene_obstacles import MeshObstacle, pair_search
 from .scene_tools import SceneTool, _frame, _frames, face_point
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -234,6 +234,7 @@ class Scene:
         self.obstacles: list[Plane | MeshObstacle] = []
         self.attachments: list[Attachment] = []
         self.tools: list[SceneTool] = []
+        self.view = None  # the viewer's camera direction from the scene's centre (a scene file's view)
         self.time = 0.0
         self.steps = 0
         #: the force (N) of each obstacle on each body in the last step: {(body, obstacle): (3,)}
@@ -468,7 +469,7 @@ class Scene:
                 slack = self.SLACK * margin
                 kept = cache.get((ka, kb))
                 if kept is None or (np.abs(trial_a - kept[0]).max() + np.abs(trial_b - kept[1]).max()) * 1.7321 > slack:
-                    kept = cache[(ka, kb)] = (trial_a.copy(), trial_b.copy(), *self._pair_search(a, b, trial_a, trial_b,
+                    kept = cache[(ka, kb)] = (trial_a.copy(), trial_b.copy(), *pair_search(a, b, trial_a, trial_b,
                                                                                                margin + slack))
                 cand, tris, valid = kept[2:]
                 if cand.size == 0:
@@ -497,37 +498,6 @@ class Scene:
                     points.append(_Point(frame, float(gap[c]), slip, self.friction,
                                          ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
         return points
-
-    @staticmethod
-    def _pair_search(a: Body, b: Body, trial_a, trial_b, reach_beyond: float):
-        """a's surface vertices (indices into a.surface) within ``reach_beyond`` of b's deformed
-        surface, each with b's triangles whose centres are the eight nearest within b's largest
-        triangle radius + ``reach_beyond``: (cand, tris, valid)."""
-        from scipy.spatial import cKDTree
-
-        tri = np.asarray(b.mesh.triangles)
-        Y = b.X[tri] + trial_b[b.local[tri]]
-        centres = Y.mean(axis=1)
-        reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2))) + reach_beyond
-        lo, hi = Y.reshape(-1, 3).min(axis=0) - reach_beyond, Y.reshape(-1, 3).max(axis=0) + reach_beyond
-        x = a.X[a.surface] + trial_a
-        inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))  # b's box
-        k = min(8, len(centres))
-        if inside.size == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, k), dtype=np.int64), np.zeros((0, k), dtype=bool)
-        dist, near = cKDTree(centres).query(x[inside], k=k, distance_upper_bound=reach)
-        near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
-        hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
-        valid = near[hit] < len(centres)
-        tris = np.where(valid, near[hit], 0)
-        # kept: the vertices whose closest point on b is within the margin and the slack now
-        from .contact_points import closest_points_on_triangles
-
-        P = np.repeat(x[inside[hit]], k, axis=0)
-        q, _ = closest_points_on_triangles(P, *(Y[tris.ravel(), c] for c in range(3)))
-        d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
-        close = d.min(axis=1) < reach_beyond
-        return inside[hit][close], tris[close], valid[close]
 
     def _compliances(self, k: int, nodes: np.ndarray) -> np.ndarray:
         """Body k's one-step compliances of ``nodes`` (3n, 3n), the last set's kept while it is the

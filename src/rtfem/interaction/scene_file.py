@@ -5,6 +5,7 @@
     gravity = [0, 0, -9.81]        # m/s^2 (default: this)
     dt = 0.001                     # s (default)
     friction = 0.2                 # Coulomb between bodies (default 0)
+    view = [0.2, 0.8, -0.5]        # rtfem view: the camera's direction from the scene's centre
 
     [[body]]
     name = "box"
@@ -58,7 +59,7 @@ from .scene import Scene
 
 __all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_KEYS"]
 
-TOP_KEYS = {"gravity", "dt", "friction", "body", "obstacle", "attachment", "tool"}
+TOP_KEYS = {"gravity", "dt", "friction", "view", "body", "obstacle", "attachment", "tool"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "mesh", "scale", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
@@ -95,13 +96,14 @@ class _Where:
                 raise self.error(k, f"unknown (known: {', '.join(sorted(allowed))})")
 
 
-def load_scene(path, *, progress=None) -> Scene:
+def load_scene(path, *, progress=None, dt: float | None = None) -> Scene:
     """The scene a TOML file describes (see the module's docstring), its bodies' modes computed.
 
     Parameters
     ----------
     path : the scene file.
     progress : ``progress(message)`` called before each body's precompute (a line for the CLI).
+    dt : the bodies' time step (s) instead of the file's (the viewer's, to keep real time).
 
     Returns
     -------
@@ -127,10 +129,15 @@ def load_scene(path, *, progress=None) -> Scene:
     top = _Where(p, "the top level")
     top.keys(doc, TOP_KEYS)
     gravity = top.check("gravity", validate.vector, doc.get("gravity", (0.0, 0.0, -9.81)), "gravity", 3)
-    dt = top.check("dt", validate.time_step, doc.get("dt", 1e-3), "dt")
+    dt = top.check("dt", validate.time_step, doc.get("dt", 1e-3) if dt is None else dt, "dt")
     friction = top.check("friction", validate.in_range, doc.get("friction", 0.0), "friction", 0.0, 10.0,
                          what="Coulomb's coefficient between bodies")
     scene = Scene(gravity, friction=friction)
+    if "view" in doc:
+        view = top.check("view", validate.vector, doc["view"], "view", 3)
+        if not np.linalg.norm(view) > 0:
+            raise top.error("view", "must be a non-zero direction: where the viewer's camera looks from")
+        scene.view = np.asarray(view, dtype=float)
     bodies, obstacles = doc.get("body", []), doc.get("obstacle", [])
     if not isinstance(bodies, list) or not bodies:
         raise top.error("body", "a scene needs at least one [[body]] table")

@@ -17,7 +17,7 @@ from .. import validate
 from ..errors import ModelError
 from ..mesh.surface import TriMesh
 
-__all__ = ["MeshObstacle"]
+__all__ = ["MeshObstacle", "pair_search"]
 
 
 class MeshObstacle:
@@ -85,3 +85,34 @@ class MeshObstacle:
         lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
         keep = (np.abs(gap) < margin) & (lateral <= 1e-3 * self.edge + 1e-12)
         return inside[hit][keep], gap[keep], n[keep]
+
+
+def pair_search(a, b, trial_a, trial_b, reach_beyond: float):
+    """a's surface vertices (indices into a.surface) within ``reach_beyond`` of b's deformed
+    surface, each with b's triangles whose centres are the eight nearest within b's largest
+    triangle radius + ``reach_beyond``: (cand, tris, valid)."""
+    from scipy.spatial import cKDTree
+
+    tri = np.asarray(b.mesh.triangles)
+    Y = b.X[tri] + trial_b[b.local[tri]]
+    centres = Y.mean(axis=1)
+    reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2))) + reach_beyond
+    lo, hi = Y.reshape(-1, 3).min(axis=0) - reach_beyond, Y.reshape(-1, 3).max(axis=0) + reach_beyond
+    x = a.X[a.surface] + trial_a
+    inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))  # b's box
+    k = min(8, len(centres))
+    if inside.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, k), dtype=np.int64), np.zeros((0, k), dtype=bool)
+    dist, near = cKDTree(centres).query(x[inside], k=k, distance_upper_bound=reach)
+    near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
+    hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
+    valid = near[hit] < len(centres)
+    tris = np.where(valid, near[hit], 0)
+    # kept: the vertices whose closest point on b is within the margin and the slack now
+    from .contact_points import closest_points_on_triangles
+
+    P = np.repeat(x[inside[hit]], k, axis=0)
+    q, _ = closest_points_on_triangles(P, *(Y[tris.ravel(), c] for c in range(3)))
+    d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
+    close = d.min(axis=1) < reach_beyond
+    return inside[hit][close], tris[close], valid[close]

@@ -44,6 +44,34 @@ def surface_faces(session) -> np.ndarray:
     return np.searchsorted(session.drawn, session.mesh.triangles).astype(np.uint32)
 
 
+def open_server(viser, host: str, port: int):
+    """A viser server on host:port (the next free port when that one is taken, said on stderr):
+    (server, host, the port served)."""
+    try:
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    except OSError as exc:
+        raise RtfemError(f"cannot serve on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
+    served = server.get_port()
+    if port and served != port:
+        print(f"rtfem viewer: port {port} is in use; serving on port {served} instead", file=sys.stderr, flush=True)
+    return server, host, served
+
+
+def light_scene(server, centre: np.ndarray, size: float, view=(0.1, -0.62, 0.5)) -> None:
+    """+z up, cheap lights and the first camera looking at ``centre`` from ``size`` times ``view``."""
+    sc = server.scene
+    sc.set_up_direction("+z")
+    # Lights that cost little per pixel: viser's defaults (an environment map sampled at every
+    # fragment, cascaded shadow maps drawn every frame) are the most of a frame's work in a
+    # browser without a GPU (benchmarks/viewer_browser.py).
+    sc.configure_environment_map(hdri=None)
+    sc.configure_default_lights(enabled=True, cast_shadow=False)
+    sc.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(120, 110, 110), intensity=1.5)
+    server.initial_camera.look_at = tuple(centre)
+    server.initial_camera.position = tuple(centre + size * np.asarray(view, dtype=float))
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+
+
 def _need_viser():
     try:
         import trimesh  # noqa: F401
@@ -63,14 +91,7 @@ class Viewer:
         viser = _need_viser()
         self.session = session
         self.fps = float(fps)
-        try:
-            self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        except OSError as exc:
-            raise RtfemError(f"cannot serve on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
-        self.host, self.port = host, self.server.get_port()
-        if port and self.port != port:
-            print(f"rtfem viewer: port {port} is in use; serving on port {self.port} instead", file=sys.stderr,
-                  flush=True)
+        self.server, self.host, self.port = open_server(viser, host, port)
         if not _is_loopback(host):
             print(f"rtfem viewer: WARNING: serving on {host}:{self.port} makes the organ and its controls reachable "
                   "from other machines on the network, and the viewer has no authentication: anyone who can "
@@ -96,20 +117,10 @@ class Viewer:
     def _build_scene(self) -> None:
         s, mesh = self.session, self.session.mesh
         sc = self.server.scene
-        sc.set_up_direction("+z")
-        # Lights that cost little per pixel: viser's defaults (an environment map sampled at every
-        # fragment, cascaded shadow maps drawn every frame) are the most of a frame's work in a
-        # browser without a GPU (benchmarks/viewer_browser.py).
-        sc.configure_environment_map(hdri=None)
-        sc.configure_default_lights(enabled=True, cast_shadow=False)
-        sc.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(120, 110, 110),
-                                intensity=1.5)
         lo, hi = mesh.bounds()
         centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
         self.centre, self.size = centre, size
-        self.server.initial_camera.look_at = tuple(centre)
-        self.server.initial_camera.position = tuple(centre + size * np.array([0.1, -0.62, 0.5]))
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        light_scene(self.server, centre, size)
         self._faces = surface_faces(s)
         self._glb = SurfaceGlb(self._faces, s.drawn.size)
         self.organ = sc.add_glb("/organ", surface_glb(s, self._glb, np.zeros((s.drawn.size, 3)), 1.0))

@@ -1,0 +1,115 @@
+"""The scene viewer (rtfem.viewer.scene_view, `rtfem view --example gallbladder`): the mouse as a
+grasper and a probe of the scene, the bodies served as frames, the command's start and Ctrl-C."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+import types
+import urllib.request
+from importlib import resources
+
+import numpy as np
+import pytest
+from conftest import interrupt, wait_for_viewer_address
+
+from rtfem.interaction.scene_file import load_scene
+from rtfem.viewer.scene_view import SceneSession
+
+EXAMPLE = resources.files("rtfem") / "scenes" / "gallbladder.toml"
+
+
+@pytest.fixture(scope="module")
+def example():
+    return load_scene(EXAMPLE, dt=0.004)
+
+
+def test_the_mouse_grasps_pulls_and_lets_go_and_presses_with_the_probe(example):
+    scene = example
+    session = SceneSession(scene)
+    gb, liver = scene.body("gallbladder"), scene.body("liver")
+    fundus = int(np.flatnonzero(gb.surface == gb.mesh.groups["fundus"][0])[0])
+    for _ in range(5):
+        session.step()
+    x0 = gb.X[gb.surface[fundus]] + session.surface_displacements()[1][fundus]
+    session.grab(x0)
+    for k in range(100):  # pull 1 cm down over 0.2 s, hold 0.2 s
+        session.drag(x0 - [0.0, 0.0, 0.01 * min(1.0, k / 50)])
+        session.step()
+    assert session.held == "gallbladder"
+    pull = scene.contacts[("gallbladder", "mouse")]
+    assert pull[2] < -0.05  # pulling it down
+    moved = session.surface_displacements()[1][fundus] - (x0 - gb.X[gb.surface[fundus]])
+    assert moved[2] < -0.003  # the fundus followed the hand down by millimetres
+    assert np.allclose(session.hand.force, -scene.contacts[("gallbladder", "mouse")])  # the hand feels it
+    session.release()
+    session.step()
+    assert session.held is None and np.abs(scene.contacts[("gallbladder", "mouse")]).max() == 0.0
+    # the probe pressed 3 mm into the liver's right lobe from above
+    top = int(np.argmax(liver.X[liver.surface][:, 2] - 10 * np.abs(liver.X[liver.surface][:, 0] + 0.05)))
+    x = liver.X[liver.surface[top]] + session.surface_displacements()[0][top]
+    n = liver.normals[top]
+    for k in range(60):
+        session.press(x + (session.probe.radius + 5e-4 - 0.003 * min(1.0, k / 30)) * n)
+        session.step()
+    push = scene.contacts[("liver", "mouse probe")]
+    assert push @ n < -0.05  # into the liver
+    session.unpress()
+    session.step()
+    assert np.abs(scene.contacts[("liver", "mouse probe")]).max() == 0.0
+
+
+def test_the_viewer_serves_the_bodies_and_a_drag_grasps(example):
+    pytest.importorskip("viser")
+    from rtfem.viewer.scene_view import SceneViewer
+
+    scene = load_scene(EXAMPLE, dt=0.004)
+    viewer = SceneViewer(SceneSession(scene), port=_free_port()).start()
+    try:
+        t0 = time.time()
+        while viewer.frames < 5 and time.time() - t0 < 30:
+            time.sleep(0.1)
+        gb = scene.body("gallbladder")
+        fundus = int(np.flatnonzero(gb.surface == gb.mesh.groups["fundus"][0])[0])
+        x0 = gb.X[gb.surface[fundus]] + viewer._u[1][fundus]
+        event = types.SimpleNamespace(phase="start", start_position=tuple(x0), end_position=tuple(x0))
+        viewer._on_drag(event, 1, press=False)
+        end = x0 - [0.0, 0.0, 0.01]
+        viewer._on_drag(types.SimpleNamespace(phase="update", start_position=tuple(x0), end_position=tuple(end)), 1,
+                        press=False)
+        t0 = time.time()
+        while viewer.state()["held"] is None and time.time() - t0 < 10:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        state = viewer.state()
+        assert state["held"] == "gallbladder" and state["tool_forces"]["mouse"] > 0.01
+        assert state["frames"] >= 5 and state["steps"] > 0 and state["error"] is None
+        viewer._on_drag(types.SimpleNamespace(phase="end", start_position=tuple(x0), end_position=tuple(end)), 1,
+                        press=False)
+        time.sleep(0.2)
+        assert viewer.state()["held"] is None
+    finally:
+        viewer.stop()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_rtfem_view_example_serves_and_stops_on_ctrl_c():
+    pytest.importorskip("viser")
+    port = _free_port()
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "view", "--example", "gallbladder", "--port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = wait_for_viewer_address(p)
+        assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
+        assert b"<html" in urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().lower()
+    finally:
+        out, err = interrupt(p, 30)
+    assert p.returncode == 130 and "stopped" in out and "Traceback" not in err, (out, err)
