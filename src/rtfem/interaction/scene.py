@@ -576,7 +576,12 @@ class Scene:
         G = G.reshape(3 * m, 3 * m)
         A = G.T @ A @ G
         mu = np.array([pt.friction for pt in points])
-        r, self.sweeps = pgs(A, b.reshape(-1), mu)
+        normal = np.diag(A)[0::3]
+        free = normal > 1e-12 * max(float(normal.max()), 1e-300)  # a point on held nodes on both sides: the
+        r = np.zeros(3 * m)                                          # supports take it, it moves nothing
+        if free.any():
+            rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
+            r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), mu[free])
         f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))  # each point's force on its first side (the reaction on the second)
         for k, used, Pw in maps:
             loads[k][used] += Pw.T @ f
