@@ -84,7 +84,36 @@ def _need_viser():
     return viser
 
 
-class Viewer:
+class Served:
+    """``start()``/``stop()`` of a viewer: its session's physics thread, its frame thread and its server."""
+
+    def start(self):
+        self.session.start()
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.session.stop()
+        self.server.stop()
+
+
+def serve_until_interrupted(viewer) -> None:
+    """Say where the viewer is served and keep serving until Ctrl-C, then stop it (the KeyboardInterrupt
+    goes on: the command exits 130, as every interrupted command does)."""
+    print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("\nrtfem viewer: stopped", flush=True)
+        raise
+    finally:
+        viewer.stop()
+
+
+class Viewer(Served):
     """A viser server showing one :class:`Session`."""
 
     def __init__(self, session: Session, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0) -> None:
@@ -403,17 +432,6 @@ class Viewer:
         self.stats_md.content = "  \n".join(lines)
 
     # ---------------------------------------------------------------- control
-    def start(self) -> "Viewer":
-        self.session.start()
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.session.stop()
-        self.server.stop()
-
     def state(self) -> dict:
         """What the browser is being served, for tests and scripts."""
         s = self.session
@@ -455,15 +473,7 @@ def serve(mesh=None, *, material: Material | None = None, fixed="attachment",
             session = Session(meshes.liver() if mesh is None else mesh, material, fixed, settings, model_options)
     viewer = Viewer(session, host=host, port=port).start()
     if block:
-        print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)
-        try:
-            while True:
-                time.sleep(0.5)
-        except KeyboardInterrupt:
-            print("\nrtfem viewer: stopped", flush=True)
-            raise  # the command exits 130, as every interrupted command does
-        finally:
-            viewer.stop()
+        serve_until_interrupted(viewer)
     return viewer
 
 

@@ -21,7 +21,9 @@ import numpy as np
 from ..drivers.base import displacements_at
 from ..interaction.devices.base import SharedDevice
 from ..threads import background, runtime
+from .app import Served, serve_until_interrupted
 from .gltf import SurfaceGlb
+from .session import PhysicsThread
 
 __all__ = ["SceneSession", "SceneViewer", "serve_scene", "COLOURS"]
 
@@ -32,7 +34,7 @@ HELP = ("**Drag a body** with the left mouse button to grasp and pull it; **shif
         "into it. The scene's own tools follow their paths. Drag empty space to orbit, scroll to zoom.")
 
 
-class SceneSession:
+class SceneSession(PhysicsThread):
     """A :class:`~rtfem.Scene` stepped in real time on its own thread, with the mouse as a grasper
     and a probe (tools "mouse" and "mouse probe", parked far above the scene while unused).
 
@@ -63,6 +65,7 @@ class SceneSession:
         self.grasper = scene.add_tool("mouse", self.hand, kind="grasper", radius=grasp_radius, stiffness=grasp_stiffness)
         self.probe = scene.add_tool("mouse probe", self.pointer, kind="probe", radius=probe_radius,
                                     stiffness=probe_stiffness)
+        self._thread_name = "rtfem-scene-physics"
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -138,18 +141,6 @@ class SceneSession:
         except Exception as exc:  # shown in the panel; the viewer keeps serving
             self.error = f"{type(exc).__name__}: {exc}"
 
-    def start(self) -> "SceneSession":
-        if self._thread is None or not self._thread.is_alive():
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="rtfem-scene-physics", daemon=True)
-            background(self._thread, self._stop.set)
-            self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
 
 
 def tint(base, amount: np.ndarray) -> np.ndarray:
@@ -160,7 +151,7 @@ def tint(base, amount: np.ndarray) -> np.ndarray:
     return out
 
 
-class SceneViewer:
+class SceneViewer(Served):
     """A viser server showing a :class:`SceneSession`: one mesh per body, the mouse's tools, a panel."""
 
     def __init__(self, session: SceneSession, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0) -> None:
@@ -302,17 +293,6 @@ class SceneViewer:
             lines.append(f"**error:** {s.error}")
         self.stats_md.content = "  \n".join(lines)
 
-    def start(self) -> "SceneViewer":
-        self.session.start()
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.session.stop()
-        self.server.stop()
-
     def state(self) -> dict:
         """What the browser is being served, for tests and scripts."""
         s = self.session
@@ -325,13 +305,5 @@ def serve_scene(session: SceneSession, *, host: str = "127.0.0.1", port: int = 8
     """Serve the scene viewer and (``block``) run until Ctrl-C (the command then exits 130)."""
     viewer = SceneViewer(session, host=host, port=port).start()
     if block:
-        print(f"rtfem viewer: open {viewer.url} in a browser (Ctrl-C stops it)", flush=True)
-        try:
-            while True:
-                time.sleep(0.5)
-        except KeyboardInterrupt:
-            print("\nrtfem viewer: stopped", flush=True)
-            raise
-        finally:
-            viewer.stop()
+        serve_until_interrupted(viewer)
     return viewer

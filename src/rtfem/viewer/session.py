@@ -102,6 +102,26 @@ def _large(method: str, large) -> bool:
     return large
 
 
+class PhysicsThread:
+    """``start()`` runs ``self._run`` (the clock) on a daemon thread until ``stop()`` sets ``self._stop``
+    and joins it; a Ctrl-C in the main thread stops it too (:func:`rtfem.threads.background`)."""
+
+    _thread_name = "rtfem-physics"
+
+    def start(self):
+        if self._thread is None or not self._thread.is_alive():
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
+            background(self._thread, self._stop.set)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
 @dataclass
 class Stats:
     steps: int = 0
@@ -113,8 +133,10 @@ class Stats:
     computes: deque = field(default_factory=lambda: deque(maxlen=1_000_000))  # every step's compute (s)
 
 
-class Session:
+class Session(PhysicsThread):
     """The organ, its precomputed dynamics and a thread stepping it in real time."""
+
+    _thread_name = "rtfem-viewer-physics"
 
     def __init__(self, mesh: TriMesh | TetMesh, material: Material | None = None, fixed="attachment",
                  settings: Settings | None = None, model_options: dict | None = None, progress=None) -> None:
@@ -468,19 +490,6 @@ class Session:
                     window_steps, window_start, computes = 0, c1, []
         except Exception as exc:  # shown in the panel; the viewer keeps serving
             self.error = f"{type(exc).__name__}: {exc}"
-
-    def start(self) -> "Session":
-        if self._thread is None or not self._thread.is_alive():
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="rtfem-viewer-physics", daemon=True)
-            background(self._thread, self._stop.set)
-            self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
 
 
 def _step_cost(driver, steps: int = 30) -> float:
