@@ -1,4 +1,4 @@
-"""The three scripts in examples/ run as a newcomer runs them, and say the right things."""
+"""The scripts in examples/ run as a newcomer runs them, and say the right things."""
 
 from __future__ import annotations
 
@@ -48,3 +48,13 @@ def test_haptic_session(tmp_path):
 
     skipped = re.search(r"(\d+) ticks skipped", out)
     assert number(r"(\d+) steps in", out) + (int(skipped.group(1)) if skipped else 0) == 2000
+
+
+def test_scene(tmp_path):
+    """The gallbladder hung beneath the liver: at rest the cystic plate carries its weight (2 %); pushed
+    from below, the probe's and the plate's forces together still carry it (1 %)."""
+    out = run("04_scene.py", tmp_path)
+    weight = number(r"weighs ([\d.]+) N", out)
+    assert abs(number(r"at rest the cystic plate carries ([\d.]+) N", out) - weight) < 0.02 * weight
+    assert number(r"pushed: the probe ([\d.]+) N", out) > 2 * weight
+    assert abs(number(r"together ([-\d.]+) N", out) - weight) < 0.01 * weight
