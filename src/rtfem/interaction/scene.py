@@ -32,7 +32,7 @@ from ..errors import ModelError
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances
 from ..mesh.surface import TriMesh
 from .friction import pgs
-from .scene_obstacles import MeshObstacle, pair_search
+from .scene_obstacles import MeshObstacle, nearest_face_points, on_faces, pair_search
 from .scene_tools import SceneTool, _frame, _frames, face_point
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -317,8 +317,9 @@ class Scene:
         for tool in self.tools:
             tool.begin(t1, self.bodies)
         springs = self.attachments + [tool.held for tool in self.tools if tool.held is not None]
-        held = self._attachment_loads(springs)
-        trials = [self._trial(b, held[k]) for k, b in enumerate(self.bodies)]  # (loads, surface now, after a step)
+        weights = [b.masses[:, None] * self.gravity[None, :] + b.loads for b in self.bodies]  # and the loads held
+        held = self._attachment_loads(springs, weights)
+        trials = [self._trial(b, weights[k] + held[k]) for k, b in enumerate(self.bodies)]  # (loads, now, a step on)
         points = self._plane_points(trials) + self._pair_points(trials) + self._tool_points(trials)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
@@ -344,7 +345,7 @@ class Scene:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):
             self.step()
 
-    def _attachment_loads(self, springs) -> list[np.ndarray]:
+    def _attachment_loads(self, springs, weights) -> list[np.ndarray]:
         """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
         graspers' springs); the total of each set on its first body in :attr:`_held_force`.
 
@@ -365,7 +366,7 @@ class Scene:
         for k, (nodes, Jk) in J.items():
             body, d = self.bodies[k], self.bodies[k].driver
             state = d.get_state()
-            d.step(body.masses[:, None] * self.gravity[None, :] + body.loads)
+            d.step(weights[k])
             x = body.X[nodes] + displacements_at(d, nodes)
             d.set_state(state)
             e += (Jk @ x.reshape(-1)).reshape(-1, 3)
@@ -419,11 +420,11 @@ class Scene:
             self._springs_kept = (key, J, solve)
         return J, solve
 
-    def _trial(self, body: Body, held: np.ndarray):
-        """The body's weight and held loads, and its surface's displacements now and after a step
-        under them alone."""
+    @staticmethod
+    def _trial(body: Body, F: np.ndarray):
+        """The body's loads F (its weight, the loads it holds, the springs'), and its surface's
+        displacements now and after a step under them alone."""
         d = body.driver
-        F = body.masses[:, None] * self.gravity[None, :] + body.loads + held
         state = d.get_state()
         now = displacements_at(d, body.surface)
         d.step(F)
@@ -454,8 +455,6 @@ class Scene:
         reach + margin + slack) are kept from step to step while the two surfaces move less than
         the slack since they were searched (Verlet lists): a vertex left out was then further than
         the margin plus the slack, and cannot have come within the margin."""
-        from .contact_points import closest_points_on_triangles
-
         points = []
         if len(self.bodies) < 2:
             return points
@@ -480,20 +479,14 @@ class Scene:
                 normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
                 normals /= np.linalg.norm(normals, axis=1)[:, None]
                 t_loc = inverse.reshape(tris.shape)
-                P = np.repeat(x, tris.shape[1], axis=0)
-                q, w = closest_points_on_triangles(P, *(Y[t_loc.ravel(), c] for c in range(3)))
-                d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
-                best = np.argmin(d, axis=1)
-                rows = np.arange(cand.size) * tris.shape[1] + best
-                t_best = tris[np.arange(cand.size), best]
-                n = normals[t_loc[np.arange(cand.size), best]]
-                delta = x - q[rows]
-                gap = np.einsum("ij,ij->i", delta, n)
-                lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
-                # beside the surface, or through the body: not this face's contact
-                keep = np.flatnonzero((np.abs(gap) < margin) & (lateral <= 1e-3 * b.edge + 1e-12))
+                rows = np.arange(cand.size)
+                best, q, w, _ = nearest_face_points(x, Y, t_loc, valid)
+                t_best = tris[rows, best]
+                n = normals[t_loc[rows, best]]
+                gap, on = on_faces(x, q, n, margin, b.edge)
+                keep = np.flatnonzero(on)
                 for c, frame in zip(keep.tolist(), _frames(n[keep])):
-                    i, corners, wc = int(cand[c]), tri[t_best[c]], w[rows[c]]
+                    i, corners, wc = int(cand[c]), tri[t_best[c]], w[c]
                     slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[b.local[corners]] - now_b[b.local[corners]])
                     points.append(_Point(frame, float(gap[c]), slip, self.friction,
                                          ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))

@@ -59,32 +59,53 @@ class MeshObstacle:
 
     def contacts(self, x: np.ndarray, margin: float):
         """The points x (k, 3) in contact: (their indices, gaps (m), the obstacle's normals there)."""
-        from .contact_points import closest_points_on_triangles
+        idx, tris, valid = candidate_faces(x, self.tree, self.reach + margin, self.lo - margin, self.hi + margin)
+        if idx.size == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3))
+        best, q, _, _ = nearest_face_points(x[idx], self.Y, tris, valid)
+        n = self.normals[tris[np.arange(idx.size), best]]
+        gap, on = on_faces(x[idx], q, n, margin, self.edge)
+        return idx[on], gap[on], n[on]
 
-        inside = np.flatnonzero(np.all((x >= self.lo - margin) & (x <= self.hi + margin), axis=1))
-        none = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3)))
-        if inside.size == 0:
-            return none
-        k = min(8, len(self.Y))
-        dist, near = self.tree.query(x[inside], k=k, distance_upper_bound=self.reach + margin)
-        near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
-        hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
-        if hit.size == 0:
-            return none
-        valid = near[hit] < len(self.Y)
-        tris = np.where(valid, near[hit], 0)
-        P = np.repeat(x[inside[hit]], k, axis=0)
-        Yt = self.Y[tris.ravel()]
-        q, _ = closest_points_on_triangles(P, Yt[:, 0], Yt[:, 1], Yt[:, 2])
-        d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
-        best = np.argmin(d, axis=1)
-        rows = np.arange(hit.size) * k + best
-        n = self.normals[tris[np.arange(hit.size), best]]
-        delta = P[rows] - q[rows]
-        gap = np.einsum("ij,ij->i", delta, n)
-        lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
-        keep = (np.abs(gap) < margin) & (lateral <= 1e-3 * self.edge + 1e-12)
-        return inside[hit][keep], gap[keep], n[keep]
+
+def candidate_faces(x: np.ndarray, tree, reach: float, lo: np.ndarray, hi: np.ndarray, k: int = 8):
+    """The points x (m, 3) inside the box [lo, hi] with a triangle centre (``tree``) within ``reach``,
+    and for each the (up to) k triangles with the nearest centres: (indices into x, triangles (c, k),
+    valid (c, k): False where fewer than k were within reach)."""
+    inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))
+    k = min(k, tree.n)
+    if inside.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, k), dtype=np.int64), np.zeros((0, k), dtype=bool)
+    dist, near = tree.query(x[inside], k=k, distance_upper_bound=reach)
+    near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
+    hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
+    valid = near[hit] < tree.n
+    return inside[hit], np.where(valid, near[hit], 0), valid
+
+
+def nearest_face_points(x: np.ndarray, Y: np.ndarray, tris: np.ndarray, valid: np.ndarray):
+    """For points x (c, 3) and their candidate triangles ``tris`` (c, k) of the triangles Y (t, 3, 3):
+    (the nearest candidate's column (c,), its closest points (c, 3), their barycentric weights (c, 3),
+    the distances (c,))."""
+    from .contact_points import closest_points_on_triangles
+
+    k = tris.shape[1]
+    P = np.repeat(x, k, axis=0)
+    q, w = closest_points_on_triangles(P, *(Y[tris.ravel(), c] for c in range(3)))
+    d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
+    best = np.argmin(d, axis=1)
+    rows = np.arange(x.shape[0]) * k + best
+    return best, q[rows], w[rows], d[np.arange(x.shape[0]), best]
+
+
+def on_faces(x: np.ndarray, q: np.ndarray, n: np.ndarray, margin: float, edge: float):
+    """The gaps (c,) of points x from their face points q along the faces' unit normals n, and
+    whether each is a contact: within ``margin`` of the face and on its normal line (a point beside
+    the surface, or through the body, is not this face's contact)."""
+    delta = x - q
+    gap = np.einsum("ij,ij->i", delta, n)
+    lateral = np.linalg.norm(delta - gap[:, None] * n, axis=1)
+    return gap, (np.abs(gap) < margin) & (lateral <= 1e-3 * edge + 1e-12)
 
 
 def pair_search(a, b, trial_a, trial_b, reach_beyond: float):
@@ -99,20 +120,9 @@ def pair_search(a, b, trial_a, trial_b, reach_beyond: float):
     reach = float(np.max(np.linalg.norm(Y - centres[:, None], axis=2))) + reach_beyond
     lo, hi = Y.reshape(-1, 3).min(axis=0) - reach_beyond, Y.reshape(-1, 3).max(axis=0) + reach_beyond
     x = a.X[a.surface] + trial_a
-    inside = np.flatnonzero(np.all((x >= lo) & (x <= hi), axis=1))  # b's box
-    k = min(8, len(centres))
-    if inside.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, k), dtype=np.int64), np.zeros((0, k), dtype=bool)
-    dist, near = cKDTree(centres).query(x[inside], k=k, distance_upper_bound=reach)
-    near, dist = near.reshape(inside.size, k), dist.reshape(inside.size, k)
-    hit = np.flatnonzero(np.isfinite(dist).any(axis=1))
-    valid = near[hit] < len(centres)
-    tris = np.where(valid, near[hit], 0)
+    idx, tris, valid = candidate_faces(x, cKDTree(centres), reach, lo, hi)
+    if idx.size == 0:
+        return idx, tris, valid
     # kept: the vertices whose closest point on b is within the margin and the slack now
-    from .contact_points import closest_points_on_triangles
-
-    P = np.repeat(x[inside[hit]], k, axis=0)
-    q, _ = closest_points_on_triangles(P, *(Y[tris.ravel(), c] for c in range(3)))
-    d = np.where(valid.ravel(), np.linalg.norm(q - P, axis=1), np.inf).reshape(tris.shape)
-    close = d.min(axis=1) < reach_beyond
-    return inside[hit][close], tris[close], valid[close]
+    close = nearest_face_points(x[idx], Y, tris, valid)[3] < reach_beyond
+    return idx[close], tris[close], valid[close]
