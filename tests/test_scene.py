@@ -159,8 +159,20 @@ def test_scene_refusals(folder):
     with pytest.raises(rt.ModelError, match="tool t: the device's position.*non-finite"):
         sc.step()
     sc.tools.remove(tool)
-    assert [b.name for b in sc.bodies] == ["a"] and sc.obstacles == []  # nothing half added
+    with pytest.raises(rt.ModelError, match="must be an rt.TriMesh with triangles"):
+        sc.add_obstacle("o", rt.meshes.box(0.1, 0.1, 0.1, 1, 1, 1))
+    with pytest.raises(rt.ModelError, match="friction"):
+        sc.add_obstacle("o", rt.meshes.plate(0.1, nx=2), friction=-1.0)
+    with pytest.raises(rt.ModelError, match="times must increase"):
+        rt.Keyframes([[0.0, 0, 0, 0], [0.0, 0, 0, 1]])
+    with pytest.raises(rt.ModelError, match="rows \\[t, x, y, z\\]"):
+        rt.Keyframes([[0.0, 0, 0]])
+    assert [b.name for b in sc.bodies] == ["a"] and sc.obstacles == [] and sc.tools == []  # nothing half added
     assert main(["simulate", str(folder / "nothing.toml")]) == 2  # one line, exit 2
+    for argv in (["simulate", "--example", "gallbladder", str(folder / "scene.toml")],  # before any precompute
+                 ["view", "--example", "gallbladder", str(folder / "scene.toml")],
+                 ["view", "--example", "gallbladder", "--benchmark", "1"]):
+        assert main(argv) == 2, argv
     np.testing.assert_equal(sc.time, 0.0)
 
 

@@ -32,7 +32,7 @@ class MeshObstacle:
     Raises
     ------
     ModelError
-        A mesh that is not a TriMesh with triangles, degenerate triangles, a negative friction.
+        A mesh that is not a TriMesh with triangles, a negative friction.
     """
 
     def __init__(self, name: str, mesh: TriMesh, friction: float = 0.0) -> None:
@@ -46,11 +46,7 @@ class MeshObstacle:
         self.friction = validate.in_range(friction, f"{name}: friction", 0.0, 10.0, what="Coulomb's friction coefficient")
         self.Y = np.asarray(mesh.vertices, dtype=float)[np.asarray(mesh.triangles)]  # (t, 3, 3)
         normals = np.cross(self.Y[:, 1] - self.Y[:, 0], self.Y[:, 2] - self.Y[:, 0])
-        length = np.linalg.norm(normals, axis=1)
-        if np.any(length <= 1e-12 * np.max(length)):
-            raise ModelError(f"{name}: {int(np.sum(length <= 1e-12 * np.max(length)))} degenerate (zero-area) "
-                             "triangles; repair the mesh (rtfem info reports them)")
-        self.normals = normals / length[:, None]
+        self.normals = normals / np.linalg.norm(normals, axis=1)[:, None]  # a TriMesh has no zero-area triangle
         centres = self.Y.mean(axis=1)
         self.reach = float(np.max(np.linalg.norm(self.Y - centres[:, None], axis=2)))
         self.tree = cKDTree(centres)
