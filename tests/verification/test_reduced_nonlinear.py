@@ -478,7 +478,7 @@ def test_compiled_tet_forces_equal_the_numpy_kernel_and_carry_no_rigid_rotation(
     SVD only for inverted elements) against the full-order numpy kernel (SVD polar decomposition)
     at a pose moving the beam by half its length, at a rigid 90-degree rotation of every element
     (no force: rotation invariance) and with elements turned inside out (the SVD branch)."""
-    from rtfem.reduction import cubature
+    from rtfem.reduction import tet_kernels
 
     red = solid_beam
     q = _pose(red, np.random.default_rng(2), 0.5)
@@ -490,28 +490,88 @@ def test_compiled_tet_forces_equal_the_numpy_kernel_and_carry_no_rigid_rotation(
     assert np.abs(total - ref).max() < 1e-11 * np.abs(ref).max()
     V = (data[0].reshape(-1, red.size) @ q).reshape(E, 12)
     Fn = np.empty((E, 12))
-    cubature.solid_forces_numpy(V, *data[1:], Fn)
+    tet_kernels.solid_forces_numpy(V, *data[1:], Fn)
     c, s_ = np.cos(np.pi / 2), np.sin(np.pi / 2)
     Q = np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
     X = data[1]
     rigid = (np.einsum("ij,ekj->eki", Q, X) - X + np.array([0.3, -0.2, 0.1])).reshape(E, 12)
     inverted = np.zeros_like(V)
     inverted[:, :3] = 2 * (X[:, 1:].mean(axis=1) - X[:, 0])  # node 0 through the opposite face
-    kernels = [cubature.solid_forces_numpy]
-    if cubature.compiled_solid_forces() is not None:
-        kernels += [cubature.compiled_solid_forces(), cubature._solid_element_forces]
+    kernels = [tet_kernels.solid_forces_numpy]
+    if tet_kernels.compiled_solid_forces() is not None:
+        kernels += [tet_kernels.compiled_solid_forces(), tet_kernels._solid_element_forces]
     scale = np.abs(Fn).max()
     for kernel in kernels:
-        n = E if kernel is not cubature._solid_element_forces else 20  # the pure-Python definition: a few
+        n = E if kernel is not tet_kernels._solid_element_forces else 20  # the pure-Python definition: a few
         for W, want in ((V, Fn), (rigid, np.zeros((E, 12))), (inverted, None)):
             F = np.empty((n, 12))
             kernel(W[:n], *(a[:n] for a in data[1:]), F)
             if want is None:
                 want = np.empty((n, 12))
-                cubature.solid_forces_numpy(W[:n], *(a[:n] for a in data[1:]), want)
+                tet_kernels.solid_forces_numpy(W[:n], *(a[:n] for a in data[1:]), want)
                 Fm = np.einsum("eka,ekb->eab", X[:n] + W[:n].reshape(n, 4, 3), data[2][:n, 0])
                 assert (np.linalg.det(Fm) < 0).all()  # every element inside out
             assert np.abs(F - want[:n]).max() < 1e-11 * scale, kernel
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_tet_tangents_equal_differences_of_the_forces_and_rotate_with_the_element(element):
+    """The corotated tet's closed-form tangent (McAdams et al. 2011's dR, compiled and numpy)
+    against central differences of the force kernel (step 1e-6 of the size: ~1e-9 relative) at
+    poses moving a tet4 / tet10 bar by up to half its length, against the full-order numpy
+    tangent (:class:`rtfem.fe.solid.CorotationalTets`, SVD polar), symmetric; at a rigid rotation Q
+    of every element it is Q K0 Q^T (blockwise; the energy is objective), and inside out (the SVD
+    branch) it still equals the numpy kernel's."""
+    from rtfem.fe.solid import CorotationalTets
+    from rtfem.reduction import tet_kernels
+
+    mesh = rt.meshes.box(1.0, 0.2, 0.2, nx=4, ny=1, nz=1)
+    material = rt.Material(E=1e5, nu=0.45, density=10.0)
+    model = rt.SolidModel(mesh if element == "tet4" else mesh.quadratic(), material, element=element)
+    model.fix("x0")
+    red = ReducedNonlinearModel(model, rt.modal_analysis(model, 6), 0)
+    data = red._element_data()
+    E, nd = data[0].shape[:2]
+    rng = np.random.default_rng(11)
+    h = 1e-6
+    fns = [tet_kernels.solid_tangents_numpy]
+    if tet_kernels.compiled_solid_tangents() is not None:
+        fns.append(tet_kernels.compiled_solid_tangents())
+    X = data[1]
+    k = X.shape[1]
+    for scale in (0.0, 0.05, 0.5):
+        V = scale * rng.normal(size=(E, nd)) * 0.2
+        diff = np.empty((E, nd, nd))
+        for j in range(nd):
+            P, M = V.copy(), V.copy()
+            P[:, j] += h
+            M[:, j] -= h
+            Fp, Fm = np.empty((E, nd)), np.empty((E, nd))
+            tet_kernels.solid_forces_numpy(P, *data[1:], Fp)
+            tet_kernels.solid_forces_numpy(M, *data[1:], Fm)
+            diff[:, :, j] = (Fp - Fm) / (2 * h)
+        ref = CorotationalTets(X, material, element).evaluate(X + V.reshape(E, k, 3))[1]
+        top = np.abs(ref).max()
+        assert np.abs(diff - ref).max() < 1e-7 * top
+        for fn in fns:
+            K = np.empty((E, nd, nd))
+            fn(V, *data[1:], K)
+            assert np.abs(K - ref).max() < 1e-10 * top, (fn, scale)
+            assert np.abs(K - K.transpose(0, 2, 1)).max() < 1e-12 * top
+    Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    rigid = (np.einsum("ij,ekj->eki", Q, X) - X + 0.1).reshape(E, nd)
+    inverted = np.zeros((E, nd))
+    inverted[:, :3] = 2 * (X[:, 1:4].mean(axis=1) - X[:, 0])  # corner 0 through the opposite face
+    for fn in fns:
+        K0, K, Kinv, want = (np.empty((E, nd, nd)) for _ in range(4))
+        fn(np.zeros((E, nd)), *data[1:], K0)
+        fn(rigid, *data[1:], K)
+        B = np.kron(np.eye(k), Q)
+        assert np.abs(K - B @ K0 @ B.T).max() < 1e-10 * np.abs(K0).max()
+        fn(inverted, *data[1:], Kinv)
+        tet_kernels.solid_tangents_numpy(inverted, *data[1:], want)
+        assert np.abs(Kinv - want).max() < 1e-9 * np.abs(want).max()
 
 
 def test_polar_rotation_equals_the_svd_polar_factor():
@@ -521,7 +581,7 @@ def test_polar_rotation_equals_the_svd_polar_factor():
     iteration run to a change of 1e-15 differed from it by up to 24 eps cond(F), and from this one
     by 1.5); stretches from 1e-9 to a factor 3 apart, exact rotations, compiled and pure Python;
     det F < 0 is refused (the kernel then takes the SVD)."""
-    from rtfem.reduction import cubature
+    from rtfem.reduction import tet_kernels
 
     rng = np.random.default_rng(7)
 
@@ -534,11 +594,11 @@ def test_polar_rotation_equals_the_svd_polar_factor():
         for _ in range(40):
             sigma = np.exp(rng.uniform(-spread, spread, 3) * np.log(3.0) / max(spread, 1.0))
             cases.append(rotation() @ np.diag(sigma) @ rotation().T)
-    fns = [cubature._polar_rotation]
-    if cubature.compiled_solid_forces() is not None:
+    fns = [tet_kernels._polar_rotation]
+    if tet_kernels.compiled_solid_forces() is not None:
         import numba
 
-        fns.append(numba.njit(cubature._polar_rotation))
+        fns.append(numba.njit(tet_kernels._polar_rotation))
     for fn in fns:
         R, Z = np.zeros((3, 3)), np.zeros((3, 3))
         for F in cases:

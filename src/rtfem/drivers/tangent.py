@@ -165,13 +165,13 @@ class Linearization:
         elif self.spread == 1:
             data, w = red._cubature
             Ke, _ = red.cubature_rest()
-            T = self._Kc + red.tangent_change(q, data, w, Ke)
+            T = self._Kc + red.tangent_change(q, data, w, Ke, red.cubature_rows(self.single))
         else:
-            dK = np.stack([red.tangent_change(q, data, w, Ke) for data, w, Ke, _, _ in self._groups])
+            dK = np.stack([red.tangent_change(q, data, w, Ke, (U, UT)) for data, w, Ke, U, UT in self._groups])
             T = self._Kc + dK.sum(axis=0)
             if self._always is not None:
-                data, w, Ke, _, _ = self._always
-                T = T + red.tangent_change(q, data, w, Ke)
+                data, w, Ke, U, UT = self._always
+                T = T + red.tangent_change(q, data, w, Ke, (U, UT))
         return dK, self._step_inverse(T)
 
     def _use(self, linearization, q: np.ndarray) -> None:

@@ -24,8 +24,9 @@ import numpy as np
 from scipy.optimize import nnls
 
 from ..errors import ModelError
+from .jit import compiled as _compiled
 
-__all__ = ["train", "compiled_forces", "element_forces", "compiled_solid_forces", "solid_element_forces"]
+__all__ = ["train", "compiled_forces", "element_forces"]
 
 # axial(skew(A))_c = (A[p, q] - A[q, p]) / 2 for (p, q) = (2, 1), (0, 2), (1, 0)
 _AP = np.array([2, 0, 1])
@@ -300,161 +301,10 @@ def _shell_element_forces(V, X, R0, x2, x3, y3, k, AP, AQ, F):
             F[e, i] = f[i]
 
 
-def _polar_rotation(Fm, R, Z):
-    """R (3, 3) = the rotation of the polar decomposition F = R S, for det F > 0, by Higham's scaled
-    Newton iteration R <- (g R + R^-T / g) / 2 (Higham 1986; quadratic). The scaling g = (|R^-1| /
-    |R|)^1/2 (Frobenius) speeds the first iterations only. The iteration stops when a step changes
-    R by less than 1e-8 (Frobenius): the error it leaves is then about half the square of that
-    change, ~1e-17 (on the default liver's pulled cubature points, 3.5 iterations on average, 4.2 before).
-    Returns False when it does not apply (det F <= 0, or no convergence), for an SVD instead.
-    Z (3, 3) scratch."""
-    for i in range(3):
-        for j in range(3):
-            R[i, j] = Fm[i, j]
-    for it in range(30):
-        # Z = cof(R) = det(R) R^-T
-        Z[0, 0] = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
-        Z[0, 1] = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
-        Z[0, 2] = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
-        Z[1, 0] = R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2]
-        Z[1, 1] = R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0]
-        Z[1, 2] = R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]
-        Z[2, 0] = R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]
-        Z[2, 1] = R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]
-        Z[2, 2] = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
-        det = R[0, 0] * Z[0, 0] + R[0, 1] * Z[0, 1] + R[0, 2] * Z[0, 2]
-        if not det > 0.0:
-            return False
-        inv = 1.0 / det
-        if it < 4:
-            nr = 0.0
-            nz = 0.0
-            for i in range(3):
-                for j in range(3):
-                    nr += R[i, j] * R[i, j]
-                    nz += Z[i, j] * Z[i, j]
-            g = math.sqrt(math.sqrt(nz / nr) * inv)  # |R^-T| = |Z| / det
-            a, b = 0.5 * g, 0.5 * inv / g
-        else:
-            a, b = 0.5, 0.5 * inv
-        change = 0.0
-        for i in range(3):
-            for j in range(3):
-                y = a * R[i, j] + b * Z[i, j]
-                change += (y - R[i, j]) ** 2
-                R[i, j] = y
-        if change < 1e-16:
-            return True
-    return False
-
-
-def _solid_element_forces(V, X, G, wdet, lm, F):
-    """F (E, 3k) = the corotated-linear tets' nodal forces (mu |F - R|^2 + lambda/2 tr(S - I)^2, as
-    :class:`rtfem.fe.solid.CorotationalTets`) at element dofs V (E, 3k): X (E, k, 3) rest nodes,
-    G (E, nq, k, 3) the shape gradients and wdet (E, nq) the weights of each quadrature point,
-    lm (E, 2) the Lame constants. f_i = sum_q wdet P G_i with P = 2 mu (F - R) + lambda tr(S - I) R."""
-    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
-    x = np.zeros((k, 3))
-    Fm = np.zeros((3, 3))
-    R = np.zeros((3, 3))
-    Z = np.zeros((3, 3))
-    P = np.zeros((3, 3))
-    for e in range(E):
-        for i in range(k):
-            for c in range(3):
-                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
-                F[e, 3 * i + c] = 0.0
-        lam, mu = lm[e, 0], lm[e, 1]
-        for q in range(nq):
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for i in range(k):
-                        s += x[i, a] * G[e, q, i, b]
-                    Fm[a, b] = s
-            if not _polar_rotation(Fm, R, Z):  # inverted or degenerate: the SVD (a proper R)
-                u, sv, vt = np.linalg.svd(Fm)
-                du = u[0, 0] * (u[1, 1] * u[2, 2] - u[1, 2] * u[2, 1]) - u[0, 1] * (u[1, 0] * u[2, 2] - u[1, 2] * u[2, 0]) \
-                    + u[0, 2] * (u[1, 0] * u[2, 1] - u[1, 1] * u[2, 0])
-                dv = vt[0, 0] * (vt[1, 1] * vt[2, 2] - vt[1, 2] * vt[2, 1]) \
-                    - vt[0, 1] * (vt[1, 0] * vt[2, 2] - vt[1, 2] * vt[2, 0]) \
-                    + vt[0, 2] * (vt[1, 0] * vt[2, 1] - vt[1, 1] * vt[2, 0])
-                if du * dv < 0.0:
-                    for i in range(3):
-                        u[i, 2] = -u[i, 2]
-                for a in range(3):
-                    for b in range(3):
-                        R[a, b] = u[a, 0] * vt[0, b] + u[a, 1] * vt[1, b] + u[a, 2] * vt[2, b]
-            trS = 0.0  # tr S = tr(R^T F)
-            for a in range(3):
-                for b in range(3):
-                    trS += R[a, b] * Fm[a, b]
-            t = lam * (trS - 3.0)
-            for a in range(3):
-                for b in range(3):
-                    P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
-            w = wdet[e, q]
-            for i in range(k):
-                for a in range(3):
-                    s = 0.0
-                    for b in range(3):
-                        s += P[a, b] * G[e, q, i, b]
-                    F[e, 3 * i + a] += w * s
-
-
-def solid_forces_numpy(V, X, G, wdet, lm, F) -> None:
-    """The same forces as :func:`_solid_element_forces`, batched in numpy (the polar decomposition
-    by SVD, as the full-order kernel): the path without numba."""
-    from ..fe.solid import polar
-
-    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
-    x = X + V.reshape(E, k, 3)
-    out = np.zeros((E, k, 3))
-    for q in range(nq):
-        Fm = np.einsum("eka,ekb->eab", x, G[:, q])
-        R, S = polar(Fm)
-        trE = np.einsum("eii->e", S) - 3.0
-        P = 2 * lm[:, 1, None, None] * (Fm - R) + (lm[:, 0] * trE)[:, None, None] * R
-        out += wdet[:, q, None, None] * np.einsum("eab,eib->eia", P, G[:, q])
-    F[:] = out.reshape(E, 3 * k)
-
-
-_COMPILED: dict = {}
-
-
-def _compiled(key: str, kernel, *helpers):
-    """``kernel`` compiled by numba with its helper functions compiled too (cached), or None
-    where numba is absent or cannot compile it."""
-    if key not in _COMPILED:
-        try:
-            import numba
-
-            opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-            g = dict(kernel.__globals__)  # shared: a helper calling another finds its compiled twin
-            for h in helpers:
-                g[h.__name__] = numba.njit(**opts)(type(h)(h.__code__, g, h.__name__))
-            _COMPILED[key] = numba.njit(**opts)(type(kernel)(kernel.__code__, g, kernel.__name__))
-        except Exception:  # pragma: no cover - numba absent or unable to compile here
-            _COMPILED[key] = None
-    return _COMPILED[key]
-
-
 def compiled_forces():
     """The compiled shell kernel (numba), or None where numba is absent or cannot compile it."""
     return _compiled("shell", _shell_element_forces, _exp_series, _rotation_vector, _element_frame, _corner_rotations,
                      _translation_rows, _rotation_rows, _generalized_forces)
-
-
-def compiled_solid_forces():
-    """The compiled corotated-tet kernel (numba), or None where numba is absent or cannot compile it."""
-    return _compiled("solid", _solid_element_forces, _polar_rotation)
-
-
-def solid_element_forces(V, X, G, wdet, lm, F) -> None:
-    """F (E, 3k) = the corotated tets' forces at element dofs V (E, 3k) (see
-    :func:`_solid_element_forces`): compiled, or batched numpy without numba."""
-    fn = compiled_solid_forces()
-    (solid_forces_numpy if fn is None else fn)(V, X, G, wdet, lm, F)
 
 
 def element_forces(V, X, R0, x2, x3, y3, k, F) -> None:

@@ -287,10 +287,10 @@ class ReducedNonlinearModel:
     def _kernel_forces(V: np.ndarray, data) -> np.ndarray:
         """Each element's forces (E, nd) at its dofs V (E, nd) (compiled where numba is): the
         corotational triangle's or, for data with a solid's five arrays, the corotated tet's."""
-        from . import cubature
+        from . import cubature, tet_kernels
 
         F = np.empty(V.shape)
-        kernel = cubature.solid_element_forces if len(data) == 5 else cubature.element_forces
+        kernel = tet_kernels.solid_element_forces if len(data) == 5 else cubature.element_forces
         kernel(np.ascontiguousarray(V), *data[1:], F)
         return F
 
@@ -375,16 +375,21 @@ class ReducedNonlinearModel:
             raise ModelError("no cubature yet: call train_cubature() first")
         data, weights = self._cubature
         single = single is True or validate.flag(single, "single")
-        if getattr(self, "_cubature_rows", None) is None or self._cubature_rows[0] is not self._cubature:
-            self._cubature_rows = (self._cubature, {})
-        rows = self._cubature_rows[1]
-        if single not in rows:
-            rows[single] = _projection_rows(data[0], single)
-        U, UT = rows[single]
+        U, UT = self.cubature_rows(single)
         if not self._cubature_remainder:
             return self._element_forces(q, data, weights, False, UT=UT, U=U)[0]
         Ke, K = self.cubature_rest()
         return K @ q + self._element_forces(q, data, weights, False, rest=Ke, UT=UT, U=U)[0]
+
+    def cubature_rows(self, single: bool) -> tuple[np.ndarray | None, np.ndarray]:
+        """The cubature elements' basis rows as the products take them (:func:`_projection_rows`),
+        made once per cubature and precision."""
+        if getattr(self, "_cubature_rows", None) is None or self._cubature_rows[0] is not self._cubature:
+            self._cubature_rows = (self._cubature, {})
+        rows = self._cubature_rows[1]
+        if single not in rows:
+            rows[single] = _projection_rows(self._cubature[0][0], single)
+        return rows[single]
 
     def cubature_rest(self) -> tuple[np.ndarray, np.ndarray]:
         """The cubature elements' rest tangents K_e (E, nd, nd; central differences of the kernel,
@@ -403,19 +408,25 @@ class ReducedNonlinearModel:
         return self._cubature_rest[1], self._cubature_rest[2]
 
     def _rest_tangents(self, data) -> np.ndarray:
-        """The rest tangents K_e (E, nd, nd) of the elements of ``data``, by central differences of
-        the kernel, symmetrized (at rest a shell's generalized moments' J = I)."""
+        """The rest tangents K_e (E, nd, nd) of the elements of ``data`` (:meth:`_element_tangents`;
+        at rest a shell's generalized moments' J = I)."""
         return self._element_tangents(np.zeros(data[0].shape[:2]), data)
 
     def _element_tangents(self, V: np.ndarray, data, central: bool = True) -> np.ndarray:
-        """The tangents K_e (E, nd, nd) of the elements of ``data`` at their dofs V (E, nd), by
-        differences of the kernel (smooth), symmetrized (the forces are an energy's gradient):
-        central with a step of 1e-7 of the organ's size (truncation and round-off both ~1e-10
-        relative), or forward (half the kernel calls; ~1e-7 relative, for a step's linearization,
-        which sets no equilibrium)."""
+        """The tangents K_e (E, nd, nd) of the elements of ``data`` at their dofs V (E, nd),
+        symmetric (the forces are an energy's gradient). The tets': the closed form
+        (:func:`rtfem.reduction.tet_kernels.solid_element_tangents`). The shell triangles': differences
+        of the kernel (smooth), central with a step of 1e-7 of the organ's size (truncation and
+        round-off both ~1e-10 relative), or forward (half the kernel calls; ~1e-7 relative, for a
+        step's linearization, which sets no equilibrium)."""
         E, nd = V.shape
-        h = 1e-7 * self.system.size
         Ke = np.empty((E, nd, nd))
+        if len(data) == 5:
+            from .tet_kernels import solid_element_tangents
+
+            solid_element_tangents(np.ascontiguousarray(V, dtype=float), *data[1:], Ke)
+            return Ke
+        h = 1e-7 * self.system.size
         P = np.array(V, dtype=float)
         F0 = None if central else self._kernel_forces(P, data)
         for j in range(nd):
@@ -429,17 +440,23 @@ class ReducedNonlinearModel:
             P[:, j] = V[:, j]
         return 0.5 * (Ke + Ke.transpose(0, 2, 1))
 
-    def tangent_change(self, q: np.ndarray, data, weights: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    def tangent_change(self, q: np.ndarray, data, weights: np.ndarray, rest: np.ndarray,
+                       rows: tuple | None = None) -> np.ndarray:
         """sum_e w_e U_e^T (K_e(U_e q) - K_e(0)) U_e (r, r): how far the tangent of the elements of
         ``data`` (weights ``weights``, rest tangents ``rest``) has moved from rest at q. Added to the
         cubature's rest stiffness (:meth:`cubature_rest`) it is the cubature forces' tangent at q,
-        which :class:`ReducedNonlinearSimulator` linearizes its step about."""
+        which :class:`ReducedNonlinearSimulator` linearizes its step about. ``rows``: the elements'
+        rows in single precision (:func:`_projection_rows`), for the projection in float32 (half
+        the time of its 2 r^2 nd E flops; ~1e-5 relative, as the single-precision forces)."""
         Ue = data[0]
         E, nd, r = Ue.shape
         V = (Ue.reshape(-1, r) @ np.asarray(q, float)).reshape(E, nd)
         dK = (self._element_tangents(V, data, central=False) - rest) * np.asarray(weights, float)[:, None, None]
-        X = np.matmul(dK, Ue).reshape(-1, r)  # (E nd, r)
-        T = Ue.reshape(-1, r).T @ X
+        if rows is not None and rows[0] is not None:
+            U, UT = rows
+            T = np.asarray(UT @ np.matmul(dK.astype(U.dtype), U.reshape(E, nd, r)).reshape(-1, r), dtype=float)
+        else:
+            T = Ue.reshape(-1, r).T @ np.matmul(dK, Ue).reshape(-1, r)
         return 0.5 * (T + T.T)
 
     def _rows(self, nodes: np.ndarray) -> np.ndarray:
