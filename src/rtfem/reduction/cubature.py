@@ -7,18 +7,14 @@ is reproduced on training poses: greedy selection of the element whose contribut
 matches what is left, then non-negative least squares for all the weights so far (An et al.,
 Sec. 4), until the relative error on the training forces is below the tolerance.
 
-The compiled kernels (numba) evaluate the corotational shell triangle's forces (the same
+The compiled kernel (numba) evaluates the corotational shell triangle's forces (the same
 deformational dofs and first derivatives as :class:`rtfem.fe.shell.CorotationalTriangles`, to
-round-off) and the corotated tet's (as :class:`rtfem.fe.solid.CorotationalTets`: the polar rotation
-by Higham's scaled Newton iteration, the SVD for an inverted element) in one loop each that
-releases the GIL; the element dofs before it and the projection after it are BLAS products.
-Without numba the shell's loop runs in Python and the tets are batched in numpy (the same
-numbers, slower).
+round-off) in one loop that releases the GIL; the element dofs before it and the projection
+after it are BLAS products. Without numba the loop runs in Python (the same numbers, slower).
+The corotated tet's kernels are in :mod:`rtfem.reduction.tet_kernels`.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 from scipy.optimize import nnls
