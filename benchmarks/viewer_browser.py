@@ -5,15 +5,18 @@ nonlinear model) is served, headless chromium (Debian's, WebGL in software: swif
 same cores) opens it and drags the organ from the canvas centre, holds the pull for
 ``--seconds`` and lets go. The session's rate (steps/s, fraction of real time) and the frames
 sent per second are sampled every 0.5 s during the hold; once quiet, once while another process
-keeps one core busy. Needs playwright and a chromium binary (the test extra; apt-get install
-chromium).
+keeps one core busy; each with the session's stepping thread at the raised priority
+(rtfem.threads.raise_priority, where permitted) and at the normal one (RTFEM_PHYSICS_NICE=0). Needs
+playwright and a chromium binary (the test extra; apt-get install chromium).
 
-    python benchmarks/viewer_browser.py [--seconds 8] [--viewport 1280x800 960x600] [--chromium PATH]
+    python benchmarks/viewer_browser.py [--seconds 8] [--viewport 1280x800 960x600] [--priority raised normal]
+                                        [--chromium PATH]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import socket
 import sys
@@ -80,11 +83,14 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--viewport", type=lambda v: tuple(int(x) for x in v.split("x")), nargs="+",
                     default=[(1280, 800), (960, 600)], help="browser viewports, WxH (default 1280x800 960x600)")
+    ap.add_argument("--priority", nargs="+", choices=["raised", "normal"], default=["raised", "normal"],
+                    help="the stepping thread's priority: raised where permitted, normal (default both)")
     ap.add_argument("--chromium", default=shutil.which("chromium") or shutil.which("chromium-browser"))
     args = ap.parse_args()
     if not args.chromium:
         raise SystemExit("no chromium binary: apt-get install chromium, or give --chromium PATH")
     from rtfem.viewer.app import Viewer
+    from rtfem.threads import PHYSICS_NICE
     from rtfem.viewer.session import default_session
     from _common import busy_core, print_table
 
@@ -92,20 +98,27 @@ def main() -> None:
     rows = []
     for viewport in args.viewport:
         for busy in (False, True):
-            with busy_core(busy):
-                viewer = Viewer(session, port=_free_port()).start()
-                try:
-                    r = measure(viewer, args.chromium, args.seconds, viewport)
-                finally:
-                    viewer.stop()
-                    session.release()
-            rows.append(["%dx%d" % viewport, "one core busy" if busy else "quiet", "yes" if r["grabbed"] else "NO",
-                         f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
-                         f"{r['frames_per_s']:.0f}", f"{r['drawn_per_s']:.1f}", f"{r['compiled_per_s']:.1f}"])
-            print(rows[-1], flush=True)
+            for priority in args.priority:
+                os.environ["RTFEM_PHYSICS_NICE"] = "0" if priority == "normal" else str(PHYSICS_NICE)
+                with busy_core(busy):
+                    viewer = Viewer(session, port=_free_port()).start()
+                    try:
+                        r = measure(viewer, args.chromium, args.seconds, viewport)
+                    finally:
+                        viewer.stop()
+                        session.release()
+                rows.append(_row(viewport, busy, session.stats.priority.split(":")[0], r))
+                print(rows[-1], flush=True)
     print()
-    print_table(["viewport", "machine", "grabbed", "steps/s (median)", "real time (median, min of 0.5 s samples)",
-                 "frames sent /s", "frames drawn /s", "shaders compiled /s"], rows)
+    print_table(["viewport", "machine", "stepping thread", "grabbed", "steps/s (median)",
+                 "real time (median, min of 0.5 s samples)", "frames sent /s", "frames drawn /s", "shaders compiled /s"],
+                rows)
+
+
+def _row(viewport, busy: bool, priority: str, r: dict) -> list:
+    return ["%dx%d" % viewport, "one core busy" if busy else "quiet", priority, "yes" if r["grabbed"] else "NO",
+            f"{r['steps_per_s']:,.0f}", f"{r['realtime_p50']:.2f} (min {r['realtime_min']:.2f})",
+            f"{r['frames_per_s']:.0f}", f"{r['drawn_per_s']:.1f}", f"{r['compiled_per_s']:.1f}"]
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ class LoopStats:
     missed: int = 0  # ticks skipped because the loop was more than a period behind its schedule
     slots: list[int] = field(default_factory=list)  # the schedule slot of each step (k: due at start + k / rate)
     compiled: bool = False  # True when the ticks ran in compiled code without the GIL
+    priority: str = ""  # the loop thread's scheduling priority (rtfem.threads.raise_priority)
 
     def period_errors(self) -> np.ndarray:
         """|interval between consecutive ticks - period| (s), over pairs of adjacent slots: the
@@ -320,9 +321,14 @@ class HapticLoop:
         self.error = None
         self.stats = LoopStats(compiled=compiled)
         run = self._run_compiled if compiled else self._run
-        self._thread = threading.Thread(target=run, args=(self.stats, max_steps, seconds),
+        from ..threads import background, raise_priority
+
+        def prioritized(stats, max_steps, seconds):
+            stats.priority = raise_priority()
+            run(stats, max_steps, seconds)
+
+        self._thread = threading.Thread(target=prioritized, args=(self.stats, max_steps, seconds),
                                         name="rtfem-haptic-loop", daemon=True)
-        from ..threads import background
 
         background(self._thread, self._signal_stop)
         self._thread.start()

@@ -411,7 +411,7 @@ class Viewer(Served):
             f"**{s.settings.label}** on a {s.kind}: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
             f"dt = {s.settings.dt * 1e3:g} ms",
             f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
-            f"{st.step_us:,.1f} us per step",
+            f"{st.step_us:,.1f} us per step; thread priority {st.priority.split(':')[0] or '-'}",
             f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
             f"(colour scale 0 .. {self.vmax * 1e3:.2f} mm); field drawn on the {s.field_on.upper()}",
         ]

@@ -136,6 +136,7 @@ def _report(session: Session, node: int, wall: float, steps: int, drawer: _Drawe
         "local": session.local_status or None,
         # tangents the step computed itself because the background worker was starved (a busy machine)
         "sync_refreshes": getattr(session.driver, "sync_refreshes", None),
+        "priority": session.stats.priority,  # the stepping thread's (rtfem.threads.raise_priority)
         "error": session.error,
     }
 

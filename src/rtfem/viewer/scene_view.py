@@ -20,7 +20,7 @@ import numpy as np
 
 from ..drivers.base import displacements_at
 from ..interaction.devices.base import SharedDevice
-from ..threads import background, runtime
+from ..threads import background, raise_priority, runtime
 from .app import Served, serve_until_interrupted
 from .gltf import SurfaceGlb
 from .session import PhysicsThread
@@ -71,6 +71,7 @@ class SceneSession(PhysicsThread):
         self._thread: threading.Thread | None = None
         self.error: str | None = None
         self.sim_rate = self.realtime = self.step_us = 0.0
+        self.priority = ""  # the stepping thread's scheduling priority (rtfem.threads.raise_priority)
 
     # ---------------------------------------------------------------- the mouse
     def grab(self, point) -> None:
@@ -113,6 +114,7 @@ class SceneSession(PhysicsThread):
             self.scene.step()
 
     def _run(self) -> None:
+        self.priority = raise_priority()
         with runtime():  # one BLAS thread while the scene is stepped (see rtfem.threads)
             self._clock()
 

@@ -42,7 +42,7 @@ from ..fe.build import make_model
 from ..drivers import gpu
 from ..drivers.base import as_driver, displacements_at, prepare
 from ..drivers.modal import ModalSimulator
-from ..threads import background, runtime
+from ..threads import background, raise_priority, runtime
 
 METHODS = ("modal", "impedance", "direct", "nonlinear")
 #: response samples of the maps the impedance method builds per grabbed vertex (s)
@@ -129,6 +129,7 @@ class Stats:
     sim_rate: float = 0.0  # steps per wall-clock second, last second
     realtime: float = 0.0  # simulated seconds per wall-clock second, last second
     step_us: float = 0.0  # median compute per step, last second
+    priority: str = ""  # the stepping thread's scheduling priority (rtfem.threads.raise_priority)
     forces: deque = field(default_factory=lambda: deque(maxlen=600))  # (t, |f|) at ~60 Hz
     computes: deque = field(default_factory=lambda: deque(maxlen=1_000_000))  # every step's compute (s)
 
@@ -458,6 +459,7 @@ class Session(PhysicsThread):
 
     # ---------------------------------------------------------------- the clock
     def _run(self) -> None:
+        self.stats.priority = raise_priority()
         with runtime():  # one BLAS thread while the organ is stepped (see rtfem.threads)
             self._clock()
 
