@@ -3,6 +3,7 @@
 from .mesh import meshes
 from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .fe.material import Damping, Material
+from .fe.hyperelastic import MooneyRivlin, NeoHookean, Ogden
 from .mesh.repair import MeshReport
 from .mesh.surface import TriMesh
 from .mesh.tetmesh import TetMesh
@@ -71,6 +72,9 @@ __all__ = [
     "DeviceError",
     "MeshReport",
     "Material",
+    "NeoHookean",
+    "MooneyRivlin",
+    "Ogden",
     "ModelError",
     "RtfemError",
     "RtfemWarning",

@@ -206,6 +206,9 @@ class CorotationalTets:
             self.G.append(G)
             self.wdet.append(wts[q] * det)
 
+    def _stress(self, F: np.ndarray, tangent: bool):
+        return corotated_stress(F, self.lam, self.mu, tangent)
+
     def evaluate(self, x: np.ndarray, tangent: bool = True):
         """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies
         (m,) for deformed nodes x (m, k, 3)."""
@@ -215,9 +218,21 @@ class CorotationalTets:
         energy = np.zeros(m)
         for G, wdet in zip(self.G, self.wdet):
             F = np.einsum("mka,mkb->mab", x, G)
-            P, psi, dP = corotated_stress(F, self.lam, self.mu, tangent)
+            P, psi, dP = self._stress(F, tangent)
             f += wdet[:, None, None] * np.einsum("mab,mib->mia", P, G)
             energy += wdet * psi
             if tangent:
                 K += wdet[:, None, None, None, None] * _tangent_point(G, dP)
         return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy
+
+
+class HyperelasticTets(CorotationalTets):
+    """The tets of one mesh with a hyperelastic law (:mod:`rtfem.fe.hyperelastic`) instead of the
+    corotated linear material: the same quadrature, the law's P and dP/dF at each point."""
+
+    def __init__(self, X: np.ndarray, law, element: str) -> None:
+        super().__init__(X, law.linearized(), element)
+        self.law = law
+
+    def _stress(self, F: np.ndarray, tangent: bool):
+        return self.law.stress(F, tangent)

@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from . import solid
 from .. import validate
 from ..errors import ModelError
+from .hyperelastic import Hyperelastic
 from .material import Material
 from .model import FEModel
 from ..mesh.tetmesh import TET10_EDGES, TetMesh
@@ -30,7 +31,11 @@ class SolidModel(FEModel):
     Parameters
     ----------
     mesh : a :class:`~rtfem.TetMesh` (``rt.load_mesh`` of a volume file, or ``rt.tetrahedralize``).
-    material : :class:`~rtfem.Material` (E, nu, density; the thickness is not used).
+    material : :class:`~rtfem.Material` (E, nu, density; the thickness is not used), or a
+        hyperelastic law (:class:`~rtfem.NeoHookean`, :class:`~rtfem.MooneyRivlin`,
+        :class:`~rtfem.Ogden`): the full-order nonlinear solvers (``rt.nonlinear.solve_static``,
+        the corotational and Newmark simulators) use the law, the linear ones (modes, statics,
+        SLDM, maps) its linearization at rest (``law.linearized()``, kept as ``model.material``).
     element : "tet4" (linear, constant strain; stiff in bending and near incompressibility) or
         "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`).
     mass : "lumped" (diagonal, the paper's M; default) or "consistent" (rho int N^T N). With a
@@ -55,8 +60,12 @@ class SolidModel(FEModel):
         if not isinstance(mesh, TetMesh):
             raise ModelError(f"mesh must be an rtfem TetMesh, got {type(mesh).__name__}; use rt.load_mesh on a volume "
                              "file or rt.tetrahedralize(surface)")
+        self.law = None  # a hyperelastic law (full-order nonlinear solves), its linear twin the Material
+        if isinstance(material, Hyperelastic):
+            self.law, material = material, material.linearized()
         if not isinstance(material, Material):
-            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
+            raise ModelError(f"material must be an rtfem Material or a hyperelastic law (rt.NeoHookean, "
+                             f"rt.MooneyRivlin, rt.Ogden), got {type(material).__name__}")
         validate.choice(element, "element", solid.ELEMENTS)
         validate.choice(mass, "mass", solid.MASSES)
         penalty = self._check_constraints(constraints, penalty)
@@ -190,7 +199,10 @@ class SolidModel(FEModel):
     def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
         """The corotational element kernel and the cells (tets) it acts on."""
         T = np.asarray(self.tetmesh.tets)
-        return solid.CorotationalTets(np.asarray(self.tetmesh.vertices)[T], self.material, self.element), T
+        X = np.asarray(self.tetmesh.vertices)[T]
+        if self.law is not None:
+            return solid.HyperelasticTets(X, self.law, self.element), T
+        return solid.CorotationalTets(X, self.material, self.element), T
 
     def _pieces(self) -> tuple[int, np.ndarray]:
         return self.tetmesh.components()

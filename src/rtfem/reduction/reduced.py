@@ -90,6 +90,11 @@ class ReducedNonlinearModel:
 
         t0 = time.perf_counter()
         check_model(model, "model")
+        if getattr(model, "law", None) is not None:
+            raise ModelError(f"the reduced nonlinear model evaluates the corotated linear material; this model's "
+                             f"{model.law!r} runs in the full-order solvers (rt.nonlinear.solve_static, "
+                             "DirectSimulator(large_deformation=True)): build the reduced model on "
+                             "rt.SolidModel(mesh, law.linearized(), ...) for the corotated twin")
         progress = validate.progress(progress)
         if not isinstance(modes, ModalBasis):
             raise ModelError(f"modes={validate.show(modes)} must be an rt.ModalBasis (from rt.modal_analysis(model, r))")

@@ -1,0 +1,186 @@
+"""Hyperelastic laws (issue 41): neo-Hookean, Mooney-Rivlin, Ogden against closed forms written
+here from each law's energy alone, and the FE solids built on them.
+
+- Uniaxial compression of a unit cube, sides free: any tet mesh is exact for the homogeneous
+  field, so the reaction equals the closed-form nominal stress, found here from the scalar energy
+  W(lambda, t) of F = diag(lambda, t, t) (the lateral stretch t where dW/dt = 0, the stress
+  dW/dlambda; derivatives by complex step of that scalar formula, not of the laws' code).
+- Simple shear, J = 1: sigma_12 = mu gamma for neo-Hookean and Mooney-Rivlin, and the neo-Hookean
+  normal stresses 2 mu gamma^2 / 3, -mu gamma^2 / 3 (Ogden, Non-linear Elastic Deformations, 1984).
+- Invariants: P is the energy's gradient and dP/dF the gradient of P (central differences),
+  objectivity P(QF) = Q P(F), isotropy W(FQ) = W(F), the rest tangent equal to the linear
+  isotropic tensor of mu and kappa; Ogden with alpha = 2 equals neo-Hookean, with (2, -2)
+  Mooney-Rivlin.
+"""
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+import rtfem as rt
+from rtfem.errors import ModelError
+
+MU, KAPPA = 2000.0, 100000.0
+
+
+def _laws():
+    return {
+        "neo-hookean": rt.NeoHookean(mu=MU, kappa=KAPPA, density=1000.0),
+        "mooney-rivlin": rt.MooneyRivlin(c10=700.0, c01=300.0, kappa=KAPPA, density=1000.0),
+        "ogden": rt.Ogden(mu=[1500.0, 500.0], alpha=[8.0, -2.0], kappa=KAPPA, density=1000.0),
+    }
+
+
+def _scalar_energy(law, lam, t):
+    """W of F = diag(lam, t, t), written from the law's definition (complex-safe)."""
+    J = lam * t * t
+    if isinstance(law, rt.Ogden):
+        lb, tb = J ** (-1 / 3) * lam, J ** (-1 / 3) * t
+        iso = sum(2 * m / a**2 * (lb**a + 2 * tb**a - 3) for m, a in zip(law.mus, law.alphas))
+    else:
+        I1, I2 = lam**2 + 2 * t**2, 2 * lam**2 * t**2 + t**4
+        iso = law.c10 * (J ** (-2 / 3) * I1 - 3) + law.c01 * (J ** (-4 / 3) * I2 - 3)
+    return iso + 0.5 * law.kappa * (J - 1) ** 2
+
+
+def _d(f, x, h=1e-30):
+    return f(x + 1j * h).imag / h
+
+
+def uniaxial(law, lam):
+    """(lateral stretch, nominal axial stress) of uniaxial stress at axial stretch lam."""
+    t = brentq(lambda t: _d(lambda s: _scalar_energy(law, lam, s), t), 0.5, 2.0, xtol=1e-15)
+    return t, _d(lambda s: _scalar_energy(law, s, t), lam)
+
+
+def _cube(law, element):
+    mesh = rt.meshes.box(1.0, 1.0, 1.0, nx=2, ny=2, nz=2)
+    model = rt.SolidModel(mesh, law, element=element)
+    X = np.asarray(model.tetmesh.vertices)
+    base, top = np.flatnonzero(X[:, 2] == 0.0), np.flatnonzero(X[:, 2] == 1.0)
+    model.fix(base, "z")  # the base held in its normal direction ...
+    model.fix(np.flatnonzero((X == 0.0).all(axis=1)), "xyz")  # ... one corner fully
+    model.fix(np.flatnonzero((X[:, 0] == 1.0) & (X[:, 1] == 0.0) & (X[:, 2] == 0.0)), "y")  # the turn about z
+    model.fix(top, "z")
+    return model, X, top
+
+
+@pytest.mark.parametrize("name,element", [("neo-hookean", "tet4"), ("neo-hookean", "tet10"),
+                                          ("mooney-rivlin", "tet4"), ("ogden", "tet4")])
+def test_a_cube_compressed_30_percent_carries_the_closed_form_uniaxial_stress(name, element):
+    """Issue 41's case: a unit cube, base held normally (one corner fully, one more against the
+    turn about the axis), the top face moved down 30 % with the sides free: the top's reaction is
+    the closed-form nominal stress times the area (1 m^2) within 1e-8 (the issue asks 0.5 %; the
+    field is homogeneous, so any tet mesh is exact: measured 2-4e-13), and the sides move out by
+    the closed-form stretch."""
+    law = _laws()[name]
+    model, X, top = _cube(law, element)
+    prescribed = np.zeros((model.n_nodes, 3))
+    prescribed[top, 2] = -0.3
+    result = rt.nonlinear.solve_static(model, prescribed=prescribed, steps=3)
+    t, P11 = uniaxial(law, 0.7)
+    assert P11 < 0 and t > 1.0  # compressed, bulging
+    reaction = result.reactions[top, 2].sum()
+    assert abs(reaction - P11) <= 1e-8 * abs(P11), (reaction, P11)  # the issue asks 0.5 %; measured 4e-13
+    u = result.displacements
+    side = np.flatnonzero(X[:, 0] == 1.0)
+    assert np.allclose(u[side, 0], t - 1.0, rtol=1e-6, atol=1e-9)
+
+
+def test_simple_shear_closed_forms():
+    """sigma = P F^T / J under F = I + gamma e1 e2^T (J = 1): neo-Hookean sigma_12 = mu gamma,
+    sigma_11 = 2 mu gamma^2 / 3, sigma_22 = sigma_33 = -mu gamma^2 / 3; Mooney-Rivlin sigma_12 =
+    2 (C10 + C01) gamma; for every law sigma_12 at small gamma -> mu gamma and sigma_13 = 0."""
+    laws = _laws()
+    for gamma in (0.05, 0.3, 1.0):
+        F = np.eye(3)[None].copy()
+        F[0, 0, 1] = gamma
+        sig = {k: (law.stress(F, False)[0][0] @ F[0].T) for k, law in laws.items()}
+        s = sig["neo-hookean"]
+        np.testing.assert_allclose([s[0, 1], s[0, 0], s[1, 1], s[2, 2]],
+                                   [MU * gamma, 2 * MU * gamma**2 / 3, -MU * gamma**2 / 3, -MU * gamma**2 / 3],
+                                   rtol=1e-12, atol=1e-9 * MU)
+        mr = laws["mooney-rivlin"]
+        assert abs(sig["mooney-rivlin"][0, 1] - 2 * (mr.c10 + mr.c01) * gamma) < 1e-10 * MU
+    for law in laws.values():
+        F = np.eye(3)[None].copy()
+        F[0, 0, 1] = 1e-5
+        s = law.stress(F, False)[0][0] @ F[0].T
+        assert abs(s[0, 1] - law.mu * 1e-5) < 1e-9 * law.mu and abs(s[0, 2]) < 1e-12 * law.mu
+
+
+@pytest.mark.parametrize("name", ["neo-hookean", "mooney-rivlin", "ogden"])
+def test_stress_tangent_energy_objectivity(name):
+    """At random gradients with J > 0 (stretches 0.6-1.6): P equals the central-difference
+    gradient of the energy, dP/dF the central-difference gradient of P; P(QF) = Q P(F),
+    W(QF) = W(FQ) = W(F) for rotations Q; at rest P = 0 and dP/dF = kappa d.d + mu (d.d + d.d - 2/3 d.d)
+    (the linear isotropic tensor of mu and kappa), the law's linearized Material the same E, nu."""
+    law = _laws()[name]
+    rng = np.random.default_rng(3)
+    U = np.linalg.qr(rng.normal(size=(20, 3, 3)))[0]
+    F = U @ (np.exp(rng.uniform(np.log(0.6), np.log(1.6), (20, 3)))[:, :, None] * np.linalg.qr(rng.normal(size=(20, 3, 3)))[0])
+    F *= np.sign(np.linalg.det(F))[:, None, None]
+    P, W, dP = law.stress(F)
+    h = 1e-6
+    gW, gP = np.empty_like(P), np.empty_like(dP)
+    for c in range(3):
+        for d in range(3):
+            Fp, Fm = F.copy(), F.copy()
+            Fp[:, c, d] += h
+            Fm[:, c, d] -= h
+            (Pp, Wp, _), (Pm, Wm, _) = law.stress(Fp, False), law.stress(Fm, False)
+            gW[:, c, d] = (Wp - Wm) / (2 * h)
+            gP[:, :, :, c, d] = (Pp - Pm) / (2 * h)
+    scale = np.abs(P).max()
+    assert np.abs(gW - P).max() < 1e-6 * scale
+    assert np.abs(gP - dP).max() < 1e-6 * np.abs(dP).max()
+    Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    PQ, WQ, _ = law.stress(Q @ F, False)
+    assert np.abs(PQ - Q @ P).max() < 1e-10 * scale and np.abs(WQ - W).max() < 1e-10 * np.abs(W).max()
+    assert np.abs(law.stress(F @ Q, False)[1] - W).max() < 1e-10 * np.abs(W).max()
+    P0, W0, C0 = law.stress(np.eye(3)[None])
+    d = np.eye(3)
+    lam = law.kappa - 2 * law.mu / 3
+    C = lam * np.einsum("ab,cd->abcd", d, d) + law.mu * (np.einsum("ac,bd->abcd", d, d) + np.einsum("ad,bc->abcd", d, d))
+    assert np.abs(P0).max() < 1e-9 * law.mu and abs(W0[0]) < 1e-9 * law.mu
+    assert np.abs(C0[0] - C).max() < 1e-6 * law.kappa
+    m = law.linearized()
+    assert np.isclose(m.G, law.mu, rtol=1e-12) and np.isclose(m.E / (3 * (1 - 2 * m.nu)), law.kappa, rtol=1e-9)
+
+
+def test_ogden_reduces_to_neo_hookean_and_mooney_rivlin():
+    """Ogden's alpha = 2 term is neo-Hookean (mu_1 = mu), alpha = (2, -2) Mooney-Rivlin (mu_1 =
+    2 C10, mu_2 = 2 C01): the principal-stretch code against the invariant code, to round-off."""
+    rng = np.random.default_rng(5)
+    F = np.eye(3) + 0.25 * rng.normal(size=(30, 3, 3))
+    F = F[np.linalg.det(F) > 0.2]
+    pairs = [(rt.Ogden([MU], [2.0], KAPPA), rt.NeoHookean(MU, KAPPA)),
+             (rt.Ogden([1400.0, 600.0], [2.0, -2.0], KAPPA), rt.MooneyRivlin(700.0, 300.0, KAPPA))]
+    for og, ref in pairs:
+        (P, W, dP), (Pr, Wr, dPr) = og.stress(F), ref.stress(F)
+        assert np.abs(P - Pr).max() < 1e-12 * np.abs(Pr).max()
+        assert np.abs(W - Wr).max() < 1e-12 * np.abs(Wr).max()
+        assert np.abs(dP - dPr).max() < 1e-7 * np.abs(dPr).max()  # Ogden's by differences
+
+
+def test_bad_laws_and_unsupported_uses_are_refused():
+    """Clear errors: non-positive moduli, mismatched Ogden lists, a kappa/mu with no linear twin,
+    an inverted element (NaN stress, infinite energy rather than a number), and a reduced nonlinear
+    model on a law it would silently replace by the corotated one."""
+    for make, match in [(lambda: rt.NeoHookean(-1.0, KAPPA), "mu"), (lambda: rt.NeoHookean(MU, 0.0), "kappa"),
+                        (lambda: rt.MooneyRivlin(-600.0, 100.0, KAPPA), "shear modulus"),
+                        (lambda: rt.Ogden([1.0, 2.0], [2.0], KAPPA), "same length"),
+                        (lambda: rt.Ogden([1.0], [0.0], KAPPA), "alpha_i != 0"),
+                        (lambda: rt.NeoHookean(MU, 1e4 * MU), "kappa / mu"),
+                        (lambda: rt.NeoHookean(MU, KAPPA, density=float("nan")), "density")]:
+        with pytest.raises(ModelError, match=match):
+            make()
+    P, W, dP = rt.NeoHookean(MU, KAPPA).stress(np.diag([1.0, 1.0, -0.5])[None])
+    assert np.isnan(P).all() and np.isinf(W).all() and np.isnan(dP).all()
+    model = rt.SolidModel(rt.meshes.box(1.0, 0.2, 0.2, nx=4, ny=1, nz=1), rt.NeoHookean(MU, KAPPA))
+    model.fix("x0")
+    from rtfem.reduction.reduced import ReducedNonlinearModel
+
+    with pytest.raises(ModelError, match="corotated"):
+        ReducedNonlinearModel(model, rt.modal_analysis(model, 4), 0)
