@@ -90,11 +90,6 @@ class ReducedNonlinearModel:
 
         t0 = time.perf_counter()
         check_model(model, "model")
-        if getattr(model, "law", None) is not None:
-            raise ModelError(f"the reduced nonlinear model evaluates the corotated linear material; this model's "
-                             f"{model.law!r} runs in the full-order solvers (rt.nonlinear.solve_static, "
-                             "DirectSimulator(large_deformation=True)): build the reduced model on "
-                             "rt.SolidModel(mesh, law.linearized(), ...) for the corotated twin")
         progress = validate.progress(progress)
         if not isinstance(modes, ModalBasis):
             raise ModelError(f"modes={validate.show(modes)} must be an rt.ModalBasis (from rt.modal_analysis(model, r))")
@@ -105,6 +100,7 @@ class ReducedNonlinearModel:
         n_modes = modes.omega.size
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
         self.model = model
+        self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
         self.system = model.nonlinear()
         self.dpn = model.dofs_per_node
         self.free = self.system.free
@@ -288,13 +284,16 @@ class ReducedNonlinearModel:
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
                 np.ascontiguousarray(kern.k[idx]))
 
-    @staticmethod
-    def _kernel_forces(V: np.ndarray, data) -> np.ndarray:
+    def _kernel_forces(self, V: np.ndarray, data) -> np.ndarray:
         """Each element's forces (E, nd) at its dofs V (E, nd) (compiled where numba is): the
-        corotational triangle's or, for data with a solid's five arrays, the corotated tet's."""
+        corotational triangle's or, for data with a solid's five arrays, the corotated tet's (or
+        the solid's hyperelastic law's, batched numpy)."""
         from . import cubature, tet_kernels
 
         F = np.empty(V.shape)
+        if len(data) == 5 and self.law is not None:
+            tet_kernels.law_forces(np.ascontiguousarray(V), *data[1:4], self.law, F)
+            return F
         kernel = tet_kernels.solid_element_forces if len(data) == 5 else cubature.element_forces
         kernel(np.ascontiguousarray(V), *data[1:], F)
         return F
@@ -420,16 +419,20 @@ class ReducedNonlinearModel:
     def _element_tangents(self, V: np.ndarray, data, central: bool = True) -> np.ndarray:
         """The tangents K_e (E, nd, nd) of the elements of ``data`` at their dofs V (E, nd),
         symmetric (the forces are an energy's gradient). The tets': the closed form
-        (:func:`rtfem.reduction.tet_kernels.solid_element_tangents`). The shell triangles': differences
+        (:func:`rtfem.reduction.tet_kernels.solid_element_tangents`), or the hyperelastic law's
+        (:func:`rtfem.reduction.tet_kernels.law_tangents`). The shell triangles': differences
         of the kernel (smooth), central with a step of 1e-7 of the organ's size (truncation and
         round-off both ~1e-10 relative), or forward (half the kernel calls; ~1e-7 relative, for a
         step's linearization, which sets no equilibrium)."""
         E, nd = V.shape
         Ke = np.empty((E, nd, nd))
         if len(data) == 5:
-            from .tet_kernels import solid_element_tangents
+            from .tet_kernels import law_tangents, solid_element_tangents
 
-            solid_element_tangents(np.ascontiguousarray(V, dtype=float), *data[1:], Ke)
+            if self.law is not None:
+                law_tangents(np.ascontiguousarray(V, dtype=float), *data[1:4], self.law, Ke)
+            else:
+                solid_element_tangents(np.ascontiguousarray(V, dtype=float), *data[1:], Ke)
             return Ke
         h = 1e-7 * self.system.size
         P = np.array(V, dtype=float)

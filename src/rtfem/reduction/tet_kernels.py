@@ -20,7 +20,8 @@ import numpy as np
 
 from .jit import compiled
 
-__all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents"]
+__all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents",
+           "law_forces", "law_tangents"]
 
 
 def _polar_rotation(Fm, R, Z):
@@ -291,3 +292,32 @@ def solid_element_tangents(V, X, G, wdet, lm, K) -> None:
     :func:`_solid_element_tangents`): compiled, or batched numpy without numba."""
     fn = compiled_solid_tangents()
     (solid_tangents_numpy if fn is None else fn)(V, X, G, wdet, lm, K)
+
+
+# ---------------------------------------------------------------- hyperelastic laws (batched numpy)
+def _gradients(V, X, G):
+    """The deformation gradients (E nq, 3, 3) at every quadrature point of every element."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = X + V.reshape(E, k, 3)
+    return np.einsum("eka,eqkb->eqab", x, G).reshape(E * nq, 3, 3)
+
+
+def law_forces(V, X, G, wdet, law, F) -> None:
+    """F (E, 3k) = the tets' forces sum_q wdet P G_i at element dofs V (E, 3k) with a hyperelastic
+    ``law`` (:mod:`rtfem.fe.hyperelastic`; its P at all quadrature points in one batched call), as
+    :class:`rtfem.fe.solid.HyperelasticTets`."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    P = law.stress(_gradients(V, X, G), False)[0].reshape(E, nq, 3, 3) * wdet[:, :, None, None]
+    F[:] = np.einsum("eqab,eqib->eia", P, G).reshape(E, 3 * k)
+
+
+def law_tangents(V, X, G, wdet, law, K) -> None:
+    """K (E, 3k, 3k) = the tangents of :func:`law_forces` (the law's dP/dF contracted with the
+    shape gradients), symmetric."""
+    from ..fe.solid import _tangent_point
+
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    dP = law.stress(_gradients(V, X, G))[2] * wdet.reshape(-1)[:, None, None, None, None]
+    Kq = _tangent_point(np.ascontiguousarray(G.reshape(E * nq, k, 3)), dP)
+    Kf = Kq.reshape(E, nq, 3 * k, 3 * k).sum(axis=1)
+    K[:] = 0.5 * (Kf + Kf.transpose(0, 2, 1))
