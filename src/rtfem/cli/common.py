@@ -202,6 +202,11 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
     g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
     g.add_argument("--thickness", type=positive, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
     g.add_argument("--density", type=positive, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
+    g.add_argument("--material", default="linear", metavar="LAW",
+                   help="a solid's material law: linear (default; corotated in the nonlinear methods), neo-hookean "
+                        "(mu and kappa of --E and --nu), mooney-rivlin:C10,C01 or ogden:mu1,alpha1[,mu2,alpha2...] (Pa; "
+                        "kappa keeps --nu's ratio to mu). The nonlinear methods use the law, the linear ones its "
+                        "linearization at rest")
     g.add_argument("--fix", default=None, metavar="REGION",
                    help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
                         "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
@@ -237,10 +242,12 @@ def model_options(args, mesh) -> dict:
 def build_model(args, *, quiet: bool = False):
     from ..fe.material import Material
     from ..fe.build import make_model
+    from ..fe.hyperelastic import law_from_text
     from ..mesh.tetmesh import TetMesh
 
-    mesh = mesh_of_args(args)
     material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
+    material = law_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
+    mesh = mesh_of_args(args)
     nodes, how = fixed_nodes(mesh, args.fix)
     model = make_model(mesh, material, **model_options(args, mesh))
     model.fix(nodes)
@@ -253,6 +260,10 @@ def build_model(args, *, quiet: bool = False):
         else:
             size = f"{mesh.n_vertices:,} vertices, {mesh.n_triangles:,} triangles"
         print(f"model       {name}: {size}, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
+        if getattr(model, "law", None) is not None:
+            lin = model.material
+            print(f"material    {model.law!r} (the linear methods use its linearization at rest: E = {lin.E:.4g} Pa, "
+                  f"nu = {lin.nu:.4g})")
     return model
 
 

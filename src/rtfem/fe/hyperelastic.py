@@ -35,7 +35,7 @@ from .. import validate
 from ..errors import ModelError
 from .material import Material
 
-__all__ = ["Hyperelastic", "NeoHookean", "MooneyRivlin", "Ogden"]
+__all__ = ["Hyperelastic", "NeoHookean", "MooneyRivlin", "Ogden", "law_from_text", "LAWS"]
 
 
 def _det(F):
@@ -65,10 +65,11 @@ class Hyperelastic:
     density: float
 
     def _check_common(self, kappa, density) -> None:
+        if not self.mu > 0:
+            raise ModelError(f"{type(self).__name__}: the initial shear modulus mu = {self.mu:g} Pa must be > 0 (a "
+                             "stable law)")
         self.kappa = validate.positive(kappa, f"{type(self).__name__} kappa", "the bulk modulus in Pa, e.g. 1e5")
         self.density = validate.positive(density, f"{type(self).__name__} density", "the mass density in kg/m^3")
-        if not self.mu > 0:
-            raise ModelError(f"{self!r}: the initial shear modulus mu = {self.mu:g} Pa must be > 0 (a stable law)")
         try:
             self.linearized()
         except ModelError as exc:
@@ -80,6 +81,19 @@ class Hyperelastic:
         mu, kappa = self.mu, self.kappa
         return Material(E=9 * kappa * mu / (3 * kappa + mu), nu=(3 * kappa - 2 * mu) / (2 * (3 * kappa + mu)),
                         density=self.density)
+
+    def scaled(self, factor: float) -> "Hyperelastic":
+        """The same law with every modulus times ``factor`` (the same shape of the stress-stretch
+        curve, stiffer or softer: what the viewer's E control does to a law)."""
+        factor = validate.positive(factor, "factor", "a stiffness scale such as 2.0")
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        for name in ("mu", "kappa", "c10", "c01"):
+            if name in out.__dict__:
+                out.__dict__[name] = out.__dict__[name] * factor
+        if "mus" in out.__dict__:
+            out.mus = out.mus * factor
+        return out
 
     # ---------------------------------------------------------------- the law
     def _stress(self, F: np.ndarray):
@@ -239,3 +253,42 @@ class Ogden(Hyperelastic):
     def __repr__(self) -> str:
         return (f"Ogden(mu={self.mus.tolist()}, alpha={self.alphas.tolist()}, kappa={self.kappa:g}, "
                 f"density={self.density:g})")
+
+
+LAWS = ("linear", "neo-hookean", "mooney-rivlin", "ogden")
+
+
+def law_from_text(text: str, material: Material):
+    """The material a command line names (``--material``): "linear" (``material`` itself),
+    "neo-hookean" (mu and kappa of ``material``'s E and nu), "mooney-rivlin:C10,C01" or
+    "ogden:mu1,alpha1[,mu2,alpha2,...]" (moduli in Pa; kappa keeps ``material``'s ratio kappa / mu,
+    i.e. the same Poisson's ratio at rest); the density is ``material``'s. Raises ModelError
+    naming what is wrong."""
+    name, _, values = str(text).strip().partition(":")
+    name = name.strip().lower()
+    E, nu = material.E, material.nu
+    mu, kappa = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
+    if name == "liver":
+        raise ModelError("--material liver: published liver parameters are not in rtfem yet (issue 41 item 4); give "
+                         "the law and its parameters, e.g. --material mooney-rivlin:C10,C01 or ogden:mu1,alpha1")
+    if name not in LAWS:
+        raise ModelError(f"--material {text!r}: choose one of {', '.join(LAWS)} (mooney-rivlin and ogden with their "
+                         "parameters: mooney-rivlin:C10,C01, ogden:mu1,alpha1[,mu2,alpha2...], in Pa)")
+    if name in ("linear", "neo-hookean"):
+        if values:
+            raise ModelError(f"--material {text!r}: {name} takes no parameters (its moduli are --E and --nu's)")
+        return material if name == "linear" else NeoHookean(mu, kappa, material.density)
+    try:
+        numbers = [float(v) for v in values.split(",")] if values.strip() else []
+    except ValueError:
+        raise ModelError(f"--material {text!r}: the parameters after ':' must be numbers separated by commas") from None
+    if name == "mooney-rivlin":
+        if len(numbers) != 2:
+            raise ModelError(f"--material {text!r}: give mooney-rivlin:C10,C01 (two moduli in Pa)")
+        c10, c01 = numbers
+        return MooneyRivlin(c10, c01, 2 * (c10 + c01) * kappa / mu, material.density)
+    if len(numbers) < 2 or len(numbers) % 2:
+        raise ModelError(f"--material {text!r}: give ogden:mu1,alpha1[,mu2,alpha2,...] (pairs of a modulus in Pa and "
+                         "an exponent)")
+    mus, alphas = numbers[0::2], numbers[1::2]
+    return Ogden(mus, alphas, sum(mus) * kappa / mu, material.density)

@@ -58,7 +58,9 @@ class ShellModel(FEModel):
         if not isinstance(mesh, TriMesh):
             raise ModelError(f"mesh must be an rtfem TriMesh, got {type(mesh).__name__}; use rt.load_mesh or rt.TriMesh")
         if not isinstance(material, Material):
-            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}")
+            hint = (": the hyperelastic laws are for solids (rt.SolidModel of a tet mesh, or --solid); a shell takes "
+                    "an rt.Material (law.linearized() for its linear twin)") if hasattr(material, "linearized") else ""
+            raise ModelError(f"material must be an rtfem Material, got {type(material).__name__}{hint}")
         validate.choice(membrane, "membrane", shell.MEMBRANES)
         penalty = self._check_constraints(constraints, penalty)
         rotary_inertia = validate.flag(rotary_inertia, "rotary_inertia")

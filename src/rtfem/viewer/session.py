@@ -33,6 +33,7 @@ from ..errors import ModelError
 from ..interaction.haptics import Grasp
 from ..drivers.fullorder import DirectSimulator
 from ..drivers.impedance_driver import ImpedanceDriver
+from ..fe.hyperelastic import Hyperelastic
 from ..fe.material import Damping, Material
 from ..mesh.surface import TriMesh
 from ..mesh.tetmesh import TetMesh
@@ -139,12 +140,13 @@ class Session(PhysicsThread):
 
     _thread_name = "rtfem-viewer-physics"
 
-    def __init__(self, mesh: TriMesh | TetMesh, material: Material | None = None, fixed="attachment",
+    def __init__(self, mesh: TriMesh | TetMesh, material: Material | Hyperelastic | None = None, fixed="attachment",
                  settings: Settings | None = None, model_options: dict | None = None, progress=None) -> None:
         if not isinstance(mesh, (TriMesh, TetMesh)):
             raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (a shell) or TetMesh (a solid)")
-        if material is not None and not isinstance(material, Material):
-            raise ModelError(f"material={validate.show(material)} must be an rt.Material (or None)")
+        if material is not None and not isinstance(material, (Material, Hyperelastic)):
+            raise ModelError(f"material={validate.show(material)} must be an rt.Material, a hyperelastic law "
+                             "(rt.NeoHookean, ...; solids) or None")
         if settings is not None and not isinstance(settings, Settings):
             raise ModelError(f"settings={validate.show(settings)} must be a viewer Settings (or None)")
         # a solid is drawn and touched on its boundary, over the same node numbering
@@ -156,7 +158,7 @@ class Session(PhysicsThread):
         self.material = material if material is not None else Material()
         self.settings = (settings or Settings()).check()
         if self.settings.E is None:
-            self.settings.E = self.material.E
+            self.settings.E = self._linear.E
         self._fixed = fixed
         self.X = np.asarray(self.mesh.vertices)
         self.drawn = self.mesh.used_vertices()  # the surface's vertices (a solid's interior is not drawn)
@@ -178,8 +180,16 @@ class Session(PhysicsThread):
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
+    @property
+    def _linear(self) -> Material:
+        """The linear material (a law's linearization at rest)."""
+        m = self.material
+        return m.linearized() if isinstance(m, Hyperelastic) else m
+
     def _model(self, E: float):
-        model = make_model(self.volume or self.mesh, replace(self.material, E=E), **self._model_options)
+        m = self.material  # the panel's E: a law's moduli scaled alike
+        m = m.scaled(E / m.linearized().E) if isinstance(m, Hyperelastic) else replace(m, E=E)
+        model = make_model(self.volume or self.mesh, m, **self._model_options)
         model.fix(self._fixed)
         model.check_restrained()
         return model
