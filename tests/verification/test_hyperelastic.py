@@ -203,6 +203,15 @@ def test_the_reduced_nonlinear_model_runs_the_law(name):
     n_el = data[0].shape[0]
     g, K = red.reduced_forces(q)
     assert np.abs(red._element_forces(q, data, np.ones(n_el), False)[0] - g).max() < 1e-10 * np.abs(g).max()
+    from rtfem.reduction import tet_kernels
+
+    V = (data[0].reshape(-1, red.size) @ q).reshape(n_el, -1)
+    V[0, :3] = 3 * (data[1][0, 1:].mean(axis=0) - data[1][0, 0])  # element 0 inside out: NaN, not a number
+    Fc, Fn = np.empty(V.shape), np.empty(V.shape)
+    tet_kernels.law_forces(V, *data[1:4], law, Fc)  # compiled for neo-Hookean (numba), batched numpy for Ogden
+    tet_kernels.law_forces_numpy(V, *data[1:4], law, Fn)
+    assert np.isnan(Fc[0]).all() and np.isnan(Fn[0]).all()
+    assert np.abs(Fc[1:] - Fn[1:]).max() < 1e-12 * np.abs(Fn[1:]).max()
     V = (data[0].reshape(-1, red.size) @ q).reshape(n_el, -1)
     Ke = red._element_tangents(V, data)
     Kr = np.einsum("eir,eij,ejs->rs", data[0], Ke, data[0])

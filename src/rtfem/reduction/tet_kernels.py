@@ -302,10 +302,86 @@ def _gradients(V, X, G):
     return np.einsum("eka,eqkb->eqab", x, G).reshape(E * nq, 3, 3)
 
 
+def _invariant_forces(V, X, G, wdet, prm, F):
+    """F (E, 3k) = the tets' forces with W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2
+    (prm = [C10, C01, kappa]: neo-Hookean and Mooney-Rivlin), P as
+    :class:`rtfem.fe.hyperelastic.MooneyRivlin` writes it; an element with J <= 0 at a point gets NaN."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    c10, c01, kappa = prm[0], prm[1], prm[2]
+    x = np.zeros((k, 3))
+    Fm = np.zeros((3, 3))
+    cof = np.zeros((3, 3))
+    C = np.zeros((3, 3))
+    P = np.zeros((3, 3))
+    for e in range(E):
+        for i in range(k):
+            for c in range(3):
+                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
+                F[e, 3 * i + c] = 0.0
+        for q in range(nq):
+            _gradient(x, G[e, q], Fm)
+            for i in range(3):
+                i1, i2 = (i + 1) % 3, (i + 2) % 3
+                for j in range(3):
+                    j1, j2 = (j + 1) % 3, (j + 2) % 3
+                    cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
+            J = Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+            if not J > 0.0:
+                for i in range(3 * k):
+                    F[e, i] = np.nan
+                break
+            I1 = 0.0
+            trC2 = 0.0
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for m in range(3):
+                        s += Fm[m, a] * Fm[m, b]
+                    C[a, b] = s
+                I1 += C[a, a]
+            for a in range(3):
+                for b in range(3):
+                    trC2 += C[a, b] * C[b, a]
+            I2 = 0.5 * (I1 * I1 - trC2)
+            j23 = J ** (-2.0 / 3.0)
+            a1 = c10 * j23
+            a2 = c01 * j23 * j23
+            g1 = (2.0 / 3.0) * a1 * I1 / J + (4.0 / 3.0) * a2 * I2 / J
+            kv = kappa * (J - 1.0)
+            for a in range(3):
+                for b in range(3):
+                    fc = 0.0
+                    for m in range(3):
+                        fc += Fm[a, m] * C[m, b]
+                    P[a, b] = 2.0 * a1 * Fm[a, b] + a2 * (2.0 * I1 * Fm[a, b] - 2.0 * fc) - g1 * cof[a, b] + kv * cof[a, b]
+            w = wdet[e, q]
+            for i in range(k):
+                for a in range(3):
+                    s = 0.0
+                    for b in range(3):
+                        s += P[a, b] * G[e, q, i, b]
+                    F[e, 3 * i + a] += w * s
+
+
+def compiled_invariant_forces():
+    """The compiled neo-Hookean / Mooney-Rivlin force kernel (numba), or None."""
+    return compiled("solid-invariants", _invariant_forces, _gradient)
+
+
 def law_forces(V, X, G, wdet, law, F) -> None:
     """F (E, 3k) = the tets' forces sum_q wdet P G_i at element dofs V (E, 3k) with a hyperelastic
-    ``law`` (:mod:`rtfem.fe.hyperelastic`; its P at all quadrature points in one batched call), as
-    :class:`rtfem.fe.solid.HyperelasticTets`."""
+    ``law`` (:mod:`rtfem.fe.hyperelastic`), as :class:`rtfem.fe.solid.HyperelasticTets`: neo-Hookean
+    and Mooney-Rivlin compiled (:func:`_invariant_forces`), other laws (Ogden) with their P at all
+    quadrature points in one batched numpy call."""
+    fn = compiled_invariant_forces() if hasattr(law, "c01") else None
+    if fn is not None:
+        fn(V, X, G, wdet, np.array([law.c10, law.c01, law.kappa]), F)
+    else:
+        law_forces_numpy(V, X, G, wdet, law, F)
+
+
+def law_forces_numpy(V, X, G, wdet, law, F) -> None:
+    """:func:`law_forces` batched in numpy (any law; the path without numba)."""
     E, nq, k = G.shape[0], G.shape[1], G.shape[2]
     P = law.stress(_gradients(V, X, G), False)[0].reshape(E, nq, 3, 3) * wdet[:, :, None, None]
     F[:] = np.einsum("eqab,eqib->eia", P, G).reshape(E, 3 * k)
