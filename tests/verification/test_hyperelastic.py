@@ -228,3 +228,25 @@ def test_the_reduced_nonlinear_model_runs_the_law(name):
     sim.run(F, 1500)
     static = red.solve_static(F, cubature=True, max_iterations=60).displacements
     assert np.abs(sim.displacements() - static).max() < 1e-3 * np.abs(static).max()
+
+
+def test_cubature_training_halves_poses_that_turn_elements_inside_out():
+    """A hyperelastic law has no energy for an inverted element (NaN forces): random training poses
+    large enough to invert tets are halved until every force is finite (the corotated material,
+    which has an energy there, keeps them), and the cubature is trained, not left empty; training
+    forces that are not finite are refused by the trainer itself."""
+    from rtfem.reduction import cubature
+    from rtfem.reduction.reduced import ReducedNonlinearModel
+
+    out = {}
+    for name, material in (("law", rt.NeoHookean(MU, KAPPA, 10.0)), ("corotated", rt.NeoHookean(MU, KAPPA).linearized())):
+        model = rt.SolidModel(rt.meshes.box(1.0, 0.1, 0.1, nx=8, ny=1, nz=1), material)
+        model.fix("x0")
+        red = ReducedNonlinearModel(model, rt.modal_analysis(model, 8), 2)
+        out[name] = red.train_cubature(8, tol=0.05, reach=3.0)
+        q = np.random.default_rng(1).normal(size=red.size) * 1e-3
+        assert np.isfinite(red.cubature_forces(q)).all()
+    assert out["law"]["halved_poses"] > 0 and out["law"]["elements"].size > 0 and out["law"]["training_error"] <= 0.05
+    assert out["corotated"]["halved_poses"] == 0
+    with pytest.raises(ModelError, match="not finite"):
+        cubature.train(np.array([[1.0, np.nan], [0.5, 1.0]]), np.array([1.0, 1.0]))

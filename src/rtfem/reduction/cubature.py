@@ -341,6 +341,9 @@ def train(contributions, targets, tol: float = 0.02, max_elements: int | None = 
     """
     A = np.asarray(contributions, float)
     b = np.asarray(targets, float)
+    if not (np.isfinite(A).all() and np.isfinite(b).all()):
+        raise ModelError("cubature training: some training forces are not finite (an element turned inside out under "
+                         "a law without energy there?); train on smaller poses")
     T, E = A.shape
     max_elements = E if max_elements is None else min(E, max_elements)
     norms = np.linalg.norm(A, axis=0)

@@ -341,11 +341,20 @@ class ReducedNonlinearModel:
         E = data[0].shape[0]
         Ke = self._rest_tangents(data) if remainder else None
         rng = np.random.default_rng(seed)
-        rows, targets = [], []
+        rows, targets, shrunk = [], [], 0
         for s in range(poses):
             q = rng.normal(size=self.size)
             q *= rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max()
             per = self._element_forces(q, data, np.ones(E), True, rest=Ke)  # (E, r)
+            for _ in range(8):  # a law without energy for an inverted element (J <= 0): the pose halved
+                if np.isfinite(per).all():
+                    break
+                q *= 0.5
+                shrunk += 1
+                per = self._element_forces(q, data, np.ones(E), True, rest=Ke)
+            else:
+                raise ModelError(f"cubature training: pose {s} turns elements inside out even at 1/256 of its size "
+                                 f"(reach={reach:g}); the model's law ({self.law!r}) has no energy there")
             b = per.sum(axis=0)
             scale = 1.0 / np.linalg.norm(b)
             rows.append(per.T * scale)
@@ -360,6 +369,9 @@ class ReducedNonlinearModel:
             error = float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
         else:
             elements, weights, error = cubature.train(A, b, tol)
+        if elements.size == 0:
+            raise ModelError(f"cubature training chose no element (training error {error:.3g}): the training forces "
+                             "carry no information; train on larger poses (reach) or more of them")
         self._cubature_pinned = int(pinned.size)
         self._cubature = (self._element_data(elements), weights)
         if remainder:
@@ -367,7 +379,8 @@ class ReducedNonlinearModel:
             self._cubature_rest = (self._cubature, Ke[elements], 0.5 * (K + K.T))
         self._cubature_remainder = remainder
         self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
-                                 "remainder": remainder, "pinned": int(pinned.size), "seconds": time.perf_counter() - t0}
+                                 "remainder": remainder, "pinned": int(pinned.size), "halved_poses": shrunk,
+                                 "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
 
     def cubature_forces(self, q: np.ndarray, *, single: bool = False) -> np.ndarray:
