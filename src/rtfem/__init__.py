@@ -4,6 +4,7 @@ from .mesh import meshes
 from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .fe.material import Damping, Material
 from .fe.hyperelastic import MooneyRivlin, NeoHookean, Ogden
+from .fe.fitting import fit_material
 from .mesh.repair import MeshReport
 from .mesh.surface import TriMesh
 from .mesh.tetmesh import TetMesh
@@ -75,6 +76,7 @@ __all__ = [
     "NeoHookean",
     "MooneyRivlin",
     "Ogden",
+    "fit_material",
     "ModelError",
     "RtfemError",
     "RtfemWarning",

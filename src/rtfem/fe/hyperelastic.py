@@ -74,7 +74,7 @@ class Hyperelastic:
             self.linearized()
         except ModelError as exc:
             raise ModelError(f"{self!r}: kappa / mu = {self.kappa / self.mu:.4g} has no linear twin the linear solvers "
-                             f"can use ({exc}); keep kappa / mu <= 5000 (nu <= 0.4999)") from None
+                             f"can use ({exc}); keep kappa / mu below 5000 (nu <= 0.4999)") from None
 
     def linearized(self) -> Material:
         """The linear isotropic material of this law at rest (same mu and kappa, same density)."""
