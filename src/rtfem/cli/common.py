@@ -193,9 +193,10 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
                    help="mesh a surface into tets (fTetWild, the mesh extra) and model the volume instead of a shell")
     g.add_argument("--edge-length", type=positive, default=None, metavar="M",
                    help="target tet edge length in m for --solid (default 5 %% of the organ's diagonal)")
-    g.add_argument("--element", choices=("tet4", "tet10"), default="tet10",
-                   help="tet10 (quadratic, the default: does not lock at nu = 0.45) or tet4 (linear, fast; too stiff "
-                        "for nearly incompressible tissue)")
+    g.add_argument("--element", choices=("tet4", "tet10", "tet4-anp"), default="tet10",
+                   help="tet10 (quadratic, the default: does not lock at nu = 0.45), tet4 (linear, fast; too stiff "
+                        "for nearly incompressible tissue) or tet4-anp (tet4 with an averaged nodal pressure: no "
+                        "volumetric locking; the linear methods only)")
     g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
     g = p.add_argument_group("material and supports")
     g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")

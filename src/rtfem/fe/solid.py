@@ -30,7 +30,7 @@ from .rotations import cross_matrices
 
 __all__ = ["ELEMENTS", "MASSES", "shape_functions", "tet_rule", "element_matrices"]
 
-ELEMENTS = ("tet4", "tet10")
+ELEMENTS = ("tet4", "tet10", "tet4-anp")
 MASSES = ("lumped", "consistent")
 
 
@@ -57,7 +57,7 @@ def shape_functions(element: str, xi: np.ndarray) -> tuple[np.ndarray, np.ndarra
     xi = np.atleast_2d(xi)
     L = np.column_stack([1 - xi.sum(axis=1), xi])  # barycentric (q, 4)
     dL = np.array([[-1.0, -1.0, -1.0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])  # dL_i/dxi (4, 3)
-    if element == "tet4":
+    if element in ("tet4", "tet4-anp"):
         return L, np.broadcast_to(dL, (xi.shape[0], 4, 3)).copy()
     from ..mesh.tetmesh import TET10_EDGES
 
@@ -91,9 +91,11 @@ def element_matrices(X: np.ndarray, material: Material, element: str, mass: str)
     """Element stiffness (m, 3k, 3k) and mass (m, k, k) per translation component (the full
     element mass is this matrix times I_3; diagonal for ``mass='lumped'``), for nodes X (m, k, 3)."""
     lam, mu = _lame(material)
+    if element == "tet4-anp":  # the deviatoric part only: the volumetric one is the nodes' (anp_volumetric)
+        lam = -2.0 * mu / 3.0
     m, k = X.shape[0], X.shape[1]
     rho = material.density
-    if element == "tet4":
+    if element in ("tet4", "tet4-anp"):
         G, det = _gradients(X, shape_functions("tet4", np.zeros((1, 3)))[1][0])
         vol = det / 6.0
         Ke = _stiffness_point(G, vol, lam, mu)
@@ -121,6 +123,33 @@ def element_matrices(X: np.ndarray, material: Material, element: str, mass: str)
         Me = np.zeros_like(Me)
         Me[:, range(k), range(k)] = d * (total / d.sum(axis=1))[:, None]
     return Ke, Me
+
+
+def anp_volumetric(X: np.ndarray, T: np.ndarray, material: Material, n_nodes: int):
+    """The volumetric stiffness of the averaged-nodal-pressure tet4 (Bonet & Burton, Commun. Numer.
+    Meth. Engng 14 (1998) 437, linearized): each node a gets the volume V_a = sum of a quarter of its
+    tets' volumes and the volumetric strain theta_a = sum_e (V_e / 4) div u_e / V_a; the energy
+    sum_a kappa / 2 V_a theta_a^2 gives K_vol = C^T diag(kappa / V_a) C with the rows c_a = sum_e
+    (V_e / 4) grad(div u_e) (sparse over the node's patch). With the elements' deviatoric stiffness
+    (lambda -> -2 mu / 3) it is the whole stiffness: one pressure per node instead of per tet, so a
+    mesh of tets is no longer over-constrained as nu -> 0.5 (locking). Returns K_vol (3n, 3n, CSR)."""
+    import scipy.sparse as sp
+
+    lam, mu = _lame(material)
+    kappa = lam + 2.0 * mu / 3.0
+    G, det = _gradients(X[T], shape_functions("tet4", np.zeros((1, 3)))[1][0])
+    vol = det / 6.0
+    ne = T.shape[0]
+    Va = np.bincount(T.ravel(), weights=np.repeat(vol / 4.0, 4), minlength=n_nodes)
+    dofs = (3 * T[:, :, None] + np.arange(3)).reshape(ne, 12)
+    rows = np.repeat(T, 12, axis=1).ravel()  # node a of tet e, for each of e's 12 dofs
+    cols = np.tile(dofs, (1, 4)).ravel()
+    vals = np.tile((vol / 4.0)[:, None] * G.reshape(ne, 12), (1, 4)).ravel()
+    C = sp.csr_matrix((vals, (rows, cols)), shape=(n_nodes, 3 * n_nodes))
+    used = Va > 0
+    w = np.zeros(n_nodes)
+    w[used] = kappa / Va[used]
+    return (C.T @ sp.diags(w) @ C).tocsr()
 
 
 def _stiffness_point(G: np.ndarray, wdet: np.ndarray, lam: float, mu: float) -> np.ndarray:

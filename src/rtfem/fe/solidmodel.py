@@ -36,8 +36,10 @@ class SolidModel(FEModel):
         :class:`~rtfem.Ogden`): the full-order nonlinear solvers (``rt.nonlinear.solve_static``,
         the corotational and Newmark simulators) use the law, the linear ones (modes, statics,
         SLDM, maps) its linearization at rest (``law.linearized()``, kept as ``model.material``).
-    element : "tet4" (linear, constant strain; stiff in bending and near incompressibility) or
-        "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`).
+    element : "tet4" (linear, constant strain; stiff in bending and near incompressibility),
+        "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`) or
+        "tet4-anp" (tet4 with an averaged nodal pressure, :func:`rtfem.fe.solid.anp_volumetric`:
+        no volumetric locking on the 4-node mesh; linear solvers only so far).
     mass : "lumped" (diagonal, the paper's M; default) or "consistent" (rho int N^T N). With a
         consistent mass the modal route uses it as it is (the eigen-solve takes ARPACK's
         generalized mode); SLDM and the central-difference simulator need a diagonal M and ask
@@ -112,6 +114,8 @@ class SolidModel(FEModel):
         cols = np.tile(dofs, (1, 3 * k)).ravel()
         K = sp.coo_matrix((np.concatenate(kdata), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
         K.sum_duplicates()
+        if self.element == "tet4-anp":
+            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
         self._K = ((K + K.T) * 0.5).tocsr()
         self._M = np.repeat(lumped, 3)
         if self.mass == "consistent":
@@ -139,7 +143,7 @@ class SolidModel(FEModel):
     def _distribute(self, T: np.ndarray, per_face: np.ndarray) -> np.ndarray:
         """Consistent nodal forces of a uniform load: a third to each corner of a linear face; on a
         6-node face (tet10) nothing to the corners and a third to each mid-edge node."""
-        if self.element == "tet4":
+        if self.element != "tet10":
             return super()._distribute(T, per_face)
         out = np.zeros((self.n_nodes, 3))
         for a, b in ((0, 1), (1, 2), (2, 0)):
@@ -198,6 +202,10 @@ class SolidModel(FEModel):
 
     def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
         """The corotational element kernel and the cells (tets) it acts on."""
+        if self.element == "tet4-anp":
+            raise ModelError("element='tet4-anp' is linear so far (modes, statics, the modal and SLDM routes): the "
+                             "nonlinear solvers (large deformation, the reduced nonlinear model, hyperelastic laws) "
+                             "take element='tet10' (no locking) or 'tet4'")
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)[T]
         if self.law is not None:
