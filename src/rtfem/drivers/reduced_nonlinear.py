@@ -15,7 +15,8 @@ from ..fe.material import Damping
 from .base import ForceInput, StaticCorrection
 from .tangent import Linearization
 
-from ..reduction.reduced import ReducedNonlinearModel, _projection_rows
+from ..reduction.element_terms import _projection_rows
+from ..reduction.reduced import ReducedNonlinearModel
 
 __all__ = ["ReducedNonlinearSimulator", "reduced_nonlinear_driver"]
 
