@@ -45,15 +45,30 @@ def uniaxial_stress(name: str, params, stretch) -> np.ndarray:
 
 def fit_material(stretch, stress, law: str = "neo-hookean", *, terms: int = 1, kappa: float | None = None,
                  kappa_ratio: float = 50.0, density: float = 1000.0):
-    """Fit ``law`` ("neo-hookean", "mooney-rivlin" or "ogden" with ``terms`` = 1..3) to uniaxial
-    data: ``stretch`` (lambda = l / l0, > 0, not all 1) and ``stress`` (nominal, Pa, the force
-    over the undeformed area), by least squares on the incompressible closed forms (module
-    docstring). Returns ``(law, report)``: the fitted law (bulk modulus ``kappa``, or
-    ``kappa_ratio`` times its shear modulus) and {"parameters", "rms" (Pa), "relative_rms"
-    (rms over the rms stress), "law"}.
+    """Fit a hyperelastic law to uniaxial data by least squares on the incompressible closed forms
+    (module docstring).
 
-    Raises ModelError for data that are not finite, of different lengths, fewer points than
-    parameters, non-positive stretches, or a fit with no stable initial shear modulus."""
+    Parameters
+    ----------
+    stretch : the stretches lambda = l / l0 of the test (> 0, not all 1).
+    stress : the nominal stresses in Pa (the force over the undeformed area), as many.
+    law : "neo-hookean", "mooney-rivlin" or "ogden".
+    terms : Ogden's number of terms, 1..3.
+    kappa : the fitted law's bulk modulus in Pa; default ``kappa_ratio`` times its shear modulus.
+    kappa_ratio : kappa / mu when ``kappa`` is not given (default 50: nu = 0.49 at rest).
+    density : the fitted law's density in kg/m^3.
+
+    Returns
+    -------
+    tuple
+        (the fitted law, {"law", "parameters", "rms" (Pa), "relative_rms" (rms over the rms stress)}).
+
+    Raises
+    ------
+    ModelError
+        Data that are not finite, of different lengths, fewer points than parameters,
+        non-positive stretches, or a fit with no stable initial shear modulus.
+    """
     name = validate.choice(str(law).lower(), "law", FITS)
     lam = np.asarray(stretch, float).ravel()
     P = np.asarray(stress, float).ravel()

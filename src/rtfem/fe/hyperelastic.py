@@ -4,7 +4,7 @@ isochoric / volumetric split of the FE codes users compare with.
     W = W_iso(I1bar, I2bar or the stretches lambda_a bar) + kappa / 2 (J - 1)^2
 
 with J = det F, Cbar = J^(-2/3) F^T F, I1bar = tr Cbar, I2bar = (I1bar^2 - tr Cbar^2) / 2 and
-lambda_a bar = J^(-1/3) lambda_a (Abaqus Theory Manual 4.6.1 and CalculiX's *HYPERELASTIC, which
+lambda_a bar = J^(-1/3) lambda_a (Abaqus Theory Manual 4.6.1 and CalculiX's ``*HYPERELASTIC``, which
 write the volumetric part as (J - 1)^2 / D1: kappa = 2 / D1).
 
 - neo-Hookean: W_iso = mu / 2 (I1bar - 3) (C10 = mu / 2);
@@ -173,7 +173,17 @@ class NeoHookean(_Invariants):
     """Neo-Hookean: W = mu / 2 (I1bar - 3) + kappa / 2 (J - 1)^2 (Abaqus / CalculiX ``NEO HOOKE``
     with C10 = mu / 2, D1 = 2 / kappa).
 
-    Raises ModelError for a mu, kappa or density that is not a finite number > 0."""
+    Parameters
+    ----------
+    mu : the shear modulus in Pa (soft tissue: 1e2 .. 1e5).
+    kappa : the bulk modulus in Pa; kappa / mu below 5000 (nu <= 0.4999 at rest).
+    density : the mass density in kg/m^3.
+
+    Raises
+    ------
+    ModelError
+        A mu, kappa or density that is not a finite number > 0, or a kappa / mu with no linear twin.
+    """
 
     name = "neo-hookean"
 
@@ -187,8 +197,18 @@ class MooneyRivlin(_Invariants):
     """Mooney-Rivlin: W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2 (Abaqus /
     CalculiX ``MOONEY-RIVLIN``, D1 = 2 / kappa); initial shear modulus mu = 2 (C10 + C01).
 
-    Raises ModelError for values that are not finite numbers, a kappa or density not > 0, or
-    C10 + C01 <= 0 (no stable initial shear modulus)."""
+    Parameters
+    ----------
+    c10, c01 : the moduli C10 and C01 in Pa (C01 may be negative if C10 + C01 > 0).
+    kappa : the bulk modulus in Pa; kappa / mu below 5000.
+    density : the mass density in kg/m^3.
+
+    Raises
+    ------
+    ModelError
+        Values that are not finite numbers, a kappa or density not > 0, or C10 + C01 <= 0 (no
+        stable initial shear modulus).
+    """
 
     name = "mooney-rivlin"
 
@@ -212,8 +232,19 @@ class Ogden(Hyperelastic):
     signs, which is accepted as long as mu = sum mu_i > 0, and whose stability then holds over the
     strain range of the fit only.
 
-    Raises ModelError for lists of different lengths, more than 6 terms, an alpha or a mu_i of 0,
-    or sum mu_i <= 0 (no stable initial shear modulus)."""
+    Parameters
+    ----------
+    mu : the moduli mu_i in Pa, 1 to 6 of them (a list, or one number).
+    alpha : the exponents alpha_i, as many.
+    kappa : the bulk modulus in Pa; kappa / sum(mu) below 5000.
+    density : the mass density in kg/m^3.
+
+    Raises
+    ------
+    ModelError
+        Lists of different lengths, more than 6 terms, an alpha or a mu_i of 0, or sum mu_i <= 0
+        (no stable initial shear modulus).
+    """
 
     name = "ogden"
 
