@@ -102,6 +102,24 @@ def _gradient(x, Ge, Fm):
             Fm[a, b] = s
 
 
+def _deformed_nodes(X, V, e, x):
+    """x (k, 3) = element e's rest nodes X[e] plus its dofs V[e] (node-major)."""
+    for i in range(x.shape[0]):
+        for c in range(3):
+            x[i, c] = X[e, i, c] + V[e, 3 * i + c]
+
+
+def _add_stress_forces(P, Ge, w, Fe):
+    """Fe (3k) += w P G_i at each node i: one quadrature point's share of the nodal forces, for its
+    first Piola stress P (3, 3), shape gradients Ge (k, 3) and weight w."""
+    for i in range(Ge.shape[0]):
+        for a in range(3):
+            s = 0.0
+            for b in range(3):
+                s += P[a, b] * Ge[i, b]
+            Fe[3 * i + a] += w * s
+
+
 def _solid_element_forces(V, X, G, wdet, lm, F):
     """F (E, 3k) = the corotated-linear tets' nodal forces (mu |F - R|^2 + lambda/2 tr(S - I)^2, as
     :class:`rtfem.fe.solid.CorotationalTets`) at element dofs V (E, 3k): X (E, k, 3) rest nodes,
@@ -114,10 +132,8 @@ def _solid_element_forces(V, X, G, wdet, lm, F):
     Z = np.zeros((3, 3))
     P = np.zeros((3, 3))
     for e in range(E):
-        for i in range(k):
-            for c in range(3):
-                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
-                F[e, 3 * i + c] = 0.0
+        _deformed_nodes(X, V, e, x)
+        F[e, :] = 0.0
         lam, mu = lm[e, 0], lm[e, 1]
         for q in range(nq):
             _gradient(x, G[e, q], Fm)
@@ -130,13 +146,7 @@ def _solid_element_forces(V, X, G, wdet, lm, F):
             for a in range(3):
                 for b in range(3):
                     P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
-            w = wdet[e, q]
-            for i in range(k):
-                for a in range(3):
-                    s = 0.0
-                    for b in range(3):
-                        s += P[a, b] * G[e, q, i, b]
-                    F[e, 3 * i + a] += w * s
+            _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
 
 
 def _point_tangent(Ge, R, Fm, lam, mu, w, K, RG, RW, T):
@@ -212,9 +222,7 @@ def _solid_element_tangents(V, X, G, wdet, lm, K):
     n = 3 * k
     for e in range(E):
         Ke = K[e]
-        for i in range(k):
-            for c in range(3):
-                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
+        _deformed_nodes(X, V, e, x)
         for a in range(n):
             for b in range(n):
                 Ke[a, b] = 0.0
@@ -272,12 +280,14 @@ def solid_tangents_numpy(V, X, G, wdet, lm, K) -> None:
 
 def compiled_solid_forces():
     """The compiled corotated-tet force kernel (numba), or None where numba is absent or cannot compile it."""
-    return compiled("solid", _solid_element_forces, _polar_rotation, _rotation, _gradient)
+    return compiled("solid", _solid_element_forces, _polar_rotation, _rotation, _gradient, _deformed_nodes,
+                    _add_stress_forces)
 
 
 def compiled_solid_tangents():
     """The compiled corotated-tet tangent kernel (numba), or None where numba is absent or cannot compile it."""
-    return compiled("solid-tangent", _solid_element_tangents, _polar_rotation, _rotation, _gradient, _point_tangent)
+    return compiled("solid-tangent", _solid_element_tangents, _polar_rotation, _rotation, _gradient, _point_tangent,
+                    _deformed_nodes)
 
 
 def solid_element_forces(V, X, G, wdet, lm, F) -> None:
@@ -314,10 +324,8 @@ def _invariant_forces(V, X, G, wdet, prm, F):
     C = np.zeros((3, 3))
     P = np.zeros((3, 3))
     for e in range(E):
-        for i in range(k):
-            for c in range(3):
-                x[i, c] = X[e, i, c] + V[e, 3 * i + c]
-                F[e, 3 * i + c] = 0.0
+        _deformed_nodes(X, V, e, x)
+        F[e, :] = 0.0
         for q in range(nq):
             _gradient(x, G[e, q], Fm)
             for i in range(3):
@@ -354,18 +362,12 @@ def _invariant_forces(V, X, G, wdet, prm, F):
                     for m in range(3):
                         fc += Fm[a, m] * C[m, b]
                     P[a, b] = 2.0 * a1 * Fm[a, b] + a2 * (2.0 * I1 * Fm[a, b] - 2.0 * fc) - g1 * cof[a, b] + kv * cof[a, b]
-            w = wdet[e, q]
-            for i in range(k):
-                for a in range(3):
-                    s = 0.0
-                    for b in range(3):
-                        s += P[a, b] * G[e, q, i, b]
-                    F[e, 3 * i + a] += w * s
+            _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
 
 
 def compiled_invariant_forces():
     """The compiled neo-Hookean / Mooney-Rivlin force kernel (numba), or None."""
-    return compiled("solid-invariants", _invariant_forces, _gradient)
+    return compiled("solid-invariants", _invariant_forces, _gradient, _deformed_nodes, _add_stress_forces)
 
 
 def law_forces(V, X, G, wdet, law, F) -> None:
@@ -373,7 +375,9 @@ def law_forces(V, X, G, wdet, law, F) -> None:
     ``law`` (:mod:`rtfem.fe.hyperelastic`), as :class:`rtfem.fe.solid.HyperelasticTets`: neo-Hookean
     and Mooney-Rivlin compiled (:func:`_invariant_forces`), other laws (Ogden) with their P at all
     quadrature points in one batched numpy call."""
-    fn = compiled_invariant_forces() if hasattr(law, "c01") else None
+    from ..fe.hyperelastic import MooneyRivlin, NeoHookean
+
+    fn = compiled_invariant_forces() if isinstance(law, (NeoHookean, MooneyRivlin)) else None
     if fn is not None:
         fn(V, X, G, wdet, np.array([law.c10, law.c01, law.kappa]), F)
     else:
