@@ -37,37 +37,53 @@ def _need_ccx():
         pytest.skip("CalculiX is not installed (apt-get install calculix-ccx; .ci/run installs it)")
 
 
-def ccx_static(model: rt.SolidModel, forces: np.ndarray, fixed: np.ndarray, folder: Path, *,
-               nlgeom: bool = False, increments: int = 10) -> np.ndarray:
-    """ccx's static displacements (n, 3) of ``model``'s mesh and material, all dofs of the nodes
-    ``fixed`` held, dead nodal ``forces`` (n, 3)."""
+def mesh_lines(model: rt.SolidModel, heading: str) -> list[str]:
+    """The deck's heading, nodes, elements (C3D4 or C3D10: rtfem's tet10 node order is ccx's, corners then
+    12 23 31 14 24 34) in ELSET EALL, and the NSET NALL of every node."""
     X, T = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
-    kind = {4: "C3D4", 10: "C3D10"}[T.shape[1]]  # rtfem's tet10 node order is ccx's (corners, then 12 23 31 14 24 34)
-    mat = model.material
-    lines = ["*HEADING", "rtfem verification", "*NODE"]
+    kind = {4: "C3D4", 10: "C3D10"}[T.shape[1]]
+    lines = ["*HEADING", heading, "*NODE"]
     lines += [f"{i + 1},{x!r},{y!r},{z!r}" for i, (x, y, z) in enumerate(X.tolist())]
     lines += [f"*ELEMENT,TYPE={kind},ELSET=EALL"] + [f"{e + 1}," + ",".join(str(v + 1) for v in t)
                                                     for e, t in enumerate(T.tolist())]
-    lines += ["*NSET,NSET=NALL,GENERATE", f"1,{len(X)},1", "*NSET,NSET=FIX"] + [f"{i + 1}," for i in fixed.tolist()]
-    lines += ["*BOUNDARY", "FIX,1,3", "*MATERIAL,NAME=M", "*ELASTIC", f"{float(mat.E)!r},{float(mat.nu)!r}",
-              "*SOLID SECTION,ELSET=EALL,MATERIAL=M"]
-    lines += ["*STEP,NLGEOM,INC=1000", "*STATIC", f"{1 / increments!r},1.0"] if nlgeom else ["*STEP", "*STATIC"]
-    lines += ["*CLOAD"] + [f"{i + 1},{d + 1},{float(forces[i, d])!r}" for i, d in zip(*np.nonzero(forces))]
-    lines += ["*NODE PRINT,NSET=NALL", "U", "*END STEP"]
+    return lines + ["*NSET,NSET=NALL,GENERATE", f"1,{len(X)},1"]
+
+
+def run_ccx(lines: list[str], folder: Path) -> str:
+    """Write the deck to ``folder``/job.inp, run ccx on one thread and return its job.dat."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "job.inp").write_text("\n".join(lines) + "\n")
     run = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=600,
                          env=dict(os.environ, OMP_NUM_THREADS="1"))
     out = folder / "job.dat"
     assert run.returncode == 0 and out.exists(), run.stdout[-3000:] + run.stderr[-2000:]
-    U = np.full(X.shape, np.nan)
-    last = out.read_text().split("displacements (vx,vy,vz)")[-1]  # the last increment's
-    for line in last.strip().splitlines()[1:]:
+    return out.read_text()
+
+
+def last_displacements(text: str, n_nodes: int) -> np.ndarray:
+    """The (n, 3) displacements of the last increment a job.dat printed for NALL."""
+    U = np.full((n_nodes, 3), np.nan)
+    for line in text.split("displacements (vx,vy,vz)")[-1].strip().splitlines()[1:]:
         p = line.split()
         if len(p) == 4:
             U[int(p[0]) - 1] = [float(v) for v in p[1:]]
     assert np.isfinite(U).all(), "ccx printed no displacement for some nodes"
     return U
+
+
+def ccx_static(model: rt.SolidModel, forces: np.ndarray, fixed: np.ndarray, folder: Path, *,
+               nlgeom: bool = False, increments: int = 10) -> np.ndarray:
+    """ccx's static displacements (n, 3) of ``model``'s mesh and material, all dofs of the nodes
+    ``fixed`` held, dead nodal ``forces`` (n, 3)."""
+    mat = model.material
+    lines = mesh_lines(model, "rtfem verification")
+    lines += ["*NSET,NSET=FIX"] + [f"{i + 1}," for i in fixed.tolist()]
+    lines += ["*BOUNDARY", "FIX,1,3", "*MATERIAL,NAME=M", "*ELASTIC", f"{float(mat.E)!r},{float(mat.nu)!r}",
+              "*SOLID SECTION,ELSET=EALL,MATERIAL=M"]
+    lines += ["*STEP,NLGEOM,INC=1000", "*STATIC", f"{1 / increments!r},1.0"] if nlgeom else ["*STEP", "*STATIC"]
+    lines += ["*CLOAD"] + [f"{i + 1},{d + 1},{float(forces[i, d])!r}" for i, d in zip(*np.nonzero(forces))]
+    lines += ["*NODE PRINT,NSET=NALL", "U", "*END STEP"]
+    return last_displacements(run_ccx(lines, folder), model.n_nodes)
 
 
 def _beam(element: str, L: float = 0.1, h: float = 0.01):

@@ -9,14 +9,11 @@ The ccx fixture (skip without ccx, fail under RTFEM_REQUIRE_CCX=1) is test_calcu
 
 from __future__ import annotations
 
-import os
-import subprocess
-
 import numpy as np
 import pytest
 
 import rtfem as rt
-from test_calculix import CCX, _need_ccx  # noqa: F401 - the autouse fixture
+from test_calculix import _need_ccx, last_displacements, mesh_lines, run_ccx  # noqa: F401 - the autouse fixture
 
 LAWS = {
     "neo-hookean": (rt.NeoHookean(mu=2000.0, kappa=1e5, density=1000.0), "NEO HOOKE"),
@@ -39,12 +36,7 @@ def _constants(law) -> list[float]:
 def ccx_platens(model, law, keyword: str, base, top, squeeze: float, folder):
     """ccx's (total force on the top set (3,), displacements (n, 3)) of ``model``'s mesh: ``base``
     clamped, ``top`` held in x, y and moved by -squeeze in z."""
-    X, T = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
-    lines = ["*HEADING", "rtfem hyperelastic verification", "*NODE"]
-    lines += [f"{i + 1},{x!r},{y!r},{z!r}" for i, (x, y, z) in enumerate(X.tolist())]
-    lines += ["*ELEMENT,TYPE=C3D4,ELSET=EALL"] + [f"{e + 1}," + ",".join(str(v + 1) for v in t)
-                                                 for e, t in enumerate(T.tolist())]
-    lines += ["*NSET,NSET=NALL,GENERATE", f"1,{len(X)},1"]
+    lines = mesh_lines(model, "rtfem hyperelastic verification")
     lines += ["*NSET,NSET=BASE"] + [f"{i + 1}," for i in base.tolist()]
     lines += ["*NSET,NSET=TOP"] + [f"{i + 1}," for i in top.tolist()]
     lines += ["*MATERIAL,NAME=M", f"*HYPERELASTIC,{keyword}", ",".join(repr(float(c)) for c in _constants(law)),
@@ -52,21 +44,9 @@ def ccx_platens(model, law, keyword: str, base, top, squeeze: float, folder):
               "*STEP,NLGEOM,INC=1000", "*STATIC", "0.1,1.0", "*CONTROLS,PARAMETERS=FIELD", ",".join(["1e-8"] * 7),
               "*BOUNDARY", f"TOP,3,3,{-squeeze!r}", "*NODE PRINT,NSET=TOP,TOTALS=ONLY", "RF",
               "*NODE PRINT,NSET=NALL", "U", "*END STEP"]
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "job.inp").write_text("\n".join(lines) + "\n")
-    run = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=600,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
-    out = folder / "job.dat"
-    assert run.returncode == 0 and out.exists(), run.stdout[-3000:] + run.stderr[-2000:]
-    text = out.read_text()
+    text = run_ccx(lines, folder)
     force = np.array([float(v) for v in text.split("total force (fx,fy,fz)")[-1].splitlines()[2].split()])
-    U = np.full(X.shape, np.nan)
-    for line in text.split("displacements (vx,vy,vz)")[-1].strip().splitlines()[1:]:
-        p = line.split()
-        if len(p) == 4:
-            U[int(p[0]) - 1] = [float(v) for v in p[1:]]
-    assert np.isfinite(U).all(), "ccx printed no displacement for some nodes"
-    return force, U
+    return force, last_displacements(text, model.n_nodes)
 
 
 @pytest.mark.parametrize("name", list(LAWS))
