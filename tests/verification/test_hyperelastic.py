@@ -177,6 +177,13 @@ def test_bad_laws_and_unsupported_uses_are_refused():
             make()
     P, W, dP = rt.NeoHookean(MU, KAPPA).stress(np.diag([1.0, 1.0, -0.5])[None])
     assert np.isnan(P).all() and np.isinf(W).all() and np.isnan(dP).all()
+    F = np.eye(3)[None] + np.array([[[0.1, 0.2, 0.0], [0.0, -0.1, 0.05], [0.0, 0.0, 0.2]]])
+    for law in _laws().values():  # scaled(f): every stress times f, the law itself unchanged; a bad f refused
+        before = repr(law)
+        np.testing.assert_allclose(law.scaled(2.5).stress(F, False)[0], 2.5 * law.stress(F, False)[0], rtol=1e-12)
+        with pytest.raises(ModelError, match="factor"):
+            law.scaled(-1.0)
+        assert repr(law) == before
 
 
 @pytest.mark.parametrize("name", ["neo-hookean", "ogden"])
@@ -286,3 +293,6 @@ def test_fit_material_recovers_known_laws_and_its_fit_holds_in_the_solver():
                        ((-lam, noisy), "> 0"), ((lam[:1], noisy[:1], "mooney-rivlin"), "more")]:
         with pytest.raises(ModelError, match=match):
             rt.fit_material(*bad)
+    for bad_kwargs in ({"kappa": -1.0}, {"kappa_ratio": 0.0}):
+        with pytest.raises(ModelError, match="kappa"):
+            rt.fit_material(lam, noisy, **bad_kwargs)

@@ -78,6 +78,8 @@ def fit_material(stretch, stress, law: str = "neo-hookean", *, terms: int = 1, k
     if (lam <= 0).any() or np.all(np.abs(lam - 1) < 1e-12):
         raise ModelError("fit_material: stretches must be > 0 and not all 1 (l / l0 of a tension or compression test)")
     terms = validate.count(terms, "terms", 1, 3)
+    kappa = None if kappa is None else validate.positive(kappa, "kappa", "the bulk modulus in Pa")
+    kappa_ratio = validate.positive(kappa_ratio, "kappa_ratio", "kappa / mu, e.g. 50")  # before any fitting
     n_params = {"neo-hookean": 1, "mooney-rivlin": 2, "ogden": 2 * terms}[name]
     if lam.size < n_params:
         raise ModelError(f"fit_material: {lam.size} data points for {n_params} parameters: give more")
@@ -110,8 +112,7 @@ def fit_material(stretch, stress, law: str = "neo-hookean", *, terms: int = 1, k
     if not mu > 0:
         raise ModelError(f"fit_material: the best {name} fit has an initial shear modulus of {mu:g} Pa (unstable): "
                          "try another law, fewer terms, or data over a wider stretch range")
-    k = validate.positive(kappa, "kappa", "the bulk modulus in Pa") if kappa is not None else \
-        validate.positive(kappa_ratio, "kappa_ratio", "kappa / mu, e.g. 50") * mu
+    k = kappa if kappa is not None else kappa_ratio * mu
     if name == "neo-hookean":
         fitted = NeoHookean(float(p[0]), k, density)
     elif name == "mooney-rivlin":
