@@ -154,6 +154,24 @@ def predictions(driver, nodes: np.ndarray) -> np.ndarray:
     return np.array([driver.predict(int(i)) for i in np.asarray(nodes).tolist()]).reshape(-1, 3)
 
 
+def trial_displacements(driver, forces, nodes: np.ndarray) -> np.ndarray:
+    """(k, 3) displacements of ``nodes`` after one step under ``forces`` from the driver's present
+    state, which is left as it is (a scene's trial step): the driver's own ``trial_displacements``
+    when it has one, else :func:`stepped_trial`."""
+    fn = getattr(driver, "trial_displacements", None)
+    return fn(forces, nodes) if fn is not None else stepped_trial(driver, forces, nodes)
+
+
+def stepped_trial(driver, forces, nodes: np.ndarray) -> np.ndarray:
+    """:func:`trial_displacements` by the protocol: a step, the displacements, the state restored."""
+    state = driver.get_state()
+    try:
+        driver.step(forces)
+        return displacements_at(driver, nodes)
+    finally:
+        driver.set_state(state)
+
+
 def step_compliances(driver, nodes, loaded=None) -> np.ndarray:
     """The one-step cross compliances of a contact set, (3k, 3l): block (a, b) is the displacement
     of ``nodes[a]`` after one step per unit force on ``loaded[b]`` (default: ``nodes``), so that

@@ -23,7 +23,7 @@ import numpy as np
 from .. import validate
 from ..errors import ModelError
 from ..fe.rotations import integrated_rotation, rotation
-from .base import rows_times
+from .base import rows_times, stepped_trial
 from .modal import ModalSimulator
 
 __all__ = ["WarpedModalSimulator", "rotation", "integrated_rotation"]
@@ -113,6 +113,11 @@ class WarpedModalSimulator(ModalSimulator):
             out[...] = u
             return out
         return u.astype(dtype, copy=False)
+
+    def trial_displacements(self, forces, nodes: np.ndarray) -> np.ndarray:
+        """(k, 3) displacements of ``nodes`` after one step under ``forces``, the state unchanged
+        (the warped step rotates the loads: a step, read, and the state restored)."""
+        return stepped_trial(self, forces, nodes)
 
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         nodes = validate.nodes(nodes, self.n_nodes)

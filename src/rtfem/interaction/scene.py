@@ -29,11 +29,12 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
-from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances
+from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances, trial_displacements
 from ..mesh.surface import TriMesh
 from .friction import pgs
-from .scene_obstacles import MeshObstacle, nearest_face_points, on_faces, pair_search
-from .scene_tools import SceneTool, _frame, _frames, face_point
+from .scene_obstacles import MeshObstacle, pair_search
+from .scene_points import PointSet, assemble, pair_faces, probe_points
+from .scene_tools import SceneTool, _frame
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
 
@@ -126,6 +127,7 @@ class Body:
         self.normals = self.mesh.vertex_normals()[self.surface]
         self.local = np.full(self.X.shape[0], -1, dtype=np.int64)  # a node's place in surface, -1 off it
         self.local[self.surface] = np.arange(self.surface.size)
+        self.tri_local = np.ascontiguousarray(self.local[np.asarray(self.mesh.triangles)])  # corners in surface order
         edges = np.linalg.norm(np.diff(self.X[np.asarray(self.mesh.triangles)][:, [0, 1]], axis=1)[:, 0], axis=1)
         self.edge = float(np.median(edges))
         self.longest = float(np.max(np.linalg.norm(self.X[np.asarray(self.mesh.triangles)]
@@ -184,21 +186,6 @@ class Attachment:
         self.rest = self.b.X[self.nodes_b] - self.a.X[self.nodes_a]
 
 
-@dataclass
-class _Point:
-    """A contact point: its frame (columns: the normal from the other side, two tangents), its gap and
-    slip after the trial steps, Coulomb's coefficient, and its sides: (body index, nodes, weights)
-    (the first side gets +frame r at weight 1, a second -frame r spread by its barycentric weights)."""
-
-    frame: np.ndarray
-    gap: float
-    slip: np.ndarray
-    friction: float
-    sides: tuple
-    pair: tuple[str, str]
-    tool: int = -1  # the scene tool it touches (its coupling adds to A), or -1
-
-
 def _model_of(driver):
     for path in (("model",), ("modes", "model"), ("reduced", "model")):
         obj = driver
@@ -240,6 +227,7 @@ class Scene:
         #: the force (N) of each obstacle on each body in the last step: {(body, obstacle): (3,)}
         self.contacts: dict[tuple[str, str], np.ndarray] = {}
         self.sweeps = 0
+        self.compiled = True  # the compiled contact search where numba is present (False: numpy)
 
     def _name_free(self, name: str) -> None:
         if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools)):
@@ -318,9 +306,15 @@ class Scene:
             tool.begin(t1, self.bodies)
         springs = self.attachments + [tool.held for tool in self.tools if tool.held is not None]
         weights = [b.masses[:, None] * self.gravity[None, :] + b.loads for b in self.bodies]  # and the loads held
-        held = self._attachment_loads(springs, weights)
-        trials = [self._trial(b, weights[k] + held[k]) for k, b in enumerate(self.bodies)]  # (loads, now, a step on)
-        points = self._plane_points(trials) + self._pair_points(trials) + self._tool_points(trials)
+        spring_nodes = self._spring_nodes(springs)
+        base = [self._trial(b, weights[k], spring_nodes.get(k)) for k, b in enumerate(self.bodies)]
+        held = self._attachment_loads(springs, base)
+        trials = [self._held_trial(k, base[k], held[k], spring_nodes.get(k)) for k in range(len(self.bodies))]
+        points = PointSet()
+        self._plane_points(trials, points)
+        self._pair_points(trials, points)
+        self._tool_points(trials, points)
+        points = points.join()
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
         for a in self.bodies:
@@ -331,8 +325,8 @@ class Scene:
             contacts[(att.a.name, att.name)] = self._held_force[att.name].copy()
             if att.b is not None:
                 contacts[(att.b.name, att.name)] = -self._held_force[att.name]
-        if points:
-            self._solve(points, trials, loads, contacts)
+        if points is not None:
+            self._solve(points, loads, contacts)
         for body, F in zip(self.bodies, loads):
             body.driver.step(F)
         for tool in self.tools:
@@ -345,12 +339,23 @@ class Scene:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):
             self.step()
 
-    def _attachment_loads(self, springs, weights) -> list[np.ndarray]:
+    def _spring_nodes(self, springs) -> dict[int, np.ndarray]:
+        """{body index: the nodes its springs hold (sorted)} for the bodies with springs."""
+        index = {b.name: k for k, b in enumerate(self.bodies)}
+        ends: dict[int, list] = {}
+        for att in springs:
+            ends.setdefault(index[att.a.name], []).append(att.nodes_a)
+            if att.b is not None:
+                ends.setdefault(index[att.b.name], []).append(att.nodes_b)
+        return {k: np.unique(np.concatenate(v)) for k, v in ends.items()}
+
+    def _attachment_loads(self, springs, base) -> list[np.ndarray]:
         """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
         graspers' springs); the total of each set on its first body in :attr:`_held_force`.
 
         With e the springs' stretch after a step under the weights and loads alone (a's node past
-        its anchor or its pair's), and A = J (sum_k W_k) J^T the stretch per unit spring force
+        its anchor or its pair's; ``base``: each body's trial step under them, with the displacements
+        of its springs' nodes), and A = J (sum_k W_k) J^T the stretch per unit spring force
         (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f): (I / k + A) f = -e."""
         out = [np.zeros((b.driver.n_nodes, 3)) for b in self.bodies]
         self._held_force = {}
@@ -364,11 +369,7 @@ class Scene:
         e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in springs])
         J, solve = self._spring_system(springs, index, ends, start, sizes)
         for k, (nodes, Jk) in J.items():
-            body, d = self.bodies[k], self.bodies[k].driver
-            state = d.get_state()
-            d.step(weights[k])
-            x = body.X[nodes] + displacements_at(d, nodes)
-            d.set_state(state)
+            x = self.bodies[k].X[nodes] + base[k][3]  # J's nodes are the body's spring nodes, sorted
             e += (Jk @ x.reshape(-1)).reshape(-1, 3)
         f = solve(-e.reshape(-1)).reshape(-1, 3)
         for a_index, att in enumerate(springs):
@@ -421,33 +422,52 @@ class Scene:
         return J, solve
 
     @staticmethod
-    def _trial(body: Body, F: np.ndarray):
-        """The body's loads F (its weight, the loads it holds, the springs'), and its surface's
-        displacements now and after a step under them alone."""
+    def _trial(body: Body, F: np.ndarray, extra: np.ndarray | None = None):
+        """The body's loads F, its surface's displacements now and after a step under F alone, and
+        (with ``extra`` nodes) those nodes' displacements after that step."""
         d = body.driver
-        state = d.get_state()
-        now = displacements_at(d, body.surface)
-        d.step(F)
-        trial = displacements_at(d, body.surface)
-        d.set_state(state)
-        return F, now, trial
+        nodes = body.surface if extra is None else np.concatenate([body.surface, extra])  # one set: the
+        ns = body.surface.size                                                            # driver keeps its rows
+        now = displacements_at(d, nodes)[:ns]
+        after = trial_displacements(d, F, nodes)
+        return F, now, after[:ns], (None if extra is None else after[ns:])
 
-    def _plane_points(self, trials) -> list[_Point]:
-        points = []
+    def _held_trial(self, k: int, base, held: np.ndarray, nodes: np.ndarray | None):
+        """Body k's trial (loads, now, a step on) under its weight and loads and the springs' forces
+        ``held`` on ``nodes``: the trial under the weight plus the springs' response, W (surface,
+        nodes) held (the step is affine in the loads; W kept while the nodes are the same), or for a
+        driver whose compliances follow its motion a trial step of its own."""
+        F, now, trial, _ = base
+        if nodes is None:
+            return F, now, trial
+        body = self.bodies[k]
+        if getattr(body.driver, "compliance_changes", True):
+            return self._trial(body, F + held)[:3]
+        cache = self.__dict__.setdefault("_held_cache", {})
+        kept = cache.get(k)
+        if kept is None or not np.array_equal(kept[0], nodes):
+            kept = cache[k] = (nodes.copy(), step_compliances(body.driver, body.surface, nodes))
+        return F + held, now, trial + (kept[1] @ held[nodes].reshape(-1)).reshape(-1, 3)
+
+    def _names(self) -> list[str]:
+        """The bodies', obstacles' and tools' names: a point's pair (a, b) indexes them."""
+        return [x.name for x in (*self.bodies, *self.obstacles, *self.tools)]
+
+    def _plane_points(self, trials, points: PointSet) -> None:
+        nb = len(self.bodies)
         for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
             x = body.X[body.surface] + trial
-            for obstacle in self.obstacles:
+            for o, obstacle in enumerate(self.obstacles):
                 idx, gaps, normals = obstacle.contacts(x, self.margin * body.edge)
-                for i, gap, frame in zip(idx.tolist(), gaps.tolist(), _frames(normals)):
-                    points.append(_Point(frame, gap, trial[i] - now[i], obstacle.friction,
-                                         ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, obstacle.name)))
-        return points
+                if idx.size:
+                    points.vertices(normals, gaps, trial[idx] - now[idx], obstacle.friction, k, nb + o,
+                                    k, body.surface[idx])
 
     #: a body pair's candidate lists (which vertices of a near which triangles of b) are searched
     #: again once the two surfaces moved this fraction of the margin since the last search
     SLACK = 0.25
 
-    def _pair_points(self, trials) -> list[_Point]:
+    def _pair_points(self, trials, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` edges of another body's surface (after the
         trial steps), against the closest point of that surface: both directions of every pair.
 
@@ -455,12 +475,11 @@ class Scene:
         reach + margin + slack) are kept from step to step while the two surfaces move less than
         the slack since they were searched (Verlet lists): a vertex left out was then further than
         the margin plus the slack, and cannot have come within the margin."""
-        points = []
         if len(self.bodies) < 2:
-            return points
+            return
         cache = self.__dict__.setdefault("_pair_cache", {})
         for kb, (b, (_, now_b, trial_b)) in enumerate(zip(self.bodies, trials)):
-            tri = np.asarray(b.mesh.triangles)
+            Ys = b.X[b.surface] + trial_b
             for ka, (a, (_, now_a, trial_a)) in enumerate(zip(self.bodies, trials)):
                 if a is b:
                     continue
@@ -474,23 +493,21 @@ class Scene:
                 if cand.size == 0:
                     continue
                 x = a.X[a.surface[cand]] + trial_a[cand]
-                used, inverse = np.unique(tris, return_inverse=True)
-                Y = b.X[tri[used]] + trial_b[b.local[tri[used]]]  # only the listed triangles, deformed
-                normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
-                normals /= np.linalg.norm(normals, axis=1)[:, None]
-                t_loc = inverse.reshape(tris.shape)
-                rows = np.arange(cand.size)
-                best, q, w, _ = nearest_face_points(x, Y, t_loc, valid)
-                t_best = tris[rows, best]
-                n = normals[t_loc[rows, best]]
-                gap, on = on_faces(x, q, n, margin, b.edge)
+                best, gap, n, w, on = pair_faces(x, Ys, b.tri_local, tris, valid, margin, b.edge, self.compiled)
                 keep = np.flatnonzero(on)
-                for c, frame in zip(keep.tolist(), _frames(n[keep])):
-                    i, corners, wc = int(cand[c]), tri[t_best[c]], w[c]
-                    slip = (trial_a[i] - now_a[i]) - wc @ (trial_b[b.local[corners]] - now_b[b.local[corners]])
-                    points.append(_Point(frame, float(gap[c]), slip, self.friction,
-                                         ((ka, a.surface[i:i + 1], np.ones(1)), (kb, corners, -wc)), (a.name, b.name)))
-        return points
+                if keep.size == 0:
+                    continue
+                i, corners, wc = cand[keep], b.tri_local[best[keep]], w[keep]
+                slip = (trial_a[i] - now_a[i]) - np.einsum("cj,cjd->cd", wc, trial_b[corners] - now_b[corners])
+                m = keep.size
+                sk = np.tile(np.array([ka, kb], dtype=np.int64), (m, 1))
+                sn = np.empty((m, 2, 3), dtype=np.int64)
+                sn[:, 0, :] = a.surface[i][:, None]
+                sn[:, 1, :] = b.surface[corners]
+                sw = np.zeros((m, 2, 3))
+                sw[:, 0, 0] = 1.0
+                sw[:, 1, :] = -wc
+                points.add(n[keep], gap[keep], slip, self.friction, ka, kb, -1, sk, sn, sw)
 
     def _compliances(self, k: int, nodes: np.ndarray) -> np.ndarray:
         """Body k's one-step compliances of ``nodes`` (3n, 3n), the last set's kept while it is the
@@ -504,82 +521,76 @@ class Scene:
             self._compliance_cache[k] = (nodes.copy(), W)
         return W
 
-    def _tool_points(self, trials) -> list[_Point]:
+    def _tool_points(self, trials, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
         the tool where last step's force leaves it, with their slip relative to its move."""
-        points = []
+        nb, no = len(self.bodies), len(self.obstacles)
         for j, tool in enumerate(self.tools):
             if tool.kind != "probe":
                 continue
             x_e, move = tool.expected(), tool.target - tool.proxy
             for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
-                x = body.X[body.surface] + trial
                 margin = self.margin * body.edge
                 # vertices within an edge beyond reach: the face point between them may touch
-                cand = np.flatnonzero(np.linalg.norm(x - x_e, axis=1) < tool.shape.reach + margin + body.longest)
-                if cand.size == 0:
-                    continue
-                gaps, n = tool.shape.distance(x[cand], x_e, body.normals[cand])
-                touching = np.flatnonzero(gaps < margin)
-                for c, frame in zip(touching.tolist(), _frames(n[touching])):
-                    i = int(cand[c])
-                    points.append(_Point(frame, float(gaps[c]), trial[i] - now[i] - move, tool.friction,
-                                         ((k, body.surface[i:i + 1], np.ones(1)),), (body.name, tool.name), j))
-                face = face_point(body, now, trial, tool, x_e, margin, cand)
+                i, gaps, n, face = probe_points(body.X[body.surface] + trial, body.normals, body.tri_local, tool.shape,
+                                                x_e, tool.shape.reach + margin + body.longest, margin, self.compiled)
+                points.vertices(n, gaps, trial[i] - now[i] - move, tool.friction,
+                                k, nb + no + j, k, body.surface[i], j)
                 if face is not None:  # a probe smaller than the triangles does not pass between the vertices
-                    frame, gap, corners, w, slip = face
-                    points.append(_Point(frame, gap, slip - move, tool.friction, ((k, corners, w),),
-                                         (body.name, tool.name), j))
-        return points
+                    t, gap, push, w = face
+                    corners = body.tri_local[t]
+                    slip = w @ (trial[corners] - now[corners]) - move
+                    sn = np.zeros((1, 2, 3), dtype=np.int64)
+                    sn[0, 0] = body.surface[corners]
+                    sw = np.zeros((1, 2, 3))
+                    sw[0, 0] = w
+                    points.add(push[None], [gap], slip[None], tool.friction, k, nb + no + j, j,
+                               np.array([[k, -1]]), sn, sw)
 
-    def _solve(self, points, trials, loads, contacts) -> None:
-        """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G."""
-        m = len(points)
-        F = np.stack([pt.frame for pt in points])  # (m, 3, 3): G's diagonal blocks
+    def _solve(self, P: dict, loads, contacts) -> None:
+        """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G
+        (G: the points' frames; P_k: each point's displacement per unit displacement of body k's nodes)."""
+        F, m = P["frame"], P["gap"].size  # F (m, 3, 3): G's diagonal blocks
         b = np.empty((m, 3))
-        b[:, 0] = [pt.gap for pt in points]
-        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], np.array([pt.slip for pt in points]))
-        rows, ks, nodes, weights = [], [], [], []  # each side's nodes: (point, body, node, weight)
-        for c, pt in enumerate(points):
-            for k, ns, ws in pt.sides:
-                rows += [c] * len(ns)
-                ks += [k] * len(ns)
-                nodes += ns.tolist()
-                weights += ws.tolist()
-        rows, ks, nodes, weights = np.array(rows), np.array(ks), np.array(nodes, dtype=np.int64), np.array(weights)
-        A = np.zeros((m, 3, m, 3))
+        b[:, 0] = P["gap"]
+        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], P["slip"])
+        sk, sn, sw = P["sk"], P["sn"], P["sw"]
+        on = (sk >= 0)[:, :, None] & (sw != 0.0)  # the sides' nodes that move the points
+        stride = 1 + max(body.driver.n_nodes for body in self.bodies)
+        used, slot = np.unique((sk[:, :, None] * stride + sn)[on], return_inverse=True)  # sorted body by body
+        slots = np.full(sn.shape, -1, dtype=np.int64)
+        slots[on] = slot
+        W = np.zeros((3 * used.size, 3 * used.size))  # the bodies' compliances of those nodes, block diagonal
         maps = []
-        for k in np.unique(ks).tolist():
-            on = ks == k
-            used, slot = np.unique(nodes[on], return_inverse=True)
-            Pw = np.zeros((m, used.size))  # point c's displacement per unit displacement of body k's node
-            np.add.at(Pw, (rows[on], slot), weights[on])
-            W = self._compliances(k, used).reshape(used.size, 3, used.size, 3)
-            A += np.tensordot(np.tensordot(Pw, W, axes=(1, 0)), Pw, axes=(2, 1)).transpose(0, 1, 3, 2)
-            maps.append((k, used, Pw))
-        A = A.reshape(3 * m, 3 * m)
+        for k in np.unique(used // stride).tolist():
+            at = np.flatnonzero(used // stride == k)
+            nodes = used[at] % stride
+            block = slice(3 * at[0], 3 * at[-1] + 3)
+            W[block, block] = self._compliances(k, nodes)
+            maps.append((k, nodes, at))
+        A = assemble(F, slots, sw, W, self.compiled)  # G^T (sum_k P_k W_k P_k^T) G
         for j, tool in enumerate(self.tools):  # a coupled probe's proxy moves by the sum of its forces / k
-            on = np.flatnonzero([pt.tool == j for pt in points])
-            if on.size and tool.stiffness is not None:
-                rows3 = (3 * on[:, None] + np.arange(3)).ravel()
-                A[np.ix_(rows3, rows3)] += np.tile(np.eye(3), (on.size, on.size)) / tool.stiffness
-                b[on, 0] -= F[on, :, 0] @ tool.force / tool.stiffness
-        G = np.zeros((m, 3, m, 3))
-        G[np.arange(m), :, np.arange(m), :] = F
-        G = G.reshape(3 * m, 3 * m)
-        A = G.T @ A @ G
-        mu = np.array([pt.friction for pt in points])
+            mine = np.flatnonzero(P["tool"] == j)
+            if mine.size and tool.stiffness is not None:
+                E = F[mine].transpose(0, 2, 1).reshape(3 * mine.size, 3)  # the points' frames against the world's
+                rows3 = (3 * mine[:, None] + np.arange(3)).ravel()
+                A[np.ix_(rows3, rows3)] += E @ E.T / tool.stiffness
+                b[mine, 0] -= F[mine, :, 0] @ tool.force / tool.stiffness
         normal = np.diag(A)[0::3]
         free = normal > 1e-12 * max(float(normal.max()), 1e-300)  # a point on held nodes on both sides: the
         r = np.zeros(3 * m)                                          # supports take it, it moves nothing
         if free.any():
             rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
-            r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), mu[free])
+            r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), P["mu"][free])
         f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))  # each point's force on its first side (the reaction on the second)
-        for k, used, Pw in maps:
-            loads[k][used] += Pw.T @ f
-        for pt, fc in zip(points, f):
-            a, other = pt.pair
-            contacts[(a, other)] += fc
-            if any(x.name == other for x in self.bodies):
-                contacts[(other, a)] -= fc
+        node_force = np.zeros((used.size, 3))  # +w f on a point's first side, -w f (w < 0) on its second
+        np.add.at(node_force, slot, sw[on][:, None] * np.broadcast_to(f[:, None, None, :], (*sn.shape, 3))[on])
+        for k, nodes, at in maps:
+            loads[k][nodes] += node_force[at]
+        names, nb = self._names(), len(self.bodies)
+        total = np.zeros((nb, len(names), 3))
+        np.add.at(total, (P["a"], P["b"]), f)
+        between = P["b"] < nb  # a body on a body: the reaction on the other
+        np.add.at(total, (P["b"][between], P["a"][between]), -f[between])
+        for a, e in zip(*np.nonzero(np.any(total != 0.0, axis=2))):
+            contacts[(names[a], names[e])] += total[a, e]

@@ -32,7 +32,7 @@ from ..errors import ModelError
 from ..drivers.base import displacements_at
 from .contact import Tool
 
-__all__ = ["SceneTool", "Keyframes", "face_point"]
+__all__ = ["SceneTool", "Keyframes"]
 
 KINDS = ("probe", "grasper")
 
@@ -203,36 +203,3 @@ class Keyframes:
         from .devices.base import ScriptedDevice
 
         return ScriptedDevice(self, buttons=self.buttons)
-
-
-def face_point(body, now, trial, tool, x_e, margin, cand):
-    """The point of the body's deformed surface (after the trial step) closest to a probe's core,
-    on a triangle: (frame, gap, corners, barycentric weights, slip), or None beyond ``margin``.
-    ``cand``: the surface vertices (indices into ``body.surface``) within the tool's reach, the
-    margin and the body's longest edge: the triangles looked at are those with a corner among them."""
-    from .contact_points import closest_points_on_triangles
-
-    local = body.local
-    mark = np.zeros(body.surface.size, dtype=bool)
-    mark[cand] = True
-    tri_all = np.asarray(body.mesh.triangles)
-    near = np.flatnonzero(mark[local[tri_all]].any(axis=1))
-    if near.size == 0:
-        return None
-    tri = tri_all[near]
-    Yn = body.X[tri] + trial[local[tri]]
-    q, w = closest_points_on_triangles(tool.shape.core(Yn.mean(axis=1), x_e), Yn[:, 0], Yn[:, 1], Yn[:, 2])
-    core_q = tool.shape.core(q, x_e)
-    v = q - core_q
-    dist = np.linalg.norm(v, axis=1)
-    best = int(np.argmin(dist))
-    normal = np.cross(Yn[best, 1] - Yn[best, 0], Yn[best, 2] - Yn[best, 0])
-    normal /= np.linalg.norm(normal)
-    outside = v[best] @ normal < 0  # the core on the outer side of the face
-    gap = (dist[best] if outside else -dist[best]) - tool.shape.radius
-    if gap >= margin:
-        return None
-    n = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
-    corners = tri[best]
-    slip = w[best] @ (trial[local[corners]] - now[local[corners]])
-    return _frame(n), float(gap), corners, w[best], slip

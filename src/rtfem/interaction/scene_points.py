@@ -1,0 +1,325 @@
+"""A scene step's contact points in arrays (one row a point), and the compiled search of a body's
+vertices against another body's triangles; see :mod:`rtfem.interaction.scene`.
+
+Each point has its frame (columns: the normal from the other side, two tangents), its gap and
+slip after the trial steps, Coulomb's coefficient, the pair it is recorded under (``a``: a body's
+index; ``b``: the index of the body, obstacle or tool it touches among the scene's names) and up
+to two sides, each a body's index (or -1), three nodes and their weights: the first side gets
++frame r, the second -frame r (a vertex: its node at weight 1; a face point: the triangle's
+corners at their barycentric weights, negated on the second side)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .contact_points import _closest_on_triangle
+
+__all__ = ["PointSet", "assemble", "pair_faces", "probe_points"]
+
+FIELDS = ("normal", "gap", "slip", "mu", "a", "b", "tool", "sk", "sn", "sw")
+
+
+class PointSet:
+    """Blocks of contact points gathered one by one, joined into arrays by :meth:`join`."""
+
+    def __init__(self) -> None:
+        self.blocks: list[tuple] = []
+
+    def vertices(self, normal, gap, slip, mu: float, a: int, b: int, body: int, nodes, tool: int = -1) -> None:
+        """Points on single vertices ``nodes`` of ``body`` (first side only)."""
+        m = len(gap)
+        if m == 0:
+            return
+        sn = np.zeros((m, 2, 3), dtype=np.int64)
+        sn[:, 0, :] = np.asarray(nodes)[:, None]
+        sw = np.zeros((m, 2, 3))
+        sw[:, 0, 0] = 1.0
+        sk = np.full((m, 2), -1, dtype=np.int64)
+        sk[:, 0] = body
+        self.add(normal, gap, slip, mu, a, b, tool, sk, sn, sw)
+
+    def add(self, normal, gap, slip, mu, a, b, tool, sk, sn, sw) -> None:
+        """Points with their unit normals (m, 3) (from the other side), gaps, slips (m, 3),
+        Coulomb's coefficient, pair (a, b), tool (or -1) and sides (body (m, 2), nodes (m, 2, 3),
+        weights (m, 2, 3))."""
+        m = len(gap)
+        if m:
+            self.blocks.append((normal, np.asarray(gap, dtype=float), slip, np.full(m, float(mu)), np.full(m, a),
+                                np.full(m, b), np.full(m, tool), sk, sn, sw))
+
+    @property
+    def m(self) -> int:
+        return sum(len(blk[1]) for blk in self.blocks)
+
+    def join(self) -> dict | None:
+        """{field: the points' array, and "frame" (m, 3, 3): columns the normal and two tangents}, or
+        None without points."""
+        if not self.blocks:
+            return None
+        from .scene_tools import _frames
+
+        out = {name: np.concatenate([blk[i] for blk in self.blocks]) for i, name in enumerate(FIELDS)}
+        out["frame"] = _frames(out["normal"])
+        return out
+
+
+def _pair_faces(x, Ys, tri, tris, valid, margin, edge, best, gap, n, w, on):
+    """For each point x[c] and its candidate triangles ``tris[c]`` (where ``valid``) of a surface
+    whose vertices are Ys (the triangles ``tri`` number them): the nearest triangle ``best[c]``, the
+    gap along its unit normal n[c], the closest point's barycentric weights w[c], and ``on[c]``:
+    within ``margin`` of the face and on its normal line (as :func:`~rtfem.interaction.scene_obstacles.nearest_face_points`
+    and :func:`~rtfem.interaction.scene_obstacles.on_faces` do it in numpy)."""
+    q = np.empty(3)
+    bary = np.empty(3)
+    A = np.empty(3)
+    B = np.empty(3)
+    C = np.empty(3)
+    for c in range(x.shape[0]):
+        p = x[c]
+        dmin = np.inf
+        on[c] = False
+        best[c] = -1
+        for j in range(tris.shape[1]):
+            if not valid[c, j]:
+                continue
+            t = tris[c, j]
+            for i in range(3):
+                A[i], B[i], C[i] = Ys[tri[t, 0], i], Ys[tri[t, 1], i], Ys[tri[t, 2], i]
+            _closest_on_triangle(p, A, B, C, q, bary)
+            d = math.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
+            if d < dmin:
+                dmin = d
+                best[c] = t
+                w[c, 0], w[c, 1], w[c, 2] = bary[0], bary[1], bary[2]
+        if best[c] < 0:
+            continue
+        t = best[c]
+        a0, a1, a2 = Ys[tri[t, 0], 0], Ys[tri[t, 0], 1], Ys[tri[t, 0], 2]
+        u0, u1, u2 = Ys[tri[t, 1], 0] - a0, Ys[tri[t, 1], 1] - a1, Ys[tri[t, 1], 2] - a2
+        v0, v1, v2 = Ys[tri[t, 2], 0] - a0, Ys[tri[t, 2], 1] - a1, Ys[tri[t, 2], 2] - a2
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        size = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        n0, n1, n2 = n0 / size, n1 / size, n2 / size
+        n[c, 0], n[c, 1], n[c, 2] = n0, n1, n2
+        for i in range(3):
+            q[i] = w[c, 0] * Ys[tri[t, 0], i] + w[c, 1] * Ys[tri[t, 1], i] + w[c, 2] * Ys[tri[t, 2], i]
+        d0, d1, d2 = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+        g = d0 * n0 + d1 * n1 + d2 * n2
+        gap[c] = g
+        l0, l1, l2 = d0 - g * n0, d1 - g * n1, d2 - g * n2
+        on[c] = abs(g) < margin and math.sqrt(l0 * l0 + l1 * l1 + l2 * l2) <= 1e-3 * edge + 1e-12
+
+
+def _core(p0, p1, p2, c, R, half, q):
+    """q (3,): the tool core's point closest to p (the core: the box [-half, half] in the frame R at c)."""
+    for k in range(3):
+        l = (p0 - c[0]) * R[0, k] + (p1 - c[1]) * R[1, k] + (p2 - c[2]) * R[2, k]
+        q[3 + k] = min(max(l, -half[k]), half[k])
+    for i in range(3):
+        q[i] = c[i] + q[3] * R[i, 0] + q[4] * R[i, 1] + q[5] * R[i, 2]
+
+
+def _probe(Ys, O, tri, c, R, half, radius, cutoff, margin, idx, gap, n, face_w, face):
+    """A probe's contacts on a surface (vertices Ys, outward normals O, triangles ``tri``) with the
+    core at c: the vertices within ``margin`` (``idx``, ``gap``, push direction ``n``; their count
+    returned) as :meth:`rtfem.Tool.distance` gives them, and in ``face`` (triangle, gap, n) and
+    ``face_w`` the closest point of a triangle with a corner within ``cutoff`` of c (triangle -1:
+    none within ``margin``), as :func:`probe_points`' numpy path finds it."""
+    q = np.empty(6)
+    near = np.zeros(Ys.shape[0], dtype=np.bool_)
+    count = 0
+    for v in range(Ys.shape[0]):
+        p0, p1, p2 = Ys[v, 0], Ys[v, 1], Ys[v, 2]
+        if (p0 - c[0]) ** 2 + (p1 - c[1]) ** 2 + (p2 - c[2]) ** 2 >= cutoff * cutoff:
+            continue
+        near[v] = True
+        _core(p0, p1, p2, c, R, half, q)
+        v0, v1, v2 = q[0] - p0, q[1] - p1, q[2] - p2
+        dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        vn = v0 * O[v, 0] + v1 * O[v, 1] + v2 * O[v, 2]
+        lateral = math.sqrt(max(v0 * v0 + v1 * v1 + v2 * v2 - vn * vn, 0.0))
+        above = vn >= 0 or lateral > radius + 1e-12
+        g = (dist if above else -dist) - radius
+        if g >= margin:
+            continue
+        idx[count], gap[count] = v, g
+        if above and dist > 1e-12:
+            n[count, 0], n[count, 1], n[count, 2] = -v0 / dist, -v1 / dist, -v2 / dist
+        else:
+            n[count, 0], n[count, 1], n[count, 2] = -O[v, 0], -O[v, 1], -O[v, 2]
+        count += 1
+    A, B, C = np.empty(3), np.empty(3), np.empty(3)
+    p, w, qq = np.empty(3), np.empty(3), np.empty(3)
+    best, dmin = -1, np.inf
+    for t in range(tri.shape[0]):
+        if not (near[tri[t, 0]] or near[tri[t, 1]] or near[tri[t, 2]]):
+            continue
+        for i in range(3):
+            A[i], B[i], C[i] = Ys[tri[t, 0], i], Ys[tri[t, 1], i], Ys[tri[t, 2], i]
+        _core((A[0] + B[0] + C[0]) / 3.0, (A[1] + B[1] + C[1]) / 3.0, (A[2] + B[2] + C[2]) / 3.0, c, R, half, q)
+        p[0], p[1], p[2] = q[0], q[1], q[2]
+        _closest_on_triangle(p, A, B, C, qq, w)
+        _core(qq[0], qq[1], qq[2], c, R, half, q)
+        d = math.sqrt((qq[0] - q[0]) ** 2 + (qq[1] - q[1]) ** 2 + (qq[2] - q[2]) ** 2)
+        if d < dmin:
+            dmin, best = d, t
+            face_w[0], face_w[1], face_w[2] = w[0], w[1], w[2]
+            face[4], face[5], face[6] = qq[0] - q[0], qq[1] - q[1], qq[2] - q[2]
+    face[0] = best
+    if best < 0:
+        return count
+    a0, a1, a2 = Ys[tri[best, 0], 0], Ys[tri[best, 0], 1], Ys[tri[best, 0], 2]
+    u0, u1, u2 = Ys[tri[best, 1], 0] - a0, Ys[tri[best, 1], 1] - a1, Ys[tri[best, 1], 2] - a2
+    e0, e1, e2 = Ys[tri[best, 2], 0] - a0, Ys[tri[best, 2], 1] - a1, Ys[tri[best, 2], 2] - a2
+    m0, m1, m2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0
+    size = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    m0, m1, m2 = m0 / size, m1 / size, m2 / size
+    v0, v1, v2 = face[4], face[5], face[6]
+    outside = v0 * m0 + v1 * m1 + v2 * m2 < 0  # the core on the outer side of the face
+    g = (dmin if outside else -dmin) - radius
+    if g >= margin:
+        face[0] = -1
+        return count
+    face[1] = g
+    if outside and dmin > 1e-12:
+        face[2], face[3], face[4] = v0 / dmin, v1 / dmin, v2 / dmin
+    else:
+        face[2], face[3], face[4] = -m0, -m1, -m2
+    return count
+
+
+def _assemble(F, slot, sw, W, A):
+    """A (3m, 3m): in the points' frames F (m, 3, 3), point d's displacement relative to its other
+    side per unit force at point c, sum over the sides' nodes (``slot`` into W's 3x3 blocks, -1
+    unused; weights ``sw``) of w_c w_d F_c^T W_pq F_d. Blocks of nodes of different bodies are zero
+    in W (block diagonal by body)."""
+    m = F.shape[0]
+    M = np.empty((3, 3))
+    T = np.empty((3, 3))
+    for c in range(m):
+        for d in range(m):
+            M[:] = 0.0
+            for s in range(2):
+                for i in range(3):
+                    p = slot[c, s, i]
+                    if p < 0:
+                        continue
+                    for t in range(2):
+                        for j in range(3):
+                            q = slot[d, t, j]
+                            if q < 0:
+                                continue
+                            w = sw[c, s, i] * sw[d, t, j]
+                            for x in range(3):
+                                for y in range(3):
+                                    M[x, y] += w * W[3 * p + x, 3 * q + y]
+            for x in range(3):
+                for b in range(3):
+                    T[x, b] = M[x, 0] * F[d, 0, b] + M[x, 1] * F[d, 1, b] + M[x, 2] * F[d, 2, b]
+            for a in range(3):
+                for b in range(3):
+                    A[3 * c + a, 3 * d + b] = F[c, 0, a] * T[0, b] + F[c, 1, a] * T[1, b] + F[c, 2, a] * T[2, b]
+
+
+def assemble(F: np.ndarray, slot: np.ndarray, sw: np.ndarray, W: np.ndarray, compiled: bool = True) -> np.ndarray:
+    """The contact problem's A (3m, 3m) in the points' frames: A = G^T (sum_k P_k W_k P_k^T) G with
+    G the frames F (m, 3, 3), each point's sides' nodes ``slot`` (m, 2, 3) into the blocks of W (3u,
+    3u; the bodies' one-step compliances, block diagonal by body; -1 for none) at weights ``sw``."""
+    m = F.shape[0]
+    if compiled and _assemble_compiled is not None:
+        A = np.empty((3 * m, 3 * m))
+        _assemble_compiled(np.ascontiguousarray(F), np.ascontiguousarray(slot), np.ascontiguousarray(sw),
+                           np.ascontiguousarray(W), A)
+        return A
+    u = W.shape[0] // 3
+    B = np.zeros((m, 3, u, 3))  # B[(c, a), (p, x)] = sum of w F[c, x, a] over c's nodes at slot p
+    c, s, i = np.nonzero(slot >= 0)
+    np.add.at(B, (c, slice(None), slot[c, s, i]), sw[c, s, i][:, None, None] * F[c].transpose(0, 2, 1))
+    B = B.reshape(3 * m, 3 * u)
+    return B @ W @ B.T
+
+
+_pair_faces_compiled = _probe_compiled = _assemble_compiled = None
+try:  # compiled when numba is present (the same code)
+    import numba as _numba
+
+    _opts = dict(cache=True, nogil=True, error_model="numpy")
+    _pair_faces_compiled = _numba.njit(**_opts)(_pair_faces)
+    _core = _numba.njit(**_opts)(_core)
+    _probe_compiled = _numba.njit(**_opts)(_probe)
+    _assemble_compiled = _numba.njit(**_opts)(_assemble)
+except Exception:  # pragma: no cover - numba absent
+    pass
+
+
+def pair_faces(x: np.ndarray, Ys: np.ndarray, tri: np.ndarray, tris: np.ndarray, valid: np.ndarray,
+               margin: float, edge: float, compiled: bool = True):
+    """Points x (c, 3) against their candidate triangles ``tris`` (c, k) (``valid`` (c, k)) of the
+    surface Ys (vertices, numbered by ``tri``): (each point's nearest triangle (c,), gap (c,), unit
+    face normal (c, 3), barycentric weights (c, 3), whether it is a contact (c,)). Compiled where
+    numba is present, else numpy (the same numbers)."""
+    c = x.shape[0]
+    best, gap, n, w = np.zeros(c, dtype=np.int64), np.zeros(c), np.zeros((c, 3)), np.zeros((c, 3))
+    on = np.zeros(c, dtype=np.bool_)
+    if c == 0:
+        return best, gap, n, w, on
+    if compiled and _pair_faces_compiled is not None:
+        _pair_faces_compiled(np.ascontiguousarray(x), np.ascontiguousarray(Ys), np.ascontiguousarray(tri),
+                             np.ascontiguousarray(tris), np.ascontiguousarray(valid), float(margin), float(edge),
+                             best, gap, n, w, on)
+        return best, gap, n, w, on
+    from .scene_obstacles import nearest_face_points, on_faces
+
+    used, inverse = np.unique(tris, return_inverse=True)
+    Y = Ys[tri[used]]
+    normals = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    t_loc = inverse.reshape(tris.shape)
+    rows = np.arange(c)
+    col, q, w, _ = nearest_face_points(x, Y, t_loc, valid)
+    best = tris[rows, col]
+    n = normals[t_loc[rows, col]]
+    gap, on = on_faces(x, q, n, margin, edge)
+    return best, gap, n, w, on
+
+
+def probe_points(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position: np.ndarray, cutoff: float,
+                 margin: float, compiled: bool = True):
+    """A probe ``tool`` (an :class:`~rtfem.Tool`) at ``position`` against a surface (vertices Ys (s, 3),
+    outward normals O, triangles ``tri`` numbering Ys): the vertices within ``margin`` of it (indices,
+    gaps, push directions) and the closest point on a triangle with a corner within ``cutoff``:
+    (triangle, gap, push direction (3,), barycentric weights (3,)), or None beyond ``margin``."""
+    if compiled and _probe_compiled is not None:
+        s = Ys.shape[0]
+        idx, gap, n = np.empty(s, dtype=np.int64), np.empty(s), np.empty((s, 3))
+        face_w, face = np.zeros(3), np.zeros(7)
+        count = _probe_compiled(Ys, O, tri, np.asarray(position, dtype=float), tool.orientation, tool.half_extents,
+                                float(tool.radius), float(cutoff), float(margin), idx, gap, n, face_w, face)
+        found = None if face[0] < 0 else (int(face[0]), float(face[1]), face[2:5].copy(), face_w)
+        return idx[:count], gap[:count], n[:count], found
+    from .contact_points import closest_points_on_triangles
+
+    d = Ys - position
+    cand = np.flatnonzero(np.einsum("ij,ij->i", d, d) < cutoff * cutoff)
+    gaps, n = tool.distance(Ys[cand], position, O[cand])
+    touching = np.flatnonzero(gaps < margin)
+    mark = np.zeros(Ys.shape[0], dtype=bool)
+    mark[cand] = True
+    near = np.flatnonzero(mark[tri].any(axis=1))
+    found = None
+    if near.size:
+        Yn = Ys[tri[near]]
+        q, w = closest_points_on_triangles(tool.core(Yn.mean(axis=1), position), Yn[:, 0], Yn[:, 1], Yn[:, 2])
+        v = q - tool.core(q, position)
+        dist = np.linalg.norm(v, axis=1)
+        best = int(np.argmin(dist))
+        normal = np.cross(Yn[best, 1] - Yn[best, 0], Yn[best, 2] - Yn[best, 0])
+        normal /= np.linalg.norm(normal)
+        outside = v[best] @ normal < 0  # the core on the outer side of the face
+        g = (dist[best] if outside else -dist[best]) - tool.radius
+        if g < margin:
+            push = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
+            found = (int(near[best]), float(g), push, w[best])
+    return cand[touching], gaps[touching], n[touching], found
