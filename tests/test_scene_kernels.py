@@ -90,7 +90,15 @@ def test_assemble_equals_the_dense_products(use_compiled):
     G = np.zeros((3 * m, 3 * m))
     for c in range(m):
         G[3 * c:3 * c + 3, 3 * c:3 * c + 3] = Q[c]
-    np.testing.assert_allclose(assemble(Q, slot, sw, W, use_compiled), G.T @ P @ W @ P.T @ G, rtol=1e-12, atol=1e-12)
+    tool = np.array([-1, 0, 1, 0, -1, 1, 0])  # points of two probes on springs of 1/0.5 and 1/0.25 N/m
+    inv_k = np.array([0.5, 0.25])
+    C = np.zeros((3 * m, 3 * m))  # a probe's proxy moves by the sum of its points' forces / k
+    for c in range(m):
+        for d in range(m):
+            if tool[c] >= 0 and tool[c] == tool[d]:
+                C[3 * c:3 * c + 3, 3 * d:3 * d + 3] = inv_k[tool[c]] * np.eye(3)
+    np.testing.assert_allclose(assemble(Q, slot, sw, W, tool, inv_k, use_compiled), G.T @ (P @ W @ P.T + C) @ G,
+                               rtol=1e-12, atol=1e-12)
 
 
 def _same_steps(scenes, n):

@@ -48,6 +48,8 @@ def show(value: Any, limit: int = 60) -> str:
 def _float_array(value: Any) -> np.ndarray | None:
     """``value`` as a float array when it is real numeric data (not None, text, bools, objects
     or complex numbers); None otherwise. The one conversion behind every array check here."""
+    if type(value) is np.ndarray and value.dtype == np.float64:  # the common case, at run time
+        return value
     if value is None or isinstance(value, (str, bytes)):
         return None
     try:
@@ -306,7 +308,6 @@ def forces(value: Any, n: int, widths: Sequence[int] = (3,), *, error: type = Mo
     from collections.abc import Mapping
 
     w = max(widths)
-    shapes = " or ".join(f"({n}, {k})" for k in widths)
     F = np.zeros((n, w))
     if isinstance(value, Mapping):
         for key, f in value.items():
@@ -315,12 +316,14 @@ def forces(value: Any, n: int, widths: Sequence[int] = (3,), *, error: type = Mo
             F[i, : v.size] += v
         return F
     A = _float_array(value)
+    shapes = "" if A is not None and A.ndim == 2 and A.shape[0] == n and A.shape[1] in widths else \
+        " or ".join(f"({n}, {k})" for k in widths)
     if A is None:
         raise error(f"forces={show(value)} must be a {{node: (fx, fy, fz)}} mapping or an {shapes} array")
-    if A.ndim != 2 or A.shape[0] != n or A.shape[1] not in widths:
+    if shapes:
         raise error(f"forces must be a {{node: (fx, fy, fz)}} mapping or an {shapes} array, got shape {A.shape}")
-    bad = np.flatnonzero(~np.isfinite(A).all(axis=1))
-    if bad.size:
+    if not np.isfinite(A).all():
+        bad = np.flatnonzero(~np.isfinite(A).all(axis=1))
         raise error(f"non-finite (NaN or infinite) force at node {bad[0]} ({bad.size} nodes in all)")
     F[:, : A.shape[1]] = A
     return F

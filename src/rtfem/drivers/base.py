@@ -317,7 +317,8 @@ class StaticCorrection:
             return last[1]
         for base_key, base in reversed(list(self._D_array.items())):
             diff = F - np.frombuffer(base_key, dtype=F.dtype).reshape(F.shape)
-            nodes = np.flatnonzero(np.any(diff != 0.0, axis=1))
+            nz = diff != 0.0
+            nodes = np.flatnonzero(nz[:, 0] | nz[:, 1] | nz[:, 2])  # (n, 3): faster than any(axis=1)
             if nodes.size <= self.DIFF_NODES:
                 slots = self._pooled(nodes)
                 z = np.zeros(self._pool_used)

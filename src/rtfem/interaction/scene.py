@@ -314,7 +314,7 @@ class Scene:
         self._plane_points(trials, points)
         self._pair_points(trials, points)
         self._tool_points(trials, points)
-        points = points.join()
+        points = points.join(self.compiled)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
         for a in self.bodies:
@@ -406,18 +406,17 @@ class Scene:
         for k, (nodes, Jk) in J.items():
             A += Jk @ step_compliances(self.bodies[k].driver, nodes) @ Jk.T
         A += np.diag(np.repeat([1.0 / att.stiffness for att in springs], np.asarray(sizes) * 3))
+        constant = not any(getattr(self.bodies[k].driver, "compliance_changes", True) for k in J)
         try:  # symmetric positive definite: the compliances and 1/k
-            factor = cho_factor(A)
-
-            def solve(rhs):
-                return cho_solve(factor, rhs)
+            factor, apply = cho_factor(A), cho_solve
         except np.linalg.LinAlgError:  # a user's driver with compliances that are not
-            factor = lu_factor(A)
+            factor, apply = lu_factor(A), lu_solve
+        inverse = apply(factor, np.eye(A.shape[0])) if constant else None
 
-            def solve(rhs):
-                return lu_solve(factor, rhs)
+        def solve(rhs):  # kept: the inverse (one product a step); else this step's factor
+            return inverse @ rhs if inverse is not None else apply(factor, rhs)
 
-        if not any(getattr(self.bodies[k].driver, "compliance_changes", True) for k in J):
+        if constant:
             self._springs_kept = (key, J, solve)
         return J, solve
 
@@ -568,18 +567,17 @@ class Scene:
             block = slice(3 * at[0], 3 * at[-1] + 3)
             W[block, block] = self._compliances(k, nodes)
             maps.append((k, nodes, at))
-        A = assemble(F, slots, sw, W, self.compiled)  # G^T (sum_k P_k W_k P_k^T) G
-        for j, tool in enumerate(self.tools):  # a coupled probe's proxy moves by the sum of its forces / k
-            mine = np.flatnonzero(P["tool"] == j)
-            if mine.size and tool.stiffness is not None:
-                E = F[mine].transpose(0, 2, 1).reshape(3 * mine.size, 3)  # the points' frames against the world's
-                rows3 = (3 * mine[:, None] + np.arange(3)).ravel()
-                A[np.ix_(rows3, rows3)] += E @ E.T / tool.stiffness
-                b[mine, 0] -= F[mine, :, 0] @ tool.force / tool.stiffness
+        inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in self.tools])
+        A = assemble(F, slots, sw, W, P["tool"], inv_k, self.compiled)  # G^T (sum_k P_k W_k P_k^T + C) G
+        for j in np.unique(P["tool"][P["tool"] >= 0]).tolist():  # a coupled probe's proxy moves by its forces / k:
+            mine = P["tool"] == j                                  # its gaps where last step's force leaves it
+            b[mine, 0] -= F[mine, :, 0] @ self.tools[j].force * inv_k[j]
         normal = np.diag(A)[0::3]
         free = normal > 1e-12 * max(float(normal.max()), 1e-300)  # a point on held nodes on both sides: the
         r = np.zeros(3 * m)                                          # supports take it, it moves nothing
-        if free.any():
+        if free.all():
+            r, self.sweeps = pgs(A, b.reshape(-1), P["mu"])
+        elif free.any():
             rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
             r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), P["mu"][free])
         f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))  # each point's force on its first side (the reaction on the second)

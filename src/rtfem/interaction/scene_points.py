@@ -53,15 +53,19 @@ class PointSet:
     def m(self) -> int:
         return sum(len(blk[1]) for blk in self.blocks)
 
-    def join(self) -> dict | None:
+    def join(self, compiled: bool = True) -> dict | None:
         """{field: the points' array, and "frame" (m, 3, 3): columns the normal and two tangents}, or
         None without points."""
         if not self.blocks:
             return None
-        from .scene_tools import _frames
-
         out = {name: np.concatenate([blk[i] for blk in self.blocks]) for i, name in enumerate(FIELDS)}
-        out["frame"] = _frames(out["normal"])
+        if compiled and _frames_compiled is not None:
+            out["frame"] = np.empty((out["gap"].size, 3, 3))
+            _frames_compiled(np.ascontiguousarray(out["normal"], dtype=float), out["frame"])
+        else:
+            from .scene_tools import _frames
+
+            out["frame"] = _frames(out["normal"])
         return out
 
 
@@ -190,11 +194,12 @@ def _probe(Ys, O, tri, c, R, half, radius, cutoff, margin, idx, gap, n, face_w, 
     return count
 
 
-def _assemble(F, slot, sw, W, A):
+def _assemble(F, slot, sw, W, tool, inv_k, A):
     """A (3m, 3m): in the points' frames F (m, 3, 3), point d's displacement relative to its other
     side per unit force at point c, sum over the sides' nodes (``slot`` into W's 3x3 blocks, -1
-    unused; weights ``sw``) of w_c w_d F_c^T W_pq F_d. Blocks of nodes of different bodies are zero
-    in W (block diagonal by body)."""
+    unused; weights ``sw``) of w_c w_d F_c^T W_pq F_d, plus F_c^T F_d / k for two points of a tool
+    held by a spring of stiffness k (``tool``: each point's tool or -1; ``inv_k``: each tool's 1/k,
+    0 for none). Blocks of nodes of different bodies are zero in W (block diagonal by body)."""
     m = F.shape[0]
     M = np.empty((3, 3))
     T = np.empty((3, 3))
@@ -215,6 +220,9 @@ def _assemble(F, slot, sw, W, A):
                             for x in range(3):
                                 for y in range(3):
                                     M[x, y] += w * W[3 * p + x, 3 * q + y]
+            if tool[c] >= 0 and tool[c] == tool[d]:
+                for x in range(3):
+                    M[x, x] += inv_k[tool[c]]
             for x in range(3):
                 for b in range(3):
                     T[x, b] = M[x, 0] * F[d, 0, b] + M[x, 1] * F[d, 1, b] + M[x, 2] * F[d, 2, b]
@@ -223,25 +231,53 @@ def _assemble(F, slot, sw, W, A):
                     A[3 * c + a, 3 * d + b] = F[c, 0, a] * T[0, b] + F[c, 1, a] * T[1, b] + F[c, 2, a] * T[2, b]
 
 
-def assemble(F: np.ndarray, slot: np.ndarray, sw: np.ndarray, W: np.ndarray, compiled: bool = True) -> np.ndarray:
-    """The contact problem's A (3m, 3m) in the points' frames: A = G^T (sum_k P_k W_k P_k^T) G with
+def assemble(F: np.ndarray, slot: np.ndarray, sw: np.ndarray, W: np.ndarray, tool: np.ndarray,
+             inv_k: np.ndarray, compiled: bool = True) -> np.ndarray:
+    """The contact problem's A (3m, 3m) in the points' frames: A = G^T (sum_k P_k W_k P_k^T + C) G with
     G the frames F (m, 3, 3), each point's sides' nodes ``slot`` (m, 2, 3) into the blocks of W (3u,
-    3u; the bodies' one-step compliances, block diagonal by body; -1 for none) at weights ``sw``."""
+    3u; the bodies' one-step compliances, block diagonal by body; -1 for none) at weights ``sw``, and
+    C the couplings of the tools' points (``tool`` (m,): each point's tool or -1): I / k between two
+    points of a tool held by a spring k (``inv_k``: each tool's 1/k, 0 for a tool at its device)."""
     m = F.shape[0]
+    tool = np.ascontiguousarray(tool, dtype=np.int64)
+    inv_k = np.ascontiguousarray(inv_k, dtype=float).reshape(-1)
     if compiled and _assemble_compiled is not None:
         A = np.empty((3 * m, 3 * m))
         _assemble_compiled(np.ascontiguousarray(F), np.ascontiguousarray(slot), np.ascontiguousarray(sw),
-                           np.ascontiguousarray(W), A)
+                           np.ascontiguousarray(W), tool, inv_k if inv_k.size else np.zeros(1), A)
         return A
     u = W.shape[0] // 3
     B = np.zeros((m, 3, u, 3))  # B[(c, a), (p, x)] = sum of w F[c, x, a] over c's nodes at slot p
     c, s, i = np.nonzero(slot >= 0)
     np.add.at(B, (c, slice(None), slot[c, s, i]), sw[c, s, i][:, None, None] * F[c].transpose(0, 2, 1))
     B = B.reshape(3 * m, 3 * u)
-    return B @ W @ B.T
+    A = B @ W @ B.T
+    for j in np.unique(tool[tool >= 0]).tolist():
+        mine = np.flatnonzero(tool == j)
+        E = F[mine].transpose(0, 2, 1).reshape(3 * mine.size, 3)  # the points' frames against the world's
+        rows3 = (3 * mine[:, None] + np.arange(3)).ravel()
+        A[np.ix_(rows3, rows3)] += E @ E.T * inv_k[j]
+    return A
 
 
-_pair_faces_compiled = _probe_compiled = _assemble_compiled = None
+def _frames_into(N, out):
+    """out[k] (3, 3): columns the unit normal N[k] and two unit tangents, as
+    :func:`~rtfem.interaction.scene_tools._frames` writes them."""
+    for k in range(N.shape[0]):
+        size = math.sqrt(N[k, 0] ** 2 + N[k, 1] ** 2 + N[k, 2] ** 2)
+        x, y, z = N[k, 0] / size, N[k, 1] / size, N[k, 2] / size
+        if abs(x) < 0.9:  # n x e_x = (0, z, -y); else n x e_y = (-z, 0, x)
+            a, b, c = 0.0 * x, z, -y
+        else:
+            a, b, c = -z, 0.0 * x, x
+        size = math.sqrt(a * a + b * b + c * c)
+        a, b, c = a / size, b / size, c / size
+        out[k, 0, 0], out[k, 1, 0], out[k, 2, 0] = x, y, z
+        out[k, 0, 1], out[k, 1, 1], out[k, 2, 1] = a, b, c
+        out[k, 0, 2], out[k, 1, 2], out[k, 2, 2] = y * c - z * b, z * a - x * c, x * b - y * a
+
+
+_pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = None
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
@@ -250,6 +286,7 @@ try:  # compiled when numba is present (the same code)
     _core = _numba.njit(**_opts)(_core)
     _probe_compiled = _numba.njit(**_opts)(_probe)
     _assemble_compiled = _numba.njit(**_opts)(_assemble)
+    _frames_compiled = _numba.njit(**_opts)(_frames_into)
 except Exception:  # pragma: no cover - numba absent
     pass
 
