@@ -168,3 +168,27 @@ def test_a_trial_step_equals_a_step_read_and_restored(modes, kind):
     assert np.abs(a - displacements_at(sim, nodes)).max() > 1e-3 * np.abs(a).max()  # the step moved them
     for key, value in before[0].items():
         np.testing.assert_array_equal(sim.get_state()[key], value)
+
+
+def test_the_static_correction_of_a_few_nodes_equals_the_whole_fields_rows(modes):
+    """ModalSimulator.displacements_at on a few nodes under an (n, 3) load that differs from a kept
+    one at a few nodes (a scene body's weight and its contacts) computes those rows only: equal to the
+    whole field's rows, and to a correction solved from scratch."""
+    sim = rt.ModalSimulator(modes, dt=1e-3, damping=rt.Damping(alpha=4.0), static_correction=True)
+    n = sim.n_nodes
+    weight = np.zeros((n, 3))
+    weight[:, 2] = -0.01
+    sim.step(weight)
+    sim.displacements()  # the weight's correction solved and kept
+    F = weight.copy()
+    F[[3, 50, 51, 90]] += np.array([[0.2, 0.0, -0.1], [0.0, 0.3, 0.0], [0.1, 0.1, 0.1], [-0.2, 0.0, 0.4]])
+    sim.step(F)
+    few = np.array([3, 7, 50, 120])
+    rows = displacements_at(sim, few)
+    sim._D_last = None
+    whole = sim.displacements()[few]
+    np.testing.assert_allclose(rows, whole, rtol=1e-12, atol=1e-14 * np.abs(whole).max())
+    fresh = rt.ModalSimulator(modes, dt=1e-3, damping=rt.Damping(alpha=4.0), static_correction=True)
+    fresh.set_state(sim.get_state())
+    fresh._loads, fresh._load_array = sim._loads, sim._load_array  # the same loads, no kept correction
+    np.testing.assert_allclose(fresh.displacements()[few], whole, rtol=1e-9, atol=1e-12 * np.abs(whole).max())

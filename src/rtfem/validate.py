@@ -155,8 +155,10 @@ def nodes(value: Any, n: int, name: str = "nodes", *, allow_empty: bool = False,
 def vector(value: Any, name: str, size: int | Sequence[int] = 3, *, error: type = ModelError) -> np.ndarray:
     """A 1-D array of finite numbers with one of the allowed sizes."""
     sizes = (size,) if isinstance(size, int) else tuple(size)
-    want = str(sizes[0]) + "".join(f" (or {s})" for s in sizes[1:])
     arr = _float_array(value)
+    if arr is not None and arr.ndim == 1 and arr.size in sizes and np.isfinite(arr).all():
+        return arr
+    want = str(sizes[0]) + "".join(f" (or {s})" for s in sizes[1:])
     if arr is None:
         raise error(f"{_label(name, value)}: give {want} numbers")
     if arr.ndim != 1 or arr.size not in sizes:

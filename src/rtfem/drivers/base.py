@@ -302,19 +302,20 @@ class StaticCorrection:
     #: the kept one's correction plus the difference's columns (a body's weight plus its contacts)
     DIFF_NODES = 96
 
-    def _array_correction(self, F: np.ndarray) -> np.ndarray:
+    def _array_correction(self, F: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """D F for an (n, 3) load: one static solve per distinct load, kept for the next call
         (a load schedule repeats a few patterns; haptic loads are dicts on prepared nodes). A load
         within a few nodes of a kept one (a scene body's weight and this step's contact and
         attachment forces) is that one's correction plus the columns of the nodes that differ
-        (D is linear; the columns are kept), and is kept as the last answer only."""
+        (D is linear; the columns are kept), and is kept as the last answer only. With ``rows``
+        (node indices), only (D F)[rows] (k, 3): for a few nodes, without the whole field."""
         key = F.tobytes()
         hit = self._D_array.get(key)
+        if hit is None:
+            last = getattr(self, "_D_last", None)
+            hit = last[1] if last is not None and last[0] == key else None
         if hit is not None:
-            return hit
-        last = getattr(self, "_D_last", None)
-        if last is not None and last[0] == key:
-            return last[1]
+            return hit if rows is None else hit[rows]
         for base_key, base in reversed(list(self._D_array.items())):
             diff = F - np.frombuffer(base_key, dtype=F.dtype).reshape(F.shape)
             nz = diff != 0.0
@@ -323,6 +324,9 @@ class StaticCorrection:
                 slots = self._pooled(nodes)
                 z = np.zeros(self._pool_used)
                 z[(3 * slots[:, None] + np.arange(3)).ravel()] = diff[nodes].reshape(-1)
+                if rows is not None:  # the rows asked for only (not kept)
+                    at = (3 * np.asarray(rows)[:, None] + np.arange(3)).ravel()
+                    return base[rows] + (self._pool[at, :self._pool_used] @ z).reshape(-1, 3)
                 hit = base + (self._pool[:, :self._pool_used] @ z).reshape(-1, 3)
                 self._D_last = (key, hit)
                 return hit
@@ -333,7 +337,7 @@ class StaticCorrection:
         if len(self._D_array) >= 8:
             self._D_array.pop(next(iter(self._D_array)))
         hit = self._D_array[key] = Kinv_f - modal
-        return hit
+        return hit if rows is None else hit[rows]
 
     def _pooled(self, nodes: np.ndarray) -> np.ndarray:
         """The slots of ``nodes``' correction columns in one (3n, 3 slots) pool (columns added once,
@@ -402,7 +406,9 @@ class StaticCorrection:
     def _correction_at(self, nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
         """u (k, 3) at ``nodes`` plus the static correction of the current loads there."""
         loads, array = self._current_loads()
-        if array is not None:
+        if array is not None:  # a few nodes of a large field: their rows only
+            if 8 * nodes.size < array.shape[0]:
+                return u + self._array_correction(array, nodes)
             return u + self._array_correction(array)[nodes]
         if len(loads) > 2:  # a contact patch, asked again about the same nodes next tick
             G = self._gathered(nodes, tuple(loads))

@@ -120,7 +120,7 @@ class ModalSimulator(StaticCorrection, ForceInput):
         self.steps = 0
         self._init_correction(static_correction, modes.model, self._P,
                               np.divide(1.0, lam, out=np.zeros_like(lam), where=lam > 0))
-        self._shape_rows: tuple | None = None  # (nodes, the shapes there) of the last batched query
+        self._shape_rows: list = []  # (nodes, the shapes there) of the last two batched queries
         if self.static_correction:
             model = modes.model
             if model is None:
@@ -360,11 +360,13 @@ class ModalSimulator(StaticCorrection, ForceInput):
         """The mode shapes at ``nodes`` as (3k, r) rows, kept while the same nodes are asked about (a
         contact's candidates: their prediction and displacement each tick, one gather). (A product
         with the (k, 3, r) stack would be numpy's stacked matmul, several times slower.)"""
-        hit = self._shape_rows
-        if hit is not None and hit[0].size == nodes.size and np.array_equal(hit[0], nodes):
-            return hit[1]
+        kept = self._shape_rows  # the last two sets (a scene asks about its surface and its contacts)
+        for hit in kept:
+            if hit[0].size == nodes.size and np.array_equal(hit[0], nodes):
+                return hit[1]
         P = self._phi[nodes].reshape(3 * nodes.size, -1)
-        self._shape_rows = (nodes.copy(), P) if P.size <= 1_000_000 else None
+        if P.size <= 1_000_000:
+            self._shape_rows = [(nodes.copy(), P), *kept[:1]]
         return P
 
     @property

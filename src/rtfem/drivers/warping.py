@@ -116,8 +116,13 @@ class WarpedModalSimulator(ModalSimulator):
 
     def trial_displacements(self, forces, nodes: np.ndarray) -> np.ndarray:
         """(k, 3) displacements of ``nodes`` after one step under ``forces``, the state unchanged
-        (the warped step rotates the loads: a step, read, and the state restored)."""
-        return stepped_trial(self, forces, nodes)
+        (the warped step rotates the loads: a step, read, and the state restored, the static
+        correction's loads with it)."""
+        loads = self._current_loads()
+        try:
+            return stepped_trial(self, forces, nodes)
+        finally:
+            self._loads, self._load_array = loads
 
     def displacements_at(self, nodes: np.ndarray) -> np.ndarray:
         nodes = validate.nodes(nodes, self.n_nodes)

@@ -326,7 +326,7 @@ class Scene:
             if att.b is not None:
                 contacts[(att.b.name, att.name)] = -self._held_force[att.name]
         if points is not None:
-            self._solve(points, loads, contacts)
+            self._solve(points, trials, loads, contacts)
         for body, F in zip(self.bodies, loads):
             body.driver.step(F)
         for tool in self.tools:
@@ -340,14 +340,21 @@ class Scene:
             self.step()
 
     def _spring_nodes(self, springs) -> dict[int, np.ndarray]:
-        """{body index: the nodes its springs hold (sorted)} for the bodies with springs."""
+        """{body index: the nodes its springs hold (sorted)} for the bodies with springs (kept while
+        the springs are the same)."""
+        key = tuple((att.name, att.a.name, att.nodes_a.tobytes(), None if att.b is None else att.b.name,
+                     None if att.b is None else att.nodes_b.tobytes()) for att in springs)
+        kept = getattr(self, "_spring_nodes_kept", None)
+        if kept is not None and kept[0] == key:
+            return kept[1]
         index = {b.name: k for k, b in enumerate(self.bodies)}
         ends: dict[int, list] = {}
         for att in springs:
             ends.setdefault(index[att.a.name], []).append(att.nodes_a)
             if att.b is not None:
                 ends.setdefault(index[att.b.name], []).append(att.nodes_b)
-        return {k: np.unique(np.concatenate(v)) for k, v in ends.items()}
+        self._spring_nodes_kept = (key, {k: np.unique(np.concatenate(v)) for k, v in ends.items()})
+        return self._spring_nodes_kept[1]
 
     def _attachment_loads(self, springs, base) -> list[np.ndarray]:
         """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
@@ -422,12 +429,13 @@ class Scene:
 
     @staticmethod
     def _trial(body: Body, F: np.ndarray, extra: np.ndarray | None = None):
-        """The body's loads F, its surface's displacements now and after a step under F alone, and
-        (with ``extra`` nodes) those nodes' displacements after that step."""
+        """The body's loads F, its surface's displacements now (None where the driver's own trial
+        step leaves it as it is: asked at the contacts' nodes only, in :meth:`_solve`) and after a
+        step under F alone, and (with ``extra`` nodes) those nodes' displacements after that step."""
         d = body.driver
         nodes = body.surface if extra is None else np.concatenate([body.surface, extra])  # one set: the
         ns = body.surface.size                                                            # driver keeps its rows
-        now = displacements_at(d, nodes)[:ns]
+        now = None if getattr(d, "trial_displacements", None) is not None else displacements_at(d, body.surface)
         after = trial_displacements(d, F, nodes)
         return F, now, after[:ns], (None if extra is None else after[ns:])
 
@@ -454,13 +462,12 @@ class Scene:
 
     def _plane_points(self, trials, points: PointSet) -> None:
         nb = len(self.bodies)
-        for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
+        for k, (body, (_, _, trial)) in enumerate(zip(self.bodies, trials)):
             x = body.X[body.surface] + trial
             for o, obstacle in enumerate(self.obstacles):
                 idx, gaps, normals = obstacle.contacts(x, self.margin * body.edge)
                 if idx.size:
-                    points.vertices(normals, gaps, trial[idx] - now[idx], obstacle.friction, k, nb + o,
-                                    k, body.surface[idx])
+                    points.vertices(normals, gaps, obstacle.friction, k, nb + o, k, body.surface[idx])
 
     #: a body pair's candidate lists (which vertices of a near which triangles of b) are searched
     #: again once the two surfaces moved this fraction of the margin since the last search
@@ -477,9 +484,9 @@ class Scene:
         if len(self.bodies) < 2:
             return
         cache = self.__dict__.setdefault("_pair_cache", {})
-        for kb, (b, (_, now_b, trial_b)) in enumerate(zip(self.bodies, trials)):
+        for kb, (b, (_, _, trial_b)) in enumerate(zip(self.bodies, trials)):
             Ys = b.X[b.surface] + trial_b
-            for ka, (a, (_, now_a, trial_a)) in enumerate(zip(self.bodies, trials)):
+            for ka, (a, (_, _, trial_a)) in enumerate(zip(self.bodies, trials)):
                 if a is b:
                     continue
                 margin = self.margin * max(a.edge, b.edge)
@@ -496,17 +503,16 @@ class Scene:
                 keep = np.flatnonzero(on)
                 if keep.size == 0:
                     continue
-                i, corners, wc = cand[keep], b.tri_local[best[keep]], w[keep]
-                slip = (trial_a[i] - now_a[i]) - np.einsum("cj,cjd->cd", wc, trial_b[corners] - now_b[corners])
                 m = keep.size
-                sk = np.tile(np.array([ka, kb], dtype=np.int64), (m, 1))
+                sk = np.empty((m, 2), dtype=np.int64)
+                sk[:, 0], sk[:, 1] = ka, kb
                 sn = np.empty((m, 2, 3), dtype=np.int64)
-                sn[:, 0, :] = a.surface[i][:, None]
-                sn[:, 1, :] = b.surface[corners]
+                sn[:, 0, :] = a.surface[cand[keep]][:, None]
+                sn[:, 1, :] = b.surface[b.tri_local[best[keep]]]
                 sw = np.zeros((m, 2, 3))
                 sw[:, 0, 0] = 1.0
-                sw[:, 1, :] = -wc
-                points.add(n[keep], gap[keep], slip, self.friction, ka, kb, -1, sk, sn, sw)
+                sw[:, 1, :] = -w[keep]
+                points.add(n[keep], gap[keep], self.friction, ka, kb, -1, sk, sn, sw)
 
     def _compliances(self, k: int, nodes: np.ndarray) -> np.ndarray:
         """Body k's one-step compliances of ``nodes`` (3n, 3n), the last set's kept while it is the
@@ -527,32 +533,28 @@ class Scene:
         for j, tool in enumerate(self.tools):
             if tool.kind != "probe":
                 continue
-            x_e, move = tool.expected(), tool.target - tool.proxy
-            for k, (body, (_, now, trial)) in enumerate(zip(self.bodies, trials)):
+            x_e = tool.expected()
+            for k, (body, (_, _, trial)) in enumerate(zip(self.bodies, trials)):
                 margin = self.margin * body.edge
                 # vertices within an edge beyond reach: the face point between them may touch
                 i, gaps, n, face = probe_points(body.X[body.surface] + trial, body.normals, body.tri_local, tool.shape,
                                                 x_e, tool.shape.reach + margin + body.longest, margin, self.compiled)
-                points.vertices(n, gaps, trial[i] - now[i] - move, tool.friction,
-                                k, nb + no + j, k, body.surface[i], j)
+                points.vertices(n, gaps, tool.friction, k, nb + no + j, k, body.surface[i], j)
                 if face is not None:  # a probe smaller than the triangles does not pass between the vertices
                     t, gap, push, w = face
-                    corners = body.tri_local[t]
-                    slip = w @ (trial[corners] - now[corners]) - move
                     sn = np.zeros((1, 2, 3), dtype=np.int64)
-                    sn[0, 0] = body.surface[corners]
+                    sn[0, 0] = body.surface[body.tri_local[t]]
                     sw = np.zeros((1, 2, 3))
                     sw[0, 0] = w
-                    points.add(push[None], [gap], slip[None], tool.friction, k, nb + no + j, j,
+                    points.add(push[None], [gap], tool.friction, k, nb + no + j, j,
                                np.array([[k, -1]]), sn, sw)
 
-    def _solve(self, P: dict, loads, contacts) -> None:
+    def _solve(self, P: dict, trials, loads, contacts) -> None:
         """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G
-        (G: the points' frames; P_k: each point's displacement per unit displacement of body k's nodes)."""
+        (G: the points' frames; P_k: each point's displacement per unit displacement of body k's
+        nodes); b: the gaps and the slips over the trial step (relative to the other side, or to a
+        probe's move)."""
         F, m = P["frame"], P["gap"].size  # F (m, 3, 3): G's diagonal blocks
-        b = np.empty((m, 3))
-        b[:, 0] = P["gap"]
-        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], P["slip"])
         sk, sn, sw = P["sk"], P["sn"], P["sw"]
         on = (sk >= 0)[:, :, None] & (sw != 0.0)  # the sides' nodes that move the points
         stride = 1 + max(body.driver.n_nodes for body in self.bodies)
@@ -567,6 +569,19 @@ class Scene:
             block = slice(3 * at[0], 3 * at[-1] + 3)
             W[block, block] = self._compliances(k, nodes)
             maps.append((k, nodes, at))
+        moved = np.zeros((used.size, 3))  # each node's displacement over the trial step
+        for k, nodes, at in maps:
+            _, now, trial = trials[k]
+            local = self.bodies[k].local[nodes]
+            moved[at] = trial[local] - (now[local] if now is not None else displacements_at(self.bodies[k].driver, nodes))
+        slip = np.zeros((m, 3))
+        np.add.at(slip, np.nonzero(on)[0], sw[on][:, None] * moved[slot])
+        for j, tool in enumerate(self.tools):
+            if tool.kind == "probe":
+                slip[P["tool"] == j] -= tool.target - tool.proxy
+        b = np.empty((m, 3))
+        b[:, 0] = P["gap"]
+        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], slip)
         inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in self.tools])
         A = assemble(F, slots, sw, W, P["tool"], inv_k, self.compiled)  # G^T (sum_k P_k W_k P_k^T + C) G
         for j in np.unique(P["tool"][P["tool"] >= 0]).tolist():  # a coupled probe's proxy moves by its forces / k:
@@ -590,5 +605,5 @@ class Scene:
         np.add.at(total, (P["a"], P["b"]), f)
         between = P["b"] < nb  # a body on a body: the reaction on the other
         np.add.at(total, (P["b"][between], P["a"][between]), -f[between])
-        for a, e in zip(*np.nonzero(np.any(total != 0.0, axis=2))):
+        for a, e in zip(*np.nonzero(total.any(axis=2))):
             contacts[(names[a], names[e])] += total[a, e]

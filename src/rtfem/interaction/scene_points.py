@@ -1,8 +1,8 @@
 """A scene step's contact points in arrays (one row a point), and the compiled search of a body's
 vertices against another body's triangles; see :mod:`rtfem.interaction.scene`.
 
-Each point has its frame (columns: the normal from the other side, two tangents), its gap and
-slip after the trial steps, Coulomb's coefficient, the pair it is recorded under (``a``: a body's
+Each point has its frame (columns: the normal from the other side, two tangents), its gap after
+the trial steps, Coulomb's coefficient, the pair it is recorded under (``a``: a body's
 index; ``b``: the index of the body, obstacle or tool it touches among the scene's names) and up
 to two sides, each a body's index (or -1), three nodes and their weights: the first side gets
 +frame r, the second -frame r (a vertex: its node at weight 1; a face point: the triangle's
@@ -18,7 +18,7 @@ from .contact_points import _closest_on_triangle
 
 __all__ = ["PointSet", "assemble", "pair_faces", "probe_points"]
 
-FIELDS = ("normal", "gap", "slip", "mu", "a", "b", "tool", "sk", "sn", "sw")
+FIELDS = ("normal", "gap", "mu", "a", "b", "tool", "sk", "sn", "sw")
 
 
 class PointSet:
@@ -27,7 +27,7 @@ class PointSet:
     def __init__(self) -> None:
         self.blocks: list[tuple] = []
 
-    def vertices(self, normal, gap, slip, mu: float, a: int, b: int, body: int, nodes, tool: int = -1) -> None:
+    def vertices(self, normal, gap, mu: float, a: int, b: int, body: int, nodes, tool: int = -1) -> None:
         """Points on single vertices ``nodes`` of ``body`` (first side only)."""
         m = len(gap)
         if m == 0:
@@ -38,15 +38,14 @@ class PointSet:
         sw[:, 0, 0] = 1.0
         sk = np.full((m, 2), -1, dtype=np.int64)
         sk[:, 0] = body
-        self.add(normal, gap, slip, mu, a, b, tool, sk, sn, sw)
+        self.add(normal, gap, mu, a, b, tool, sk, sn, sw)
 
-    def add(self, normal, gap, slip, mu, a, b, tool, sk, sn, sw) -> None:
-        """Points with their unit normals (m, 3) (from the other side), gaps, slips (m, 3),
-        Coulomb's coefficient, pair (a, b), tool (or -1) and sides (body (m, 2), nodes (m, 2, 3),
-        weights (m, 2, 3))."""
+    def add(self, normal, gap, mu, a, b, tool, sk, sn, sw) -> None:
+        """Points with their unit normals (m, 3) (from the other side), gaps, Coulomb's coefficient,
+        pair (a, b), tool (or -1) and sides (body (m, 2), nodes (m, 2, 3), weights (m, 2, 3))."""
         m = len(gap)
         if m:
-            self.blocks.append((normal, np.asarray(gap, dtype=float), slip, np.full(m, float(mu)), np.full(m, a),
+            self.blocks.append((normal, np.asarray(gap, dtype=float), np.full(m, float(mu)), np.full(m, a),
                                 np.full(m, b), np.full(m, tool), sk, sn, sw))
 
     @property

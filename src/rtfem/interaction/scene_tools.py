@@ -192,8 +192,12 @@ class Keyframes:
         self.path, self.closed = p, c
 
     def __call__(self, t: float) -> np.ndarray:
-        p = self.path
-        return np.array([np.interp(t, p[:, 0], p[:, k]) for k in (1, 2, 3)])
+        p = self.path  # linear between the rows about t, held outside them (np.interp's rule)
+        i = int(np.searchsorted(p[:, 0], t, side="right"))
+        if i == 0 or i == p.shape[0]:
+            return p[max(i - 1, 0), 1:].copy()
+        s = (t - p[i - 1, 0]) / (p[i, 0] - p[i - 1, 0])
+        return (1.0 - s) * p[i - 1, 1:] + s * p[i, 1:]
 
     def buttons(self, t: float) -> int:
         return int(bool(np.any((self.closed[:, 0] <= t) & (t < self.closed[:, 1]))))
