@@ -33,7 +33,7 @@ from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_
 from ..mesh.surface import TriMesh
 from .friction import pgs
 from .scene_obstacles import MeshObstacle, pair_search
-from .scene_points import PointSet, assemble, pair_faces, probe_points
+from .scene_points import PointSet, assemble, pair_faces, probe_points, rhs, spread
 from .scene_tools import SceneTool, _frame
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -558,35 +558,31 @@ class Scene:
         sk, sn, sw = P["sk"], P["sn"], P["sw"]
         on = (sk >= 0)[:, :, None] & (sw != 0.0)  # the sides' nodes that move the points
         stride = 1 + max(body.driver.n_nodes for body in self.bodies)
-        used, slot = np.unique((sk[:, :, None] * stride + sn)[on], return_inverse=True)  # sorted body by body
+        keys = (sk[:, :, None] * stride + sn)[on]
+        used = np.unique(keys)  # sorted body by body
+        slot = np.searchsorted(used, keys)
         slots = np.full(sn.shape, -1, dtype=np.int64)
         slots[on] = slot
         W = np.zeros((3 * used.size, 3 * used.size))  # the bodies' compliances of those nodes, block diagonal
         maps = []
-        for k in np.unique(used // stride).tolist():
-            at = np.flatnonzero(used // stride == k)
+        owner = used // stride
+        for k in np.unique(owner).tolist():
+            at = np.flatnonzero(owner == k)
             nodes = used[at] % stride
             block = slice(3 * at[0], 3 * at[-1] + 3)
             W[block, block] = self._compliances(k, nodes)
             maps.append((k, nodes, at))
-        moved = np.zeros((used.size, 3))  # each node's displacement over the trial step
+        moved = np.empty((used.size, 3))  # each node's displacement over the trial step
         for k, nodes, at in maps:
             _, now, trial = trials[k]
             local = self.bodies[k].local[nodes]
             moved[at] = trial[local] - (now[local] if now is not None else displacements_at(self.bodies[k].driver, nodes))
-        slip = np.zeros((m, 3))
-        np.add.at(slip, np.nonzero(on)[0], sw[on][:, None] * moved[slot])
-        for j, tool in enumerate(self.tools):
-            if tool.kind == "probe":
-                slip[P["tool"] == j] -= tool.target - tool.proxy
-        b = np.empty((m, 3))
-        b[:, 0] = P["gap"]
-        b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], slip)
-        inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in self.tools])
+        tools = self.tools
+        inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in tools] or [0.0])
+        move = np.array([t.target - t.proxy for t in tools] or [np.zeros(3)])
+        force = np.array([t.force for t in tools] or [np.zeros(3)])
+        b = rhs(F, slots, sw, moved, P["gap"], P["tool"], move, force, inv_k, self.compiled)
         A = assemble(F, slots, sw, W, P["tool"], inv_k, self.compiled)  # G^T (sum_k P_k W_k P_k^T + C) G
-        for j in np.unique(P["tool"][P["tool"] >= 0]).tolist():  # a coupled probe's proxy moves by its forces / k:
-            mine = P["tool"] == j                                  # its gaps where last step's force leaves it
-            b[mine, 0] -= F[mine, :, 0] @ self.tools[j].force * inv_k[j]
         normal = np.diag(A)[0::3]
         free = normal > 1e-12 * max(float(normal.max()), 1e-300)  # a point on held nodes on both sides: the
         r = np.zeros(3 * m)                                          # supports take it, it moves nothing
@@ -595,10 +591,8 @@ class Scene:
         elif free.any():
             rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
             r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), P["mu"][free])
-        f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))  # each point's force on its first side (the reaction on the second)
-        node_force = np.zeros((used.size, 3))  # +w f on a point's first side, -w f (w < 0) on its second
-        np.add.at(node_force, slot, sw[on][:, None] * np.broadcast_to(f[:, None, None, :], (*sn.shape, 3))[on])
-        for k, nodes, at in maps:
+        f, node_force = spread(F, r, slots, sw, used.size, self.compiled)  # each point's force on its first
+        for k, nodes, at in maps:                                              # side, -w f on its second
             loads[k][nodes] += node_force[at]
         names, nb = self._names(), len(self.bodies)
         total = np.zeros((nb, len(names), 3))

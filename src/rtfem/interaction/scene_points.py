@@ -16,7 +16,7 @@ import numpy as np
 
 from .contact_points import _closest_on_triangle
 
-__all__ = ["PointSet", "assemble", "pair_faces", "probe_points"]
+__all__ = ["PointSet", "assemble", "pair_faces", "probe_points", "rhs", "spread"]
 
 FIELDS = ("normal", "gap", "mu", "a", "b", "tool", "sk", "sn", "sw")
 
@@ -276,7 +276,76 @@ def _frames_into(N, out):
         out[k, 0, 2], out[k, 1, 2], out[k, 2, 2] = y * c - z * b, z * a - x * c, x * b - y * a
 
 
-_pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = None
+def _rhs_into(F, slot, sw, moved, gap, tool, move, force, inv_k, b):
+    """b (m, 3): each point's gap (a coupled probe's shifted by its last force / k along the normal)
+    and its slip over the trial step in its frame's tangents: the sides' nodes' displacements
+    ``moved`` at their weights, less the probe's move."""
+    for c in range(F.shape[0]):
+        s0 = s1 = s2 = 0.0
+        for s in range(2):
+            for i in range(3):
+                p = slot[c, s, i]
+                if p >= 0:
+                    s0 += sw[c, s, i] * moved[p, 0]
+                    s1 += sw[c, s, i] * moved[p, 1]
+                    s2 += sw[c, s, i] * moved[p, 2]
+        b[c, 0] = gap[c]
+        j = tool[c]
+        if j >= 0:
+            s0, s1, s2 = s0 - move[j, 0], s1 - move[j, 1], s2 - move[j, 2]
+            b[c, 0] -= (F[c, 0, 0] * force[j, 0] + F[c, 1, 0] * force[j, 1] + F[c, 2, 0] * force[j, 2]) * inv_k[j]
+        b[c, 1] = F[c, 0, 1] * s0 + F[c, 1, 1] * s1 + F[c, 2, 1] * s2
+        b[c, 2] = F[c, 0, 2] * s0 + F[c, 1, 2] * s1 + F[c, 2, 2] * s2
+
+
+def _spread(F, r, slot, sw, f, node_force):
+    """f (m, 3): each point's force on its first side, F r; node_force (u, 3): at each side's nodes,
+    w f (the second side's weights negative: the reaction)."""
+    node_force[:] = 0.0
+    for c in range(F.shape[0]):
+        for x in range(3):
+            f[c, x] = F[c, x, 0] * r[3 * c] + F[c, x, 1] * r[3 * c + 1] + F[c, x, 2] * r[3 * c + 2]
+        for s in range(2):
+            for i in range(3):
+                p = slot[c, s, i]
+                if p >= 0:
+                    for x in range(3):
+                        node_force[p, x] += sw[c, s, i] * f[c, x]
+
+
+def rhs(F, slot, sw, moved, gap, tool, move, force, inv_k, compiled: bool = True) -> np.ndarray:
+    """The contact problem's b (m, 3) (see :func:`_rhs_into`); numpy where numba is absent."""
+    m = F.shape[0]
+    b = np.empty((m, 3))
+    if compiled and _rhs_compiled is not None:
+        _rhs_compiled(F, slot, sw, moved, gap, tool, move, force, inv_k, b)
+        return b
+    on = slot >= 0
+    slip = np.zeros((m, 3))
+    np.add.at(slip, np.nonzero(on)[0], sw[on][:, None] * moved[slot[on]])
+    probe = tool >= 0
+    slip[probe] -= move[tool[probe]]
+    b[:, 0] = gap
+    b[probe, 0] -= np.einsum("ci,ci->c", F[probe, :, 0], force[tool[probe]]) * inv_k[tool[probe]]
+    b[:, 1:] = np.einsum("cij,ci->cj", F[:, :, 1:], slip)
+    return b
+
+
+def spread(F, r, slot, sw, n_used: int, compiled: bool = True):
+    """(f (m, 3), node_force (n_used, 3)) (see :func:`_spread`); numpy where numba is absent."""
+    m = F.shape[0]
+    if compiled and _spread_compiled is not None:
+        f, node_force = np.empty((m, 3)), np.empty((n_used, 3))
+        _spread_compiled(F, r, slot, sw, f, node_force)
+        return f, node_force
+    f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))
+    node_force = np.zeros((n_used, 3))
+    c, s, i = np.nonzero(slot >= 0)
+    np.add.at(node_force, slot[c, s, i], sw[c, s, i][:, None] * f[c])
+    return f, node_force
+
+
+_pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = _rhs_compiled = _spread_compiled = None
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
@@ -286,6 +355,8 @@ try:  # compiled when numba is present (the same code)
     _probe_compiled = _numba.njit(**_opts)(_probe)
     _assemble_compiled = _numba.njit(**_opts)(_assemble)
     _frames_compiled = _numba.njit(**_opts)(_frames_into)
+    _rhs_compiled = _numba.njit(**_opts)(_rhs_into)
+    _spread_compiled = _numba.njit(**_opts)(_spread)
 except Exception:  # pragma: no cover - numba absent
     pass
 
