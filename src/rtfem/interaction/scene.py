@@ -32,56 +32,11 @@ from ..errors import ModelError
 from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances, trial_displacements
 from ..mesh.surface import TriMesh
 from .friction import pgs
-from .scene_obstacles import MeshObstacle, pair_search
+from .scene_obstacles import MeshObstacle, Plane, pair_search
 from .scene_points import PointSet, assemble, pair_faces, probe_points, rhs, spread
-from .scene_tools import SceneTool, _frame
+from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
-
-
-@dataclass
-class Plane:
-    """A rigid plane: the half-space behind ``normal`` is solid.
-
-    Parameters
-    ----------
-    name : its name in the contact records.
-    point : a point on it (m).
-    normal : its outward normal (any length > 0).
-    friction : Coulomb's coefficient against it (0: frictionless).
-
-    Raises
-    ------
-    ModelError
-        A point that is not one, a zero normal, a negative friction.
-    """
-
-    name: str
-    point: np.ndarray
-    normal: np.ndarray
-    friction: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name:
-            raise ModelError(f"an obstacle's name must be a non-empty string, got {validate.show(self.name)}")
-        self.point = np.array(validate.point(self.point, f"{self.name}: point"), dtype=float)
-        n = validate.vector(self.normal, f"{self.name}: normal", 3)
-        if not np.linalg.norm(n) > 0:
-            raise ModelError(f"{self.name}: normal must be a non-zero vector (the plane's outward normal)")
-        self.normal = n / np.linalg.norm(n)
-        self.friction = validate.in_range(self.friction, f"{self.name}: friction", 0.0, 10.0,
-                                          what="Coulomb's friction coefficient")
-        self.frame = _frame(self.normal)
-
-    def gaps(self, x: np.ndarray) -> np.ndarray:
-        """Signed distances (m) of points x (k, 3) in front of the plane."""
-        return (x - self.point) @ self.normal
-
-    def contacts(self, x: np.ndarray, margin: float):
-        """The points x (k, 3) within ``margin`` of the plane or behind it: (indices, gaps, normals)."""
-        gaps = self.gaps(x)
-        i = np.flatnonzero(gaps < margin)
-        return i, gaps[i], np.broadcast_to(self.normal, (i.size, 3))
 
 
 @dataclass
@@ -530,15 +485,21 @@ class Scene:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
         the tool where last step's force leaves it, with their slip relative to its move."""
         nb, no = len(self.bodies), len(self.obstacles)
-        for j, tool in enumerate(self.tools):
-            if tool.kind != "probe":
-                continue
+        probes = [(j, tool) for j, tool in enumerate(self.tools) if tool.kind == "probe"]
+        if not probes:
+            return
+        surfaces = [body.X[body.surface] + trial for body, (_, _, trial) in zip(self.bodies, trials)]
+        boxes = [(x.min(axis=0), x.max(axis=0)) for x in surfaces]
+        for j, tool in probes:
             x_e = tool.expected()
-            for k, (body, (_, _, trial)) in enumerate(zip(self.bodies, trials)):
+            for k, body in enumerate(self.bodies):
                 margin = self.margin * body.edge
                 # vertices within an edge beyond reach: the face point between them may touch
-                i, gaps, n, face = probe_points(body.X[body.surface] + trial, body.normals, body.tri_local, tool.shape,
-                                                x_e, tool.shape.reach + margin + body.longest, margin, self.compiled)
+                cutoff = tool.shape.reach + margin + body.longest
+                if np.any(x_e < boxes[k][0] - cutoff) or np.any(x_e > boxes[k][1] + cutoff):
+                    continue  # beyond the body's box (a parked tool)
+                i, gaps, n, face = probe_points(surfaces[k], body.normals, body.tri_local, tool.shape, x_e, cutoff,
+                                                margin, self.compiled)
                 points.vertices(n, gaps, tool.friction, k, nb + no + j, k, body.surface[i], j)
                 if face is not None:  # a probe smaller than the triangles does not pass between the vertices
                     t, gap, push, w = face

@@ -1,4 +1,4 @@
-"""Fixed-mesh obstacles of scenes: a rigid triangle surface (a spine, a pelvis, an operating table's
+"""Rigid obstacles of scenes: planes, and fixed meshes: a rigid triangle surface (a spine, a pelvis, an operating table's
 pad, any mesh file) that bodies rest on and slide over.
 
 A body's surface vertex within the scene's margin of the obstacle's surface (after the trial step)
@@ -11,13 +11,61 @@ between bodies.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .. import validate
 from ..errors import ModelError
 from ..mesh.surface import TriMesh
+from .scene_tools import _frame
 
-__all__ = ["MeshObstacle", "pair_search"]
+__all__ = ["Plane", "MeshObstacle", "pair_search"]
+
+
+@dataclass
+class Plane:
+    """A rigid plane: the half-space behind ``normal`` is solid.
+
+    Parameters
+    ----------
+    name : its name in the contact records.
+    point : a point on it (m).
+    normal : its outward normal (any length > 0).
+    friction : Coulomb's coefficient against it (0: frictionless).
+
+    Raises
+    ------
+    ModelError
+        A point that is not one, a zero normal, a negative friction.
+    """
+
+    name: str
+    point: np.ndarray
+    normal: np.ndarray
+    friction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ModelError(f"an obstacle's name must be a non-empty string, got {validate.show(self.name)}")
+        self.point = np.array(validate.point(self.point, f"{self.name}: point"), dtype=float)
+        n = validate.vector(self.normal, f"{self.name}: normal", 3)
+        if not np.linalg.norm(n) > 0:
+            raise ModelError(f"{self.name}: normal must be a non-zero vector (the plane's outward normal)")
+        self.normal = n / np.linalg.norm(n)
+        self.friction = validate.in_range(self.friction, f"{self.name}: friction", 0.0, 10.0,
+                                          what="Coulomb's friction coefficient")
+        self.frame = _frame(self.normal)
+
+    def gaps(self, x: np.ndarray) -> np.ndarray:
+        """Signed distances (m) of points x (k, 3) in front of the plane."""
+        return (x - self.point) @ self.normal
+
+    def contacts(self, x: np.ndarray, margin: float):
+        """The points x (k, 3) within ``margin`` of the plane or behind it: (indices, gaps, normals)."""
+        gaps = self.gaps(x)
+        i = np.flatnonzero(gaps < margin)
+        return i, gaps[i], np.broadcast_to(self.normal, (i.size, 3))
 
 
 class MeshObstacle:
