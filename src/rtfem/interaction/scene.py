@@ -33,7 +33,7 @@ from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_
 from ..mesh.surface import TriMesh
 from .friction import pgs
 from .scene_obstacles import MeshObstacle, Plane, pair_search
-from .scene_points import PointSet, assemble, pair_faces, probe_points, rhs, spread
+from .scene_points import PointSet, assemble, pair_block, probe_block, rhs, spread
 from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -266,9 +266,10 @@ class Scene:
         held = self._attachment_loads(springs, base)
         trials = [self._held_trial(k, base[k], held[k], spring_nodes.get(k)) for k in range(len(self.bodies))]
         points = PointSet()
-        self._plane_points(trials, points)
-        self._pair_points(trials, points)
-        self._tool_points(trials, points)
+        Xs = [b.X[b.surface] + trial for b, (_, _, trial) in zip(self.bodies, trials)]  # the surfaces, a step on
+        self._plane_points(Xs, points)
+        self._pair_points(trials, Xs, points)
+        self._tool_points(Xs, points)
         points = points.join(self.compiled)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
@@ -415,10 +416,9 @@ class Scene:
         """The bodies', obstacles' and tools' names: a point's pair (a, b) indexes them."""
         return [x.name for x in (*self.bodies, *self.obstacles, *self.tools)]
 
-    def _plane_points(self, trials, points: PointSet) -> None:
+    def _plane_points(self, Xs, points: PointSet) -> None:
         nb = len(self.bodies)
-        for k, (body, (_, _, trial)) in enumerate(zip(self.bodies, trials)):
-            x = body.X[body.surface] + trial
+        for k, (body, x) in enumerate(zip(self.bodies, Xs)):
             for o, obstacle in enumerate(self.obstacles):
                 idx, gaps, normals = obstacle.contacts(x, self.margin * body.edge)
                 if idx.size:
@@ -428,7 +428,7 @@ class Scene:
     #: again once the two surfaces moved this fraction of the margin since the last search
     SLACK = 0.25
 
-    def _pair_points(self, trials, points: PointSet) -> None:
+    def _pair_points(self, trials, Xs, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` edges of another body's surface (after the
         trial steps), against the closest point of that surface: both directions of every pair.
 
@@ -440,7 +440,6 @@ class Scene:
             return
         cache = self.__dict__.setdefault("_pair_cache", {})
         for kb, (b, (_, _, trial_b)) in enumerate(zip(self.bodies, trials)):
-            Ys = b.X[b.surface] + trial_b
             for ka, (a, (_, _, trial_a)) in enumerate(zip(self.bodies, trials)):
                 if a is b:
                     continue
@@ -453,21 +452,9 @@ class Scene:
                 cand, tris, valid = kept[2:]
                 if cand.size == 0:
                     continue
-                x = a.X[a.surface[cand]] + trial_a[cand]
-                best, gap, n, w, on = pair_faces(x, Ys, b.tri_local, tris, valid, margin, b.edge, self.compiled)
-                keep = np.flatnonzero(on)
-                if keep.size == 0:
-                    continue
-                m = keep.size
-                sk = np.empty((m, 2), dtype=np.int64)
-                sk[:, 0], sk[:, 1] = ka, kb
-                sn = np.empty((m, 2, 3), dtype=np.int64)
-                sn[:, 0, :] = a.surface[cand[keep]][:, None]
-                sn[:, 1, :] = b.surface[b.tri_local[best[keep]]]
-                sw = np.zeros((m, 2, 3))
-                sw[:, 0, 0] = 1.0
-                sw[:, 1, :] = -w[keep]
-                points.add(n[keep], gap[keep], self.friction, ka, kb, -1, sk, sn, sw)
+                normal, gap, sn, sw = pair_block(Xs[ka][cand], Xs[kb], b.tri_local, tris, valid, margin, b.edge,
+                                                 a.surface[cand], b.surface, self.compiled)
+                points.add(normal, gap, self.friction, ka, kb, -1, (ka, kb), sn, sw)
 
     def _compliances(self, k: int, nodes: np.ndarray) -> np.ndarray:
         """Body k's one-step compliances of ``nodes`` (3n, 3n), the last set's kept while it is the
@@ -481,15 +468,14 @@ class Scene:
             self._compliance_cache[k] = (nodes.copy(), W)
         return W
 
-    def _tool_points(self, trials, points: PointSet) -> None:
+    def _tool_points(self, Xs, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
         the tool where last step's force leaves it, with their slip relative to its move."""
         nb, no = len(self.bodies), len(self.obstacles)
         probes = [(j, tool) for j, tool in enumerate(self.tools) if tool.kind == "probe"]
         if not probes:
             return
-        surfaces = [body.X[body.surface] + trial for body, (_, _, trial) in zip(self.bodies, trials)]
-        boxes = [(x.min(axis=0), x.max(axis=0)) for x in surfaces]
+        boxes = [(x.min(axis=0), x.max(axis=0)) for x in Xs]
         for j, tool in probes:
             x_e = tool.expected()
             for k, body in enumerate(self.bodies):
@@ -498,17 +484,9 @@ class Scene:
                 cutoff = tool.shape.reach + margin + body.longest
                 if np.any(x_e < boxes[k][0] - cutoff) or np.any(x_e > boxes[k][1] + cutoff):
                     continue  # beyond the body's box (a parked tool)
-                i, gaps, n, face = probe_points(surfaces[k], body.normals, body.tri_local, tool.shape, x_e, cutoff,
-                                                margin, self.compiled)
-                points.vertices(n, gaps, tool.friction, k, nb + no + j, k, body.surface[i], j)
-                if face is not None:  # a probe smaller than the triangles does not pass between the vertices
-                    t, gap, push, w = face
-                    sn = np.zeros((1, 2, 3), dtype=np.int64)
-                    sn[0, 0] = body.surface[body.tri_local[t]]
-                    sw = np.zeros((1, 2, 3))
-                    sw[0, 0] = w
-                    points.add(push[None], [gap], tool.friction, k, nb + no + j, j,
-                               np.array([[k, -1]]), sn, sw)
+                normal, gap, sn, sw = probe_block(Xs[k], body.normals, body.tri_local, tool.shape, x_e, cutoff, margin,
+                                                  body.surface, self.compiled)
+                points.add(normal, gap, tool.friction, k, nb + no + j, j, (k, -1), sn, sw)
 
     def _solve(self, P: dict, trials, loads, contacts) -> None:
         """The contact forces of all points together: w = b + A r, A = G^T (sum_k P_k W_k P_k^T) G

@@ -16,7 +16,7 @@ import numpy as np
 
 from .contact_points import _closest_on_triangle
 
-__all__ = ["PointSet", "assemble", "pair_faces", "probe_points", "rhs", "spread"]
+__all__ = ["PointSet", "assemble", "pair_block", "pair_faces", "probe_block", "probe_points", "rhs", "spread"]
 
 FIELDS = ("normal", "gap", "mu", "a", "b", "tool", "sk", "sn", "sw")
 
@@ -36,15 +36,16 @@ class PointSet:
         sn[:, 0, :] = np.asarray(nodes)[:, None]
         sw = np.zeros((m, 2, 3))
         sw[:, 0, 0] = 1.0
-        sk = np.full((m, 2), -1, dtype=np.int64)
-        sk[:, 0] = body
-        self.add(normal, gap, mu, a, b, tool, sk, sn, sw)
+        self.add(normal, gap, mu, a, b, tool, (body, -1), sn, sw)
 
-    def add(self, normal, gap, mu, a, b, tool, sk, sn, sw) -> None:
+    def add(self, normal, gap, mu, a, b, tool, sides, sn, sw) -> None:
         """Points with their unit normals (m, 3) (from the other side), gaps, Coulomb's coefficient,
-        pair (a, b), tool (or -1) and sides (body (m, 2), nodes (m, 2, 3), weights (m, 2, 3))."""
+        pair (a, b), tool (or -1), the bodies of their two sides (``sides``: two indices, -1 for
+        none), and the sides' nodes (m, 2, 3) and weights (m, 2, 3)."""
         m = len(gap)
         if m:
+            sk = np.empty((m, 2), dtype=np.int64)
+            sk[:, 0], sk[:, 1] = sides
             self.blocks.append((normal, np.asarray(gap, dtype=float), np.full(m, float(mu)), np.full(m, a),
                                 np.full(m, b), np.full(m, tool), sk, sn, sw))
 
@@ -345,14 +346,63 @@ def spread(F, r, slot, sw, n_used: int, compiled: bool = True):
     return f, node_force
 
 
-_pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = _rhs_compiled = _spread_compiled = None
+def _pair_block(x, Ys, tri, tris, valid, margin, edge, ids_a, ids_b, best, gap, n, w, on, out_n, out_g, sn, sw):
+    """:func:`_pair_faces`, then its contacts as points: normal, gap, the vertex (``ids_a``: each
+    point's node) at weight 1 and, on the second side, the triangle's corners (``ids_b``: the surface
+    vertices' nodes) at minus their barycentric weights. Returns their count."""
+    _pair_faces(x, Ys, tri, tris, valid, margin, edge, best, gap, n, w, on)
+    m = 0
+    for c in range(x.shape[0]):
+        if not on[c]:
+            continue
+        out_g[m] = gap[c]
+        for i in range(3):
+            out_n[m, i] = n[c, i]
+            sn[m, 0, i] = ids_a[c]
+            sn[m, 1, i] = ids_b[tri[best[c], i]]
+            sw[m, 0, i] = 1.0 if i == 0 else 0.0
+            sw[m, 1, i] = -w[c, i]
+        m += 1
+    return m
+
+
+def _probe_block(Ys, O, tri, c, R, half, radius, cutoff, margin, ids, idx, gap, n, face_w, face, out_n, out_g,
+                 sn, sw):
+    """:func:`_probe`, then its contacts as points (the vertices, then the face point's corners at
+    their barycentric weights; ``ids``: the surface vertices' nodes). Returns their count."""
+    count = _probe(Ys, O, tri, c, R, half, radius, cutoff, margin, idx, gap, n, face_w, face)
+    for k in range(count):
+        out_g[k] = gap[k]
+        for i in range(3):
+            out_n[k, i] = n[k, i]
+            sn[k, 0, i] = ids[idx[k]]
+            sw[k, 0, i] = 1.0 if i == 0 else 0.0
+            sn[k, 1, i] = 0
+            sw[k, 1, i] = 0.0
+    if face[0] < 0:
+        return count
+    t = int(face[0])
+    out_g[count] = face[1]
+    for i in range(3):
+        out_n[count, i] = face[2 + i]
+        sn[count, 0, i] = ids[tri[t, i]]
+        sw[count, 0, i] = face_w[i]
+        sn[count, 1, i] = 0
+        sw[count, 1, i] = 0.0
+    return count + 1
+
+
+_pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = _rhs_compiled = None
+_spread_compiled = _pair_block_compiled = _probe_block_compiled = None
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
     _opts = dict(cache=True, nogil=True, error_model="numpy")
-    _pair_faces_compiled = _numba.njit(**_opts)(_pair_faces)
+    _pair_faces = _pair_faces_compiled = _numba.njit(**_opts)(_pair_faces)  # the block kernels call these
     _core = _numba.njit(**_opts)(_core)
-    _probe_compiled = _numba.njit(**_opts)(_probe)
+    _probe = _probe_compiled = _numba.njit(**_opts)(_probe)
+    _pair_block_compiled = _numba.njit(**_opts)(_pair_block)
+    _probe_block_compiled = _numba.njit(**_opts)(_probe_block)
     _assemble_compiled = _numba.njit(**_opts)(_assemble)
     _frames_compiled = _numba.njit(**_opts)(_frames_into)
     _rhs_compiled = _numba.njit(**_opts)(_rhs_into)
@@ -430,3 +480,53 @@ def probe_points(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position:
             push = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
             found = (int(near[best]), float(g), push, w[best])
     return cand[touching], gaps[touching], n[touching], found
+
+
+def pair_block(x: np.ndarray, Ys: np.ndarray, tri: np.ndarray, tris: np.ndarray, valid: np.ndarray, margin: float,
+               edge: float, ids_a: np.ndarray, ids_b: np.ndarray, compiled: bool = True):
+    """:func:`pair_faces`' contacts as points: (normals (m, 3), gaps (m,), sides' nodes (m, 2, 3),
+    weights (m, 2, 3)): the vertex (``ids_a``: each point's node) at weight 1, and the triangle's
+    corners (``ids_b``: the surface vertices' nodes) at minus their barycentric weights."""
+    c = x.shape[0]
+    if compiled and _pair_block_compiled is not None:
+        out_n, out_g, sn, sw = np.empty((c, 3)), np.empty(c), np.empty((c, 2, 3), dtype=np.int64), np.empty((c, 2, 3))
+        m = _pair_block_compiled(np.ascontiguousarray(x), Ys, tri, tris, valid, float(margin), float(edge), ids_a, ids_b,
+                                 np.empty(c, dtype=np.int64), np.empty(c), np.empty((c, 3)), np.empty((c, 3)),
+                                 np.empty(c, dtype=np.bool_), out_n, out_g, sn, sw)
+        return out_n[:m], out_g[:m], sn[:m], sw[:m]
+    best, gap, n, w, on = pair_faces(x, Ys, tri, tris, valid, margin, edge, compiled=False)
+    keep = np.flatnonzero(on)
+    sn = np.empty((keep.size, 2, 3), dtype=np.int64)
+    sn[:, 0, :] = ids_a[keep][:, None]
+    sn[:, 1, :] = ids_b[tri[best[keep]]]
+    sw = np.zeros((keep.size, 2, 3))
+    sw[:, 0, 0] = 1.0
+    sw[:, 1, :] = -w[keep]
+    return n[keep], gap[keep], sn, sw
+
+
+def probe_block(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position: np.ndarray, cutoff: float,
+                margin: float, ids: np.ndarray, compiled: bool = True):
+    """:func:`probe_points`' contacts as points: (push directions (m, 3), gaps (m,), sides' nodes
+    (m, 2, 3), weights (m, 2, 3)): each vertex (``ids``: the surface vertices' nodes) at weight 1,
+    then the face point's corners at their barycentric weights."""
+    if compiled and _probe_block_compiled is not None:
+        s = Ys.shape[0]
+        out_n, out_g = np.empty((s + 1, 3)), np.empty(s + 1)
+        sn, sw = np.empty((s + 1, 2, 3), dtype=np.int64), np.empty((s + 1, 2, 3))
+        m = _probe_block_compiled(Ys, O, tri, np.asarray(position, dtype=float), tool.orientation, tool.half_extents,
+                                  float(tool.radius), float(cutoff), float(margin), ids, np.empty(s, dtype=np.int64),
+                                  np.empty(s), np.empty((s, 3)), np.zeros(3), np.zeros(7), out_n, out_g, sn, sw)
+        return out_n[:m], out_g[:m], sn[:m], sw[:m]
+    i, gaps, n, face = probe_points(Ys, O, tri, tool, position, cutoff, margin, compiled=False)
+    m = i.size + (face is not None)
+    sn, sw = np.zeros((m, 2, 3), dtype=np.int64), np.zeros((m, 2, 3))
+    sn[:i.size, 0, :] = ids[i][:, None]
+    sw[:i.size, 0, 0] = 1.0
+    normals, gap = n, gaps
+    if face is not None:
+        t, g, push, w = face
+        sn[-1, 0] = ids[tri[t]]
+        sw[-1, 0] = w
+        normals, gap = np.vstack([n, push[None]]), np.append(gaps, g)
+    return normals, gap, sn, sw
