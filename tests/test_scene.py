@@ -112,7 +112,15 @@ def test_a_scene_file_grasper_lifts_the_box_off_the_table(folder):
      r"\[\[obstacle\]\] 1 'table': key 'plane': give plane = .* or mesh"),
     (lambda s: s.replace("plane = { point = [0, 0, -0.002], normal = [0, 0, 1] }", "mesh = 'nothing.stl'"),
      r"\[\[obstacle\]\] 1 'table': key 'mesh'"),
-    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\ndevice = 'mouse'"), r"key 'device': live devices are not supported"),
+    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\ndevice = 'mouse'"), r"\[\[tool\]\] 1 'hand': key 'device': .*'mouse'; "
+     "choose one of 'openhaptics', 'forcedimension', 'haply', 'igtl'"),
+    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\ndevice = 'igtl'"), r"key 'path': a tool follows a scripted path "
+     "or a live device, not both"),
+    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\ndevice = 'haply'\nport = 1").split("path")[0],
+     r"key 'port': is for device = 'igtl'"),
+    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\nmax_force = 3.0"), r"key 'max_force': is for a tool on a live device"),
+    (lambda s: s + LIFT.replace("[[tool]]", "[[tool]]\ndevice = 'igtl'\nport = 70000").split("path")[0],
+     r"key 'port': .*a TCP port"),
     (lambda s: s + HANG.replace('"box"', '"boxx"'), r"\[\[attachment\]\] 1 'ligament': key 'body': no body named 'boxx'"),
     (lambda s: s + HANG.replace('to = "world"', 'to = "sky"'), r"key 'to': no body named 'sky' .*or 'world'"),
     (lambda s: s + HANG.replace("z>0.049", "z>0.2"), r"key 'nodes': .*'z>0.2' selects no node of box"),
@@ -193,3 +201,89 @@ def test_the_example_scene_the_grasper_and_the_cystic_plate_hold_the_gallbladder
     assert abs(held[2] - weight) < 0.02 * weight and np.abs(held[:2]).max() < 0.02 * weight
     assert last[("liver", "probe")][2] < -0.1  # the probe presses the liver down
     assert np.allclose(last[("liver", "cystic plate")], -last[("gallbladder", "cystic plate")])
+
+
+def _free_port():
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+LIVE = """
+[[tool]]
+name = "probe"
+kind = "probe"
+radius = 0.01
+stiffness = 500.0
+device = "igtl"
+max_force = 1.0
+port = {port}
+"""
+
+
+def test_a_scene_files_probe_on_a_live_device_presses_the_box_and_the_force_goes_back(folder):
+    """[[tool]] device = "igtl": load_scene opens the OpenIGTLink adapter before the precompute; a
+    client's ToolToReference pose (mm) 5 mm into the box's top is the probe's hand, the box is pressed
+    (the probe's force on it points down), the force goes back to the client as 'Force' (clamped to the
+    file's max_force), and close_devices frees the port. `rtfem simulate` refuses the live hand."""
+    pyigtl = pytest.importorskip("pyigtl", reason="the igtl extra (pyigtl) is not installed: pip install 'rtfem[igtl]'")
+    import time
+
+    from rtfem.interaction.scene_file import close_devices
+
+    port = _free_port()
+    (folder / "scene.toml").write_text(SCENE + LIVE.format(port=port))
+    assert main(["simulate", str(folder / "scene.toml"), "--duration", "0.1", "--out", str(folder / "out")]) == 2
+    scene = load_scene(folder / "scene.toml")
+    client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
+    try:
+        t0 = time.perf_counter()
+        while not client.is_connected():
+            assert time.perf_counter() - t0 < 10.0
+            time.sleep(0.01)
+        M = np.eye(4)
+        M[:3, 3] = [50.0, 50.0, 50.0 + 10.0 - 5.0]  # the sphere's centre 5 mm below its touching height (mm)
+        client.send_message(pyigtl.TransformMessage(M, device_name="ToolToReference"), wait=True)
+        device = scene.tools[0].device
+        while not np.allclose(device.position(0.0), M[:3, 3] * 1e-3):
+            assert time.perf_counter() - t0 < 10.0
+            time.sleep(0.002)
+        force, start = None, time.perf_counter()
+        while time.perf_counter() - start < 1.5:  # ~1 kHz: the device's watchdog is fed
+            scene.step()
+            got = [m for m in client.get_latest_messages() if m.device_name == "Force"]
+            if got:
+                force = np.asarray(got[-1].matrix)[:3, 3]
+            time.sleep(max(0.0, scene.dt - 2e-4))
+        pressed = scene.contacts[("box", "probe")]
+        assert pressed[2] < -0.5  # the probe pushes the box down into the table
+        # the hand feels the box pushing back, clamped to the file's max_force
+        assert force is not None and abs(np.linalg.norm(force) - 1.0) < 1e-6 and force[2] > 0.999
+    finally:
+        client.stop()
+        close_devices(scene)
+    rt.devices.IGTLDevice(port).close()  # the port is free again
+
+
+def test_a_scene_file_device_that_cannot_open_is_said_before_any_precompute(folder):
+    """A device whose SDK is missing is named with the file, the table and the key before any body is
+    computed; a file that turns out bad after a device opened closes it (its port is free)."""
+    from rtfem.errors import DeviceError
+
+    calls = []
+    (folder / "scene.toml").write_text(SCENE + LIVE.format(port=1).replace('"igtl"', '"openhaptics"')
+                                       .replace("port = 1", ""))
+    try:
+        rt.devices.OpenHaptics()
+    except DeviceError:
+        with pytest.raises(rt.ModelError, match=r"scene.toml: \[\[tool\]\] 1 'probe': key 'device': .*OpenHaptics"):
+            load_scene(folder / "scene.toml", progress=calls.append)
+        assert calls == []  # no precompute began
+    pytest.importorskip("pyigtl", reason="the igtl extra (pyigtl) is not installed: pip install 'rtfem[igtl]'")
+    port = _free_port()
+    (folder / "scene.toml").write_text(SCENE.replace("modes = 20", "modes = 0") + LIVE.format(port=port))
+    with pytest.raises(rt.ModelError, match=r"\[\[body\]\] 1 'box': key 'modes'"):
+        load_scene(folder / "scene.toml")
+    rt.devices.IGTLDevice(port).close()  # closed when the file was refused

@@ -9,6 +9,7 @@ import time
 from urllib.parse import urlparse
 
 from ..errors import RtfemError
+from ..interaction.devices import DEVICES, open_device  # noqa: F401 (rtfem view --device opens through it)
 from .common import add_model_options, build_model, damping_of, port, positive
 
 
@@ -55,24 +56,6 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
          "listening" if listening else ("pip install websockets (the viewer extra)" if not ws else haply.HOW)),
         ("igtl", "pyigtl (OpenIGTLink)", igtl, "installed" if igtl else "pip install 'rtfem[igtl]' (make installs it)"),
     ]
-
-
-DEVICES = ("openhaptics", "forcedimension", "haply", "igtl")
-
-
-def open_device(name: str, max_force: float, haply_url: str = "ws://localhost:10001", igtl_port: int = 18944):
-    """The adapter ``name`` (one of :data:`DEVICES`) opened with its defaults and ``max_force`` (N) at most."""
-    from ..interaction import devices
-
-    if name == "openhaptics":
-        return devices.OpenHaptics(max_force=max_force)
-    if name == "forcedimension":
-        return devices.ForceDimension(max_force=max_force)
-    if name == "haply":
-        return devices.Haply(haply_url, max_force=max_force)
-    if name == "igtl":
-        return devices.IGTLDevice(igtl_port, max_force=max_force)
-    raise RtfemError(f"--device {name}: choose one of {', '.join(DEVICES)}")
 
 
 def cmd_devices(args: argparse.Namespace) -> int:

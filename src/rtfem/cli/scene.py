@@ -33,29 +33,38 @@ VIEW_STEPS = (0.001, 0.002, 0.0025, 0.004, 0.005, 0.01, 0.02)
 def view_scene(args: argparse.Namespace) -> int:
     """``rtfem view scene.toml`` / ``--example``: the scene viewer. The scene is stepped at the file's dt
     when a step takes under 70 % of it, else at the smallest of VIEW_STEPS that keeps real time (said)."""
-    from ..interaction.scene_file import load_scene
+    from ..interaction.scene_file import close_devices, load_scene
     from ..viewer.scene_view import SceneSession, serve_scene
 
     for flag, what in (("device", "--device"), ("benchmark", "--benchmark")):
         if getattr(args, flag, None):
-            raise RtfemError(f"{what} is for a single organ; a scene's tools are in its file and the mouse")
+            raise RtfemError(f"{what} is for a single organ; a scene's tools are in its file (device = ... for a "
+                             "live hand) and the mouse")
 
     def progress(message: str) -> None:
         print(f"scene       {message}", flush=True)
 
     scene = load_scene(args.mesh, progress=progress)
-    steps = []
-    for _ in range(60):
-        t0 = time.perf_counter()
-        scene.step()
-        steps.append(time.perf_counter() - t0)
-    cost, dt = float(np.median(steps[10:])), scene.dt
-    if cost > 0.7 * dt:
-        new = next((d for d in VIEW_STEPS if d > dt and cost <= 0.7 * d), VIEW_STEPS[-1])
-        print(f"scene       a step takes {cost * 1e3:.1f} ms: the viewer steps the scene at dt = {new * 1e3:g} ms to keep "
-              f"real time (at the file's {dt * 1e3:g} ms it would run at {dt / cost:.2f}x)", flush=True)
-        scene = load_scene(args.mesh, progress=progress, dt=new)
-    serve_scene(SceneSession(scene), host=args.host, port=args.port)
+    try:
+        steps = []
+        for _ in range(60):
+            t0 = time.perf_counter()
+            scene.step()
+            steps.append(time.perf_counter() - t0)
+        cost, dt = float(np.median(steps[10:])), scene.dt
+        if cost > 0.7 * dt:
+            new = next((d for d in VIEW_STEPS if d > dt and cost <= 0.7 * d), VIEW_STEPS[-1])
+            print(f"scene       a step takes {cost * 1e3:.1f} ms: the viewer steps the scene at dt = {new * 1e3:g} ms to "
+                  f"keep real time (at the file's {dt * 1e3:g} ms it would run at {dt / cost:.2f}x)", flush=True)
+            close_devices(scene)  # the file's live devices are opened again with the scene
+            scene = load_scene(args.mesh, progress=progress, dt=new)
+        for tool in scene.tools:
+            if getattr(tool.device, "attach", None) is not None:
+                print(f"scene       tool {tool.name} ({tool.kind}) follows its live device"
+                      + (" (its first button closes it)" if tool.kind == "grasper" else ""), flush=True)
+        serve_scene(SceneSession(scene), host=args.host, port=args.port)
+    finally:
+        close_devices(scene)
     return 0
 
 
@@ -71,7 +80,7 @@ def simulate_scene(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
-    scene = load_scene(args.mesh, progress=lambda message: print(f"scene       {message}", flush=True))
+    scene = load_scene(args.mesh, progress=lambda message: print(f"scene       {message}", flush=True), live=False)
     dt = scene.dt
     n_steps = int(round(args.duration / dt))
     if not 1 <= n_steps <= MAX_STEPS:

@@ -44,7 +44,16 @@
     path = [[0, 0.05, 0.05, 0.06], [0.5, 0.05, 0.05, 0.049]]   # rows t, x, y, z (s, m): linear between
     closed = [[0.6, 2.0]]          # grasper: closed from t_on to t_off (s)
 
+    [[tool]]                       # a probe or a grasper on a live hand (rtfem view; a grasper closes on
+    name = "probe"                 # the device's first button)
+    device = "igtl"                # openhaptics, forcedimension, haply or igtl (rtfem devices: which are here)
+    max_force = 5.0                # the most the device renders (N; default 10)
+    port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001"
+
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
+A live device is opened before any precompute (a missing SDK is said at once), fitted to the
+bodies' bounds where it has a workspace to fit, and closed again if the file turns out bad; close
+them with :func:`close_devices` when done.
 """
 
 from __future__ import annotations
@@ -57,16 +66,15 @@ from .. import validate
 from ..errors import ModelError, RtfemError
 from .scene import Scene
 
-__all__ = ["load_scene", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_KEYS"]
+__all__ = ["load_scene", "close_devices", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_KEYS"]
 
 TOP_KEYS = {"gravity", "dt", "friction", "view", "body", "obstacle", "attachment", "tool"}
 BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "mesh", "scale", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
-TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed"}
+TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed", "device", "max_force", "url", "port"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
 BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
-NOT_YET = {"device": "live devices"}
 
 
 class _Where:
@@ -90,13 +98,11 @@ class _Where:
             if k not in table:
                 raise self.error(k, "missing")
         for k in table:
-            if k in NOT_YET and k not in allowed:
-                raise self.error(k, f"{NOT_YET[k]} are not supported in scene files yet")
             if k not in allowed:
                 raise self.error(k, f"unknown (known: {', '.join(sorted(allowed))})")
 
 
-def load_scene(path, *, progress=None, dt: float | None = None) -> Scene:
+def load_scene(path, *, progress=None, dt: float | None = None, live: bool = True) -> Scene:
     """The scene a TOML file describes (see the module's docstring), its bodies' modes computed.
 
     Parameters
@@ -104,6 +110,7 @@ def load_scene(path, *, progress=None, dt: float | None = None) -> Scene:
     path : the scene file.
     progress : ``progress(message)`` called before each body's precompute (a line for the CLI).
     dt : the bodies' time step (s) instead of the file's (the viewer's, to keep real time).
+    live : open the tools' live devices (False: a tool on a device is refused, as for a headless run).
 
     Returns
     -------
@@ -141,6 +148,53 @@ def load_scene(path, *, progress=None, dt: float | None = None) -> Scene:
     bodies, obstacles = doc.get("body", []), doc.get("obstacle", [])
     if not isinstance(bodies, list) or not bodies:
         raise top.error("body", "a scene needs at least one [[body]] table")
+    tools = doc.get("tool", [])
+    tools = tools if isinstance(tools, list) else [tools]
+    devices: dict[int, object] = {}
+    try:  # the live devices first: a missing SDK is said before any precompute
+        for i, table in enumerate(tools):
+            if isinstance(table, dict) and "device" in table:
+                devices[i] = _open_device(table, _Where(p, _table_name("tool", i, table)), live)
+        _fill(scene, doc, p, bodies, obstacles, tools, devices, dt, progress)
+    except BaseException:
+        for device in devices.values():
+            device.close()
+        raise
+    return scene
+
+
+def close_devices(scene: Scene) -> None:
+    """Close the scene's tools' devices (a scene file's live hands); closing twice does nothing."""
+    for tool in scene.tools:
+        close = getattr(tool.device, "close", None)
+        if close is not None:
+            close()
+
+
+def _open_device(table: dict, where: _Where, live: bool):
+    from .devices import DEVICES, open_device
+
+    if not live:
+        raise where.error("device", f"{table['device']!r} is a live hand, which `rtfem view` runs; a headless run "
+                                    "needs a scripted path = [[t, x, y, z], ...]")
+    name = where.check("device", validate.choice, table["device"], "device", DEVICES)
+    for key in ("path", "closed"):
+        if key in table:
+            raise where.error(key, "a tool follows a scripted path or a live device, not both")
+    for key, only in (("url", "haply"), ("port", "igtl")):
+        if key in table and name != only:
+            raise where.error(key, f"is for device = {only!r}")
+    max_force = where.check("max_force", validate.positive, table.get("max_force", 10.0), "max_force",
+                            "the largest force the device renders, in N")
+    url = table.get("url", "ws://localhost:10001")
+    if not isinstance(url, str) or not url.startswith(("ws://", "wss://")):
+        raise where.error("url", f"{validate.show(url)}: give the Haply Inverse Service's ws:// address")
+    port = where.check("port", validate.count, table.get("port", 18944), "port", 1, 65535, what="a TCP port")
+    return where.check("device", open_device, name, max_force, url, port)
+
+
+def _fill(scene: Scene, doc: dict, p: Path, bodies, obstacles, tools, devices: dict, dt: float, progress) -> None:
+    """The file's bodies, obstacles, attachments and tools into ``scene`` (the live ``devices`` opened)."""
     for i, table in enumerate(bodies):
         where = _Where(p, _table_name("body", i, table))
         if progress is not None:
@@ -164,10 +218,14 @@ def load_scene(path, *, progress=None, dt: float | None = None) -> Scene:
         where.check("stiffness", validate.positive, table.get("stiffness", 500.0), "stiffness", "a spring in N/m")
         where.check("nodes", scene.attach, table["name"], table["body"], table["nodes"],
                     None if to == "world" else to, stiffness=table.get("stiffness", 500.0))
-    tools = doc.get("tool", [])
-    for i, table in enumerate(tools if isinstance(tools, list) else [tools]):
-        _add_tool(scene, table, _Where(p, _table_name("tool", i, table)))
-    return scene
+    for i, table in enumerate(tools):
+        _add_tool(scene, table, _Where(p, _table_name("tool", i, table)), devices.get(i))
+    if devices:  # the devices' workspaces fitted to the bodies (where the adapter fits one)
+        X = np.concatenate([b.X[b.surface] for b in scene.bodies])
+        for device in devices.values():
+            attach = getattr(device, "attach", None)
+            if attach is not None:
+                attach((X.min(axis=0), X.max(axis=0)))
 
 
 def _add_obstacle(scene: Scene, table, where: _Where, folder: Path) -> None:
@@ -196,16 +254,20 @@ def _add_obstacle(scene: Scene, table, where: _Where, folder: Path) -> None:
     where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], friction)
 
 
-def _add_tool(scene: Scene, table, where: _Where) -> None:
+def _add_tool(scene: Scene, table, where: _Where, device=None) -> None:
     from .scene_tools import Keyframes
 
     if not isinstance(table, dict):
         raise where.error(None, "must be a table")
-    where.keys(table, TOOL_KEYS, ("name", "path"))
+    where.keys(table, TOOL_KEYS, ("name",) if device is not None else ("name", "path"))
     kind = table.get("kind", "probe")
     where.check("kind", validate.choice, kind, "kind", ("probe", "grasper"))
-    path = where.check("path", Keyframes, table["path"])
-    hand = where.check("closed", Keyframes, path.path, table.get("closed", []))
+    if device is None:
+        for key in ("max_force", "url", "port"):
+            if key in table:
+                raise where.error(key, "is for a tool on a live device (device = ...)")
+        path = where.check("path", Keyframes, table["path"])
+        device = where.check("closed", Keyframes, path.path, table.get("closed", [])).device()
     if kind == "probe" and "closed" in table:
         raise where.error("closed", "only a grasper closes; a probe presses where its path takes it")
     options = {k: table[k] for k in ("radius", "stiffness", "friction") if k in table}
@@ -213,7 +275,7 @@ def _add_tool(scene: Scene, table, where: _Where) -> None:
                           ("friction", validate.in_range, (0.0, 10.0))):
         if key in options:
             where.check(key, fn, options[key], key, *args)
-    where.check("name", scene.add_tool, table["name"], hand.device(), kind=kind, **options)
+    where.check("name", scene.add_tool, table["name"], device, kind=kind, **options)
 
 
 def _table_name(kind: str, i: int, table) -> str:

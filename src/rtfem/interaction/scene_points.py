@@ -125,20 +125,25 @@ def _core(p0, p1, p2, c, R, half, q):
         q[i] = c[i] + q[3] * R[i, 0] + q[4] * R[i, 1] + q[5] * R[i, 2]
 
 
-def _probe(Ys, O, tri, c, R, half, radius, cutoff, margin, idx, gap, n, face_w, face):
+def _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, face_w, face):
     """A probe's contacts on a surface (vertices Ys, outward normals O, triangles ``tri``) with the
-    core at c: the vertices within ``margin`` (``idx``, ``gap``, push direction ``n``; their count
-    returned) as :meth:`rtfem.Tool.distance` gives them, and in ``face`` (triangle, gap, n) and
-    ``face_w`` the closest point of a triangle with a corner within ``cutoff`` of c (triangle -1:
-    none within ``margin``), as :func:`probe_points`' numpy path finds it."""
+    core at c: the vertices within ``reach`` of c and ``margin`` of the tool (``idx``, ``gap``, push
+    direction ``n``; their count returned) as :meth:`rtfem.Tool.distance` gives them, and in ``face``
+    (triangle, gap, n) and ``face_w`` the closest point of a triangle with a corner within ``cutoff``
+    of c (triangle -1: none within ``margin``), as :func:`probe_points`' numpy path finds it. (A vertex
+    beyond ``reach``, the tool's reach plus the margin, cannot be within the margin of it: one on the
+    body's far side would be taken for a vertex the tool has passed.)"""
     q = np.empty(6)
     near = np.zeros(Ys.shape[0], dtype=np.bool_)
     count = 0
     for v in range(Ys.shape[0]):
         p0, p1, p2 = Ys[v, 0], Ys[v, 1], Ys[v, 2]
-        if (p0 - c[0]) ** 2 + (p1 - c[1]) ** 2 + (p2 - c[2]) ** 2 >= cutoff * cutoff:
+        d2 = (p0 - c[0]) ** 2 + (p1 - c[1]) ** 2 + (p2 - c[2]) ** 2
+        if d2 >= cutoff * cutoff:
             continue
         near[v] = True
+        if d2 >= reach * reach:
+            continue
         _core(p0, p1, p2, c, R, half, q)
         v0, v1, v2 = q[0] - p0, q[1] - p1, q[2] - p2
         dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
@@ -366,11 +371,11 @@ def _pair_block(x, Ys, tri, tris, valid, margin, edge, ids_a, ids_b, best, gap, 
     return m
 
 
-def _probe_block(Ys, O, tri, c, R, half, radius, cutoff, margin, ids, idx, gap, n, face_w, face, out_n, out_g,
+def _probe_block(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, ids, idx, gap, n, face_w, face, out_n, out_g,
                  sn, sw):
     """:func:`_probe`, then its contacts as points (the vertices, then the face point's corners at
     their barycentric weights; ``ids``: the surface vertices' nodes). Returns their count."""
-    count = _probe(Ys, O, tri, c, R, half, radius, cutoff, margin, idx, gap, n, face_w, face)
+    count = _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, face_w, face)
     for k in range(count):
         out_g[k] = gap[k]
         for i in range(3):
@@ -446,21 +451,25 @@ def probe_points(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position:
                  margin: float, compiled: bool = True):
     """A probe ``tool`` (an :class:`~rtfem.Tool`) at ``position`` against a surface (vertices Ys (s, 3),
     outward normals O, triangles ``tri`` numbering Ys): the vertices within ``margin`` of it (indices,
-    gaps, push directions) and the closest point on a triangle with a corner within ``cutoff``:
-    (triangle, gap, push direction (3,), barycentric weights (3,)), or None beyond ``margin``."""
+    gaps, push directions; those within the tool's reach plus the margin of ``position``) and the
+    closest point on a triangle with a corner within ``cutoff``: (triangle, gap, push direction (3,),
+    barycentric weights (3,)), or None beyond ``margin``."""
+    reach = tool.reach + margin
     if compiled and _probe_compiled is not None:
         s = Ys.shape[0]
         idx, gap, n = np.empty(s, dtype=np.int64), np.empty(s), np.empty((s, 3))
         face_w, face = np.zeros(3), np.zeros(7)
         count = _probe_compiled(Ys, O, tri, np.asarray(position, dtype=float), tool.orientation, tool.half_extents,
-                                float(tool.radius), float(cutoff), float(margin), idx, gap, n, face_w, face)
+                                float(tool.radius), float(cutoff), float(reach), float(margin), idx, gap, n, face_w, face)
         found = None if face[0] < 0 else (int(face[0]), float(face[1]), face[2:5].copy(), face_w)
         return idx[:count], gap[:count], n[:count], found
     from .contact_points import closest_points_on_triangles
 
     d = Ys - position
-    cand = np.flatnonzero(np.einsum("ij,ij->i", d, d) < cutoff * cutoff)
-    gaps, n = tool.distance(Ys[cand], position, O[cand])
+    d2 = np.einsum("ij,ij->i", d, d)
+    cand = np.flatnonzero(d2 < cutoff * cutoff)
+    close = cand[d2[cand] < reach * reach]
+    gaps, n = tool.distance(Ys[close], position, O[close])
     touching = np.flatnonzero(gaps < margin)
     mark = np.zeros(Ys.shape[0], dtype=bool)
     mark[cand] = True
@@ -479,7 +488,7 @@ def probe_points(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position:
         if g < margin:
             push = v[best] / dist[best] if outside and dist[best] > 1e-12 else -normal
             found = (int(near[best]), float(g), push, w[best])
-    return cand[touching], gaps[touching], n[touching], found
+    return close[touching], gaps[touching], n[touching], found
 
 
 def pair_block(x: np.ndarray, Ys: np.ndarray, tri: np.ndarray, tris: np.ndarray, valid: np.ndarray, margin: float,
@@ -515,7 +524,8 @@ def probe_block(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position: 
         out_n, out_g = np.empty((s + 1, 3)), np.empty(s + 1)
         sn, sw = np.empty((s + 1, 2, 3), dtype=np.int64), np.empty((s + 1, 2, 3))
         m = _probe_block_compiled(Ys, O, tri, np.asarray(position, dtype=float), tool.orientation, tool.half_extents,
-                                  float(tool.radius), float(cutoff), float(margin), ids, np.empty(s, dtype=np.int64),
+                                  float(tool.radius), float(cutoff), float(tool.reach + margin), float(margin), ids,
+                                  np.empty(s, dtype=np.int64),
                                   np.empty(s), np.empty((s, 3)), np.zeros(3), np.zeros(7), out_n, out_g, sn, sw)
         return out_n[:m], out_g[:m], sn[:m], sw[:m]
     i, gaps, n, face = probe_points(Ys, O, tri, tool, position, cutoff, margin, compiled=False)

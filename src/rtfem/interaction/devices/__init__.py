@@ -19,4 +19,41 @@ from .workspace import Workspace
 
 __all__ = ["Device", "ScriptedDevice", "Press", "CallbackDevice", "SharedDevice", "Workspace", "HardwareDevice",
            "OpenHaptics", "ForceDimension", "Haply", "IGTLServer", "IGTLDevice",
-           "MAILBOX"]
+           "MAILBOX", "DEVICES", "open_device"]
+
+#: the hardware adapters by the names the CLI and scene files use
+DEVICES = ("openhaptics", "forcedimension", "haply", "igtl")
+
+
+def open_device(name: str, max_force: float = 10.0, haply_url: str = "ws://localhost:10001", igtl_port: int = 18944):
+    """The adapter ``name`` (one of :data:`DEVICES`) opened with its defaults and ``max_force`` (N) at most.
+
+    Parameters
+    ----------
+    name : "openhaptics", "forcedimension", "haply" or "igtl".
+    max_force : the largest force rendered (N).
+    haply_url : the Haply Inverse Service's address (haply).
+    igtl_port : the OpenIGTLink port listened on (igtl).
+
+    Returns
+    -------
+    HardwareDevice
+        The opened adapter (close it when done).
+
+    Raises
+    ------
+    ModelError
+        A name not listed, a bad max_force, URL or port.
+    DeviceError
+        The device's SDK or service missing, the device not found, the port in use.
+    """
+    from ... import validate
+
+    validate.choice(name, "device", DEVICES)
+    if name == "openhaptics":
+        return OpenHaptics(max_force=max_force)
+    if name == "forcedimension":
+        return ForceDimension(max_force=max_force)
+    if name == "haply":
+        return Haply(haply_url, max_force=max_force)
+    return IGTLDevice(igtl_port, max_force=max_force)
