@@ -85,6 +85,9 @@ class Body:
         self.tri_local = np.ascontiguousarray(self.local[np.asarray(self.mesh.triangles)])  # corners in surface order
         edges = np.linalg.norm(np.diff(self.X[np.asarray(self.mesh.triangles)][:, [0, 1]], axis=1)[:, 0], axis=1)
         self.edge = float(np.median(edges))
+        rest = self.X[self.surface]
+        self.centre = 0.5 * (rest.min(axis=0) + rest.max(axis=0))  # a sphere holding the surface at rest
+        self.radius = float(np.linalg.norm(rest - self.centre, axis=1).max())
         self.longest = float(np.max(np.linalg.norm(self.X[np.asarray(self.mesh.triangles)]
                                                    - np.roll(self.X[np.asarray(self.mesh.triangles)], 1, axis=1), axis=2)))
         self.loads = np.zeros((n, 3))
@@ -269,7 +272,7 @@ class Scene:
         Xs = [b.X[b.surface] + trial for b, (_, _, trial) in zip(self.bodies, trials)]  # the surfaces, a step on
         self._plane_points(Xs, points)
         self._pair_points(trials, Xs, points)
-        self._tool_points(Xs, points)
+        self._tool_points(trials, Xs, points)
         points = points.join(self.compiled)
         loads = [F.copy() for F, _, _ in trials]
         contacts = {}
@@ -468,22 +471,22 @@ class Scene:
             self._compliance_cache[k] = (nodes.copy(), W)
         return W
 
-    def _tool_points(self, Xs, points: PointSet) -> None:
+    def _tool_points(self, trials, Xs, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
         the tool where last step's force leaves it, with their slip relative to its move."""
         nb, no = len(self.bodies), len(self.obstacles)
         probes = [(j, tool) for j, tool in enumerate(self.tools) if tool.kind == "probe"]
         if not probes:
             return
-        boxes = [(x.min(axis=0), x.max(axis=0)) for x in Xs]
+        spheres = [body.radius + 1.7321 * np.abs(trial).max() for body, (_, _, trial) in zip(self.bodies, trials)]
         for j, tool in probes:
-            x_e = tool.expected()
+            x_e, reach = tool.expected(), tool.shape.reach
             for k, body in enumerate(self.bodies):
                 margin = self.margin * body.edge
                 # vertices within an edge beyond reach: the face point between them may touch
-                cutoff = tool.shape.reach + margin + body.longest
-                if np.any(x_e < boxes[k][0] - cutoff) or np.any(x_e > boxes[k][1] + cutoff):
-                    continue  # beyond the body's box (a parked tool)
+                cutoff = reach + margin + body.longest
+                if np.linalg.norm(x_e - body.centre) > spheres[k] + cutoff:
+                    continue  # beyond the body's bounding sphere (a parked tool)
                 normal, gap, sn, sw = probe_block(Xs[k], body.normals, body.tri_local, tool.shape, x_e, cutoff, margin,
                                                   body.surface, self.compiled)
                 points.add(normal, gap, tool.friction, k, nb + no + j, j, (k, -1), sn, sw)
