@@ -4,6 +4,7 @@ from .mesh import meshes
 from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
 from .fe.material import Damping, Material
 from .fe.hyperelastic import MooneyRivlin, NeoHookean, Ogden
+from .fe.viscoelastic import Prony
 from .fe.fitting import fit_material
 from .mesh.repair import MeshReport
 from .mesh.surface import TriMesh
@@ -74,6 +75,7 @@ __all__ = [
     "MeshReport",
     "Material",
     "NeoHookean",
+    "Prony",
     "MooneyRivlin",
     "Ogden",
     "fit_material",

@@ -88,6 +88,9 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         self._free = None  # (step, configuration, u, g, factorization, prediction) of the step with the last loads held
         self._held = np.zeros(model.n_dofs)  # the last step's load vector
         self.iterations = 0  # Newton iterations of the last step
+        self._visc = np.zeros(getattr(self.system.kernel, "history_size", 0))  # a viscoelastic law's internal variables
+        if self._visc.size:  # (rt.Prony: each quadrature point's Q_i and S_iso), stepped here, kept in the state
+            self._state = (*type(self)._state, "_visc")
 
     def _state_changed(self) -> None:
         from ..fe.nonlinear import Configuration
@@ -134,8 +137,10 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         Ff = F[self._solved]
         fac = None
 
+        history = (self._visc, self.dt) if self._visc.size else None
+
         def residual(conf, u, tangent):
-            f, K, _ = self.system.evaluate(conf, tangent)
+            f, K, _ = self.system.evaluate(conf, tangent, history)
             a, v = self._kinematics(u)
             g = f[self._solved] + self._B @ v - Ff
             ref = np.linalg.norm(Ff) + np.linalg.norm(f) + np.linalg.norm(self._M @ a) + 1e-300
@@ -182,6 +187,8 @@ class NonlinearNewmarkSimulator(DirectSimulator):
                           "smaller dt (the state is unchanged)")
 
     def _commit(self, conf, u: np.ndarray, g: np.ndarray) -> None:
+        if self._visc.size:
+            self._visc = self.system.kernel.committed(self.system.deformed(conf), (self._visc, self.dt))
         self._a, self._v = self._kinematics(u)
         self._u, self._g = u, g
         self.configuration = conf

@@ -129,6 +129,12 @@ class Hyperelastic:
             dP[bad] = np.nan
         return P, psi, dP
 
+    def tets(self, X: np.ndarray, element: str):
+        """This law's element kernel on tets X (m, k, 3) (:class:`rtfem.fe.solid.HyperelasticTets`)."""
+        from .solid import HyperelasticTets
+
+        return HyperelasticTets(X, self, element)
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(mu={self.mu:g}, kappa={self.kappa:g}, density={self.density:g})"
 

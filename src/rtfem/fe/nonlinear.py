@@ -100,13 +100,16 @@ class NonlinearSystem:
         full[self.free] = values
         return full.reshape(self.model.n_nodes, self.dpn)
 
-    def evaluate(self, conf: Configuration, tangent: bool = True):
+    def evaluate(self, conf: Configuration, tangent: bool = True, history=None):
         """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
-        unless ``tangent``) and the strain energy."""
+        unless ``tangent``) and the strain energy. ``history``: a viscoelastic law's (the
+        simulation's internal variables and its dt; :class:`rtfem.fe.viscoelastic.ViscoelasticTets`)."""
         X = np.asarray(self.model.mesh.vertices)
         x = (X + conf.u)[self.cells]
         if self.rotations:
             fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
+        elif history is not None:
+            fe, Ke, energy = self.kernel.evaluate(x, tangent, history)
         else:
             fe, Ke, energy = self.kernel.evaluate(x, tangent)
         f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
@@ -116,6 +119,10 @@ class NonlinearSystem:
             data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
             K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
         return f, K, float(energy.sum())
+
+    def deformed(self, conf: Configuration) -> np.ndarray:
+        """The elements' deformed nodes (m, k, 3) of a configuration."""
+        return (np.asarray(self.model.mesh.vertices) + conf.u)[self.cells]
 
     def energy(self, conf: Configuration) -> float:
         """The strain energy of a configuration."""

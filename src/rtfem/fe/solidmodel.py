@@ -209,7 +209,7 @@ class SolidModel(FEModel):
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)[T]
         if self.law is not None:
-            return solid.HyperelasticTets(X, self.law, self.element), T
+            return self.law.tets(X, self.element), T
         return solid.CorotationalTets(X, self.material, self.element), T
 
     def _pieces(self) -> tuple[int, np.ndarray]:

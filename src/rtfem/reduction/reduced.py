@@ -102,6 +102,12 @@ class ReducedNonlinearModel(ElementTerms):
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
+        from ..fe.viscoelastic import Prony
+
+        if isinstance(self.law, Prony):
+            raise ModelError(f"{self.law!r}: the reduced nonlinear model does not carry a Prony series' internal "
+                             "variables yet; step it full order (rt.DirectSimulator(model, dt, large_deformation=True)), "
+                             "or reduce its long-term law: rt.SolidModel(mesh, law.long_term())")
         self.system = model.nonlinear()
         self.dpn = model.dofs_per_node
         self.free = self.system.free

@@ -1,0 +1,192 @@
+"""Viscoelastic soft tissue: a Prony series on the isochoric part of a hyperelastic law
+(quasi-linear viscoelasticity; Simo 1987, the form of Abaqus' ``*VISCOELASTIC, TIME=PRONY`` and
+FEBio's viscoelastic solid).
+
+The law's isochoric second Piola-Kirchhoff stress S_iso relaxes with the normalized relaxation
+function g(t) = g_inf + sum_i g_i exp(-t / tau_i) (g_inf = 1 - sum_i g_i > 0); the volumetric part
+does not relax:
+
+    S(t) = S_vol(t) + S_iso(t) - sum_i Q_i(t),   dQ_i/dt + Q_i / tau_i = (g_i / tau_i) S_iso(t),
+
+so that a deformation applied suddenly and held gives S_vol + g(t) S_iso, the law's own stress at
+first (the instantaneous response) and g_inf S_iso once relaxed (the long-term law). Over a time
+step dt, with S_iso taken linear in time between the step's ends (x = dt / tau_i, a = exp(-x)):
+
+    Q_i(n+1) = a Q_i(n) + g_i (1 - a) S_iso(n) + g_i (1 - (1 - a) / x) (S_iso(n+1) - S_iso(n)),
+
+the hereditary integral's exact value for that interpolation (unconditionally stable, any dt). The
+internal variables Q_i and S_iso(n) are kept at every quadrature point of every element by the
+simulator that steps them (the model is shared; the history is the simulation's).
+
+Without time (a static solve, the linear solvers, the modal route) a :class:`Prony` law is its
+long-term law, :meth:`Prony.long_term`: the equilibrium a held load relaxes to.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError
+from .hyperelastic import Hyperelastic, _cofactor, _det
+from .solid import HyperelasticTets, _tangent_point
+
+__all__ = ["Prony", "ViscoelasticTets"]
+
+
+class Prony(Hyperelastic):
+    """A hyperelastic law whose isochoric stress relaxes by a Prony series (see the module's docstring).
+
+    Parameters
+    ----------
+    law : the instantaneous law (:class:`~rtfem.NeoHookean`, :class:`~rtfem.MooneyRivlin` or
+        :class:`~rtfem.Ogden`): the response to a sudden deformation.
+    g : the relaxation fractions g_i (each > 0, their sum < 1).
+    tau : the relaxation times tau_i (s, each > 0), one per g_i.
+
+    Raises
+    ------
+    ModelError
+        A law that is not a hyperelastic one, fractions that are not positive or sum to 1 or more,
+        times that are not positive, lengths that differ.
+    """
+
+    name = "prony"
+
+    def __init__(self, law, g, tau) -> None:
+        if not isinstance(law, Hyperelastic) or isinstance(law, Prony):
+            raise ModelError(f"law={validate.show(law)} must be a hyperelastic law (rt.NeoHookean, rt.MooneyRivlin, "
+                             "rt.Ogden): the instantaneous response whose isochoric part relaxes")
+        g = validate.real_array(np.atleast_1d(g) if _numeric(g) else g, "g", 1)
+        tau = validate.real_array(np.atleast_1d(tau) if _numeric(tau) else tau, "tau", 1)
+        if g.size == 0 or g.shape != tau.shape:
+            raise ModelError(f"g and tau must be one relaxation fraction per relaxation time, got {g.size} and {tau.size}")
+        if np.any(g <= 0) or g.sum() >= 1.0:
+            raise ModelError(f"g = {g.tolist()}: each fraction must be > 0 and their sum < 1 (the long-term part "
+                             "g_inf = 1 - sum g must stay positive)")
+        if np.any(tau <= 0):
+            raise ModelError(f"tau = {tau.tolist()}: each relaxation time must be > 0 s")
+        self.instantaneous, self.g, self.tau = law, g, tau
+        self.g_inf = float(1.0 - g.sum())
+        relaxed = self.long_term()
+        try:
+            relaxed.linearized()
+        except ModelError as exc:
+            raise ModelError(f"the long-term law {relaxed!r} (g_inf = {self.g_inf:.3g}) has no linear twin: {exc}; "
+                             "keep its kappa / (g_inf mu) below 5000") from None
+        self.mu, self.kappa, self.density = relaxed.mu, relaxed.kappa, relaxed.density
+        self._relaxed = relaxed
+
+    def long_term(self) -> Hyperelastic:
+        """The relaxed law: the instantaneous one with its isochoric moduli times g_inf, the same bulk
+        modulus."""
+        out = self.instantaneous.scaled(self.g_inf)
+        out.kappa = self.instantaneous.kappa
+        return out
+
+    def relaxation(self, t) -> np.ndarray:
+        """g(t) = g_inf + sum_i g_i exp(-t / tau_i) at times t (s)."""
+        t = np.asarray(t, dtype=float)
+        return self.g_inf + np.sum(self.g * np.exp(-t[..., None] / self.tau), axis=-1)
+
+    def _stress(self, F):
+        return self._relaxed._stress(F)
+
+    def _tangent(self, F):
+        return self._relaxed._tangent(F)
+
+    def tets(self, X: np.ndarray, element: str) -> "ViscoelasticTets":
+        return ViscoelasticTets(X, self, element)
+
+    def coefficients(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(a, b, c) per term for a step dt: Q(n+1) = a Q(n) + b S_iso(n) + c S_iso(n+1)."""
+        x = validate.positive(dt, "dt", "a time step in s") / self.tau
+        a = np.exp(-x)
+        c = self.g * (1.0 - (-np.expm1(-x)) / x)
+        return a, self.g * (-np.expm1(-x)) - c, c
+
+    def __repr__(self) -> str:
+        return f"Prony({self.instantaneous!r}, g={self.g.tolist()}, tau={self.tau.tolist()})"
+
+
+def _numeric(value) -> bool:
+    return isinstance(value, (int, float, np.floating, np.integer))
+
+
+def _split(law, F, tangent: bool):
+    """The instantaneous law at F (m, 3, 3): (P, psi, dP, P_vol, psi_vol, dP_vol), the volumetric
+    part kappa / 2 (J - 1)^2: P_vol = kappa (J - 1) cof F,
+    dP_vol_abcd = kappa cof_ab cof_cd + kappa (J - 1) / J (cof_ab cof_cd - cof_ad cof_cb)."""
+    P, psi, dP = law.stress(F, tangent)
+    J, cof, kappa = _det(F), _cofactor(F), law.kappa
+    P_vol = kappa * (J - 1.0)[:, None, None] * cof
+    psi_vol = 0.5 * kappa * (J - 1.0) ** 2
+    dP_vol = None
+    if tangent:
+        outer = np.einsum("mab,mcd->mabcd", cof, cof)
+        dP_vol = kappa * outer + (kappa * (J - 1.0) / J)[:, None, None, None, None] * (
+            outer - np.einsum("mad,mcb->mabcd", cof, cof))
+    return P, psi, dP, P_vol, psi_vol, dP_vol
+
+
+class ViscoelasticTets(HyperelasticTets):
+    """The tets of one mesh with a :class:`Prony` law. :meth:`evaluate` without a history gives the
+    long-term law; with ``history=(h, dt)`` (``h``: :attr:`history_size` floats, each quadrature point's Q_i
+    and S_iso(n), from :meth:`committed`) the step's algorithmic response: for x the end of the step,
+    S = S_vol + (1 - sum c) S_iso - H, H = sum_i (a_i Q_i + b_i S_iso(n)) held, its consistent tangent
+    (1 - sum c) dP + sum c dP_vol - d(F H)/dF and the step's potential psi_vol + (1 - sum c) psi_iso
+    - (C - I) : H / 2."""
+
+    def __init__(self, X: np.ndarray, law: Prony, element: str) -> None:
+        super().__init__(X, law, element)
+        self.n_points, self.n_elements = len(self.G), X.shape[0]
+        self.history_size = self.n_points * self.n_elements * (law.g.size + 1) * 9
+
+    def _views(self, h: np.ndarray):
+        """(Q (points, m, terms, 3, 3), S_iso(n) (points, m, 3, 3)) as views of the flat history."""
+        n = self.law.g.size
+        block = h.reshape(self.n_points, self.n_elements, n + 1, 3, 3)
+        return block[:, :, :n], block[:, :, n]
+
+    def evaluate(self, x: np.ndarray, tangent: bool = True, history=None):
+        if history is None:
+            return super().evaluate(x, tangent)
+        h, dt = history
+        if h.size != self.history_size:
+            raise ModelError(f"a viscoelastic history of {h.size} values for a kernel of {self.history_size}")
+        a, b, c = self.law.coefficients(dt)
+        Q, Sn = self._views(h)
+        m, k = x.shape[:2]
+        f = np.zeros((m, k, 3))
+        K = np.zeros((m, k, 3, k, 3)) if tangent else None
+        energy = np.zeros(m)
+        keep = 1.0 - c.sum()
+        for q, (G, wdet) in enumerate(zip(self.G, self.wdet)):
+            F = np.einsum("mka,mkb->mab", x, G)
+            P, psi, dP, P_vol, psi_vol, dP_vol = _split(self.law.instantaneous, F, tangent)
+            H = np.einsum("i,miab->mab", a, Q[q]) + b.sum() * Sn[q]
+            P_alg = P_vol + keep * (P - P_vol) - F @ H
+            C = np.einsum("mka,mkb->mab", F, F)
+            psi_alg = psi_vol + keep * (psi - psi_vol) - 0.5 * np.einsum("mab,mab->m", C - np.eye(3), H)
+            f += wdet[:, None, None] * np.einsum("mab,mib->mia", P_alg, G)
+            energy += wdet * psi_alg
+            if tangent:
+                dP_alg = keep * dP + (1.0 - keep) * dP_vol - np.einsum("ac,mdb->mabcd", np.eye(3), H)
+                K += wdet[:, None, None, None, None] * _tangent_point(G, dP_alg)
+        return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy
+
+    def committed(self, x: np.ndarray, history) -> np.ndarray:
+        """The history after a step that ended at deformed nodes x (m, k, 3): Q_i(n+1) and S_iso(n+1)."""
+        h, dt = history
+        a, b, c = self.law.coefficients(dt)
+        out = np.array(h, dtype=float, copy=True)
+        Q, Sn = self._views(h)
+        Q1, S1 = self._views(out)
+        for q, G in enumerate(self.G):
+            F = np.einsum("mka,mkb->mab", x, G)
+            P, _, _, P_vol, _, _ = _split(self.law.instantaneous, F, False)
+            S_new = np.linalg.solve(F, P - P_vol)  # F^-1 P_iso
+            Q1[q] = a[None, :, None, None] * Q[q] + b[None, :, None, None] * Sn[q][:, None] \
+                + c[None, :, None, None] * S_new[:, None]
+            S1[q] = S_new
+        return out
