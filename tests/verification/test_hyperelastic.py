@@ -215,7 +215,7 @@ def test_the_reduced_nonlinear_model_runs_the_law(name):
     V = (data[0].reshape(-1, red.size) @ q).reshape(n_el, -1)
     V[0, :3] = 3 * (data[1][0, 1:].mean(axis=0) - data[1][0, 0])  # element 0 inside out: NaN, not a number
     Fc, Fn = np.empty(V.shape), np.empty(V.shape)
-    tet_kernels.law_forces(V, *data[1:4], law, Fc)  # compiled for neo-Hookean (numba), batched numpy for Ogden
+    tet_kernels.law_forces(V, *data[1:4], law, Fc)  # compiled (numba) for both laws
     tet_kernels.law_forces_numpy(V, *data[1:4], law, Fn)
     assert np.isnan(Fc[0]).all() and np.isnan(Fn[0]).all()
     assert np.abs(Fc[1:] - Fn[1:]).max() < 1e-12 * np.abs(Fn[1:]).max()
@@ -296,3 +296,33 @@ def test_fit_material_recovers_known_laws_and_its_fit_holds_in_the_solver():
     for bad_kwargs in ({"kappa": -1.0}, {"kappa_ratio": 0.0}):
         with pytest.raises(ModelError, match="kappa"):
             rt.fit_material(lam, noisy, **bad_kwargs)
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_the_compiled_ogden_forces_equal_the_laws_at_repeated_stretches(element):
+    """The compiled Ogden kernel takes the principal stretches by Jacobi rotations: at rest (three
+    equal stretches), in uniaxial stretch (two equal) and in a general pose its forces equal the
+    law's own P contracted in numpy (numpy's eigh), to round-off."""
+    from rtfem.reduction import tet_kernels
+
+    if tet_kernels.compiled_ogden_forces() is None:
+        pytest.skip("numba is not installed")
+    law = rt.Ogden(mu=[1500.0, 500.0], alpha=[8.0, -2.0], kappa=KAPPA, density=1000.0)
+    mesh = rt.meshes.box(0.1, 0.05, 0.05, nx=4, ny=2, nz=2)
+    tets = rt.SolidModel(mesh, law, element=element).tetmesh
+    X, T = np.asarray(tets.vertices), np.asarray(tets.tets)
+    kernel = law.tets(X[T], element)
+    G, w = np.ascontiguousarray(np.stack(kernel.G, axis=1)), np.ascontiguousarray(np.stack(kernel.wdet, axis=1))
+    Xe = np.ascontiguousarray(X[T])
+    rng = np.random.default_rng(5)
+    poses = [np.eye(3), np.diag([1.3, 0.9, 0.9]), np.diag([0.7, 1.2, 1.2]), np.eye(3) + 0.2 * rng.normal(size=(3, 3))]
+    for Fd in poses:
+        V = (Xe @ Fd.T - Xe).reshape(T.shape[0], -1)
+        if Fd is poses[-1]:  # and a general pose, off the homogeneous field
+            V = V + 1e-4 * rng.normal(size=V.shape)
+        V = np.ascontiguousarray(V)
+        Fc, Fn = np.empty(V.shape), np.empty(V.shape)
+        tet_kernels.law_forces(V, Xe, G, w, law, Fc)
+        tet_kernels.law_forces_numpy(V, Xe, G, w, law, Fn)
+        scale = max(np.abs(Fn).max(), law.mu * w.max() * np.abs(G).max())  # at rest: a unit strain's force
+        assert np.abs(Fc - Fn).max() < 1e-12 * scale, (Fd, np.abs(Fc - Fn).max())

@@ -365,6 +365,99 @@ def _invariant_forces(V, X, G, wdet, prm, F):
             _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
 
 
+def _jacobi3(A, w, N):
+    """The eigenvalues w (3,) and eigenvectors N (3, 3, columns) of the symmetric A (3, 3) by cyclic
+    Jacobi rotations (A overwritten): to round-off, repeated eigenvalues included, no allocation."""
+    for i in range(3):
+        for j in range(3):
+            N[i, j] = 1.0 if i == j else 0.0
+    for _ in range(30):
+        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+        if off <= 1e-32 * (A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]) + 1e-300:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            apq = A[p, q]
+            if apq == 0.0:
+                continue
+            theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            sn = t * c
+            for k in range(3):  # A <- J^T A J on columns p, q, then rows
+                akp, akq = A[k, p], A[k, q]
+                A[k, p], A[k, q] = c * akp - sn * akq, sn * akp + c * akq
+            for k in range(3):
+                apk, aqk = A[p, k], A[q, k]
+                A[p, k], A[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
+            A[p, q] = A[q, p] = 0.0
+            for k in range(3):
+                nkp, nkq = N[k, p], N[k, q]
+                N[k, p], N[k, q] = c * nkp - sn * nkq, sn * nkp + c * nkq
+    for i in range(3):
+        w[i] = A[i, i]
+
+
+def _ogden_forces(V, X, G, wdet, prm, F):
+    """F (E, 3k) = the tets' forces with Ogden's W = sum_i 2 mu_i / alpha_i^2 (sum_a lambda_a bar^alpha_i
+    - 3) + kappa / 2 (J - 1)^2 (prm = [kappa, mu_1, alpha_1, mu_2, alpha_2, ...]), P as
+    :class:`rtfem.fe.hyperelastic.Ogden` writes it (the principal stretches of C by :func:`_jacobi3`);
+    an element with J <= 0 at a point gets NaN."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    kappa, terms = prm[0], (prm.shape[0] - 1) // 2
+    x = np.zeros((k, 3))
+    Fm = np.zeros((3, 3))
+    C = np.zeros((3, 3))
+    N = np.zeros((3, 3))
+    lam2 = np.zeros(3)
+    beta = np.zeros(3)
+    S = np.zeros((3, 3))
+    P = np.zeros((3, 3))
+    for e in range(E):
+        _deformed_nodes(X, V, e, x)
+        F[e, :] = 0.0
+        for q in range(nq):
+            _gradient(x, G[e, q], Fm)
+            J = (Fm[0, 0] * (Fm[1, 1] * Fm[2, 2] - Fm[1, 2] * Fm[2, 1])
+                 - Fm[0, 1] * (Fm[1, 0] * Fm[2, 2] - Fm[1, 2] * Fm[2, 0])
+                 + Fm[0, 2] * (Fm[1, 0] * Fm[2, 1] - Fm[1, 1] * Fm[2, 0]))
+            if not J > 0.0:
+                for i in range(3 * k):
+                    F[e, i] = np.nan
+                break
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for m in range(3):
+                        s += Fm[m, a] * Fm[m, b]
+                    C[a, b] = s
+            _jacobi3(C, lam2, N)
+            jb = J ** (-1.0 / 3.0)
+            mean = 0.0
+            for a in range(3):
+                lb = np.sqrt(max(lam2[a], 0.0)) * jb
+                beta[a] = 0.0
+                for i in range(terms):
+                    mu, al = prm[1 + 2 * i], prm[2 + 2 * i]
+                    beta[a] += (2.0 * mu / al) * lb ** al
+                mean += beta[a] / 3.0
+            kv = kappa * J * (J - 1.0)
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for c in range(3):
+                        s += N[a, c] * (beta[c] - mean + kv) / lam2[c] * N[b, c]
+                    S[a, b] = s
+            for a in range(3):
+                for b in range(3):
+                    P[a, b] = Fm[a, 0] * S[0, b] + Fm[a, 1] * S[1, b] + Fm[a, 2] * S[2, b]
+            _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
+
+
+def compiled_ogden_forces():
+    """The compiled Ogden force kernel (numba), or None."""
+    return compiled("solid-ogden", _ogden_forces, _gradient, _deformed_nodes, _add_stress_forces, _jacobi3)
+
+
 def compiled_invariant_forces():
     """The compiled neo-Hookean / Mooney-Rivlin force kernel (numba), or None."""
     return compiled("solid-invariants", _invariant_forces, _gradient, _deformed_nodes, _add_stress_forces)
@@ -373,13 +466,18 @@ def compiled_invariant_forces():
 def law_forces(V, X, G, wdet, law, F) -> None:
     """F (E, 3k) = the tets' forces sum_q wdet P G_i at element dofs V (E, 3k) with a hyperelastic
     ``law`` (:mod:`rtfem.fe.hyperelastic`), as :class:`rtfem.fe.solid.HyperelasticTets`: neo-Hookean
-    and Mooney-Rivlin compiled (:func:`_invariant_forces`), other laws (Ogden) with their P at all
-    quadrature points in one batched numpy call."""
-    from ..fe.hyperelastic import MooneyRivlin, NeoHookean
+    and Mooney-Rivlin compiled (:func:`_invariant_forces`), Ogden too (:func:`_ogden_forces`), other
+    laws with their P at all quadrature points in one batched numpy call."""
+    from ..fe.hyperelastic import MooneyRivlin, NeoHookean, Ogden
 
-    fn = compiled_invariant_forces() if isinstance(law, (NeoHookean, MooneyRivlin)) else None
+    if isinstance(law, (NeoHookean, MooneyRivlin)):
+        fn, prm = compiled_invariant_forces(), np.array([law.c10, law.c01, law.kappa])
+    elif isinstance(law, Ogden):
+        fn, prm = compiled_ogden_forces(), np.concatenate([[law.kappa], np.column_stack([law.mus, law.alphas]).ravel()])
+    else:
+        fn = prm = None
     if fn is not None:
-        fn(V, X, G, wdet, np.array([law.c10, law.c01, law.kappa]), F)
+        fn(V, X, G, wdet, prm, F)
     else:
         law_forces_numpy(V, X, G, wdet, law, F)
 
