@@ -196,7 +196,7 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
     g.add_argument("--element", choices=("tet4", "tet10", "tet4-anp"), default="tet10",
                    help="tet10 (quadratic, the default: does not lock at nu = 0.45), tet4 (linear, fast; too stiff "
                         "for nearly incompressible tissue) or tet4-anp (tet4 with an averaged nodal pressure: no "
-                        "volumetric locking; the linear methods only)")
+                        "volumetric locking; the linear methods, and the full-order nonlinear ones with a --material law)")
     g.add_argument("--mass", choices=("lumped", "consistent"), default="lumped", help="solid mass matrix (default lumped)")
     g = p.add_argument_group("material and supports")
     g.add_argument("--E", type=positive, default=m.E, help=f"Young's modulus in Pa (default {m.E:g})")

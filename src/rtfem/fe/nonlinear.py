@@ -118,6 +118,9 @@ class NonlinearSystem:
             indices, indptr, nf = self._pattern
             data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
             K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
+            patch = getattr(self.kernel, "patch_tangent", None)  # tet4-anp: the nodes' patches couple
+            if patch is not None:
+                K = (K + patch(x)[self.free][:, self.free]).tocsr()
         return f, K, float(energy.sum())
 
     def deformed(self, conf: Configuration) -> np.ndarray:

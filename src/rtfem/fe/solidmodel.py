@@ -39,7 +39,8 @@ class SolidModel(FEModel):
     element : "tet4" (linear, constant strain; stiff in bending and near incompressibility),
         "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`) or
         "tet4-anp" (tet4 with an averaged nodal pressure, :func:`rtfem.fe.solid.anp_volumetric`:
-        no volumetric locking on the 4-node mesh; linear solvers only so far).
+        no volumetric locking on the 4-node mesh; in the full-order nonlinear solvers with a
+        hyperelastic law, :mod:`rtfem.fe.anp`; not in the reduced nonlinear model).
     mass : "lumped" (diagonal, the paper's M; default) or "consistent" (rho int N^T N). With a
         consistent mass the modal route uses it as it is (the eigen-solve takes ARPACK's
         generalized mode); SLDM and the central-difference simulator need a diagonal M and ask
@@ -202,12 +203,18 @@ class SolidModel(FEModel):
 
     def _corotational(self) -> tuple[solid.CorotationalTets, np.ndarray]:
         """The corotational element kernel and the cells (tets) it acts on."""
-        if self.element == "tet4-anp":
-            raise ModelError("element='tet4-anp' is linear so far (modes, statics, the modal and SLDM routes): the "
-                             "nonlinear solvers (large deformation, the reduced nonlinear model, hyperelastic laws) "
-                             "take element='tet10' (no locking) or 'tet4'")
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)[T]
+        if self.element == "tet4-anp":
+            from .anp import AnpTets
+            from .viscoelastic import Prony
+
+            if self.law is None or isinstance(self.law, Prony):
+                raise ModelError("element='tet4-anp' in the nonlinear solvers averages a hyperelastic law's volumetric "
+                                 "energy kappa / 2 (J - 1)^2 at the nodes: give rt.NeoHookean, rt.MooneyRivlin or "
+                                 "rt.Ogden (a linear material's twin: rt.NeoHookean(mu=E / (2 (1 + nu)), kappa=E / "
+                                 "(3 (1 - 2 nu)))), or take element='tet10' (no locking either)")
+            return AnpTets(X, self.law, T, self.n_nodes), T
         if self.law is not None:
             return self.law.tets(X, self.element), T
         return solid.CorotationalTets(X, self.material, self.element), T
