@@ -192,3 +192,23 @@ def test_the_static_correction_of_a_few_nodes_equals_the_whole_fields_rows(modes
     fresh.set_state(sim.get_state())
     fresh._loads, fresh._load_array = sim._loads, sim._load_array  # the same loads, no kept correction
     np.testing.assert_allclose(fresh.displacements()[few], whole, rtol=1e-9, atol=1e-12 * np.abs(whole).max())
+
+
+def test_points_on_held_nodes_are_left_out_the_same_way_compiled_and_in_numpy():
+    """A block fixed at its base standing on a plane there (those points move nothing: the supports take
+    them, they are left out of the solve) with a probe pressing its top (points that are solved)."""
+    scenes = []
+    for _ in range(2):
+        model = rt.SolidModel(rt.meshes.box(0.1, 0.1, 0.03, nx=4, ny=4, nz=2), rt.Material(E=3e4, nu=0.3, density=1000.0),
+                              element="tet4")
+        model.fix("z<1e-9")
+        sim = rt.ModalSimulator(rt.modal_analysis(model, 12), dt=1e-3, damping=rt.Damping(alpha=20.0),
+                                static_correction=True)
+        scene = rt.Scene()
+        scene.add_body("block", sim, model.mesh)
+        scene.add_plane("floor", (0.0, 0.0, -0.0005), (0.0, 0.0, 1.0), friction=0.3)
+        scene.add_tool("probe", rt.ScriptedDevice(lambda t: np.array([0.05, 0.05, 0.034 - 0.01 * min(t / 0.1, 1.0)])),
+                       radius=0.005, stiffness=300.0)
+        scenes.append(scene)
+    touched = _same_steps(scenes, 150)
+    assert ("block", "probe") in touched and ("block", "floor") not in touched  # the floor's points: on held nodes

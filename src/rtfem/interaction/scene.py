@@ -29,11 +29,11 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
-from ..drivers.base import as_driver, check_driver_mesh, displacements_at, step_compliances, trial_displacements
+from ..drivers.base import (as_driver, check_driver_mesh, displacements_at, predictions, step_compliances,
+                             trial_displacements)
 from ..mesh.surface import TriMesh
-from .friction import pgs
 from .scene_obstacles import MeshObstacle, Plane, pair_search
-from .scene_points import PointSet, assemble, pair_block, probe_block, rhs, spread
+from .scene_points import PointSet, contact_solve, pair_block, probe_block
 from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -275,11 +275,9 @@ class Scene:
         self._tool_points(trials, Xs, points)
         points = points.join(self.compiled)
         loads = [F.copy() for F, _, _ in trials]
-        contacts = {}
-        for a in self.bodies:
-            for other in (*self.obstacles, *self.bodies, *self.tools):
-                if other is not a:
-                    contacts[(a.name, other.name)] = np.zeros(3)
+        pairs = [(a.name, other.name) for a in self.bodies for other in (*self.obstacles, *self.bodies, *self.tools)
+                 if other is not a]
+        contacts = dict(zip(pairs, np.zeros((len(pairs), 3))))  # each pair's row of one array
         for att in springs:
             contacts[(att.a.name, att.name)] = self._held_force[att.name].copy()
             if att.b is not None:
@@ -395,7 +393,15 @@ class Scene:
         nodes = body.surface if extra is None else np.concatenate([body.surface, extra])  # one set: the
         ns = body.surface.size                                                            # driver keeps its rows
         now = None if getattr(d, "trial_displacements", None) is not None else displacements_at(d, body.surface)
-        after = trial_displacements(d, F, nodes)
+        if now is None and not getattr(d, "compliance_changes", True):
+            # affine in the loads with a constant linear part: the free step plus the load's response, kept
+            # while the load and the nodes are the same (a body's weight, step after step)
+            key, kept = (F.tobytes(), nodes.tobytes()), body.__dict__.get("_load_response")
+            if kept is None or kept[0] != key:
+                kept = body._load_response = (key, trial_displacements(d, F, nodes) - predictions(d, nodes))
+            after = predictions(d, nodes) + kept[1]
+        else:
+            after = trial_displacements(d, F, nodes)
         return F, now, after[:ns], (None if extra is None else after[ns:])
 
     def _held_trial(self, k: int, base, held: np.ndarray, nodes: np.ndarray | None):
@@ -496,7 +502,7 @@ class Scene:
         (G: the points' frames; P_k: each point's displacement per unit displacement of body k's
         nodes); b: the gaps and the slips over the trial step (relative to the other side, or to a
         probe's move)."""
-        F, m = P["frame"], P["gap"].size  # F (m, 3, 3): G's diagonal blocks
+        F = P["frame"]  # (m, 3, 3): G's diagonal blocks
         sk, sn, sw = P["sk"], P["sn"], P["sw"]
         on = (sk >= 0)[:, :, None] & (sw != 0.0)  # the sides' nodes that move the points
         stride = 1 + max(body.driver.n_nodes for body in self.bodies)
@@ -523,17 +529,8 @@ class Scene:
         inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in tools] or [0.0])
         move = np.array([t.target - t.proxy for t in tools] or [np.zeros(3)])
         force = np.array([t.force for t in tools] or [np.zeros(3)])
-        b = rhs(F, slots, sw, moved, P["gap"], P["tool"], move, force, inv_k, self.compiled)
-        A = assemble(F, slots, sw, W, P["tool"], inv_k, self.compiled)  # G^T (sum_k P_k W_k P_k^T + C) G
-        normal = np.diag(A)[0::3]
-        free = normal > 1e-12 * max(float(normal.max()), 1e-300)  # a point on held nodes on both sides: the
-        r = np.zeros(3 * m)                                          # supports take it, it moves nothing
-        if free.all():
-            r, self.sweeps = pgs(A, b.reshape(-1), P["mu"])
-        elif free.any():
-            rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
-            r[rows3], self.sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), P["mu"][free])
-        f, node_force = spread(F, r, slots, sw, used.size, self.compiled)  # each point's force on its first
+        f, node_force, self.sweeps = contact_solve(F, slots, sw, W, P["tool"], inv_k, move, force, moved, P["gap"],
+                                                   P["mu"], self.compiled)  # each point's force on its first
         for k, nodes, at in maps:                                              # side, -w f on its second
             loads[k][nodes] += node_force[at]
         names, nb = self._names(), len(self.bodies)

@@ -16,7 +16,8 @@ import numpy as np
 
 from .contact_points import _closest_on_triangle
 
-__all__ = ["PointSet", "assemble", "pair_block", "pair_faces", "probe_block", "probe_points", "rhs", "spread"]
+__all__ = ["PointSet", "assemble", "contact_solve", "pair_block", "pair_faces", "probe_block", "probe_points", "rhs",
+           "spread"]
 
 FIELDS = ("normal", "gap", "mu", "a", "b", "tool", "sk", "sn", "sw")
 
@@ -397,8 +398,74 @@ def _probe_block(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, ids, idx
     return count + 1
 
 
+def _contact(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, max_sweeps, tol, A, b, r, f, node_force):
+    """The whole contact solve in one call: b (:func:`_rhs_into`), A (:func:`_assemble`), the points
+    whose normal compliance is not zero (a point on held nodes on both sides moves nothing: the
+    supports take it) solved by the projected Gauss-Seidel of :mod:`rtfem.interaction.friction`, then
+    the forces f and node_force (:func:`_spread`). Returns the sweeps."""
+    m = F.shape[0]
+    _rhs_into(F, slot, sw, moved, gap, tool, move, force, inv_k, b)
+    _assemble(F, slot, sw, W, tool, inv_k, A)
+    top = 0.0
+    for c in range(m):
+        top = max(top, A[3 * c, 3 * c])
+    free = np.empty(m, dtype=np.int64)
+    n = 0
+    for c in range(m):
+        if A[3 * c, 3 * c] > 1e-12 * max(top, 1e-300):
+            free[n] = c
+            n += 1
+    r[:] = 0.0
+    sweeps = 0
+    if n > 0:
+        As = np.empty((3 * n, 3 * n))
+        bs = np.empty(3 * n)
+        ms = np.empty(n)
+        for i in range(n):
+            ms[i] = mu[free[i]]
+            for x in range(3):
+                bs[3 * i + x] = b[free[i], x]
+                for j in range(n):
+                    for y in range(3):
+                        As[3 * i + x, 3 * j + y] = A[3 * free[i] + x, 3 * free[j] + y]
+        rs = np.zeros(3 * n)
+        sweeps = _pgs_solver(As, np.ones(n, dtype=np.bool_), np.zeros((1, 1)), np.zeros((n, 3), dtype=np.int64),
+                             np.zeros((n, 3)), np.zeros((n, 3, 3)), 0.0, bs, ms, rs, max_sweeps, tol)
+        for i in range(n):
+            for x in range(3):
+                r[3 * free[i] + x] = rs[3 * i + x]
+    _spread(F, r, slot, sw, f, node_force)
+    return sweeps
+
+
+def contact_solve(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, compiled: bool = True):
+    """The contact forces of all points: (each point's force on its first side f (m, 3), each used
+    node's force (u, 3), PGS sweeps), from the frames F, the sides' slots and weights, the bodies'
+    compliances W, the probes' couplings and moves, the nodes' displacements over the trial step,
+    the gaps and Coulomb's coefficients (see :func:`_contact`); numpy where numba is absent."""
+    from .friction import pgs
+
+    m, u = F.shape[0], W.shape[0] // 3
+    if compiled and _contact_compiled is not None:
+        A, b, r = np.empty((3 * m, 3 * m)), np.empty((m, 3)), np.empty(3 * m)
+        f, node_force = np.empty((m, 3)), np.empty((u, 3))
+        sweeps = _contact_compiled(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, 500, 1e-10,
+                                   A, b, r, f, node_force)
+        return f, node_force, int(sweeps)
+    b = rhs(F, slot, sw, moved, gap, tool, move, force, inv_k, False)
+    A = assemble(F, slot, sw, W, tool, inv_k, False)
+    normal = np.diag(A)[0::3]
+    free = normal > 1e-12 * max(float(normal.max()), 1e-300)
+    r, sweeps = np.zeros(3 * m), 0
+    if free.any():
+        rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
+        r[rows3], sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), mu[free])
+    f, node_force = spread(F, r, slot, sw, u, False)
+    return f, node_force, sweeps
+
+
 _pair_faces_compiled = _probe_compiled = _assemble_compiled = _frames_compiled = _rhs_compiled = None
-_spread_compiled = _pair_block_compiled = _probe_block_compiled = None
+_spread_compiled = _pair_block_compiled = _probe_block_compiled = _contact_compiled = None
 try:  # compiled when numba is present (the same code)
     import numba as _numba
 
@@ -412,6 +479,11 @@ try:  # compiled when numba is present (the same code)
     _frames_compiled = _numba.njit(**_opts)(_frames_into)
     _rhs_compiled = _numba.njit(**_opts)(_rhs_into)
     _spread_compiled = _numba.njit(**_opts)(_spread)
+    from .friction import _pgs_compiled as _pgs_solver
+
+    if _pgs_solver is not None:
+        _rhs_into, _assemble, _spread = _rhs_compiled, _assemble_compiled, _spread_compiled  # for _contact
+        _contact_compiled = _numba.njit(**_opts)(_contact)
 except Exception:  # pragma: no cover - numba absent
     pass
 
