@@ -527,16 +527,18 @@ class Scene:
             moved[at] = trial[local] - (now[local] if now is not None else displacements_at(self.bodies[k].driver, nodes))
         tools = self.tools
         inv_k = np.array([0.0 if t.stiffness is None or t.kind != "probe" else 1.0 / t.stiffness for t in tools] or [0.0])
-        move = np.array([t.target - t.proxy for t in tools] or [np.zeros(3)])
-        force = np.array([t.force for t in tools] or [np.zeros(3)])
+        move, force = np.zeros((max(len(tools), 1), 3)), np.zeros((max(len(tools), 1), 3))
+        for j, t in enumerate(tools):
+            move[j], force[j] = t.target - t.proxy, t.force
         f, node_force, self.sweeps = contact_solve(F, slots, sw, W, P["tool"], inv_k, move, force, moved, P["gap"],
                                                    P["mu"], self.compiled)  # each point's force on its first
         for k, nodes, at in maps:                                              # side, -w f on its second
             loads[k][nodes] += node_force[at]
         names, nb = self._names(), len(self.bodies)
-        total = np.zeros((nb, len(names), 3))
-        np.add.at(total, (P["a"], P["b"]), f)
+        ne = len(names)
         between = P["b"] < nb  # a body on a body: the reaction on the other
-        np.add.at(total, (P["b"][between], P["a"][between]), -f[between])
-        for a, e in zip(*np.nonzero(total.any(axis=2))):
-            contacts[(names[a], names[e])] += total[a, e]
+        index = np.concatenate([P["a"] * ne + P["b"], P["b"][between] * ne + P["a"][between]])
+        forces = np.concatenate([f, -f[between]])
+        total = np.stack([np.bincount(index, weights=forces[:, c], minlength=nb * ne) for c in range(3)], axis=1)
+        for i in np.unique(index).tolist():
+            contacts[(names[i // ne], names[i % ne])] += total[i]

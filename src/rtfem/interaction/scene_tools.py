@@ -200,7 +200,7 @@ class Keyframes:
         return (1.0 - s) * p[i - 1, 1:] + s * p[i, 1:]
 
     def buttons(self, t: float) -> int:
-        return int(bool(np.any((self.closed[:, 0] <= t) & (t < self.closed[:, 1]))))
+        return int(any(on <= t < off for on, off in self.closed.tolist()))
 
     def device(self):
         """A :class:`~rtfem.ScriptedDevice` on this path, its first button held while closed."""
