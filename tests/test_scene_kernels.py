@@ -1,4 +1,4 @@
-"""The scene step's compiled kernels (rtfem.interaction.scene_points) against the numpy they replace,
+"""The scene step's compiled kernels (rtfem.interaction.scene_search, scene_points) against the numpy they replace,
 and a driver's trial step (trial_displacements) against the protocol's step, read and restore.
 
 - pair_faces: a body's vertices against another's triangles (nearest triangle, gap, normal,
@@ -23,11 +23,12 @@ import pytest
 
 import rtfem as rt
 from rtfem.drivers.base import displacements_at, stepped_trial, trial_displacements
-from rtfem.interaction import scene_points
+from rtfem.interaction import scene_points, scene_search
 from rtfem.interaction.scene_file import load_scene
-from rtfem.interaction.scene_points import assemble, pair_faces, probe_points
+from rtfem.interaction.scene_points import assemble
+from rtfem.interaction.scene_search import pair_faces, probe_points
 
-compiled = pytest.mark.skipif(scene_points._pair_faces_compiled is None, reason="numba is not installed")
+compiled = pytest.mark.skipif(scene_search._pair_faces_compiled is None, reason="numba is not installed")
 
 
 def _sphere(r=0.05, level=2):

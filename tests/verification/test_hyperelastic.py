@@ -326,3 +326,37 @@ def test_the_compiled_ogden_forces_equal_the_laws_at_repeated_stretches(element)
         tet_kernels.law_forces_numpy(V, Xe, G, w, law, Fn)
         scale = max(np.abs(Fn).max(), law.mu * w.max() * np.abs(G).max())  # at rest: a unit strain's force
         assert np.abs(Fc - Fn).max() < 1e-12 * scale, (Fd, np.abs(Fc - Fn).max())
+
+
+def test_the_compiled_ogden_tangents_equal_the_laws_differences():
+    """The reduced model's Ogden tangents (the law's dP/dF by central differences, compiled) equal the
+    numpy law's differences contracted with the shape gradients, and the central differences of the
+    compiled forces, on a general pose."""
+    from rtfem.fe.solid import _tangent_point
+    from rtfem.reduction import tet_kernels
+
+    if tet_kernels.compiled_ogden_dP() is None:
+        pytest.skip("numba is not installed")
+    law = rt.Ogden(mu=[1500.0, 500.0], alpha=[8.0, -2.0], kappa=KAPPA, density=1000.0)
+    tets = rt.SolidModel(rt.meshes.box(0.1, 0.05, 0.05, nx=2, ny=1, nz=1), law, element="tet10").tetmesh
+    X, T = np.asarray(tets.vertices), np.asarray(tets.tets)
+    kernel = law.tets(X[T], "tet10")
+    G, w = np.ascontiguousarray(np.stack(kernel.G, axis=1)), np.ascontiguousarray(np.stack(kernel.wdet, axis=1))
+    Xe = np.ascontiguousarray(X[T])
+    E, nq, k = G.shape[:3]
+    V = np.ascontiguousarray(0.004 * np.random.default_rng(8).normal(size=(E, 3 * k)))
+    K = np.empty((E, 3 * k, 3 * k))
+    tet_kernels.law_tangents(V, Xe, G, w, law, K)
+    dP = law.stress(tet_kernels._gradients(V, Xe, G))[2] * w.reshape(-1)[:, None, None, None, None]
+    Kn = _tangent_point(np.ascontiguousarray(G.reshape(E * nq, k, 3)), dP).reshape(E, nq, 3 * k, 3 * k).sum(axis=1)
+    Kn = 0.5 * (Kn + Kn.transpose(0, 2, 1))
+    assert np.abs(K - Kn).max() < 1e-7 * np.abs(Kn).max()
+    h = 1e-7
+    for j in (0, 7, 20):
+        Vp, Vm = V.copy(), V.copy()
+        Vp[:, j] += h
+        Vm[:, j] -= h
+        Fp, Fm = np.empty(V.shape), np.empty(V.shape)
+        tet_kernels.law_forces(Vp, Xe, G, w, law, Fp)
+        tet_kernels.law_forces(Vm, Xe, G, w, law, Fm)
+        assert np.abs((Fp - Fm) / (2 * h) - K[:, :, j]).max() < 1e-5 * np.abs(K).max()

@@ -244,11 +244,11 @@ def model_options(args, mesh) -> dict:
 def build_model(args, *, quiet: bool = False):
     from ..fe.material import Material
     from ..fe.build import make_model
-    from ..fe.hyperelastic import law_from_text
+    from ..fe.viscoelastic import material_from_text
     from ..mesh.tetmesh import TetMesh
 
     material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
-    material = law_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
+    material = material_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
     mesh = mesh_of_args(args)
     nodes, how = fixed_nodes(mesh, args.fix)
     model = make_model(mesh, material, **model_options(args, mesh))

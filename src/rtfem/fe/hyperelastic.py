@@ -299,27 +299,9 @@ def law_from_text(text: str, material: Material):
     """The material a command line names (``--material``): "linear" (``material`` itself),
     "neo-hookean" (mu and kappa of ``material``'s E and nu), "mooney-rivlin:C10,C01" or
     "ogden:mu1,alpha1[,mu2,alpha2,...]" (moduli in Pa; kappa keeps ``material``'s ratio kappa / mu,
-    i.e. the same Poisson's ratio at rest), any of these three followed by "+prony:g1,tau1[,...]"
-    (:class:`~rtfem.Prony`: its isochoric stress relaxing); the density is ``material``'s. Raises
-    ModelError naming what is wrong."""
+    i.e. the same Poisson's ratio at rest); the density is ``material``'s (a relaxing law:
+    :func:`rtfem.fe.viscoelastic.material_from_text`). Raises ModelError naming what is wrong."""
     text = str(text).strip()
-    base, plus, prony = text.partition("+")
-    if plus:  # "LAW+prony:g1,tau1[,g2,tau2...]": the law's isochoric stress relaxing (rt.Prony)
-        from .viscoelastic import Prony
-
-        kind, _, values = prony.partition(":")
-        try:
-            numbers = [float(v) for v in values.split(",")] if values.strip() else []
-        except ValueError:
-            numbers = []
-        if kind.strip().lower() != "prony" or len(numbers) < 2 or len(numbers) % 2:
-            raise ModelError(f"--material {text!r}: a relaxing law is LAW+prony:g1,tau1[,g2,tau2,...] (fractions of the "
-                             "isochoric stress and their times in s), e.g. neo-hookean+prony:0.5,0.1")
-        law = law_from_text(base, material)
-        if not isinstance(law, Hyperelastic):
-            raise ModelError(f"--material {text!r}: a Prony series relaxes a hyperelastic law: give neo-hookean, "
-                             "mooney-rivlin:... or ogden:... before +prony")
-        return Prony(law, numbers[0::2], numbers[1::2])
     name, _, values = text.partition(":")
     name = name.strip().lower()
     E, nu = material.E, material.nu

@@ -28,10 +28,10 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
-from .hyperelastic import Hyperelastic, _cofactor, _det
+from .hyperelastic import Hyperelastic, _cofactor, _det, law_from_text
 from .solid import HyperelasticTets, _tangent_point
 
-__all__ = ["Prony", "ViscoelasticTets"]
+__all__ = ["Prony", "ViscoelasticTets", "material_from_text"]
 
 
 class Prony(Hyperelastic):
@@ -190,3 +190,44 @@ class ViscoelasticTets(HyperelasticTets):
                 + c[None, :, None, None] * S_new[:, None]
             S1[q] = S_new
         return out
+
+
+def material_from_text(text: str, material):
+    """The material a command line names (``--material``): what
+    :func:`rtfem.fe.hyperelastic.law_from_text` reads, optionally followed by
+    "+prony:g1,tau1[,g2,tau2,...]" (a :class:`Prony` series on that law: fractions of its isochoric
+    stress and their relaxation times in s).
+
+    Parameters
+    ----------
+    text : e.g. "neo-hookean", "ogden:2000,8", "neo-hookean+prony:0.5,0.1".
+    material : the linear Material whose E, nu and density a law takes.
+
+    Returns
+    -------
+    Material, Hyperelastic or Prony
+        The material, law or relaxing law.
+
+    Raises
+    ------
+    ModelError
+        Text that names no law, or a Prony series that is not pairs of numbers, or not on a
+        hyperelastic law.
+    """
+    text = str(text).strip()
+    base, plus, prony = text.partition("+")
+    if not plus:
+        return law_from_text(text, material)
+    kind, _, values = prony.partition(":")
+    try:
+        numbers = [float(v) for v in values.split(",")] if values.strip() else []
+    except ValueError:
+        numbers = []
+    if kind.strip().lower() != "prony" or len(numbers) < 2 or len(numbers) % 2:
+        raise ModelError(f"--material {text!r}: a relaxing law is LAW+prony:g1,tau1[,g2,tau2,...] (fractions of the "
+                         "isochoric stress and their times in s), e.g. neo-hookean+prony:0.5,0.1")
+    law = law_from_text(base, material)
+    if not isinstance(law, Hyperelastic):
+        raise ModelError(f"--material {text!r}: a Prony series relaxes a hyperelastic law: give neo-hookean, "
+                         "mooney-rivlin:... or ogden:... before +prony")
+    return Prony(law, numbers[0::2], numbers[1::2])

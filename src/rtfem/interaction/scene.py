@@ -33,7 +33,8 @@ from ..drivers.base import (as_driver, check_driver_mesh, displacements_at, pred
                              trial_displacements)
 from ..mesh.surface import TriMesh
 from .scene_obstacles import MeshObstacle, Plane, pair_search
-from .scene_points import PointSet, contact_solve, pair_block, probe_block
+from .scene_points import PointSet, contact_solve
+from .scene_search import pair_block, probe_block
 from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]

@@ -397,65 +397,96 @@ def _jacobi3(A, w, N):
         w[i] = A[i, i]
 
 
+def _ogden_point(Fm, prm, P, C, N, lam2, beta, S):
+    """P (3, 3) of Ogden's law at one deformation gradient Fm (prm as :func:`_ogden_forces`); False
+    (P untouched) where det Fm <= 0. C, N, lam2, beta, S: work arrays."""
+    kappa, terms = prm[0], (prm.shape[0] - 1) // 2
+    J = (Fm[0, 0] * (Fm[1, 1] * Fm[2, 2] - Fm[1, 2] * Fm[2, 1])
+         - Fm[0, 1] * (Fm[1, 0] * Fm[2, 2] - Fm[1, 2] * Fm[2, 0])
+         + Fm[0, 2] * (Fm[1, 0] * Fm[2, 1] - Fm[1, 1] * Fm[2, 0]))
+    if not J > 0.0:
+        return False
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for m in range(3):
+                s += Fm[m, a] * Fm[m, b]
+            C[a, b] = s
+    _jacobi3(C, lam2, N)
+    jb = J ** (-1.0 / 3.0)
+    mean = 0.0
+    for a in range(3):
+        lb = np.sqrt(max(lam2[a], 0.0)) * jb
+        beta[a] = 0.0
+        for i in range(terms):
+            mu, al = prm[1 + 2 * i], prm[2 + 2 * i]
+            beta[a] += (2.0 * mu / al) * lb ** al
+        mean += beta[a] / 3.0
+    kv = kappa * J * (J - 1.0)
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += N[a, c] * (beta[c] - mean + kv) / lam2[c] * N[b, c]
+            S[a, b] = s
+    for a in range(3):
+        for b in range(3):
+            P[a, b] = Fm[a, 0] * S[0, b] + Fm[a, 1] * S[1, b] + Fm[a, 2] * S[2, b]
+    return True
+
+
 def _ogden_forces(V, X, G, wdet, prm, F):
     """F (E, 3k) = the tets' forces with Ogden's W = sum_i 2 mu_i / alpha_i^2 (sum_a lambda_a bar^alpha_i
     - 3) + kappa / 2 (J - 1)^2 (prm = [kappa, mu_1, alpha_1, mu_2, alpha_2, ...]), P as
     :class:`rtfem.fe.hyperelastic.Ogden` writes it (the principal stretches of C by :func:`_jacobi3`);
     an element with J <= 0 at a point gets NaN."""
     E, nq, k = G.shape[0], G.shape[1], G.shape[2]
-    kappa, terms = prm[0], (prm.shape[0] - 1) // 2
     x = np.zeros((k, 3))
-    Fm = np.zeros((3, 3))
-    C = np.zeros((3, 3))
-    N = np.zeros((3, 3))
-    lam2 = np.zeros(3)
-    beta = np.zeros(3)
-    S = np.zeros((3, 3))
-    P = np.zeros((3, 3))
+    Fm, C, N, S, P = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
+    lam2, beta = np.zeros(3), np.zeros(3)
     for e in range(E):
         _deformed_nodes(X, V, e, x)
         F[e, :] = 0.0
         for q in range(nq):
             _gradient(x, G[e, q], Fm)
-            J = (Fm[0, 0] * (Fm[1, 1] * Fm[2, 2] - Fm[1, 2] * Fm[2, 1])
-                 - Fm[0, 1] * (Fm[1, 0] * Fm[2, 2] - Fm[1, 2] * Fm[2, 0])
-                 + Fm[0, 2] * (Fm[1, 0] * Fm[2, 1] - Fm[1, 1] * Fm[2, 0]))
-            if not J > 0.0:
+            if not _ogden_point(Fm, prm, P, C, N, lam2, beta, S):
                 for i in range(3 * k):
                     F[e, i] = np.nan
                 break
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for m in range(3):
-                        s += Fm[m, a] * Fm[m, b]
-                    C[a, b] = s
-            _jacobi3(C, lam2, N)
-            jb = J ** (-1.0 / 3.0)
-            mean = 0.0
-            for a in range(3):
-                lb = np.sqrt(max(lam2[a], 0.0)) * jb
-                beta[a] = 0.0
-                for i in range(terms):
-                    mu, al = prm[1 + 2 * i], prm[2 + 2 * i]
-                    beta[a] += (2.0 * mu / al) * lb ** al
-                mean += beta[a] / 3.0
-            kv = kappa * J * (J - 1.0)
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += N[a, c] * (beta[c] - mean + kv) / lam2[c] * N[b, c]
-                    S[a, b] = s
-            for a in range(3):
-                for b in range(3):
-                    P[a, b] = Fm[a, 0] * S[0, b] + Fm[a, 1] * S[1, b] + Fm[a, 2] * S[2, b]
             _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
+
+
+def _ogden_dP(Fs, prm, h, dP):
+    """dP (m, 3, 3, 3, 3) = dP_ab / dF_cd at the gradients Fs (m, 3, 3) by central differences of
+    :func:`_ogden_point` (step h, as :meth:`rtfem.fe.hyperelastic.Hyperelastic._tangent`); NaN where
+    a perturbed gradient is inverted."""
+    Fm, C, N, S = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
+    Pp, Pm = np.zeros((3, 3)), np.zeros((3, 3))
+    lam2, beta = np.zeros(3), np.zeros(3)
+    for m in range(Fs.shape[0]):
+        for c in range(3):
+            for d in range(3):
+                for i in range(3):
+                    for j in range(3):
+                        Fm[i, j] = Fs[m, i, j]
+                Fm[c, d] += h
+                ok = _ogden_point(Fm, prm, Pp, C, N, lam2, beta, S)
+                Fm[c, d] -= 2.0 * h
+                ok = _ogden_point(Fm, prm, Pm, C, N, lam2, beta, S) and ok
+                for a in range(3):
+                    for b in range(3):
+                        dP[m, a, b, c, d] = (Pp[a, b] - Pm[a, b]) / (2.0 * h) if ok else np.nan
 
 
 def compiled_ogden_forces():
     """The compiled Ogden force kernel (numba), or None."""
-    return compiled("solid-ogden", _ogden_forces, _gradient, _deformed_nodes, _add_stress_forces, _jacobi3)
+    return compiled("solid-ogden", _ogden_forces, _gradient, _deformed_nodes, _add_stress_forces, _jacobi3,
+                    _ogden_point)
+
+
+def compiled_ogden_dP():
+    """The compiled Ogden tangent by differences (numba), or None."""
+    return compiled("solid-ogden-dP", _ogden_dP, _jacobi3, _ogden_point)
 
 
 def compiled_invariant_forces():
@@ -494,8 +525,17 @@ def law_tangents(V, X, G, wdet, law, K) -> None:
     shape gradients), symmetric."""
     from ..fe.solid import _tangent_point
 
+    from ..fe.hyperelastic import Ogden
+
     E, nq, k = G.shape[0], G.shape[1], G.shape[2]
-    dP = law.stress(_gradients(V, X, G))[2] * wdet.reshape(-1)[:, None, None, None, None]
+    fn = compiled_ogden_dP() if isinstance(law, Ogden) else None
+    if fn is not None:  # Ogden's differences of an eigen-decomposition, compiled
+        Fs = np.ascontiguousarray(_gradients(V, X, G))
+        dP = np.empty(Fs.shape + (3, 3))
+        fn(Fs, np.concatenate([[law.kappa], np.column_stack([law.mus, law.alphas]).ravel()]), 1e-6, dP)
+        dP *= wdet.reshape(-1)[:, None, None, None, None]
+    else:
+        dP = law.stress(_gradients(V, X, G))[2] * wdet.reshape(-1)[:, None, None, None, None]
     Kq = _tangent_point(np.ascontiguousarray(G.reshape(E * nq, k, 3)), dP)
     Kf = Kq.reshape(E, nq, 3 * k, 3 * k).sum(axis=1)
     K[:] = 0.5 * (Kf + Kf.transpose(0, 2, 1))
