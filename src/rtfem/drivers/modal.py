@@ -343,14 +343,11 @@ class ModalSimulator(StaticCorrection, ForceInput):
 
     def trial_displacements(self, forces, nodes: np.ndarray) -> np.ndarray:
         """(k, 3) displacements of ``nodes`` after one step under ``forces`` (an (n, 3) array or a
-        {node: f} mapping), the state unchanged: the step's coordinates x' = Phi_00 x + Phi_01 v +
-        G1 f (+ G0 f_old) on the nodes' shapes, plus the static correction of those forces."""
+        {node: f} mapping), the state unchanged: the free step's coordinates (:meth:`predict`) plus
+        G1 f, on the nodes' shapes, plus the static correction of those forces."""
         nodes = validate.nodes(nodes, self.n_nodes)
         A = self._as_array(forces)
-        c, (x, v) = self._coef, self._S
-        q = c[0] * x + c[2] * v + c[4] * (A.reshape(-1) @ self._P)
-        if self._G0 is not None:
-            q += c[6] * self._f_old
+        q = self._q_free() + self._G1[0] * (A.reshape(-1) @ self._P)
         u = (self._shapes_at(nodes) @ q).reshape(-1, 3)
         if self.static_correction:
             u += self._array_correction(A)[nodes]

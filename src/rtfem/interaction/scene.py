@@ -267,7 +267,7 @@ class Scene:
         weights = [b.masses[:, None] * self.gravity[None, :] + b.loads for b in self.bodies]  # and the loads held
         spring_nodes = self._spring_nodes(springs)
         base = [self._trial(b, weights[k], spring_nodes.get(k)) for k, b in enumerate(self.bodies)]
-        held = self._attachment_loads(springs, base)
+        held = self._attachment_loads(springs, base, spring_nodes)
         trials = [self._held_trial(k, base[k], held[k], spring_nodes.get(k)) for k in range(len(self.bodies))]
         points = PointSet()
         Xs = [b.X[b.surface] + trial for b, (_, _, trial) in zip(self.bodies, trials)]  # the surfaces, a step on
@@ -314,27 +314,26 @@ class Scene:
         self._spring_nodes_kept = (key, {k: np.unique(np.concatenate(v)) for k, v in ends.items()})
         return self._spring_nodes_kept[1]
 
-    def _attachment_loads(self, springs, base) -> list[np.ndarray]:
+    def _attachment_loads(self, springs, base, spring_nodes) -> list[np.ndarray]:
         """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
         graspers' springs); the total of each set on its first body in :attr:`_held_force`.
 
         With e the springs' stretch after a step under the weights and loads alone (a's node past
         its anchor or its pair's; ``base``: each body's trial step under them, with the displacements
-        of its springs' nodes), and A = J (sum_k W_k) J^T the stretch per unit spring force
-        (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f): (I / k + A) f = -e."""
+        of its springs' nodes ``spring_nodes``, :meth:`_spring_nodes`), and A = J (sum_k W_k) J^T the
+        stretch per unit spring force (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f):
+        (I / k + A) f = -e."""
         out = [np.zeros((b.driver.n_nodes, 3)) for b in self.bodies]
         self._held_force = {}
         if not springs:
             return out
         index = {b.name: k for k, b in enumerate(self.bodies)}
-        ends = [(index[att.a.name], att.nodes_a, 1.0) for att in springs] + \
-               [(index[att.b.name], att.nodes_b, -1.0) for att in springs if att.b is not None]
         sizes = [att.nodes_a.size for att in springs]
         start = np.concatenate([[0], np.cumsum(sizes)])
         e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in springs])
-        J, solve = self._spring_system(springs, index, ends, start, sizes)
+        J, solve = self._spring_system(springs, index, start, sizes, spring_nodes)
         for k, (nodes, Jk) in J.items():
-            x = self.bodies[k].X[nodes] + base[k][3]  # J's nodes are the body's spring nodes, sorted
+            x = self.bodies[k].X[nodes] + base[k][3]  # the body's spring nodes, as its trial took them
             e += (Jk @ x.reshape(-1)).reshape(-1, 3)
         f = solve(-e.reshape(-1)).reshape(-1, 3)
         for a_index, att in enumerate(springs):
@@ -345,9 +344,10 @@ class Scene:
             self._held_force[att.name] = fa.sum(axis=0)
         return out
 
-    def _spring_system(self, springs, index, ends, start, sizes):
-        """The springs' Jacobians {body: (nodes, J_k)} and the solve of (I / k + A) f = rhs, kept
-        while the springs are the same and no body's one-step compliances change with its motion."""
+    def _spring_system(self, springs, index, start, sizes, spring_nodes):
+        """The springs' Jacobians {body: (its spring nodes, J_k)} (``spring_nodes``: :meth:`_spring_nodes`)
+        and the solve of (I / k + A) f = rhs, kept while the springs are the same and no body's one-step
+        compliances change with its motion."""
         from scipy.linalg import cho_factor, cho_solve, lu_factor, lu_solve
 
         key = tuple((att.name, att.nodes_a.tobytes(), att.stiffness) for att in springs)
@@ -356,9 +356,8 @@ class Scene:
             return kept[1], kept[2]
         n_springs = int(start[-1])
         J = {}  # body -> (its attached nodes, (3 S, 3 n) Jacobian)
-        for k in sorted({k for k, _, _ in ends}):
-            nodes = np.unique(np.concatenate([n for kk, n, _ in ends if kk == k]))
-            J[k] = (nodes, np.zeros((3 * n_springs, 3 * nodes.size)))
+        for k in sorted(spring_nodes):
+            J[k] = (spring_nodes[k], np.zeros((3 * n_springs, 3 * spring_nodes[k].size)))
         for a_index, att in enumerate(springs):
             for k, nodes, sign in ((index[att.a.name], att.nodes_a, 1.0),
                                    *(((index[att.b.name], att.nodes_b, -1.0),) if att.b is not None else ())):
@@ -480,7 +479,7 @@ class Scene:
 
     def _tool_points(self, trials, Xs, points: PointSet) -> None:
         """Each body's surface vertices within ``margin`` of a probe (after the trial steps), against
-        the tool where last step's force leaves it, with their slip relative to its move."""
+        the tool where last step's force leaves it (their slip relative to its move: :meth:`_solve`)."""
         nb, no = len(self.bodies), len(self.obstacles)
         probes = [(j, tool) for j, tool in enumerate(self.tools) if tool.kind == "probe"]
         if not probes:

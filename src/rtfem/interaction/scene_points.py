@@ -49,10 +49,6 @@ class PointSet:
             self.blocks.append((normal, np.asarray(gap, dtype=float), np.full(m, float(mu)), np.full(m, a),
                                 np.full(m, b), np.full(m, tool), sk, sn, sw))
 
-    @property
-    def m(self) -> int:
-        return sum(len(blk[1]) for blk in self.blocks)
-
     def join(self, compiled: bool = True) -> dict | None:
         """{field: the points' array, and "frame" (m, 3, 3): columns the normal and two tangents}, or
         None without points."""
@@ -189,13 +185,11 @@ def _spread(F, r, slot, sw, f, node_force):
                         node_force[p, x] += sw[c, s, i] * f[c, x]
 
 
-def rhs(F, slot, sw, moved, gap, tool, move, force, inv_k, compiled: bool = True) -> np.ndarray:
-    """The contact problem's b (m, 3) (see :func:`_rhs_into`); numpy where numba is absent."""
+def rhs(F, slot, sw, moved, gap, tool, move, force, inv_k) -> np.ndarray:
+    """The contact problem's b (m, 3) of :func:`_rhs_into`, in numpy (the path without numba: the
+    compiled one runs inside :func:`contact_solve`)."""
     m = F.shape[0]
     b = np.empty((m, 3))
-    if compiled and _rhs_compiled is not None:
-        _rhs_compiled(F, slot, sw, moved, gap, tool, move, force, inv_k, b)
-        return b
     on = slot >= 0
     slip = np.zeros((m, 3))
     np.add.at(slip, np.nonzero(on)[0], sw[on][:, None] * moved[slot[on]])
@@ -207,13 +201,10 @@ def rhs(F, slot, sw, moved, gap, tool, move, force, inv_k, compiled: bool = True
     return b
 
 
-def spread(F, r, slot, sw, n_used: int, compiled: bool = True):
-    """(f (m, 3), node_force (n_used, 3)) (see :func:`_spread`); numpy where numba is absent."""
+def spread(F, r, slot, sw, n_used: int):
+    """(f (m, 3), node_force (n_used, 3)) of :func:`_spread`, in numpy (the path without numba: the
+    compiled one runs inside :func:`contact_solve`)."""
     m = F.shape[0]
-    if compiled and _spread_compiled is not None:
-        f, node_force = np.empty((m, 3)), np.empty((n_used, 3))
-        _spread_compiled(F, r, slot, sw, f, node_force)
-        return f, node_force
     f = np.einsum("cij,cj->ci", F, r.reshape(m, 3))
     node_force = np.zeros((n_used, 3))
     c, s, i = np.nonzero(slot >= 0)
@@ -275,7 +266,7 @@ def contact_solve(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, comp
         sweeps = _contact_compiled(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, 500, 1e-10,
                                    A, b, r, f, node_force)
         return f, node_force, int(sweeps)
-    b = rhs(F, slot, sw, moved, gap, tool, move, force, inv_k, False)
+    b = rhs(F, slot, sw, moved, gap, tool, move, force, inv_k)
     A = assemble(F, slot, sw, W, tool, inv_k, False)
     normal = np.diag(A)[0::3]
     free = normal > 1e-12 * max(float(normal.max()), 1e-300)
@@ -283,7 +274,7 @@ def contact_solve(F, slot, sw, W, tool, inv_k, move, force, moved, gap, mu, comp
     if free.any():
         rows3 = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
         r[rows3], sweeps = pgs(A[np.ix_(rows3, rows3)], b[free].reshape(-1), mu[free])
-    f, node_force = spread(F, r, slot, sw, u, False)
+    f, node_force = spread(F, r, slot, sw, u)
     return f, node_force, sweeps
 
 

@@ -14,6 +14,16 @@ from .contact_points import _closest_on_triangle
 __all__ = ["pair_block", "pair_faces", "probe_block", "probe_points"]
 
 
+def _unit_normal(Ys, tri, t):
+    """The unit normal (n0, n1, n2) of triangle t (corners ``tri[t]`` of the vertices Ys), by its winding."""
+    a0, a1, a2 = Ys[tri[t, 0], 0], Ys[tri[t, 0], 1], Ys[tri[t, 0], 2]
+    u0, u1, u2 = Ys[tri[t, 1], 0] - a0, Ys[tri[t, 1], 1] - a1, Ys[tri[t, 1], 2] - a2
+    v0, v1, v2 = Ys[tri[t, 2], 0] - a0, Ys[tri[t, 2], 1] - a1, Ys[tri[t, 2], 2] - a2
+    n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    size = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    return n0 / size, n1 / size, n2 / size
+
+
 def _pair_faces(x, Ys, tri, tris, valid, margin, edge, best, gap, n, w, on):
     """For each point x[c] and its candidate triangles ``tris[c]`` (where ``valid``) of a surface
     whose vertices are Ys (the triangles ``tri`` number them): the nearest triangle ``best[c]``, the
@@ -45,12 +55,7 @@ def _pair_faces(x, Ys, tri, tris, valid, margin, edge, best, gap, n, w, on):
         if best[c] < 0:
             continue
         t = best[c]
-        a0, a1, a2 = Ys[tri[t, 0], 0], Ys[tri[t, 0], 1], Ys[tri[t, 0], 2]
-        u0, u1, u2 = Ys[tri[t, 1], 0] - a0, Ys[tri[t, 1], 1] - a1, Ys[tri[t, 1], 2] - a2
-        v0, v1, v2 = Ys[tri[t, 2], 0] - a0, Ys[tri[t, 2], 1] - a1, Ys[tri[t, 2], 2] - a2
-        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-        size = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        n0, n1, n2 = n0 / size, n1 / size, n2 / size
+        n0, n1, n2 = _unit_normal(Ys, tri, t)
         n[c, 0], n[c, 1], n[c, 2] = n0, n1, n2
         for i in range(3):
             q[i] = w[c, 0] * Ys[tri[t, 0], i] + w[c, 1] * Ys[tri[t, 1], i] + w[c, 2] * Ys[tri[t, 2], i]
@@ -124,12 +129,7 @@ def _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, f
     face[0] = best
     if best < 0:
         return count
-    a0, a1, a2 = Ys[tri[best, 0], 0], Ys[tri[best, 0], 1], Ys[tri[best, 0], 2]
-    u0, u1, u2 = Ys[tri[best, 1], 0] - a0, Ys[tri[best, 1], 1] - a1, Ys[tri[best, 1], 2] - a2
-    e0, e1, e2 = Ys[tri[best, 2], 0] - a0, Ys[tri[best, 2], 1] - a1, Ys[tri[best, 2], 2] - a2
-    m0, m1, m2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0
-    size = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-    m0, m1, m2 = m0 / size, m1 / size, m2 / size
+    m0, m1, m2 = _unit_normal(Ys, tri, best)
     v0, v1, v2 = face[4], face[5], face[6]
     outside = v0 * m0 + v1 * m1 + v2 * m2 < 0  # the core on the outer side of the face
     g = (dmin if outside else -dmin) - radius
@@ -195,6 +195,7 @@ try:  # compiled when numba is present (the same code)
     import numba as _numba
 
     _opts = dict(cache=True, nogil=True, error_model="numpy")
+    _unit_normal = _numba.njit(**_opts)(_unit_normal)  # the kernels below call it
     _pair_faces = _pair_faces_compiled = _numba.njit(**_opts)(_pair_faces)  # the block kernels call these
     _core = _numba.njit(**_opts)(_core)
     _probe = _probe_compiled = _numba.njit(**_opts)(_probe)
