@@ -213,3 +213,22 @@ def test_points_on_held_nodes_are_left_out_the_same_way_compiled_and_in_numpy():
         scenes.append(scene)
     touched = _same_steps(scenes, 150)
     assert ("block", "probe") in touched and ("block", "floor") not in touched  # the floor's points: on held nodes
+
+
+def test_a_trial_step_refuses_bad_nodes_and_forces_and_leaves_the_state(modes):
+    """trial_displacements with a node off the mesh or a non-finite force raises a ModelError (exit 2
+    in the CLI) and changes nothing: the state and the displacements are as before."""
+    sim = rt.ModalSimulator(modes, dt=1e-3, damping=rt.Damping(alpha=4.0), static_correction=True)
+    n = sim.n_nodes
+    sim.step(np.full((n, 3), 0.01))
+    state, field = sim.get_state(), sim.displacements().copy()
+    bad_force = np.zeros((n, 3))
+    bad_force[3, 1] = np.nan
+    for forces, nodes in ((np.zeros((n, 3)), np.array([0, n])), (bad_force, np.array([0, 1]))):
+        with pytest.raises(rt.ModelError):
+            trial_displacements(sim, forces, nodes)
+        np.testing.assert_array_equal(sim.displacements(), field)
+        for key, value in state.items():
+            np.testing.assert_array_equal(sim.get_state()[key], value)
+    with pytest.raises(rt.ModelError, match="choose one of 'openhaptics', 'forcedimension', 'haply', 'igtl'"):
+        rt.devices.open_device("mouse")

@@ -161,3 +161,12 @@ def test_prony_refusals():
     model, _ = _column(rt.Prony(LAW, g=[0.3], tau=[1.0]))
     with pytest.raises(ModelError, match="reduced nonlinear model does not carry"):
         rt.ReducedNonlinearModel(model, rt.modal_analysis(model, 6), derivatives=2)
+
+
+def test_a_history_of_the_wrong_size_is_refused():
+    law = rt.Prony(LAW, g=G, tau=TAU)
+    kernel, T, X = _cube(law)
+    with pytest.raises(ModelError, match="viscoelastic history of 9 values"):
+        kernel.evaluate(X[T], True, (np.zeros(9), 0.01))
+    with pytest.raises(ModelError, match="dt"):
+        law.coefficients(0.0)
