@@ -5,6 +5,7 @@ the force a probe feels.
    a 3 cm scripted pull) with the corotated linear material (the default) and each hyperelastic law of
    the same initial moduli (mu, kappa of E = 30 kPa, nu = 0.45): p50 / p99 and the ratio to the
    corotated step measured in the same run.
+   A Prony law (neo-Hookean + Prony, g 0.5, tau 0.5 s) steps its cubature elements' history too.
 2. The indentation curve: the full-order static force (rt.nonlinear.solve_static) of a flat punch, the
    surface nodes within 6 mm of the default probe vertex moved together along its inward normal, at
    depths of 1, 2, 4 and 8 mm, per law, next to the linear model's (force proportional to depth).
@@ -13,7 +14,7 @@ The Mooney-Rivlin and Ogden parameters below are illustrative shapes of the same
 modulus (C01 = 0.3 mu / 2; Ogden alpha = 8 and -2), not a fit to liver data.
 
     python benchmarks/materials.py [--seconds 5] [--depths 1 2 4 8] [--skip-steps | --skip-indentation]
-                                   [--laws WORD ...]
+                                   [--laws WORD ...] [--busy]
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import print_table  # noqa: E402
+from _common import busy_core, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
 
@@ -38,10 +39,11 @@ def laws(material: rt.Material) -> dict:
     return {"corotated (linear)": material,
             "neo-Hookean": rt.NeoHookean(mu, kappa, rho),
             "Mooney-Rivlin (C01 = 0.3 mu/2)": rt.MooneyRivlin(0.35 * mu, 0.15 * mu, kappa, rho),
-            "Ogden (alpha 8, -2)": rt.Ogden([0.8 * mu, 0.2 * mu], [8.0, -2.0], kappa, rho)}
+            "Ogden (alpha 8, -2)": rt.Ogden([0.8 * mu, 0.2 * mu], [8.0, -2.0], kappa, rho),
+            "neo-Hookean + Prony (g 0.5, tau 0.5 s)": rt.Prony(rt.NeoHookean(mu, kappa, rho), [0.5], [0.5])}
 
 
-def step_costs(seconds: float, only=None) -> list:
+def step_costs(seconds: float, only=None, busy: bool = False) -> list:
     from rtfem.viewer.benchmark import run
     from rtfem.viewer.session import Session, Settings
 
@@ -51,7 +53,8 @@ def step_costs(seconds: float, only=None) -> list:
         if only and not name.startswith("corotated") and not any(w.lower() in name.lower() for w in only):
             continue
         session = Session(mesh, law, "attachment", Settings(method="nonlinear"), {"element": "tet10"})
-        r = run(session, seconds)
+        with busy_core(busy):
+            r = run(session, seconds)
         base = base or r["step_p50_us"]
         rows.append([name, f"{r['step_p50_us']:,.0f} / {r['step_p99_us']:,.0f}", f"{r['step_p50_us'] / base:.2f}",
                      f"{r['realtime']:.2f}", f"{r['max_force_N']:.3f}", f"{r['peak_mm']:.1f}", r["error"] or "-"])
@@ -65,6 +68,8 @@ def indentation(depths: list[float]) -> tuple[list, list]:
     probe = int(mesh.surface.groups["probe"][0]) if "probe" in (mesh.surface.groups or {}) else None
     curves, seconds = {}, {}
     for name, law in laws(material).items():
+        if isinstance(law, rt.Prony):  # without time it is its long-term law: the neo-Hookean at g_inf mu
+            continue
         model = rt.SolidModel(mesh, law, element="tet10")
         model.fix("attachment")
         X = np.asarray(model.tetmesh.vertices)
@@ -93,6 +98,7 @@ def main() -> None:
     ap.add_argument("--depths", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
     ap.add_argument("--skip-steps", action="store_true", help="only the indentation curves")
     ap.add_argument("--skip-indentation", action="store_true", help="only the step costs")
+    ap.add_argument("--busy", action="store_true", help="the step costs with another process keeping one core busy")
     ap.add_argument("--laws", nargs="+", default=None, metavar="WORD",
                     help="only the laws whose name contains one of these words (the corotated row is always measured: "
                          "the ratios' baseline)")
@@ -100,7 +106,7 @@ def main() -> None:
     print(f"# rtfem {rt.__version__}, python {platform.python_version()}, {os.cpu_count()} cores")
     if not args.skip_steps:
         print_table(["law", "step p50 / p99 (us)", "p50 / corotated", "real time", "max force (N)", "peak (mm)", "error"],
-                    step_costs(args.seconds, args.laws))
+                    step_costs(args.seconds, args.laws, args.busy))
     if not args.skip_indentation:
         names, rows = indentation(args.depths)
         print_table(["depth (mm)"] + [f"{n} (N)" for n in names], rows)

@@ -78,25 +78,30 @@ def test_law_from_text_keeps_the_poisson_ratio_at_rest():
     assert law_from_text("linear", m) is m
 
 
+def _held(capsys, bar_file, folder, method: str, law: str) -> tuple[float, float]:
+    """The probe's mean force over 60-70 ms and over 130-140 ms of a 1 mm press held from 0."""
+    extra = ["--method", "direct", "--large"] if method == "direct" else ["-n", 8, "--method", method]
+    rc, out, err = run(capsys, "simulate", bar_file, *FIX, "--element", "tet4", *extra, "--material", law,
+                       "--duration", 0.25, "--alpha", 40, "--depth", 0.001, "--fps", 2, "--out", folder)
+    assert rc == 0, err
+    rows = list(csv.DictReader(open(folder / "response.csv")))
+    early = [float(r["force"]) for r in rows if 0.06 < float(r["t"]) < 0.07]
+    late = [float(r["force"]) for r in rows if 0.13 < float(r["t"]) < 0.14]
+    return sum(early) / len(early), sum(late) / len(late)
+
+
 def test_a_relaxing_law_on_the_command_line_relaxes_a_held_probe(bar_file, tmp_path, capsys):
-    """--material neo-hookean+prony:0.5,0.05 with --method direct --large (the full-order Newmark
-    simulator, which steps the Prony series' internal variables): over a held 1 mm probe the force
-    relaxes (g_inf = 0.5 of the isochoric stress, tau 50 ms; measured 50.4 -> 41.6 mN between 60-70 ms
-    and 130-140 ms, 0.83x), where the elastic law's about stays (56.7 -> 55.0 mN, 0.97x); the reduced
-    nonlinear method refuses the relaxing law with the reason."""
-    holds = {}
-    for law in ("neo-hookean", "neo-hookean+prony:0.5,0.05"):
-        rc, out, err = run(capsys, "simulate", bar_file, *FIX, "--element", "tet4", "--method", "direct", "--large",
-                           "--material", law, "--duration", 0.25, "--alpha", 40, "--depth", 0.001, "--fps", 2,
-                           "--out", tmp_path / law)
-        assert rc == 0, err
-        rows = list(csv.DictReader(open(tmp_path / law / "response.csv")))
-        early = [float(r["force"]) for r in rows if 0.06 < float(r["t"]) < 0.07]
-        late = [float(r["force"]) for r in rows if 0.13 < float(r["t"]) < 0.14]
-        holds[law] = (sum(early) / len(early), sum(late) / len(late))
-    elastic, relaxing = holds["neo-hookean"], holds["neo-hookean+prony:0.5,0.05"]
-    assert abs(elastic[1] / elastic[0] - 1) < 0.05, holds  # held: the elastic force about stays
-    assert relaxing[1] / relaxing[0] < elastic[1] / elastic[0] - 0.1 and relaxing[1] < elastic[1], holds  # relaxes
-    rc, out, err = run(capsys, "simulate", bar_file, *FIX, "--element", "tet4", "-n", 6, "--method", "nonlinear",
-                       "--material", "neo-hookean+prony:0.5,0.05", "--duration", 0.01)
-    assert rc == 2 and "does not carry a Prony series' internal variables" in err and "Traceback" not in err
+    """--material neo-hookean+prony:0.5,0.05 (g_inf = 0.5 of the isochoric stress, tau 50 ms) over a
+    held 1 mm probe, with --method direct --large (the full-order Newmark simulator) and --method
+    nonlinear (the reduced model, its cubature elements' internal variables): the force relaxes
+    (measured 50.4 -> 41.6 mN between 60-70 ms and 130-140 ms full order, 0.83x; 47.8 -> 40.2 mN
+    reduced, 0.84x), where the elastic law's about stays (0.97x both); the two methods' relaxation
+    ratios agree within 0.03."""
+    ratios = {}
+    for method in ("direct", "nonlinear"):
+        elastic = _held(capsys, bar_file, tmp_path / f"{method}-elastic", method, "neo-hookean")
+        relaxing = _held(capsys, bar_file, tmp_path / f"{method}-prony", method, "neo-hookean+prony:0.5,0.05")
+        assert abs(elastic[1] / elastic[0] - 1) < 0.05, (method, elastic)  # held: the elastic force about stays
+        assert relaxing[1] / relaxing[0] < elastic[1] / elastic[0] - 0.1 and relaxing[1] < elastic[1], (method, relaxing)
+        ratios[method] = relaxing[1] / relaxing[0]
+    assert abs(ratios["direct"] - ratios["nonlinear"]) < 0.03, ratios

@@ -158,9 +158,6 @@ def test_prony_refusals():
         rt.Prony(LAW, g=[0.2], tau=[0.0])
     with pytest.raises(ModelError, match="one relaxation fraction per relaxation time"):
         rt.Prony(LAW, g=[0.2, 0.1], tau=[1.0])
-    model, _ = _column(rt.Prony(LAW, g=[0.3], tau=[1.0]))
-    with pytest.raises(ModelError, match="reduced nonlinear model does not carry"):
-        rt.ReducedNonlinearModel(model, rt.modal_analysis(model, 6), derivatives=2)
 
 
 def test_a_history_of_the_wrong_size_is_refused():

@@ -207,7 +207,7 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
                    help="a solid's material law: linear (default; corotated in the nonlinear methods), neo-hookean "
                         "(mu and kappa of --E and --nu), mooney-rivlin:C10,C01 or ogden:mu1,alpha1[,mu2,alpha2...] (Pa; "
                         "kappa keeps --nu's ratio to mu), each optionally +prony:g1,tau1[,g2,tau2...] (its isochoric "
-                        "stress relaxing; full order: --method direct --large). The nonlinear methods use the law, the "
+                        "stress relaxing: --method direct --large or nonlinear). The nonlinear methods use the law, the "
                         "linear ones its linearization at rest (a relaxing law's long-term one)")
     g.add_argument("--fix", default=None, metavar="REGION",
                    help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "

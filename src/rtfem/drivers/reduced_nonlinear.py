@@ -115,6 +115,15 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         ``MAX_TANGENT_AGE`` steps (200): the step then refreshes the tangent itself (counted in
         ``sync_refreshes``; a starved worker let a swung cantilever diverge at step 2,394).
 
+    A :class:`~rtfem.Prony` law (a relaxing one): the simulator carries each force element's history
+    (the cubature's, or every element's; each point's Q_i and S_iso(n), in ``get_state()["visc"]``)
+    and takes the step's algorithmic forces and the history it leaves at the predictor, in one
+    compiled pass (:mod:`rtfem.reduction.prony_kernels`); the step is linearized about the
+    instantaneous law's tangent (at least as stiff as the algorithmic one: the long-term tangent
+    would leave the step unstable for g_inf < 1/2). It needs ``spread=1``. The static correction is
+    the long-term law's (the local dent taken relaxed); a state without "visc" starts with no
+    history (as if reached suddenly), and so does a localized copy (:meth:`localized`).
+
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` dt^2/4 U_i S^-1 U_i^T (+ D_ii), constant between tangent refreshes
     (``compliance_changes`` is True with the current tangent), so Probe and Grasp work as on a
@@ -126,7 +135,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         A reduced model that is not one or has no cubature (with ``cubature=True``), a bad dt,
         damping, precision, tangent, refresh, spread, stiffening or patch_zeta, or options that
         do not go together (``background`` with ``tangent="rest"``, single precision without
-        cubature).
+        cubature, a Prony law with ``spread`` > 1).
     SolverError
         At run time: the state diverged (forces no longer finite), or the background tangent
         refresh failed.
@@ -187,6 +196,9 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._spread_groups()
         self._worker = None
         self._last_compliances = None  # (Sinv, nodes, loaded, W): W changes only with the tangent
+        self._viscous_terms()
+        if self._visc_terms is not None:  # a Prony law: linearized about its instantaneous law (stiffer)
+            Kref = self._Kc = self._visc_terms[3]
         # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
         self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
                                                              else Kref))
@@ -239,6 +251,25 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         elif self.cubature and self.tangent == "current":
             self._Kc = reduced.cubature_rest()[1]
 
+    def _viscous_terms(self) -> None:
+        """With a :class:`~rtfem.Prony` law: the elements whose history the step carries (the
+        cubature's, or every element), their weights, their rest tangents with the instantaneous law
+        and its reduced rest stiffness (the step's linearization: at least as stiff as the step's
+        algorithmic tangent, so the linearly implicit step stays stable); else None."""
+        from ..fe.viscoelastic import Prony, history_size
+
+        red = self.reduced
+        self._visc_terms = None
+        if not isinstance(red.law, Prony):
+            return
+        if self.spread > 1:
+            raise ModelError(f"spread={self.spread}: a Prony law's history is stepped on every element each step; "
+                             "pass spread=1")
+        data, w = red._cubature if self.cubature else (red._element_data(), np.ones(red.system.cells.shape[0]))
+        Ke = red._element_tangents(np.zeros(data[0].shape[:2]), data, law=red.law.instantaneous)
+        Kc = np.einsum("eir,eij,ejs->rs", data[0] * w[:, None, None], Ke, data[0], optimize=True)
+        self._visc_terms = (data, w, Ke, 0.5 * (Kc + Kc.T), history_size(red.law, data[2].shape[1], w.size))
+
     def _translation_rows(self) -> np.ndarray:
         """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
         red = self.reduced
@@ -260,11 +291,14 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._use_rest()
         self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*)), (group, its new remainder)) of the next step
         self._loads, self._load_array = {}, None
+        self._visc = None if self._visc_terms is None else np.zeros(self._visc_terms[4])  # a Prony law's history
 
     def get_state(self) -> dict:
         state = {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
         if self.spread > 1:
             state["lag"], state["lag_q"] = self._lag.copy(), self._lag_q.copy()
+        if self._visc is not None:
+            state["visc"] = self._visc.copy()
         if self.tangent == "current":  # the linearization, as where it was computed and its age: a replay is exact
             state["tangent_q"] = np.zeros(0) if self._tangent_q is None else self._tangent_q.copy()
             state["tangent_age"] = np.array(-1 if self._tangent_step is None else self.steps - self._tangent_step)
@@ -294,6 +328,12 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         elif self.spread > 1:  # no lags saved: every group evaluated at q
             lag = np.stack([self._remainder(c, arrays["q"]) for c in range(self.spread)])
             lag_q = np.tile(arrays["q"], (self.spread, 1))
+        visc = None
+        if self._visc is not None:  # a Prony law's history; none saved: no strain before this state
+            visc = validate.real_array(state.get("visc", np.zeros(self._visc.size)), "state['visc']", 1)
+            if visc.size != self._visc.size:
+                raise ModelError(f"state['visc'] holds {visc.size} values; this simulator's Prony history has "
+                                 f"{self._visc.size} (another cubature or law)")
         tangent_q, age = None, -1
         if self.tangent == "current" and state.get("tangent_q") is not None:
             tangent_q = validate.real_array(state["tangent_q"], "state['tangent_q']", 1)
@@ -304,6 +344,8 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._q, self._v, self._a = arrays["q"], arrays["qdot"], arrays["qddot"]
         if lag is not None:
             self._lag, self._lag_q = lag.copy(), lag_q.copy()
+        if visc is not None:
+            self._visc = visc.copy()
         self._use_rest()  # (and no refresh in flight)
         if tangent_q is not None and tangent_q.size:
             self._use(self._linearization(tangent_q), tangent_q)
@@ -369,6 +411,10 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
     # ---------------------------------------------------------------- the step
     def _forces_at(self, q: np.ndarray) -> np.ndarray:
         red = self.reduced
+        if self._visc_terms is not None:  # the step's algorithmic forces, and the history it leaves
+            data, w = self._visc_terms[:2]
+            g, self._visc_next = red.viscous_forces(q, data, w, self._visc, self.dt)
+            return g
         return red.cubature_forces(q, single=self.single) if self.cubature else red.reduced_forces(q, tangent=False)[0]
 
     def _remainder(self, c: int, q: np.ndarray) -> np.ndarray:
@@ -428,6 +474,8 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._q = qs + 0.25 * h * h * a
         self._v = vs + 0.5 * h * a
         self._a = a
+        if self._visc is not None:  # the history at the predictor, where the step's forces were taken
+            self._visc = self._visc_next
         self._loads, self._load_array = loads, load_array
         self.steps += 1
         self.time = self.steps * self.dt

@@ -159,7 +159,11 @@ class Linearization:
         work)."""
         red = self.reduced
         dK = None
-        if not self.cubature:
+        if self._visc_terms is not None:  # a Prony law: its instantaneous law's tangent (see the simulator)
+            data, w, Ke, Kc = self._visc_terms[:4]
+            rows = red.cubature_rows(self.single) if self.cubature else None
+            T = Kc + red.tangent_change(q, data, w, Ke, rows, law=red.law.instantaneous)
+        elif not self.cubature:
             T = red.reduced_forces(q)[1]
             T = 0.5 * (T + T.T)
         elif self.spread == 1:

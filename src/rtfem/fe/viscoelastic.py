@@ -31,7 +31,7 @@ from ..errors import ModelError
 from .hyperelastic import Hyperelastic, _cofactor, _det, law_from_text
 from .solid import HyperelasticTets, _tangent_point
 
-__all__ = ["Prony", "ViscoelasticTets", "material_from_text"]
+__all__ = ["Prony", "ViscoelasticTets", "material_from_text", "prony_step", "prony_commit", "history_size"]
 
 
 class Prony(Hyperelastic):
@@ -140,13 +140,7 @@ class ViscoelasticTets(HyperelasticTets):
     def __init__(self, X: np.ndarray, law: Prony, element: str) -> None:
         super().__init__(X, law, element)
         self.n_points, self.n_elements = len(self.G), X.shape[0]
-        self.history_size = self.n_points * self.n_elements * (law.g.size + 1) * 9
-
-    def _views(self, h: np.ndarray):
-        """(Q (points, m, terms, 3, 3), S_iso(n) (points, m, 3, 3)) as views of the flat history."""
-        n = self.law.g.size
-        block = h.reshape(self.n_points, self.n_elements, n + 1, 3, 3)
-        return block[:, :, :n], block[:, :, n]
+        self.history_size = history_size(law, self.n_points, self.n_elements)
 
     def evaluate(self, x: np.ndarray, tangent: bool = True, history=None):
         if history is None:
@@ -154,42 +148,70 @@ class ViscoelasticTets(HyperelasticTets):
         h, dt = history
         if h.size != self.history_size:
             raise ModelError(f"a viscoelastic history of {h.size} values for a kernel of {self.history_size}")
-        a, b, c = self.law.coefficients(dt)
-        Q, Sn = self._views(h)
-        m, k = x.shape[:2]
-        f = np.zeros((m, k, 3))
-        K = np.zeros((m, k, 3, k, 3)) if tangent else None
-        energy = np.zeros(m)
-        keep = 1.0 - c.sum()
-        for q, (G, wdet) in enumerate(zip(self.G, self.wdet)):
-            F = np.einsum("mka,mkb->mab", x, G)
-            P, psi, dP, P_vol, psi_vol, dP_vol = _split(self.law.instantaneous, F, tangent)
-            H = np.einsum("i,miab->mab", a, Q[q]) + b.sum() * Sn[q]
-            P_alg = P_vol + keep * (P - P_vol) - F @ H
-            C = np.einsum("mka,mkb->mab", F, F)
-            psi_alg = psi_vol + keep * (psi - psi_vol) - 0.5 * np.einsum("mab,mab->m", C - np.eye(3), H)
-            f += wdet[:, None, None] * np.einsum("mab,mib->mia", P_alg, G)
-            energy += wdet * psi_alg
-            if tangent:
-                dP_alg = keep * dP + (1.0 - keep) * dP_vol - np.einsum("ac,mdb->mabcd", np.eye(3), H)
-                K += wdet[:, None, None, None, None] * _tangent_point(G, dP_alg)
-        return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy
+        return prony_step(self.law, x, self.G, self.wdet, h, dt, tangent)
 
     def committed(self, x: np.ndarray, history) -> np.ndarray:
         """The history after a step that ended at deformed nodes x (m, k, 3): Q_i(n+1) and S_iso(n+1)."""
         h, dt = history
-        a, b, c = self.law.coefficients(dt)
-        out = np.array(h, dtype=float, copy=True)
-        Q, Sn = self._views(h)
-        Q1, S1 = self._views(out)
-        for q, G in enumerate(self.G):
-            F = np.einsum("mka,mkb->mab", x, G)
-            P, _, _, P_vol, _, _ = _split(self.law.instantaneous, F, False)
-            S_new = np.linalg.solve(F, P - P_vol)  # F^-1 P_iso
-            Q1[q] = a[None, :, None, None] * Q[q] + b[None, :, None, None] * Sn[q][:, None] \
-                + c[None, :, None, None] * S_new[:, None]
-            S1[q] = S_new
-        return out
+        return prony_commit(self.law, x, self.G, h, dt)
+
+
+def history_size(law: Prony, points: int, elements: int) -> int:
+    """The floats of a history of ``elements`` elements with ``points`` quadrature points each:
+    per point, the Q_i of each term and S_iso(n), each 3 x 3."""
+    return points * elements * (law.g.size + 1) * 9
+
+
+def _views(law: Prony, h: np.ndarray, points: int):
+    """(Q (points, m, terms, 3, 3), S_iso(n) (points, m, 3, 3)) as views of a flat history h."""
+    n = law.g.size
+    block = h.reshape(points, -1, n + 1, 3, 3)
+    return block[:, :, :n], block[:, :, n]
+
+
+def prony_step(law: Prony, x: np.ndarray, G, wdet, h: np.ndarray, dt: float, tangent: bool = False):
+    """The step's algorithmic response of tets with a :class:`Prony` law (see
+    :class:`ViscoelasticTets`): for deformed nodes x (m, k, 3) at the end of a step dt from the
+    history h, the forces (m, 3k), the tangents (m, 3k, 3k; None unless ``tangent``) and the
+    step's potential (m). G: each quadrature point's shape gradients (m, k, 3); wdet: its
+    weights times the Jacobian (m,) (a subset of a mesh's elements: the rows of those)."""
+    a, b, c = law.coefficients(dt)
+    Q, Sn = _views(law, h, len(G))
+    m, k = x.shape[:2]
+    f = np.zeros((m, k, 3))
+    K = np.zeros((m, k, 3, k, 3)) if tangent else None
+    energy = np.zeros(m)
+    keep = 1.0 - c.sum()
+    for q, (Gq, wq) in enumerate(zip(G, wdet)):
+        F = np.einsum("mka,mkb->mab", x, Gq)
+        P, psi, dP, P_vol, psi_vol, dP_vol = _split(law.instantaneous, F, tangent)
+        H = np.einsum("i,miab->mab", a, Q[q]) + b.sum() * Sn[q]
+        P_alg = P_vol + keep * (P - P_vol) - F @ H
+        C = np.einsum("mka,mkb->mab", F, F)
+        psi_alg = psi_vol + keep * (psi - psi_vol) - 0.5 * np.einsum("mab,mab->m", C - np.eye(3), H)
+        f += wq[:, None, None] * np.einsum("mab,mib->mia", P_alg, Gq)
+        energy += wq * psi_alg
+        if tangent:
+            dP_alg = keep * dP + (1.0 - keep) * dP_vol - np.einsum("ac,mdb->mabcd", np.eye(3), H)
+            K += wq[:, None, None, None, None] * _tangent_point(Gq, dP_alg)
+    return f.reshape(m, 3 * k), (K.reshape(m, 3 * k, 3 * k) if tangent else None), energy
+
+
+def prony_commit(law: Prony, x: np.ndarray, G, h: np.ndarray, dt: float) -> np.ndarray:
+    """The history after a step dt from h that ended at deformed nodes x (m, k, 3) (G as
+    :func:`prony_step`'s): each point's Q_i(n+1) and S_iso(n+1)."""
+    a, b, c = law.coefficients(dt)
+    out = np.array(h, dtype=float, copy=True)
+    Q, Sn = _views(law, h, len(G))
+    Q1, S1 = _views(law, out, len(G))
+    for q, Gq in enumerate(G):
+        F = np.einsum("mka,mkb->mab", x, Gq)
+        P, _, _, P_vol, _, _ = _split(law.instantaneous, F, False)
+        S_new = np.linalg.solve(F, P - P_vol)  # F^-1 P_iso
+        Q1[q] = a[None, :, None, None] * Q[q] + b[None, :, None, None] * Sn[q][:, None] \
+            + c[None, :, None, None] * S_new[:, None]
+        S1[q] = S_new
+    return out
 
 
 def material_from_text(text: str, material):

@@ -105,7 +105,7 @@ class ElementTerms:
         at rest a shell's generalized moments' J = I)."""
         return self._element_tangents(np.zeros(data[0].shape[:2]), data)
 
-    def _element_tangents(self, V: np.ndarray, data, central: bool = True) -> np.ndarray:
+    def _element_tangents(self, V: np.ndarray, data, central: bool = True, law=None) -> np.ndarray:
         """The tangents K_e (E, nd, nd) of the elements of ``data`` at their dofs V (E, nd),
         symmetric (the forces are an energy's gradient). The tets': the closed form
         (:func:`rtfem.reduction.tet_kernels.solid_element_tangents`), or the hyperelastic law's
@@ -118,8 +118,9 @@ class ElementTerms:
         if len(data) == 5:
             from .tet_kernels import law_tangents, solid_element_tangents
 
-            if self.law is not None:
-                law_tangents(np.ascontiguousarray(V, dtype=float), *data[1:4], self.law, Ke)
+            law = self.law if law is None else law
+            if law is not None:
+                law_tangents(np.ascontiguousarray(V, dtype=float), *data[1:4], law, Ke)
             else:
                 solid_element_tangents(np.ascontiguousarray(V, dtype=float), *data[1:], Ke)
             return Ke
@@ -138,23 +139,53 @@ class ElementTerms:
         return 0.5 * (Ke + Ke.transpose(0, 2, 1))
 
     def tangent_change(self, q: np.ndarray, data, weights: np.ndarray, rest: np.ndarray,
-                       rows: tuple | None = None) -> np.ndarray:
+                       rows: tuple | None = None, law=None) -> np.ndarray:
         """sum_e w_e U_e^T (K_e(U_e q) - K_e(0)) U_e (r, r): how far the tangent of the elements of
         ``data`` (weights ``weights``, rest tangents ``rest``) has moved from rest at q. Added to the
         cubature's rest stiffness (:meth:`cubature_rest`) it is the cubature forces' tangent at q,
         which :class:`ReducedNonlinearSimulator` linearizes its step about. ``rows``: the elements'
         rows in single precision (:func:`_projection_rows`), for the projection in float32 (half
-        the time of its 2 r^2 nd E flops; ~1e-5 relative, as the single-precision forces)."""
+        the time of its 2 r^2 nd E flops; ~1e-5 relative, as the single-precision forces). ``law``:
+        as :meth:`_element_tangents`' (``rest`` then that law's rest tangents)."""
         Ue = data[0]
         E, nd, r = Ue.shape
         V = (Ue.reshape(-1, r) @ np.asarray(q, float)).reshape(E, nd)
-        dK = (self._element_tangents(V, data, central=False) - rest) * np.asarray(weights, float)[:, None, None]
+        dK = (self._element_tangents(V, data, central=False, law=law) - rest) * np.asarray(weights, float)[:, None, None]
         if rows is not None and rows[0] is not None:
             U, UT = rows
             T = np.asarray(UT @ np.matmul(dK.astype(U.dtype), U.reshape(E, nd, r)).reshape(-1, r), dtype=float)
         else:
             T = Ue.reshape(-1, r).T @ np.matmul(dK, Ue).reshape(-1, r)
         return 0.5 * (T + T.T)
+
+    # ---------------------------------------------------------------- a Prony law's step (rt.Prony)
+    def viscous_forces(self, q: np.ndarray, data, weights: np.ndarray, history: np.ndarray,
+                       dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(sum_e w_e U_e^T f_e (r,), the history after the step): the step's algorithmic forces of
+        the tets of ``data`` (a solid's five arrays) with the model's :class:`~rtfem.Prony` law at the
+        end of a step dt from ``history`` (:func:`rtfem.fe.viscoelastic.prony_step`; its layout, for
+        these elements in this order) at coordinates q, and the history that step leaves at q
+        (:func:`rtfem.fe.viscoelastic.prony_commit`); compiled where it can be
+        (:mod:`rtfem.reduction.prony_kernels`)."""
+        from ..fe.viscoelastic import prony_commit, prony_step
+        from .prony_kernels import prony_forces
+
+        Ue, X, G, wdet = data[:4]
+        V = (Ue.reshape(-1, self.size) @ np.asarray(q, float)).reshape(Ue.shape[:2])
+        F = np.empty(V.shape)
+        new = prony_forces(V, X, G, wdet, self.law, history, dt, F)
+        if new is None:
+            x, Gs, ws = self._viscous_arguments(q, data)
+            F, new = prony_step(self.law, x, Gs, ws, history, dt)[0], prony_commit(self.law, x, Gs, history, dt)
+        F *= np.asarray(weights, float)[:, None]
+        return F.reshape(-1) @ Ue.reshape(-1, self.size), new
+
+    def _viscous_arguments(self, q: np.ndarray, data):
+        """(deformed nodes (E, k, 3), each point's shape gradients (E, k, 3), each point's weights (E,))."""
+        Ue, X, G, wdet = data[:4]
+        E, k = X.shape[:2]
+        x = X + (Ue.reshape(-1, self.size) @ np.asarray(q, float)).reshape(E, k, 3)
+        return x, [np.ascontiguousarray(G[:, p]) for p in range(G.shape[1])], [wdet[:, p] for p in range(G.shape[1])]
 
 
 def _projection_rows(Ue: np.ndarray, single: bool) -> tuple[np.ndarray | None, np.ndarray]:

@@ -102,15 +102,9 @@ class ReducedNonlinearModel(ElementTerms):
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
-        from ..fe.viscoelastic import Prony
-
         if getattr(model, "element", None) == "tet4-anp":
             raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
                              "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
-        if isinstance(self.law, Prony):
-            raise ModelError(f"{self.law!r}: the reduced nonlinear model does not carry a Prony series' internal "
-                             "variables yet; step it full order (rt.DirectSimulator(model, dt, large_deformation=True)), "
-                             "or reduce its long-term law: rt.SolidModel(mesh, law.long_term())")
         self.system = model.nonlinear()
         self.dpn = model.dofs_per_node
         self.free = self.system.free

@@ -312,12 +312,51 @@ def _gradients(V, X, G):
     return np.einsum("eka,eqkb->eqab", x, G).reshape(E * nq, 3, 3)
 
 
+def _invariant_point(Fm, prm, P, cof, C) -> bool:
+    """P (3, 3) of W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2 at one deformation
+    gradient Fm (prm = [C10, C01, kappa]), as :class:`rtfem.fe.hyperelastic.MooneyRivlin` writes it;
+    cof gets Fm's cofactor. False (P untouched) where det Fm <= 0. C: a work array."""
+    c10, c01, kappa = prm[0], prm[1], prm[2]
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
+    J = Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+    if not J > 0.0:
+        return False
+    I1 = 0.0
+    trC2 = 0.0
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for m in range(3):
+                s += Fm[m, a] * Fm[m, b]
+            C[a, b] = s
+        I1 += C[a, a]
+    for a in range(3):
+        for b in range(3):
+            trC2 += C[a, b] * C[b, a]
+    I2 = 0.5 * (I1 * I1 - trC2)
+    j23 = J ** (-2.0 / 3.0)
+    a1 = c10 * j23
+    a2 = c01 * j23 * j23
+    g1 = (2.0 / 3.0) * a1 * I1 / J + (4.0 / 3.0) * a2 * I2 / J
+    kv = kappa * (J - 1.0)
+    for a in range(3):
+        for b in range(3):
+            fc = 0.0
+            for m in range(3):
+                fc += Fm[a, m] * C[m, b]
+            P[a, b] = 2.0 * a1 * Fm[a, b] + a2 * (2.0 * I1 * Fm[a, b] - 2.0 * fc) - g1 * cof[a, b] + kv * cof[a, b]
+    return True
+
+
 def _invariant_forces(V, X, G, wdet, prm, F):
     """F (E, 3k) = the tets' forces with W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2
-    (prm = [C10, C01, kappa]: neo-Hookean and Mooney-Rivlin), P as
-    :class:`rtfem.fe.hyperelastic.MooneyRivlin` writes it; an element with J <= 0 at a point gets NaN."""
+    (prm = [C10, C01, kappa]: neo-Hookean and Mooney-Rivlin; :func:`_invariant_point`); an element
+    with J <= 0 at a point gets NaN."""
     E, nq, k = G.shape[0], G.shape[1], G.shape[2]
-    c10, c01, kappa = prm[0], prm[1], prm[2]
     x = np.zeros((k, 3))
     Fm = np.zeros((3, 3))
     cof = np.zeros((3, 3))
@@ -328,40 +367,10 @@ def _invariant_forces(V, X, G, wdet, prm, F):
         F[e, :] = 0.0
         for q in range(nq):
             _gradient(x, G[e, q], Fm)
-            for i in range(3):
-                i1, i2 = (i + 1) % 3, (i + 2) % 3
-                for j in range(3):
-                    j1, j2 = (j + 1) % 3, (j + 2) % 3
-                    cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
-            J = Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
-            if not J > 0.0:
+            if not _invariant_point(Fm, prm, P, cof, C):
                 for i in range(3 * k):
                     F[e, i] = np.nan
                 break
-            I1 = 0.0
-            trC2 = 0.0
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for m in range(3):
-                        s += Fm[m, a] * Fm[m, b]
-                    C[a, b] = s
-                I1 += C[a, a]
-            for a in range(3):
-                for b in range(3):
-                    trC2 += C[a, b] * C[b, a]
-            I2 = 0.5 * (I1 * I1 - trC2)
-            j23 = J ** (-2.0 / 3.0)
-            a1 = c10 * j23
-            a2 = c01 * j23 * j23
-            g1 = (2.0 / 3.0) * a1 * I1 / J + (4.0 / 3.0) * a2 * I2 / J
-            kv = kappa * (J - 1.0)
-            for a in range(3):
-                for b in range(3):
-                    fc = 0.0
-                    for m in range(3):
-                        fc += Fm[a, m] * C[m, b]
-                    P[a, b] = 2.0 * a1 * Fm[a, b] + a2 * (2.0 * I1 * Fm[a, b] - 2.0 * fc) - g1 * cof[a, b] + kv * cof[a, b]
             _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
 
 
@@ -491,7 +500,8 @@ def compiled_ogden_dP():
 
 def compiled_invariant_forces():
     """The compiled neo-Hookean / Mooney-Rivlin force kernel (numba), or None."""
-    return compiled("solid-invariants", _invariant_forces, _gradient, _deformed_nodes, _add_stress_forces)
+    return compiled("solid-invariants", _invariant_forces, _gradient, _deformed_nodes, _add_stress_forces,
+                    _invariant_point)
 
 
 def law_forces(V, X, G, wdet, law, F) -> None:
