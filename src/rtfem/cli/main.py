@@ -267,7 +267,8 @@ def cmd_impedance(args: argparse.Namespace) -> int:
         nodes, how = fixed_nodes(model.mesh, args.nodes, "--nodes")
         print(f"loaded      {nodes.size} nodes ({how})")
     kw = dict(nodes=nodes, radius=args.radius, metric=args.metric, threshold=args.threshold, method=args.method,
-              n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30)
+              n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30,
+              scheduler=args.scheduler)
     if times is not None:
         kw["times"] = times
     size = ImpedanceMap.estimate_bytes(model, nodes=nodes, radius=args.radius, metric=args.metric,
@@ -285,9 +286,10 @@ def cmd_impedance(args: argparse.Namespace) -> int:
         # interrupted: keep what was finished, beside (never over) the requested output
         name = output.name[:-4] if output.name.endswith(".npz") else output.name
         partial = imap.save(output.with_name(name + ".partial.npz"))
-        print(f"rtfem: interrupted: kept {imap.loaded.size} of {imap.info['requested_nodes']} loaded nodes in "
+        why = imap.info.get("error") or "interrupted"
+        print(f"rtfem: {why}: kept {imap.loaded.size} of {imap.info['requested_nodes']} loaded nodes in "
               f"{partial}; {args.output} was not touched", file=sys.stderr)
-        return 130
+        return 130 if why == "interrupted" else 1
     out = imap.save(output)
     print(f"map         {imap}")
     print(f"wrote       {out} ({out.stat().st_size / 2**20:.1f} MiB); load with rt.ImpedanceMap.load(path, model=...)")
@@ -483,6 +485,9 @@ def _add_impedance(sub) -> None:
     p.add_argument("--method", choices=("modal", "sldm"), default="modal", help="modal (r modes + static correction) or sldm")
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--workers", type=count, default=1, help="threads (default 1)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="compute the columns on a Dask cluster: tcp://HOST:PORT (a "
+                   "running 'dask scheduler' and its workers) or local:N (N worker processes here); needs the cluster "
+                   "extra")
     p.add_argument("--memory-limit", type=positive, default=4.0, help="refuse maps above this many GiB (default 4)")
     p.add_argument("--allow-large", action="store_true", help="write a map estimated past 1 GiB (refused otherwise)")
     p.set_defaults(func=cmd_impedance)

@@ -31,8 +31,8 @@ from ..fe.material import Damping
 from ..fe.protocol import check_model
 from ..reduction.modal import mesh_fingerprint
 
-from .impedance_columns import (_check_build, _check_memory, _check_modes, _column_task, _condensed_static,
-                                _estimate, _loaded_nodes, _ModalColumns, _NeighbourFinder, _run_nodes, _SLDMColumns)
+from .impedance_columns import (_check_build, _check_memory, _check_modes, _estimate, _loaded_nodes, _NeighbourFinder,
+                                _run_cluster, _run_here)
 
 __all__ = ["ImpedanceMap", "Load"]
 
@@ -134,25 +134,12 @@ class ImpedanceMap:
 
     # ---------------------------------------------------------------- building
     @classmethod
-    def build(
-        cls,
-        model,
-        damping: Damping | None = None,
-        *,
-        nodes=None,
-        radius: float | None = None,
-        metric: str = "euclidean",
-        threshold: float | None = None,
-        times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
-        method: str = "modal",
-        n_modes: int = 100,
-        tol: float = 1e-6,
-        memory_limit: float = 4 * 2**30,
-        progress: Callable[[int, int, str], None] | None = None,
-        workers: int = 1,
-        modes=None,
-        static: str = "solves",
-    ) -> "ImpedanceMap":
+    def build(cls, model, damping: Damping | None = None, *, nodes=None, radius: float | None = None,
+              metric: str = "euclidean", threshold: float | None = None,
+              times: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5), method: str = "modal",
+              n_modes: int = 100, tol: float = 1e-6, memory_limit: float = 4 * 2**30,
+              progress: Callable[[int, int, str], None] | None = None, workers: int = 1, modes=None,
+              static: str = "solves", scheduler=None) -> "ImpedanceMap":
         """Precompute the map.
 
         Parameters
@@ -179,6 +166,18 @@ class ImpedanceMap:
             with its Schur complement; the map then keeps surface nodes only, which is what is
             drawn and touched). Condensation pays for maps over a large part of a solid's surface
             (``benchmarks/condensation.py``); it is dense, (3 s)^2 for s surface nodes.
+        scheduler : the columns on a Dask cluster (:mod:`rtfem.cluster`): "tcp://HOST:PORT",
+            "local:N" or a ``distributed.Client``; each worker rebuilds the model and factorizes it
+            once, the modes are computed here and sent once, a task carries a few loaded nodes; the
+            same map (tests/test_cluster.py). Tasks of a worker that dies are rerun; a failure Dask
+            gives up on keeps, as Ctrl-C does, the nodes that came back (``info["error"]`` says why).
+            Not with ``static="condensation"``.
+
+        Raises
+        ------
+        ModelError
+            A bad option (each named), a model with nothing fixed, modes of another model, a map
+            above ``memory_limit``, a scheduler that cannot be reached.
 
         A KeyboardInterrupt stops the build cleanly: the map holds the nodes finished so far
         (``info["complete"]`` is False, ``info["requested_nodes"]`` says how many were asked
@@ -196,17 +195,21 @@ class ImpedanceMap:
         loaded, held = _loaded_nodes(model, nodes)
         within = _NeighbourFinder(model.mesh, radius, metric)
         _check_memory(loaded, within, t.size, memory_limit)
-        engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
-                  else _SLDMColumns(model, damping, t, tol))
-        surface = _condensed_static(model, engine, loaded) if static == "condensation" else None
-        t0 = time.perf_counter()
-        results, complete = _run_nodes(_column_task(engine, within, surface, threshold), loaded, workers, progress)
+        t0, why = time.perf_counter(), ""
+        if scheduler is not None:
+            results, complete, why, setup = _run_cluster(scheduler, model, (method, damping, t, n_modes, tol, radius,
+                                                                            metric, threshold), modes, loaded, progress,
+                                                         static=static)
+        else:
+            results, complete, setup = _run_here(model, (method, damping, t, n_modes, tol, threshold), modes, static,
+                                                 loaded, within, workers, progress)
         info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
-                "threshold": float(threshold) if threshold is not None else -1.0, "seconds": time.perf_counter() - t0,
-                "complete": complete, "alpha": damping.alpha, "beta": damping.beta,
-                "n_modes": n_modes if method == "modal" else -1, "tol": tol if method == "sldm" else -1.0,
-                "precompute_seconds": engine.setup_seconds, "skipped_fixed_nodes": int(held.size), "static": static,
-                "requested_nodes": int(loaded.size)}
+                "threshold": float(threshold) if threshold is not None else -1.0,
+                "seconds": time.perf_counter() - t0 - setup, "complete": complete, "alpha": damping.alpha,
+                "beta": damping.beta, "n_modes": n_modes if method == "modal" else -1,
+                "tol": tol if method == "sldm" else -1.0, "precompute_seconds": setup,
+                "skipped_fixed_nodes": int(held.size), "static": static, "requested_nodes": int(loaded.size),
+                "error": why, "scheduler": "" if scheduler is None else str(getattr(scheduler, "scheduler", scheduler))}
         offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
         return cls(model.n_nodes, t, np.array([r[0] for r in results]), offsets,
                    np.concatenate([r[1] for r in results]), np.concatenate([r[2] for r in results]),

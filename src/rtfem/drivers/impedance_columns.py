@@ -153,6 +153,87 @@ def _run_nodes(one, loaded: np.ndarray, workers: int, progress) -> tuple[list, b
     return results, complete
 
 
+def _run_here(model, settings: tuple, modes, static: str, loaded: np.ndarray, within, workers: int,
+              progress) -> tuple[list, bool, float]:
+    """The loaded nodes' columns here, on ``workers`` threads: (results, complete, the engine's setup
+    seconds: the modes or SLDM's factorization, the condensed compliance)."""
+    method, damping, t, n_modes, tol, threshold = settings
+    engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
+              else _SLDMColumns(model, damping, t, tol))
+    surface = _condensed_static(model, engine, loaded) if static == "condensation" else None
+    return (*_run_nodes(_column_task(engine, within, surface, threshold), loaded, workers, progress),
+            engine.setup_seconds)
+
+
+def _run_cluster(scheduler, model, settings: tuple, modes, loaded: np.ndarray, progress,
+                 chunk: int | None = None, static: str = "solves") -> tuple[list, bool, str, float]:
+    """The loaded nodes' columns on a Dask cluster (:mod:`rtfem.cluster`), connected before anything
+    is computed: the modes here (method "modal", unless given), then every worker rebuilds the model
+    from its recipe and the engine once (:func:`_cluster_columns`), tasks carry ``chunk`` nodes each.
+    Returns (results in the loaded nodes' order, complete, why not, the modes' seconds)."""
+    from ..cluster import connect
+
+    if static == "condensation":
+        raise ModelError("static='condensation' is computed here: with a scheduler use static='solves' (each worker "
+                         "solves its own nodes' static limits)")
+    with connect(scheduler) as client:  # a wrong address is said before the modes
+        t0 = time.perf_counter()
+        if settings[0] == "modal" and modes is None:
+            modes = modal_analysis(model, settings[3])
+        setup = time.perf_counter() - t0
+        return (*_cluster_nodes(client, model, settings, modes, loaded, progress, chunk), setup)
+
+
+def _cluster_nodes(client, model, settings, modes, loaded, progress, chunk) -> tuple[list, bool, str]:
+    from ..cluster import run_tasks
+    from ..fe.recipe import ModelRecipe
+
+    recipe = ModelRecipe.of(model)
+    light = None if settings[0] != "modal" else (np.asarray(modes.shapes), np.asarray(modes.omega))  # not matrices
+    results: list = []
+    t0 = time.perf_counter()
+
+    def collect(batch) -> None:
+        for r in batch:
+            results.append(r)
+            if progress is not None:
+                progress(len(results), loaded.size, f"node {r[0]}, {time.perf_counter() - t0:.1f} s")
+
+    workers = max(1, sum(client.nthreads().values()))
+    size = chunk or int(np.clip(np.ceil(loaded.size / (4 * workers)), 1, 32))
+    chunks = [loaded[i:i + size] for i in range(0, loaded.size, size)]
+    why = run_tasks(client, _cluster_columns, (recipe, light, settings), chunks, collect)
+    slot = np.full(model.n_nodes, -1)
+    slot[loaded] = np.arange(loaded.size)
+    results.sort(key=lambda r: slot[r[0]])
+    return results, not why, why
+
+
+def _cluster_columns(recipe, light, settings: tuple, nodes: np.ndarray) -> list:
+    """On a worker: the columns of ``nodes`` (as :func:`_column_task`'s), with the model, its
+    factorization and the engine built once per worker process for this recipe and settings."""
+    import hashlib
+    import types
+
+    from ..cluster import worker_cached
+
+    method, damping, times, n_modes, tol, radius, metric, threshold = settings
+    h = hashlib.sha256(repr(settings).encode())
+    if light is not None:
+        h.update(np.ascontiguousarray(light[1]).tobytes())
+
+    def build():
+        model = recipe.build()
+        if method == "modal":
+            engine = _ModalColumns(model, damping, times, n_modes, types.SimpleNamespace(shapes=light[0], omega=light[1]))
+        else:
+            engine = _SLDMColumns(model, damping, times, tol)
+        return _column_task(engine, _NeighbourFinder(model.mesh, radius, metric), None, threshold)
+
+    one = worker_cached(recipe.key + h.hexdigest(), build)
+    return [one(int(j)) for j in nodes]
+
+
 class _NeighbourFinder:
     def __init__(self, mesh, radius, metric):
         self.mesh, self.radius, self.metric = mesh, radius, metric

@@ -1,0 +1,156 @@
+"""Precompute on a Dask cluster (issue 42): an impedance map built on a LocalCluster of two worker
+processes, and on a real ``dask scheduler`` with two ``dask worker`` processes on loopback started
+here (one killed mid-run), equals the map built here; the command line does the same; a scheduler
+that cannot be reached is one line; a task that fails for good keeps what came back."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.errors import ModelError, SolverError
+
+distributed = pytest.importorskip("distributed", reason="the cluster extra (dask.distributed) is not installed")
+
+KW = dict(method="modal", n_modes=20, radius=0.02, times=(0.01, 0.05))
+
+
+def _model():
+    model = rt.ShellModel(rt.meshes.hemisphere(), rt.Material())
+    X = np.asarray(model.mesh.vertices)
+    return model.fix(np.flatnonzero(X[:, 2] <= X[:, 2].min() + 1e-9))
+
+
+@pytest.fixture(scope="module")
+def serial():
+    return rt.ImpedanceMap.build(_model(), **KW)
+
+
+def _same(a, b) -> None:
+    assert b.info["complete"] and not b.info["error"]
+    np.testing.assert_array_equal(a.loaded, b.loaded)
+    np.testing.assert_array_equal(a.offsets, b.offsets)
+    np.testing.assert_array_equal(a.neighbours, b.neighbours)
+    for key in ("responses", "point"):
+        x, y = getattr(a, key), getattr(b, key)
+        assert np.abs(x - y).max() <= 1e-12 * np.abs(x).max(), key
+
+
+def test_a_local_cluster_of_two_processes_builds_the_same_map(serial):
+    _same(serial, rt.ImpedanceMap.build(_model(), scheduler="local:2", **KW))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture()
+def real_cluster():
+    """A ``dask scheduler`` and two ``dask worker`` processes (no nanny: a killed worker stays dead)."""
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
+    if dask is None:
+        pytest.skip("the dask command is not installed (the cluster extra)")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                              **quiet)]
+    try:
+        for name in ("a", "b"):
+            procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard",
+                                           "--name", name], **quiet))
+        client = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                client = client or distributed.Client(address, timeout=5)
+                if len(client.scheduler_info()["workers"]) == 2:
+                    break
+            except OSError:
+                pass
+            time.sleep(0.3)
+        else:
+            pytest.fail("the scheduler and two workers did not come up within 60 s")
+        yield address, client, procs
+        client.close()
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def test_real_workers_build_the_same_map_also_when_one_is_killed(serial, real_cluster):
+    address, client, procs = real_cluster
+    killed = []
+
+    def progress(done, total, message):
+        if done >= 3 and not killed:  # mid-run: worker "a" dies with its tasks
+            procs[1].send_signal(signal.SIGKILL)
+            killed.append(done)
+
+    imap = rt.ImpedanceMap.build(_model(), scheduler=client, progress=progress, **KW)
+    assert killed and killed[0] < serial.loaded.size and procs[1].wait(10) != 0
+    _same(serial, imap)
+    assert len(client.scheduler_info()["workers"]) == 1
+
+
+def test_the_command_line_against_real_workers_writes_the_serial_map(real_cluster, tmp_path, capsys):
+    from rtfem.cli.main import main
+
+    address = real_cluster[0]
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+    assert main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
+    assert main(["impedance", *common, "--scheduler", address, "-o", str(tmp_path / "cluster.npz")]) == 0
+    a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.npz")
+    assert a.loaded.size > 100
+    _same(a, b)
+    capsys.readouterr()
+    assert main(["impedance", *common, "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "-o",
+                 str(tmp_path / "none.npz")]) == 2
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "error" in line]
+    assert len(said) == 1 and "could not reach the Dask scheduler at tcp://127.0.0.1:" in said[0], err
+    assert "Traceback" not in err
+    assert not (tmp_path / "none.npz").exists()
+
+
+def _fails_on_seven(chunk):
+    if 7 in chunk:
+        time.sleep(1.0)  # after the others
+        raise RuntimeError("node 7 broke")
+    return [int(j) * 2 for j in chunk]
+
+
+def test_a_task_that_fails_for_good_keeps_what_came_back():
+    from rtfem.cluster import connect, run_tasks
+
+    got = []
+    with connect("local:2") as client:
+        why = run_tasks(client, _fails_on_seven, (), [[j] for j in range(10)], got.extend)
+        assert "node 7 broke" in why and sorted(got) == [0, 2, 4, 6, 8, 10, 12, 16, 18]
+        with pytest.raises(SolverError, match="first tasks failed"):
+            run_tasks(client, _fails_on_seven, (), [[7]], got.extend)
+
+
+def test_bad_scheduler_texts_are_refused():
+    with pytest.raises(ModelError, match="local:N takes"):
+        rt.ImpedanceMap.build(_model(), scheduler="local:0", **KW)
+    with pytest.raises(ModelError, match="tcp://HOST:PORT"):
+        rt.ImpedanceMap.build(_model(), scheduler="somehost:8786", **KW)
+    with pytest.raises(ModelError, match="static='solves'"):
+        rt.ImpedanceMap.build(_model(), scheduler="local:1", static="condensation", **KW)
+    assert os.environ.get("DASK_SCHEDULER_ADDRESS") is None  # nothing here reaches for a default cluster
