@@ -6,6 +6,7 @@
     rtfem simulate SCENE.toml ...          a scene file: bodies under gravity on obstacles -> .pvd each + contacts.csv
     rtfem simulate --example gallbladder   the scene shipped with rtfem: liver, gallbladder, grasper and probe
     rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
+    rtfem batch PLAN.toml                  many organs' bases, maps and reduced models, on a cluster or here
     rtfem bench [MESH]                     time per step: modal vs direct, measured now
     rtfem pictures [MESH] --out DIR        PNG/GIF pictures and plots
     rtfem view [MESH]                      the interactive web viewer
@@ -219,7 +220,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             local = (schedule.nodes if schedule is not None else [_probe_point(model, args.at)], args.local * 1e-3)
         modes = _modes(model, args)
         with progress_bar("modal derivatives", unit="mode") as bar:
-            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar)
+            sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar,
+                                           scheduler=args.scheduler)
         info = sim.reduced.info
         patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
                                                 f"({info['local']['nodes']} nodes)")
@@ -460,6 +462,8 @@ def _add_simulate(sub) -> None:
                         "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
     p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
                    "probed (or loaded) vertex in the basis, for pulls of centimetres (see the manual: Which model when)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="--method nonlinear: the modal derivatives on a Dask cluster "
+                   "(tcp://HOST:PORT or local:N; the cluster extra)")
     p.add_argument("--example", choices=("gallbladder",), help="run a scene shipped with rtfem: gallbladder (the "
                    "liver and the gallbladder hung beneath it, a grasper retracting its fundus, a probe on the liver)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
@@ -556,6 +560,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_info_and_modes(sub)
     _add_simulate(sub)
     _add_impedance(sub)
+    from .batch import add_batch_command
+
+    add_batch_command(sub)
     _add_bench_and_pictures(sub)
     _add_view_and_demo(sub)
     from .devices import add_device_commands

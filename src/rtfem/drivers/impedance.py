@@ -29,7 +29,7 @@ from ..errors import ModelError
 from ..storage import load_versioned, save_versioned
 from ..fe.material import Damping
 from ..fe.protocol import check_model
-from ..reduction.modal import mesh_fingerprint
+from ..reduction.modal import check_model_key, mesh_fingerprint, model_key
 
 from .impedance_columns import (_check_build, _check_memory, _check_modes, _estimate, _loaded_nodes, _NeighbourFinder,
                                 _run_cluster, _run_here)
@@ -187,8 +187,7 @@ class ImpedanceMap:
         damping, t, radius, threshold, n_modes, tol = _check_build(damping, times, metric, radius, threshold, method,
                                                                      n_modes, tol)
         memory_limit = validate.positive(memory_limit, "memory_limit", "a size in bytes")
-        progress = validate.progress(progress)
-        workers = validate.count(workers, "workers", 1, 256)
+        progress, workers = validate.progress(progress), validate.count(workers, "workers", 1, 256)
         static = validate.choice(static, "static", ("solves", "condensation"))
         _check_modes(model, modes)
         model.check_restrained()
@@ -209,7 +208,8 @@ class ImpedanceMap:
                 "beta": damping.beta, "n_modes": n_modes if method == "modal" else -1,
                 "tol": tol if method == "sldm" else -1.0, "precompute_seconds": setup,
                 "skipped_fixed_nodes": int(held.size), "static": static, "requested_nodes": int(loaded.size),
-                "error": why, "scheduler": "" if scheduler is None else str(getattr(scheduler, "scheduler", scheduler))}
+                "error": why, "scheduler": "" if scheduler is None else str(getattr(scheduler, "scheduler", scheduler)),
+                "model_key": model_key(model)}
         offsets = np.r_[0, np.cumsum([r[1].size for r in results])]
         return cls(model.n_nodes, t, np.array([r[0] for r in results]), offsets,
                    np.concatenate([r[1] for r in results]), np.concatenate([r[2] for r in results]),
@@ -384,6 +384,7 @@ class ImpedanceMap:
             if fp != mesh_fingerprint(model.mesh):
                 raise ModelError(f"{where} was built for a different mesh (field 'fingerprint'); rebuild it with "
                                  "ImpedanceMap.build")
+            check_model_key(info, model, where)  # maps saved before it was recorded have none
         try:
             return cls(n, fingerprint=fp, info=info, **z)
         except ModelError as exc:

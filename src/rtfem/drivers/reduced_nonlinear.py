@@ -534,7 +534,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
 def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,
                              spread: int = 1, precision: str = "double", static_correction: bool = True,
                              local: tuple | None = None, refresh: int = 20, background: bool = False,
-                             progress: Callable[[int, int, str], None] | None = None):
+                             progress: Callable[[int, int, str], None] | None = None, scheduler=None):
     """The reduced nonlinear Driver in one call, as ``rtfem simulate --method nonlinear`` and the
     viewer build it: a :class:`ReducedNonlinearModel` on ``modes`` and the modal derivatives of the
     lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
@@ -547,7 +547,8 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     linearized about the cubature's tangent, refreshed every ``refresh`` steps (20: reproducible,
     for offline runs; on the default liver a refresh costs ~13 ms) or, with ``background``, on a
     thread so that the step never waits (the real-time setting: the viewer's). Shells and solids:
-    the compiled cubature kernels are the corotational triangle's and the corotated tet's."""
+    the compiled cubature kernels are the corotational triangle's and the corotated tet's. ``scheduler``:
+    the modal derivatives on a Dask cluster (:meth:`ReducedNonlinearModel.derivatives`)."""
     if local is not None:
         if not isinstance(local, (tuple, list)) or len(local) != 2:
             raise ModelError(f"local={validate.show(local)} must be (nodes, radius in m), e.g. ([node], 0.02)")
@@ -558,7 +559,7 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     refresh = validate.count(refresh, "refresh", 1, 10**6)
     background = validate.flag(background, "background")
     red = ReducedNonlinearModel(model, modes, min(derivatives, getattr(modes, "n_modes", derivatives)),
-                                progress=progress)
+                                progress=progress, scheduler=scheduler)
     if local is not None:
         red = red.localize(*local)
     red.train_cubature(16, tol=0.05)

@@ -69,6 +69,8 @@ class ReducedNonlinearModel(ElementTerms):
     size : keep only this many derivative directions, the largest after weighting Psi_ij by
         w_1^4 / (w_i^2 w_j^2) (Barbic & James' mass-PCA, in the stiffness norm here); default all.
     progress : ``progress(done, total, message)`` per derivative mode.
+    scheduler : the derivatives' tangent differences on a Dask cluster (:mod:`rtfem.cluster`:
+        "tcp://HOST:PORT", "local:N" or a Client; :meth:`derivatives`); None: here.
 
     ``basis`` (free dofs x r) is stiffness-orthonormal (basis^T K basis = I at rest); ``info``
     holds the sizes and the time split.
@@ -85,7 +87,7 @@ class ReducedNonlinearModel(ElementTerms):
     local = None  # a localized copy's patch (see :meth:`localize`)
 
     def __init__(self, model, modes, derivatives: int = 20, *, size: int | None = None,
-                 progress: Callable[[int, int, str], None] | None = None) -> None:
+                 progress: Callable[[int, int, str], None] | None = None, scheduler=None) -> None:
         from .modal import ModalBasis
         from ..fe.protocol import check_model
 
@@ -100,24 +102,14 @@ class ReducedNonlinearModel(ElementTerms):
         check_model_key(modes.info, model, "these modes")
         n_modes = modes.omega.size
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
-        self.model = model
-        self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
-        if getattr(model, "element", None) == "tet4-anp":
-            raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
-                             "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
-        self.system = model.nonlinear()
-        self.dpn = model.dofs_per_node
-        self.free = self.system.free
+        self._setup(model)
         n = model.n_nodes
-        K0 = self.system.evaluate(Configuration.rest(n, self.dpn == 6))[1]
-        self._K0 = K0
-        self._solver = self.system.solver(K0, "the stiffness at rest")
         shapes = np.asarray(modes.shapes, float)
         if self.dpn == 6:
             shapes = np.concatenate([shapes, model.rotation_field(shapes)], axis=1)
         Phi = shapes.reshape(n * self.dpn, n_modes)[self.free]
         t1 = time.perf_counter()
-        Psi = self.derivatives(Phi[:, :derivatives], progress=progress)
+        Psi = self.derivatives(Phi[:, :derivatives], progress=progress, scheduler=scheduler)
         t2 = time.perf_counter()
         if Psi.shape[1]:
             w2 = np.asarray(modes.omega[:derivatives], float) ** 2
@@ -129,6 +121,33 @@ class ReducedNonlinearModel(ElementTerms):
         self.info = {"modes": n_modes, "derivative_modes": derivatives, "derivatives": self.n_derivatives,
                      "size": self.basis.shape[1], "seconds": {"derivatives": t2 - t1,
                                                               "total": time.perf_counter() - t0}}
+
+    def _setup(self, model) -> None:
+        """The model, its law, nonlinear system, free dofs and rest stiffness with its factorization."""
+        self.model = model
+        self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
+        if getattr(model, "element", None) == "tet4-anp":
+            raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
+                             "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
+        self.system = model.nonlinear()
+        self.dpn = model.dofs_per_node
+        self.free = self.system.free
+        self._K0 = self.system.evaluate(Configuration.rest(model.n_nodes, self.dpn == 6))[1]
+        self._solver = self.system.solver(self._K0, "the stiffness at rest")
+
+    def save(self, path):
+        """Save the basis and the cubature as a versioned ``.npz`` (:mod:`rtfem.reduction.reduced_io`)."""
+        from .reduced_io import save_reduced
+
+        return save_reduced(self, path)
+
+    @classmethod
+    def load(cls, path, model) -> "ReducedNonlinearModel":
+        """The reduced model saved at ``path``, on ``model`` (the same mesh, supports and material; it is
+        checked), without computing the derivatives again (:mod:`rtfem.reduction.reduced_io`)."""
+        from .reduced_io import load_reduced
+
+        return load_reduced(cls, path, model)
 
     # ---------------------------------------------------------------- configurations and forces
     def _configuration(self, v: np.ndarray) -> tuple[Configuration, np.ndarray]:
@@ -166,25 +185,27 @@ class ReducedNonlinearModel(ElementTerms):
         Gf = _block_diagonal(np.pad(G, ((0, 0), (3, 0), (3, 0))))[self.free][:, self.free]
         return f.ravel()[self.free], (Bf.T @ K @ Bf + Gf).tocsr()
 
-    def derivatives(self, Phi: np.ndarray, *, progress=None) -> np.ndarray:
+    def derivatives(self, Phi: np.ndarray, *, progress=None, scheduler=None) -> np.ndarray:
         """The modal derivatives Psi_ij = -K^-1 (dK/dq_j) phi_i (i <= j) of the columns of Phi
         (free dofs), ordered as ``np.triu_indices``. dK/dq_j is the central difference of the
         tangent along phi_j (a step moving no node by more than 1e-5 of the model's size); the
-        pair is symmetrized, ((dK/dq_j) phi_i + (dK/dq_i) phi_j) / 2."""
+        pair is symmetrized, ((dK/dq_j) phi_i + (dK/dq_i) phi_j) / 2. The m tangent differences
+        (two tangent assemblies each: nearly all of the time) are independent: with ``scheduler``
+        (:mod:`rtfem.cluster`) they run on a Dask cluster's workers, each rebuilding the model once;
+        the solves stay here."""
         m = Phi.shape[1]
         if m == 0:
             return np.zeros((Phi.shape[0], 0))
-        dK = []
-        for j in range(m):
-            b = Phi[:, j]
-            scale = np.abs(self.system.expand(b)[:, :3]).max()
-            eps = 1e-5 * self.system.size / max(scale, 1e-300)
-            Kp, Km = self.forces(eps * b)[1], self.forces(-eps * b)[1]
-            dK.append(((Kp - Km) / (2 * eps)).tocsr())
-            if progress is not None:
-                progress(j + 1, m, f"tangent derivative {j + 1} of {m}")
+        Y: list = [None] * m  # Y[j] = (dK/dq_j) Phi
+        if scheduler is None:
+            for j in range(m):
+                Y[j] = _tangent_difference(self, Phi, j)
+                if progress is not None:
+                    progress(j + 1, m, f"tangent derivative {j + 1} of {m}")
+        else:
+            Y = _cluster_differences(self.model, Phi, scheduler, progress)
         i, j = np.triu_indices(m)
-        rhs = np.column_stack([0.5 * (dK[b] @ Phi[:, a] + dK[a] @ Phi[:, b]) for a, b in zip(i, j)])
+        rhs = np.column_stack([0.5 * (Y[b][:, a] + Y[a][:, b]) for a, b in zip(i, j)])
         return -self._solver.solve(rhs)
 
     def _orthonormal(self, Phi: np.ndarray, Psi: np.ndarray, size: int | None) -> np.ndarray:
@@ -321,6 +342,7 @@ class ReducedNonlinearModel(ElementTerms):
                              "carry no information; train on larger poses (reach) or more of them")
         self._cubature_pinned = int(pinned.size)
         self._cubature = (self._element_data(elements), weights)
+        self._cubature_elements = np.asarray(elements, int)
         if remainder:
             K = self.basis.T @ (self._K0 @ self.basis)
             self._cubature_rest = (self._cubature, Ke[elements], 0.5 * (K + K.T))
@@ -458,6 +480,60 @@ class ReducedNonlinearModel(ElementTerms):
             if np.abs(self.system.expand(self.basis @ dx[:self.size])[:, :3]).max() <= 1e-12 * self.system.size:
                 return q, history, True, lam  # the round-off floor: no translation moves any more
         return q, history, False, lam
+
+
+def _tangent_difference(owner, Phi: np.ndarray, j: int) -> np.ndarray:
+    """(dK/dq_j) Phi (free dofs, m): the central difference of ``owner.forces``' tangent along Phi's
+    column j (see :meth:`ReducedNonlinearModel.derivatives`) times Phi."""
+    b = Phi[:, j]
+    scale = np.abs(owner.system.expand(b)[:, :3]).max()
+    eps = 1e-5 * owner.system.size / max(scale, 1e-300)
+    Kp, Km = owner.forces(eps * b)[1], owner.forces(-eps * b)[1]
+    return ((Kp - Km) / (2 * eps)) @ Phi
+
+
+class _Forces:
+    """What :meth:`ReducedNonlinearModel.forces` needs, on a cluster's worker: the model rebuilt
+    from its recipe and its nonlinear system."""
+
+    _configuration = ReducedNonlinearModel._configuration
+    forces = ReducedNonlinearModel.forces
+
+    def __init__(self, model) -> None:
+        self.model, self.system = model, model.nonlinear()
+        self.dpn, self.free = model.dofs_per_node, self.system.free
+
+
+def _difference_task(recipe, Phi: np.ndarray, js) -> list:
+    """On a worker: [(j, (dK/dq_j) Phi)] for the columns js, the model built once per worker."""
+    from ..cluster import worker_cached
+
+    owner = worker_cached(recipe.key + ":forces", lambda: _Forces(recipe.build()))
+    return [(int(j), _tangent_difference(owner, Phi, int(j))) for j in js]
+
+
+def _cluster_differences(model, Phi: np.ndarray, scheduler, progress) -> list:
+    """[(dK/dq_j) Phi for every column j] on a Dask cluster, one column a task."""
+    from ..cluster import connect, run_tasks
+    from ..fe.recipe import ModelRecipe
+
+    m = Phi.shape[1]
+    Y: list = [None] * m
+
+    def collect(batch) -> None:
+        for j, y in batch:
+            Y[j] = y
+        if progress is not None:
+            done = sum(y is not None for y in Y)
+            progress(done, m, f"tangent derivative {done} of {m} (cluster)")
+
+    with connect(scheduler) as client:
+        why = run_tasks(client, _difference_task, (ModelRecipe.of(model), Phi), [[j] for j in range(m)], collect)
+    if why:
+        if why == "interrupted":
+            raise KeyboardInterrupt
+        raise SolverError(f"the modal derivatives on the cluster stopped: {why}")
+    return Y
 
 
 def _block_diagonal(B: np.ndarray) -> sp.csr_matrix:

@@ -1,0 +1,107 @@
+"""``rtfem batch PLAN.toml`` (issue 42 item 3): two organs (a dome at two Young's moduli) precomputed
+into one folder, here and on a LocalCluster of two processes; the files equal what the library builds
+directly with the same settings, the stiffer dome's frequencies are sqrt(3) times the softer's (a linear
+shell: f ~ sqrt(E)); a second run keeps every valid file, a changed organ or a damaged file is rebuilt;
+a bad plan is one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.cli.main import main
+from rtfem.reduction.reduced import ReducedNonlinearModel
+
+PLAN = """out = "out"
+[defaults]
+build = ["modes", "map", "reduced"]
+modes = 10
+radius = 0.02
+times = [0.01, 0.05]
+derivatives = 4
+fix = "z<0.0001"
+mesh = "dome.obj"
+[[organ]]
+name = "soft"
+E = 20000.0
+[[organ]]
+name = "stiff"
+E = {stiff}
+"""
+
+
+def _model(E):
+    model = rt.ShellModel(rt.meshes.hemisphere(), rt.Material(E=E))
+    X = np.asarray(model.mesh.vertices)
+    return model.fix(np.flatnonzero(X[:, 2] < 0.0001))
+
+
+@pytest.fixture()
+def plan(tmp_path):
+    rt.save_mesh(rt.meshes.hemisphere(), tmp_path / "dome.obj")
+    (tmp_path / "plan.toml").write_text(PLAN.format(stiff=60000.0))
+    return tmp_path
+
+
+def _stamps(out):
+    return {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+
+
+def test_a_batch_writes_what_the_library_builds_and_resumes(plan, capsys):
+    out = plan / "out"
+    assert main(["batch", str(plan / "plan.toml")]) == 0
+    assert len(list(out.glob("*.npz"))) == 6 and (out / "summary.csv").is_file()
+    soft, stiff = _model(20000.0), _model(60000.0)
+    modes = rt.ModalBasis.load(out / "soft.modes.npz", model=soft)
+    direct = rt.modal_analysis(soft, 10)
+    np.testing.assert_allclose(modes.omega, direct.omega, rtol=1e-10)
+    ratio = rt.ModalBasis.load(out / "stiff.modes.npz", model=stiff).omega / modes.omega
+    np.testing.assert_allclose(ratio, np.sqrt(3.0), rtol=1e-9)
+    imap = rt.ImpedanceMap.load(out / "soft.map.npz", model=soft)
+    ref = rt.ImpedanceMap.build(soft, modes=direct, n_modes=10, radius=0.02, times=(0.01, 0.05))
+    np.testing.assert_array_equal(imap.neighbours, ref.neighbours)
+    assert np.abs(imap.responses - ref.responses).max() <= 1e-8 * np.abs(ref.responses).max()
+    red = ReducedNonlinearModel.load(out / "soft.reduced.npz", soft)
+    assert red.n_modes == 10 and red.n_derivatives == 10 and red._cubature is not None
+    with pytest.raises(rt.ModelError, match="other supports, material"):
+        rt.ImpedanceMap.load(out / "soft.map.npz", model=stiff)  # the same mesh, another material
+    capsys.readouterr()
+
+    before = _stamps(out)
+    assert main(["batch", str(plan / "plan.toml"), "--scheduler", "local:2"]) == 0
+    text = capsys.readouterr().out
+    assert "| soft | 469 | 2,814 | - | modes map reduced |" in text and _stamps(out) == before
+
+    (plan / "plan.toml").write_text(PLAN.format(stiff=90000.0))  # the stiff organ changes
+    (out / "soft.map.npz").write_bytes(b"not a map")  # and a file is damaged
+    assert main(["batch", str(plan / "plan.toml")]) == 0
+    after = _stamps(out)
+    assert after["soft.modes.npz"] == before["soft.modes.npz"] and after["soft.reduced.npz"] == before["soft.reduced.npz"]
+    assert all(after[f"stiff.{k}.npz"] != before[f"stiff.{k}.npz"] for k in ("modes", "map", "reduced"))
+    imap = rt.ImpedanceMap.load(out / "soft.map.npz", model=soft)
+    assert np.abs(imap.responses - ref.responses).max() <= 1e-8 * np.abs(ref.responses).max()
+
+
+@pytest.mark.parametrize("text, said", [
+    ("[[organ]]\nname = 'a'\ncolour = 'red'\n", "unknown key(s) ['colour']"),
+    ("[[organ]]\nname = 'a'\nmesh = 'nowhere.obj'\n", "does not exist"),
+    ("[[organ]]\nname = 'a'\n[[organ]]\nname = 'a'\n", "its own name"),
+    ("[[organ]]\nname = 'a'\nbuild = ['maps']\n", "give a list of modes, map, reduced"),
+    ("out = 'x'\n", "at least one [[organ]]"),
+    ("[[organ]\n", "cannot read the plan"),
+])
+def test_a_bad_plan_is_one_line(tmp_path, capsys, text, said):
+    (tmp_path / "plan.toml").write_text(text)
+    assert main(["batch", str(tmp_path / "plan.toml")]) == 2
+    err = capsys.readouterr().err
+    assert said in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+
+
+def test_an_organ_that_fails_is_a_row_and_the_others_finish(plan, capsys):
+    text = PLAN.format(stiff=60000.0) + "[[organ]]\nname = 'loose'\nfix = 'z<-1'\n"  # fixes no node
+    (plan / "plan.toml").write_text(text.replace('build = ["modes", "map", "reduced"]', 'build = ["modes"]'))
+    assert main(["batch", str(plan / "plan.toml")]) == 1
+    out = capsys.readouterr().out
+    assert "| loose | 0 | 0 | - | - |" in out and "selects no vertex" in out.split("| loose |")[1], out
+    assert sorted(p.name for p in (plan / "out").glob("*.npz")) == ["soft.modes.npz", "stiff.modes.npz"]
