@@ -73,7 +73,7 @@ def _column_task(engine, within, surface: np.ndarray | None, threshold: float | 
         if threshold is not None and threshold > 0:
             mag = np.abs(cols[keep]).max(axis=(1, 2, 3))
             keep = keep[mag >= threshold * mag.max()]
-        return j, keep, cols[keep], cols[j]
+        return j, keep, cols[keep], cols[j].copy()  # a copy: a view would keep all of cols alive
 
     return one
 
