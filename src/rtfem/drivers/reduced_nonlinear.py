@@ -33,6 +33,15 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
     the rest tangent (``tangent="rest"``, the step before) the nonlinearity is explicit, stable
     only while the true tangent stays near the rest one: that cantilever diverged at 60 %.
 
+    With a relaxing law (``rt.Prony``) the simulator carries each force element's history (the
+    cubature's, or every element's; each point's Q_i and S_iso(n), in ``get_state()["visc"]``)
+    and takes the step's algorithmic forces and the history it leaves at the predictor, in one
+    compiled pass (:mod:`rtfem.reduction.prony_kernels`); the step is linearized about the
+    instantaneous law's tangent (at least as stiff as the algorithmic one: the long-term tangent
+    would leave the step unstable for g_inf < 1/2). It needs ``spread=1``. The static correction is
+    the long-term law's (the local dent taken relaxed); a state without "visc" starts with no
+    history (as if reached suddenly), and so does a localized copy (:meth:`localized`).
+
     Parameters
     ----------
     reduced : the model, with :meth:`ReducedNonlinearModel.train_cubature` called (the forces are
@@ -114,15 +123,6 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         a busy machine (its thread runs at the lowest priority) is not waited for past
         ``MAX_TANGENT_AGE`` steps (200): the step then refreshes the tangent itself (counted in
         ``sync_refreshes``; a starved worker let a swung cantilever diverge at step 2,394).
-
-    A :class:`~rtfem.Prony` law (a relaxing one): the simulator carries each force element's history
-    (the cubature's, or every element's; each point's Q_i and S_iso(n), in ``get_state()["visc"]``)
-    and takes the step's algorithmic forces and the history it leaves at the predictor, in one
-    compiled pass (:mod:`rtfem.reduction.prony_kernels`); the step is linearized about the
-    instantaneous law's tangent (at least as stiff as the algorithmic one: the long-term tangent
-    would leave the step unstable for g_inf < 1/2). It needs ``spread=1``. The static correction is
-    the long-term law's (the local dent taken relaxed); a state without "visc" starts with no
-    history (as if reached suddenly), and so does a localized copy (:meth:`localized`).
 
     The step is affine in the loads: ``predict(node)`` is the no-load step and
     ``step_compliance(node)`` dt^2/4 U_i S^-1 U_i^T (+ D_ii), constant between tangent refreshes
