@@ -106,21 +106,37 @@ def test_real_workers_build_the_same_map_also_when_one_is_killed(serial, real_cl
     assert len(client.scheduler_info()["workers"]) == 1
 
 
-def test_the_command_line_against_real_workers_writes_the_serial_map(real_cluster, tmp_path, capsys):
-    from rtfem.cli.main import main
+def test_the_command_line_against_real_workers_writes_the_serial_map(real_cluster, tmp_path, capsys, monkeypatch):
+    """rtfem impedance --scheduler tcp://... against a scheduler and two workers (issue 42's done-when),
+    worker "a" killed after the third node came back (through the command's progress bar)."""
+    import contextlib
 
-    address = real_cluster[0]
+    import rtfem.cli.main as cli
+
+    address, _, procs = real_cluster
     mesh = tmp_path / "dome.obj"
     rt.save_mesh(rt.meshes.hemisphere(), mesh)
     common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
-    assert main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
-    assert main(["impedance", *common, "--scheduler", address, "-o", str(tmp_path / "cluster.npz")]) == 0
+    assert cli.main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
+    killed = []
+
+    @contextlib.contextmanager
+    def bar(*args, **kwargs):
+        def tick(done, total, message=""):
+            if done >= 3 and not killed:
+                procs[1].send_signal(signal.SIGKILL)
+                killed.append(done)
+        yield tick
+
+    monkeypatch.setattr(cli, "progress_bar", bar)
+    assert cli.main(["impedance", *common, "--scheduler", address, "-o", str(tmp_path / "cluster.npz")]) == 0
+    assert killed and procs[1].wait(10) != 0
     a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.npz")
     assert a.loaded.size > 100
     _same(a, b)
     capsys.readouterr()
-    assert main(["impedance", *common, "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "-o",
-                 str(tmp_path / "none.npz")]) == 2
+    assert cli.main(["impedance", *common, "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "-o",
+                     str(tmp_path / "none.npz")]) == 2
     err = capsys.readouterr().err
     said = [line for line in err.splitlines() if "error" in line]
     assert len(said) == 1 and "could not reach the Dask scheduler at tcp://127.0.0.1:" in said[0], err
@@ -151,6 +167,38 @@ def test_modal_derivatives_on_real_workers_equal_the_serial_ones_also_when_one_i
     assert serial.n_derivatives == cluster.n_derivatives == 21
 
 
+@pytest.fixture(scope="module")
+def local2():
+    from rtfem.cluster import connect
+
+    with connect("local:2") as client:
+        yield client
+
+
+def test_cubature_poses_on_a_local_cluster_choose_the_same_elements_and_weights(local2):
+    from rtfem.reduction.reduced import ReducedNonlinearModel
+
+    model = _model()
+    red = ReducedNonlinearModel(model, rt.modal_analysis(model, 10), derivatives=4)
+    for remainder in (False, True):
+        here = red.train_cubature(8, remainder=remainder)
+        there = red.train_cubature(8, remainder=remainder, scheduler=local2)
+        np.testing.assert_array_equal(here["elements"], there["elements"])
+        assert np.abs(here["weights"] - there["weights"]).max() <= 1e-12 * here["weights"].max()
+
+
+@pytest.mark.parametrize("method", ["solves", "condensation"])
+def test_a_solids_surface_compliance_on_a_local_cluster_equals_the_one_here(local2, method):
+    model = rt.SolidModel(rt.meshes.box(0.04, 0.02, 0.02, nx=4, ny=2, nz=2), rt.Material())
+    X = np.asarray(model.tetmesh.vertices)
+    model.fix(np.flatnonzero(X[:, 0] == 0.0))
+    nodes, C = model.surface_compliance(method=method)
+    memory = 8 * model.n_dofs * 8  # blocks of 8 columns: several tasks
+    nodes2, C2 = model.surface_compliance(method=method, memory=memory, scheduler=local2)
+    np.testing.assert_array_equal(nodes, nodes2)
+    assert np.abs(C - C2).max() <= 1e-12 * np.abs(C).max()
+
+
 def _fails_on_seven(chunk):
     if 7 in chunk:
         time.sleep(2.0)  # after the others
@@ -158,16 +206,15 @@ def _fails_on_seven(chunk):
     return [int(j) * 2 for j in chunk]
 
 
-def test_a_task_that_fails_for_good_keeps_what_came_back():
-    from rtfem.cluster import connect, run_tasks
+def test_a_task_that_fails_for_good_keeps_what_came_back(local2):
+    from rtfem.cluster import run_tasks
 
     got = []
-    with connect("local:2") as client:
-        why = run_tasks(client, _fails_on_seven, (), [[j] for j in range(10)], got.extend)
-        # what came back is kept (a task queued behind the failing one on its worker may be cancelled)
-        assert "node 7 broke" in why and set(got) <= {0, 2, 4, 6, 8, 10, 12, 16, 18} and len(got) >= 5, got
-        with pytest.raises(SolverError, match="first tasks failed"):
-            run_tasks(client, _fails_on_seven, (), [[7]], got.extend)
+    why = run_tasks(local2, _fails_on_seven, (), [[j] for j in range(10)], got.extend)
+    # what came back is kept (a task queued behind the failing one on its worker may be cancelled)
+    assert "node 7 broke" in why and set(got) <= {0, 2, 4, 6, 8, 10, 12, 16, 18} and len(got) >= 5, got
+    with pytest.raises(SolverError, match="first tasks failed"):
+        run_tasks(local2, _fails_on_seven, (), [[7]], got.extend)
 
 
 def test_bad_scheduler_texts_are_refused():

@@ -177,7 +177,7 @@ def test_surface_compliance_by_condensation_equals_the_solves_and_the_map_built_
     np.testing.assert_allclose(c.point, a.point, rtol=0, atol=1e-10 * np.abs(a.point).max())
     with pytest.raises(rt.ModelError, match="method"):
         model.surface_compliance(method="dense")
-    monkeypatch.setattr("rtfem.fe.model._DENSE_LIMIT", 30)
+    monkeypatch.setattr("rtfem.fe.compliance._DENSE_LIMIT", 30)
     with pytest.raises(rt.ModelError, match="allow_large"):
         model.surface_compliance()
 

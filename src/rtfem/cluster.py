@@ -67,8 +67,15 @@ def connect(scheduler) -> Iterator[object]:
             n = 0
         if not 1 <= n <= 256:
             raise ModelError(f"scheduler={text!r}: local:N takes a number of worker processes from 1 to 256")
-        with distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                      silence_logs=50) as cluster, distributed.Client(cluster) as client:
+        try:
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                               dashboard_address=":0", silence_logs=50)
+        except (RuntimeError, OSError) as exc:
+            raise ModelError(f"could not start a LocalCluster of {n} worker processes ({exc}): worker processes "
+                             "re-import the main script, so a script read from standard input cannot start them; "
+                             "run it from a file, or start 'dask scheduler' and 'dask worker' and pass "
+                             "tcp://HOST:PORT") from None
+        with cluster, distributed.Client(cluster) as client:
             yield client
         return
     if "://" not in text:

@@ -21,6 +21,7 @@ import scipy.sparse.linalg as spla
 
 from .. import validate
 from ..errors import ModelError, RtfemWarning, SolverError
+from .compliance import _DENSE_LIMIT, surface_compliance as _surface_compliance
 from .linalg import Factorization, expand_node_order, factorize, nested_dissection
 from .material import Material
 from .protocol import DOF_NAMES, parse_dofs
@@ -29,7 +30,6 @@ from ..mesh.selection import select_nodes
 
 __all__ = ["FEModel", "Condensation"]
 
-_DENSE_LIMIT = 6000  # largest condensed size (3n) formed densely without allow_large=True
 _CHUNK = 16384  # elements per batch during assembly (bounds the temporary memory)
 
 
@@ -492,7 +492,7 @@ class FEModel:
         return spla.LinearOperator((c.t.size, c.t.size), matvec=c.apply, matmat=c.apply, dtype=float)
 
     def surface_compliance(self, nodes=None, *, method: str = "solves", memory: float = 256 * 2**20,
-                           allow_large: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                           allow_large: bool = False, scheduler=None) -> tuple[np.ndarray, np.ndarray]:
         """The static compliance between the translations of ``nodes``: (nodes, C) with C (3s, 3s),
         C[3a + i, 3b + k] the displacement of ``nodes[a]`` along i per unit force on ``nodes[b]``
         along k: the block of K^-1 that a surface load and a surface display need (Bro-Nielsen &
@@ -504,52 +504,9 @@ class FEModel:
         and Cotin's route, the Schur complement K* = K_SS - K_SI K_II^-1 K_IS of the other dofs
         (a factorization of K_II, solves with the columns of K_IS) and its dense Cholesky inverse.
         Both are exact; ``benchmarks/condensation.py`` measures which is faster. Dense: refused above
-        6,000 rows unless ``allow_large``."""
-        from scipy.linalg import cho_factor, cho_solve
-
-        method = validate.choice(method, "method", ("solves", "condensation"))
-        memory = validate.positive(memory, "memory", "a size in bytes")
-        allow_large = validate.flag(allow_large, "allow_large")
-        if nodes is None:
-            used = self.mesh.used_vertices()
-            nodes = used[~self.held_nodes[used]]
-        else:
-            nodes = np.unique(validate.nodes(nodes, self.n_nodes))
-        if 3 * nodes.size > _DENSE_LIMIT and not allow_large:
-            raise ModelError(f"the dense surface compliance would be {3 * nodes.size} x {3 * nodes.size} "
-                             f"({(3 * nodes.size) ** 2 * 8 / 2**30:.1f} GiB); pass fewer nodes or allow_large=True")
-        self.check_restrained()
-        rows = (self.dofs_per_node * nodes[:, None] + np.arange(3)).reshape(-1)  # global dofs of the nodes
-        C = np.zeros((rows.size, rows.size))
-        if method == "solves":
-            per = max(1, int(memory // (8 * self.n_dofs)))
-            live = np.flatnonzero(~self.fixed.reshape(-1)[rows])
-            for start in range(0, live.size, per):
-                cols = live[start:start + per]
-                F = np.zeros((self.n_dofs, cols.size))
-                F[rows[cols], np.arange(cols.size)] = 1.0
-                C[:, cols] = self._solve(F).reshape(self.n_nodes * 3, cols.size)[
-                    (3 * nodes[:, None] + np.arange(3)).reshape(-1)]
-            return nodes, C
-        Kc, dofs = self.constrained_stiffness()
-        fixed = self.fixed.reshape(-1)
-        here = rows[~fixed[rows]]  # (with penalty constraints the held dofs are condensed out with the rest)
-        S = np.searchsorted(dofs, here)
-        inner = np.setdiff1d(np.arange(dofs.size), S)
-        Kc = Kc.tocsc()
-        K_SS = Kc[S][:, S].toarray()
-        K_IS = Kc[inner][:, S].tocsc()
-        K_SI = K_IS.T.tocsr()
-        K_II = factorize(Kc[inner][:, inner].tocsr(), spd=True, what="K_II (the dofs condensed out)",
-                         order=lambda: self.dof_order(dofs[inner]))
-        per = max(1, int(memory // (8 * max(inner.size, 1))))
-        for start in range(0, S.size, per):  # K* = K_SS - K_SI K_II^-1 K_IS, a block of columns at a time
-            c = slice(start, start + per)
-            K_SS[:, c] -= K_SI @ K_II.solve(K_IS[:, c].toarray())
-        inverse = cho_solve(cho_factor(K_SS, lower=True), np.eye(S.size))
-        keep = np.flatnonzero(np.isin(rows, here))
-        C[np.ix_(keep, keep)] = inverse
-        return nodes, C
+        6,000 rows unless ``allow_large``. ``scheduler``: the blocks of columns (the solves) on a Dask
+        cluster (:mod:`rtfem.cluster`; :mod:`rtfem.fe.compliance`), each worker factorizing once."""
+        return _surface_compliance(self, nodes, method, memory, allow_large, scheduler)
 
     def translational_free_dofs(self) -> np.ndarray:
         """Global indices of the free translational dofs (the rows of the condensed matrices)."""

@@ -28,6 +28,7 @@ class ModelRecipe:
         a shell's membrane, rotary_inertia, constraints, penalty).
     fixed : the (n, dofs per node) mask of fixed dofs.
     key : an identity of all of that (the mesh's fingerprint and the model key), the worker's cache key.
+    kind : the model's class.
 
     Raises
     ------
@@ -40,16 +41,14 @@ class ModelRecipe:
     options: dict = field(default_factory=dict)
     fixed: np.ndarray | None = None
     key: str = ""
+    kind: type | None = None  # the model's class (pickled by reference)
 
     @classmethod
     def of(cls, model) -> "ModelRecipe":
         """The recipe of a ShellModel or SolidModel as it is now (its fixes included)."""
-        from .shellmodel import ShellModel
-        from .solidmodel import SolidModel
-
-        if isinstance(model, SolidModel):
+        if hasattr(model, "tetmesh") and hasattr(model, "element"):  # a SolidModel
             mesh, options = model.tetmesh, {"element": model.element, "mass": model.mass}
-        elif isinstance(model, ShellModel):
+        elif hasattr(model, "membrane") and hasattr(model, "rotary_inertia"):  # a ShellModel
             mesh, options = model.mesh, {"membrane": model.membrane, "rotary_inertia": model.rotary_inertia}
         else:
             raise ModelError(f"model={validate.show(model)} must be an rt.ShellModel or rt.SolidModel to be rebuilt "
@@ -57,13 +56,11 @@ class ModelRecipe:
         options.update(constraints=model.constraints, penalty=model.penalty)
         material = getattr(model, "law", None) or model.material
         fixed = np.array(model.fixed, dtype=bool)
-        return cls(mesh, material, options, fixed, _identity(mesh, material, options, fixed))
+        return cls(mesh, material, options, fixed, _identity(mesh, material, options, fixed), type(model))
 
     def build(self):
         """The model (assembled on first use, as any model), with the recipe's fixes."""
-        from .build import make_model
-
-        model = make_model(self.mesh, self.material, **self.options)
+        model = self.kind(self.mesh, self.material, **self.options)
         model.fixed[:] = self.fixed
         model._supports_changed()
         return model

@@ -158,6 +158,24 @@ class ElementTerms:
             T = Ue.reshape(-1, r).T @ np.matmul(dK, Ue).reshape(-1, r)
         return 0.5 * (T + T.T)
 
+    def _pose_rows(self, q: np.ndarray, data, Ke, reach: float) -> tuple[np.ndarray, np.ndarray, int]:
+        """One training pose of :meth:`rtfem.reduction.reduced.ReducedNonlinearModel.train_cubature`: (each element's reduced
+        force (r, E) and their sum (r,), both scaled to a unit sum, the halvings it took): a pose that
+        turns an element inside out (a law without energy there) is halved, up to 8 times."""
+        E = data[0].shape[0]
+        per = self._element_forces(q, data, np.ones(E), True, rest=Ke)  # (E, r)
+        for shrunk in range(9):
+            if np.isfinite(per).all():
+                break
+            if shrunk == 8:
+                raise ModelError(f"cubature training: a pose turns elements inside out even at 1/256 of its size "
+                                 f"(reach={reach:g}); the model's law ({self.law!r}) has no energy there")
+            q = 0.5 * q
+            per = self._element_forces(q, data, np.ones(E), True, rest=Ke)
+        b = per.sum(axis=0)
+        scale = 1.0 / np.linalg.norm(b)
+        return per.T * scale, b * scale, shrunk
+
     # ---------------------------------------------------------------- a Prony law's step (rt.Prony)
     def viscous_forces(self, q: np.ndarray, data, weights: np.ndarray, history: np.ndarray,
                        dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -288,14 +288,15 @@ class ReducedNonlinearModel(ElementTerms):
 
     # ---------------------------------------------------------------- elements and cubature
     def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0,
-                       remainder: bool = False) -> dict:
+                       remainder: bool = False, scheduler=None) -> dict:
         """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
         James 2008) on ``poses`` random poses, each moving the organ by up to ``reach`` times its
         size. Afterwards :meth:`reduced_forces` with ``cubature=True`` sums those elements only.
         ``remainder``: the rest-linear part is kept exact (K_r q, K_r = U^T K U the reduced rest
         stiffness) and the cubature fits only the nonlinear remainder sum_e U_e^T (g_e(v) - K_e v),
         so the forces are exact to first order in the motion and ``tol`` bounds the error of the
-        remainder alone. Returns what it found (``elements``, relative training ``error``,
+        remainder alone. ``scheduler``: the poses' element forces on a Dask cluster (one pose a task;
+        :mod:`rtfem.cluster`). Returns what it found (``elements``, relative training ``error``,
         ``seconds``)."""
         from . import cubature
 
@@ -309,24 +310,19 @@ class ReducedNonlinearModel(ElementTerms):
         E = data[0].shape[0]
         Ke = self._rest_tangents(data) if remainder else None
         rng = np.random.default_rng(seed)
-        rows, targets, shrunk = [], [], 0
-        for s in range(poses):
+        qs = []
+        for _ in range(poses):
             q = rng.normal(size=self.size)
             q *= rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max()
-            per = self._element_forces(q, data, np.ones(E), True, rest=Ke)  # (E, r)
-            for _ in range(8):  # a law without energy for an inverted element (J <= 0): the pose halved
-                if np.isfinite(per).all():
-                    break
-                q *= 0.5
-                shrunk += 1
-                per = self._element_forces(q, data, np.ones(E), True, rest=Ke)
-            else:
-                raise ModelError(f"cubature training: pose {s} turns elements inside out even at 1/256 of its size "
-                                 f"(reach={reach:g}); the model's law ({self.law!r}) has no energy there")
-            b = per.sum(axis=0)
-            scale = 1.0 / np.linalg.norm(b)
-            rows.append(per.T * scale)
-            targets.append(b * scale)
+            qs.append(q)
+        if scheduler is None:
+            found = [self._pose_rows(q, data, Ke, reach) for q in qs]
+        else:
+            from .reduced_io import cluster_poses
+
+            found = cluster_poses(self, qs, remainder, reach, scheduler)
+        rows, targets = [f[0] for f in found], [f[1] for f in found]
+        shrunk = sum(f[2] for f in found)
         A, b = np.vstack(rows), np.concatenate(targets)
         pinned = np.zeros(0, int) if self.local is None else self.local["elements"]
         if pinned.size:  # a localized model: the patch's elements exact, the others fitted to the rest

@@ -118,3 +118,70 @@ def _check_arrays(basis, n_modes, elements, weights, free: int, cells: int) -> s
     if weights.size and (weights.dtype.kind != "f" or not np.isfinite(weights).all() or weights.min() < 0):
         return "field 'weights' must be finite and non-negative"
     return ""
+
+
+class _PoseTerms:
+    """On a worker: what :meth:`rtfem.reduction.element_terms.ElementTerms._pose_rows` needs of a reduced model (its
+    elements' rows and forces), from the model's recipe and the basis, without the factorization."""
+
+    def __init__(self, model, basis: np.ndarray, remainder: bool) -> None:
+        from .element_terms import ElementTerms
+
+        class Terms(ElementTerms):
+            size = basis.shape[1]
+
+        self.terms = terms = Terms()
+        terms.model, terms.law, terms.system = model, getattr(model, "law", None), model.nonlinear()
+        terms.dpn, terms.free, terms.basis = model.dofs_per_node, terms.system.free, basis
+        self.data = terms._element_data()
+        self.Ke = terms._rest_tangents(self.data) if remainder else None
+
+
+def _pose_task(recipe, basis: np.ndarray, remainder: bool, reach: float, qs: list) -> list:
+    import hashlib
+
+    from ..cluster import worker_cached
+
+    key = recipe.key + hashlib.sha256(np.ascontiguousarray(basis).tobytes()).hexdigest() + str(remainder)
+    owner = worker_cached(key, lambda: _PoseTerms(recipe.build(), basis, remainder))
+    return [(i, owner.terms._pose_rows(q, owner.data, owner.Ke, reach)) for i, q in qs]
+
+
+def cluster_poses(reduced, qs: list, remainder: bool, reach: float, scheduler) -> list:
+    """:meth:`ReducedNonlinearModel.train_cubature`'s poses on a Dask cluster (one pose a task, each
+    worker building the elements' rows once): [(rows, target, halvings)] in the poses' order.
+
+    Parameters
+    ----------
+    reduced : the reduced model.
+    qs : the poses' reduced coordinates.
+    remainder : the rest-linear part subtracted (``train_cubature(remainder=True)``).
+    reach : the poses' reach (for the message of a pose that cannot be evaluated).
+    scheduler : as :func:`rtfem.cluster.connect` takes it.
+
+    Returns
+    -------
+    list
+
+    Raises
+    ------
+    ModelError, SolverError
+        An unreachable scheduler; a pose that failed, or the run stopped.
+    """
+    from ..cluster import connect, run_tasks
+    from ..errors import SolverError
+    from ..fe.recipe import ModelRecipe
+
+    out: list = [None] * len(qs)
+
+    def collect(batch) -> None:
+        for i, found in batch:
+            out[i] = found
+
+    with connect(scheduler) as client:
+        why = run_tasks(client, _pose_task, (ModelRecipe.of(reduced.model), reduced.basis, remainder, reach),
+                        [[(i, q)] for i, q in enumerate(qs)], collect)
+    if why:
+        raise KeyboardInterrupt if why == "interrupted" else SolverError(f"cubature training on the cluster stopped: "
+                                                                         f"{why}")
+    return out
