@@ -217,6 +217,21 @@ def test_a_task_that_fails_for_good_keeps_what_came_back(local2):
         run_tasks(local2, _fails_on_seven, (), [[7]], got.extend)
 
 
+def test_ctrl_c_on_a_cluster_keeps_the_nodes_that_came_back(serial, local2):
+    def progress(done, total, message):
+        if done == 40:
+            raise KeyboardInterrupt
+
+    imap = rt.ImpedanceMap.build(_model(), scheduler=local2, progress=progress, **KW)
+    assert not imap.info["complete"] and imap.info["error"] == "interrupted"
+    assert 40 <= imap.loaded.size < serial.loaded.size
+    for k, j in enumerate(imap.loaded):  # each node kept is the serial map's
+        s = int(np.searchsorted(serial.loaded, j))
+        a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
+        b = imap.responses[imap.offsets[k]:imap.offsets[k + 1]]
+        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()
+
+
 def test_bad_scheduler_texts_are_refused():
     with pytest.raises(ModelError, match="local:N takes"):
         rt.ImpedanceMap.build(_model(), scheduler="local:0", **KW)
