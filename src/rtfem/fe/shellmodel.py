@@ -9,6 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import shell
+from .assembly import assemble_blocks
 from .. import validate
 from ..errors import ModelError
 from .material import Material
@@ -89,21 +90,15 @@ class ShellModel(FEModel):
         T = np.asarray(self.mesh.triangles)
         X = np.asarray(self.mesh.vertices)
         ne = T.shape[0]
-        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18).astype(np.int32)
+        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18)
         data, mass = [], np.zeros(self.n_dofs)
         for s in range(0, ne, _CHUNK):
             c = slice(s, min(s + _CHUNK, ne))
             R, xy, area = shell.local_frames(X[T[c]])
-            ke = shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R)
-            data.append(ke.reshape(-1))
+            data.append(shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R))
             me = shell.element_mass(area, self.material, self.rotary_inertia)
-            np.add.at(mass, dofs[c].ravel(), np.tile(me, (1, 3)).ravel())
-        rows = np.repeat(dofs, 18, axis=1).ravel()
-        cols = np.tile(dofs, (1, 18)).ravel()
-        K = sp.coo_matrix((np.concatenate(data), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
-        K.sum_duplicates()
-        # exact symmetry (assembly round-off otherwise leaves ~1e-16 asymmetry)
-        self._K = ((K + K.T) * 0.5).tocsr()
+            mass += np.bincount(dofs[c].ravel(), np.tile(me, (1, 3)).ravel(), minlength=self.n_dofs)
+        self._K = assemble_blocks(T, np.concatenate(data), self.n_nodes, 6)  # exactly symmetric
         self._M = mass
         self.timings["assemble"] = time.perf_counter() - t0
 

@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import solid
+from .assembly import assemble_blocks
 from .. import validate
 from ..errors import ModelError
 from .hyperelastic import Hyperelastic
@@ -98,26 +99,23 @@ class SolidModel(FEModel):
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)
         ne, k = T.shape
-        dofs = (3 * T[:, :, None] + np.arange(3)[None, None, :]).reshape(ne, 3 * k)
         kdata, mdata = [], []
         lumped = np.zeros(self.n_nodes)
         for s in range(0, ne, _CHUNK):
             c = slice(s, min(s + _CHUNK, ne))
             Ke, Me = solid.element_matrices(X[T[c]], self.material, self.element, self.mass)
-            kdata.append(Ke.reshape(-1))
+            kdata.append(Ke)
             if self.mass == "consistent":
                 mdata.append(Me.reshape(-1))
                 lumped_e = _hrz(Me) if self.element == "tet10" else Me.sum(axis=2)
             else:
                 lumped_e = np.einsum("mii->mi", Me)
-            np.add.at(lumped, T[c].ravel(), lumped_e.ravel())
-        rows = np.repeat(dofs, 3 * k, axis=1).ravel()
-        cols = np.tile(dofs, (1, 3 * k)).ravel()
-        K = sp.coo_matrix((np.concatenate(kdata), (rows, cols)), shape=(self.n_dofs, self.n_dofs)).tocsr()
-        K.sum_duplicates()
+            lumped += np.bincount(T[c].ravel(), lumped_e.ravel(), minlength=self.n_nodes)
+        K = assemble_blocks(T, np.concatenate(kdata), self.n_nodes, 3)  # exactly symmetric
         if self.element == "tet4-anp":
             K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
-        self._K = ((K + K.T) * 0.5).tocsr()
+            K = ((K + K.T) * 0.5).tocsr()
+        self._K = K
         self._M = np.repeat(lumped, 3)
         if self.mass == "consistent":
             r = np.repeat(T, k, axis=1).ravel()
