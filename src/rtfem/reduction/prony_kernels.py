@@ -20,24 +20,21 @@ from __future__ import annotations
 import numpy as np
 
 from .jit import compiled
-from .tet_kernels import _add_stress_forces, _deformed_nodes, _gradient, _invariant_point, _jacobi3, _ogden_point
+from .tet_kernels import (_add_stress_forces, _cofactor, _deformed_nodes, _gradient, _invariant_point, _jacobi3,
+                          _ogden_point, _right_cauchy_green)
 
 __all__ = ["prony_forces", "law_parameters"]
 
 
 def _point(Fm, kind, prm, P, cof, C, N, lam2, beta, S) -> float:
     """The instantaneous law's P (3, 3) at Fm and cof = cof Fm; returns J (0 where J <= 0)."""
-    if kind == 0:
+    if kind == 0:  # the invariant law fills cof itself
         if not _invariant_point(Fm, prm, P, cof, C):
             return 0.0
-    elif not _ogden_point(Fm, prm, P, C, N, lam2, beta, S):
+        return Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+    if not _ogden_point(Fm, prm, P, C, N, lam2, beta, S):
         return 0.0
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
-    return Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+    return _cofactor(Fm, cof)
 
 
 def _prony_forces(V, X, G, wdet, kind, prm, kappa, a, b, c, hist, F, out):
@@ -110,7 +107,8 @@ def law_parameters(law):
     return None
 
 
-_HELPERS = (_point, _invariant_point, _ogden_point, _jacobi3, _gradient, _deformed_nodes, _add_stress_forces)
+_HELPERS = (_point, _invariant_point, _ogden_point, _jacobi3, _gradient, _deformed_nodes, _add_stress_forces, _cofactor,
+            _right_cauchy_green)
 
 
 def prony_forces(V, X, G, wdet, law, h, dt, F):

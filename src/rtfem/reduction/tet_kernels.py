@@ -312,28 +312,37 @@ def _gradients(V, X, G):
     return np.einsum("eka,eqkb->eqab", x, G).reshape(E * nq, 3, 3)
 
 
-def _invariant_point(Fm, prm, P, cof, C) -> bool:
-    """P (3, 3) of W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2 at one deformation
-    gradient Fm (prm = [C10, C01, kappa]), as :class:`rtfem.fe.hyperelastic.MooneyRivlin` writes it;
-    cof gets Fm's cofactor. False (P untouched) where det Fm <= 0. C: a work array."""
-    c10, c01, kappa = prm[0], prm[1], prm[2]
+def _cofactor(Fm, cof) -> float:
+    """cof (3, 3) = the cofactor of Fm (3, 3) (det Fm Fm^-T); returns det Fm."""
     for i in range(3):
         i1, i2 = (i + 1) % 3, (i + 2) % 3
         for j in range(3):
             j1, j2 = (j + 1) % 3, (j + 2) % 3
             cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
-    J = Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
-    if not J > 0.0:
-        return False
-    I1 = 0.0
-    trC2 = 0.0
+    return Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+
+
+def _right_cauchy_green(Fm, C) -> None:
+    """C (3, 3) = Fm^T Fm."""
     for a in range(3):
         for b in range(3):
             s = 0.0
             for m in range(3):
                 s += Fm[m, a] * Fm[m, b]
             C[a, b] = s
-        I1 += C[a, a]
+
+
+def _invariant_point(Fm, prm, P, cof, C) -> bool:
+    """P (3, 3) of W = C10 (I1bar - 3) + C01 (I2bar - 3) + kappa / 2 (J - 1)^2 at one deformation
+    gradient Fm (prm = [C10, C01, kappa]), as :class:`rtfem.fe.hyperelastic.MooneyRivlin` writes it;
+    cof gets Fm's cofactor. False (P untouched) where det Fm <= 0. C: a work array."""
+    c10, c01, kappa = prm[0], prm[1], prm[2]
+    J = _cofactor(Fm, cof)
+    if not J > 0.0:
+        return False
+    _right_cauchy_green(Fm, C)
+    I1 = C[0, 0] + C[1, 1] + C[2, 2]
+    trC2 = 0.0
     for a in range(3):
         for b in range(3):
             trC2 += C[a, b] * C[b, a]
@@ -415,12 +424,7 @@ def _ogden_point(Fm, prm, P, C, N, lam2, beta, S):
          + Fm[0, 2] * (Fm[1, 0] * Fm[2, 1] - Fm[1, 1] * Fm[2, 0]))
     if not J > 0.0:
         return False
-    for a in range(3):
-        for b in range(3):
-            s = 0.0
-            for m in range(3):
-                s += Fm[m, a] * Fm[m, b]
-            C[a, b] = s
+    _right_cauchy_green(Fm, C)
     _jacobi3(C, lam2, N)
     jb = J ** (-1.0 / 3.0)
     mean = 0.0
@@ -490,18 +494,19 @@ def _ogden_dP(Fs, prm, h, dP):
 def compiled_ogden_forces():
     """The compiled Ogden force kernel (numba), or None."""
     return compiled("solid-ogden", _ogden_forces, _gradient, _deformed_nodes, _add_stress_forces, _jacobi3,
+                    _right_cauchy_green,
                     _ogden_point)
 
 
 def compiled_ogden_dP():
     """The compiled Ogden tangent by differences (numba), or None."""
-    return compiled("solid-ogden-dP", _ogden_dP, _jacobi3, _ogden_point)
+    return compiled("solid-ogden-dP", _ogden_dP, _jacobi3, _ogden_point, _right_cauchy_green)
 
 
 def compiled_invariant_forces():
     """The compiled neo-Hookean / Mooney-Rivlin force kernel (numba), or None."""
     return compiled("solid-invariants", _invariant_forces, _gradient, _deformed_nodes, _add_stress_forces,
-                    _invariant_point)
+                    _invariant_point, _cofactor, _right_cauchy_green)
 
 
 def law_forces(V, X, G, wdet, law, F) -> None:
