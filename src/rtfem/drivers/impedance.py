@@ -195,13 +195,12 @@ class ImpedanceMap:
         within = _NeighbourFinder(model.mesh, radius, metric)
         _check_memory(loaded, within, t.size, memory_limit)
         t0, why = time.perf_counter(), ""
+        settings = (method, damping, t, n_modes, tol, radius, metric, threshold)
         if scheduler is not None:
-            results, complete, why, setup = _run_cluster(scheduler, model, (method, damping, t, n_modes, tol, radius,
-                                                                            metric, threshold), modes, loaded, progress,
+            results, complete, why, setup = _run_cluster(scheduler, model, settings, modes, loaded, progress,
                                                          static=static)
         else:
-            results, complete, setup = _run_here(model, (method, damping, t, n_modes, tol, threshold), modes, static,
-                                                 loaded, within, workers, progress)
+            results, complete, setup = _run_here(model, settings, modes, static, loaded, within, workers, progress)
         info = {"method": method, "radius": float(radius) if radius is not None else -1.0, "metric": metric,
                 "threshold": float(threshold) if threshold is not None else -1.0,
                 "seconds": time.perf_counter() - t0 - setup, "complete": complete, "alpha": damping.alpha,

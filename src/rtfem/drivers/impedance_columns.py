@@ -155,9 +155,10 @@ def _run_nodes(one, loaded: np.ndarray, workers: int, progress) -> tuple[list, b
 
 def _run_here(model, settings: tuple, modes, static: str, loaded: np.ndarray, within, workers: int,
               progress) -> tuple[list, bool, float]:
-    """The loaded nodes' columns here, on ``workers`` threads: (results, complete, the engine's setup
-    seconds: the modes or SLDM's factorization, the condensed compliance)."""
-    method, damping, t, n_modes, tol, threshold = settings
+    """The loaded nodes' columns here, on ``workers`` threads (``settings`` as :func:`_cluster_columns`
+    takes them; the neighbourhoods are ``within``'s): (results, complete, the engine's setup seconds:
+    the modes or SLDM's factorization, the condensed compliance)."""
+    method, damping, t, n_modes, tol, _, _, threshold = settings
     engine = (_ModalColumns(model, damping, t, n_modes, modes) if method == "modal"
               else _SLDMColumns(model, damping, t, tol))
     surface = _condensed_static(model, engine, loaded) if static == "condensation" else None

@@ -62,35 +62,40 @@ def surface_compliance(model, nodes, method: str, memory: float, allow_large: bo
         for cols, block in _blocks(model, nodes, blocks, "solves", scheduler):
             C[:, cols] = block
         return nodes, C
-    Kc, dofs = model.constrained_stiffness()
-    here = rows[~model.fixed.reshape(-1)[rows]]  # (with penalty constraints the held dofs are condensed out with the rest)
-    S = np.searchsorted(dofs, here)
-    K_SS = Kc.tocsc()[S][:, S].toarray()
-    inner_size = dofs.size - S.size
-    per = max(1, int(memory // (8 * max(inner_size, 1))))
-    blocks = [np.arange(i, min(i + per, S.size)) for i in range(0, S.size, per)]
-    for cols, block in _blocks(model, nodes, blocks, "condensation", scheduler):  # K* = K_SS - K_SI K_II^-1 K_IS
+    cond = _Condensation(model, nodes, factor=scheduler is None)  # the cluster's workers factorize K_II
+    K_SS = cond.dense_SS()
+    per = max(1, int(memory // (8 * max(cond.inner_size, 1))))
+    blocks = [np.arange(i, min(i + per, cond.size)) for i in range(0, cond.size, per)]
+    for cols, block in _blocks(model, nodes, blocks, "condensation", scheduler, cond):  # K* = K_SS - K_SI K_II^-1 K_IS
         K_SS[:, cols] -= block
-    inverse = cho_solve(cho_factor(K_SS, lower=True), np.eye(S.size))
-    keep = np.flatnonzero(np.isin(rows, here))
+    inverse = cho_solve(cho_factor(K_SS, lower=True), np.eye(cond.size))
+    keep = np.flatnonzero(np.isin(rows, cond.here))
     C[np.ix_(keep, keep)] = inverse
     return nodes, C
 
 
 class _Condensation:
-    """K_IS, K_SI and K_II's factorization for the condensation of a model's ``nodes``."""
+    """The condensation of a model's ``nodes``: their free translations ``here`` (with penalty
+    constraints the held dofs are condensed out with the rest), K_IS, K_SI and, with ``factor``,
+    K_II's factorization (a worker's; K_SS, dense, only where it is formed: :meth:`dense_SS`)."""
 
-    def __init__(self, model, nodes: np.ndarray) -> None:
+    def __init__(self, model, nodes: np.ndarray, factor: bool = True) -> None:
         rows = (model.dofs_per_node * nodes[:, None] + np.arange(3)).reshape(-1)
         Kc, dofs = model.constrained_stiffness()
-        here = rows[~model.fixed.reshape(-1)[rows]]
-        S = np.searchsorted(dofs, here)
+        self.here = rows[~model.fixed.reshape(-1)[rows]]
+        S = np.searchsorted(dofs, self.here)
         inner = np.setdiff1d(np.arange(dofs.size), S)
+        self.size, self.inner_size = S.size, inner.size
         Kc = Kc.tocsc()
+        self._Kc, self._S = Kc, S
         self.K_IS = Kc[inner][:, S].tocsc()
         self.K_SI = self.K_IS.T.tocsr()
         self.K_II = factorize(Kc[inner][:, inner].tocsr(), spd=True, what="K_II (the dofs condensed out)",
-                              order=lambda: model.dof_order(dofs[inner]))
+                              order=lambda: model.dof_order(dofs[inner])) if factor else None
+
+    def dense_SS(self) -> np.ndarray:
+        """K_SS, dense (the start of K*)."""
+        return self._Kc[self._S][:, self._S].toarray()
 
     def block(self, cols: np.ndarray) -> np.ndarray:
         """K_SI K_II^-1 K_IS[:, cols]."""
@@ -105,10 +110,10 @@ def _solves_block(model, nodes: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return model._solve(F).reshape(model.n_nodes * 3, cols.size)[(3 * nodes[:, None] + np.arange(3)).reshape(-1)]
 
 
-def _blocks(model, nodes: np.ndarray, blocks: list, method: str, scheduler):
-    """(cols, block) for every block of columns: here, in order, or from the cluster as they come."""
+def _blocks(model, nodes: np.ndarray, blocks: list, method: str, scheduler, condensation=None):
+    """(cols, block) for every block of columns: here, in order (the condensation's with
+    ``condensation``), or from the cluster as they come."""
     if scheduler is None:
-        condensation = _Condensation(model, nodes) if method == "condensation" else None
         for cols in blocks:
             yield cols, (condensation.block(cols) if condensation is not None else _solves_block(model, nodes, cols))
         return

@@ -3,7 +3,9 @@ its basis (modes and modal derivatives, stiffness-orthonormal on the free dofs) 
 (the elements and their weights), in a versioned ``.npz`` (no pickle) that records the mesh's
 fingerprint and the model key. Loading rebuilds the rest (the nonlinear system, the rest stiffness
 and its factorization, the cubature elements' rows) from the model given, so a batch precomputes
-the derivatives once and a session loads them in seconds."""
+the derivatives once and a session loads them in seconds. Also here, beside the other code that
+rebuilds a reduced model's pieces from its model (and so kept out of the reduced model's module, which
+imports this one): the cubature's training poses on a Dask cluster (:func:`cluster_poses`)."""
 
 from __future__ import annotations
 
