@@ -105,3 +105,28 @@ def test_an_organ_that_fails_is_a_row_and_the_others_finish(plan, capsys):
     out = capsys.readouterr().out
     assert "| loose | 0 | 0 | - | - |" in out and "selects no vertex" in out.split("| loose |")[1], out
     assert sorted(p.name for p in (plan / "out").glob("*.npz")) == ["soft.modes.npz", "stiff.modes.npz"]
+
+
+def test_a_saved_reduced_model_loads_only_onto_its_own_model_and_whole(tmp_path):
+    soft = _model(20000.0)
+    red = ReducedNonlinearModel(soft, rt.modal_analysis(soft, 8), 3)
+    red.train_cubature(6)
+    path = red.save(tmp_path / "r.npz")
+    same = ReducedNonlinearModel.load(path, soft)
+    np.testing.assert_array_equal(same.basis, red.basis)
+    np.testing.assert_array_equal(same._cubature_elements, red._cubature_elements)
+    with pytest.raises(rt.ModelError, match="other supports, material"):
+        ReducedNonlinearModel.load(path, _model(60000.0))  # the same mesh, another material
+    other = rt.ShellModel(rt.meshes.hemisphere(radius=0.04), rt.Material())
+    other.fix(np.flatnonzero(np.asarray(other.mesh.vertices)[:, 2] < 1e-4))
+    with pytest.raises(rt.ModelError, match="another mesh"):
+        ReducedNonlinearModel.load(path, other)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one byte of the basis flipped
+    (tmp_path / "bad.npz").write_bytes(bytes(data))
+    with pytest.raises(rt.ModelError):
+        ReducedNonlinearModel.load(tmp_path / "bad.npz", soft)
+    local = red.localize([int(np.flatnonzero(~soft.held_nodes)[0])], 0.01)
+    with pytest.raises(rt.ModelError, match="localized"):
+        local.save(tmp_path / "local.npz")
+    assert not (tmp_path / "local.npz").exists() and path.read_bytes() == red.save(path).read_bytes()

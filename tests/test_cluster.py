@@ -240,3 +240,31 @@ def test_bad_scheduler_texts_are_refused():
     with pytest.raises(ModelError, match="static='solves'"):
         rt.ImpedanceMap.build(_model(), scheduler="local:1", static="condensation", **KW)
     assert os.environ.get("DASK_SCHEDULER_ADDRESS") is None  # nothing here reaches for a default cluster
+
+
+def test_every_scheduler_entry_point_refuses_a_bad_address_and_changes_nothing(tmp_path, capsys):
+    from rtfem.cli.main import main
+    from rtfem.reduction.reduced import ReducedNonlinearModel
+
+    model = _model()
+    modes = rt.modal_analysis(model, 8)
+    with pytest.raises(ModelError, match="tcp://HOST:PORT"):
+        ReducedNonlinearModel(model, modes, derivatives=3, scheduler="nowhere")
+    red = ReducedNonlinearModel(model, modes, derivatives=3)
+    red.train_cubature(6)
+    before = (red._cubature_elements.copy(), red._cubature[1].copy(), red.basis.copy())
+    with pytest.raises(ModelError, match="tcp://HOST:PORT"):
+        red.train_cubature(6, tol=0.01, scheduler="nowhere")
+    np.testing.assert_array_equal(red._cubature_elements, before[0])  # the cubature trained before stays
+    np.testing.assert_array_equal(red._cubature[1], before[1])
+    np.testing.assert_array_equal(red.basis, before[2])
+    with pytest.raises(ModelError, match="tcp://HOST:PORT"):
+        model.surface_compliance(scheduler="nowhere")
+    with pytest.raises(ModelError, match="local:N takes"):
+        model.surface_compliance(method="condensation", scheduler="local:x")
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    assert main(["simulate", str(mesh), "--fix", "z<0.0001", "-n", "6", "--method", "nonlinear", "--duration", "0.01",
+                 "--scheduler", "nowhere", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "tcp://HOST:PORT" in err and "Traceback" not in err and not (tmp_path / "out" / "response.csv").exists()

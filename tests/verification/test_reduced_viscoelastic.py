@@ -22,6 +22,7 @@ import pytest
 import rtfem as rt
 from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 from rtfem.errors import ModelError
+from test_viscoelastic import _column
 
 LAW = rt.NeoHookean(mu=2000.0, kappa=100000.0, density=1000.0)
 PRONY = rt.Prony(LAW, g=np.array([0.5]), tau=np.array([0.2]))
@@ -30,13 +31,8 @@ DT, STEPS = 0.005, 600  # 3 s = 15 tau
 
 @pytest.fixture(scope="module")
 def column():
-    mesh = rt.meshes.box(0.02, 0.02, 0.06, nx=2, ny=2, nz=4)
-    model = rt.SolidModel(mesh, PRONY)
-    X = np.asarray(model.tetmesh.vertices)
-    model.fix(np.flatnonzero(X[:, 2] == 0.0))
-    top = np.flatnonzero(np.isclose(X[:, 2], 0.06))
-    forces = np.zeros_like(X)
-    forces[top, 0] = 0.02 / top.size  # 20 mN sideways on the top
+    model, forces = _column(PRONY)  # the full-order test's column: 20 mN sideways on the top
+    top = np.flatnonzero(np.isclose(np.asarray(model.tetmesh.vertices)[:, 2], 0.06))
     red = rt.ReducedNonlinearModel(model, rt.modal_analysis(model, 12), derivatives=6)
     return model, red, forces, top
 
