@@ -140,7 +140,7 @@ class _Pardiso:
             err = self._call(33, bf, x, nrhs)
         if err:
             raise SolverError(f"PARDISO solve failed (error {err})")
-        return np.ascontiguousarray(x)
+        return x if bf is b else np.ascontiguousarray(x)  # a column-major block comes back column-major, uncopied
 
     def _release(self) -> None:
         self._call(-1, np.zeros(1), np.zeros(1), 1)
