@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import solid
-from .assembly import assemble_blocks
+from .assembly import assemble_blocks, assemble_tet4
 from .. import validate
 from ..errors import ModelError
 from .hyperelastic import Hyperelastic
@@ -98,6 +98,9 @@ class SolidModel(FEModel):
         t0 = time.perf_counter()
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)
+        if self.element == "tet4" and self.mass == "lumped" and self._assemble_compiled(X, T):
+            self.timings["assemble"] = time.perf_counter() - t0
+            return
         ne, k = T.shape
         kdata, mdata = [], []
         lumped = np.zeros(self.n_nodes)
@@ -124,6 +127,17 @@ class SolidModel(FEModel):
             Mn = ((Mn + Mn.T) * 0.5).tocsr()
             self._Mc = sp.kron(Mn, sp.identity(3), format="csr")
         self.timings["assemble"] = time.perf_counter() - t0
+
+    def _assemble_compiled(self, X: np.ndarray, T: np.ndarray) -> bool:
+        """The linear tet's stiffness and lumped mass in one compiled pass (where numba runs)."""
+        lam, mu = solid._lame(self.material)
+        done = assemble_tet4(X, T, lam, mu, self.n_nodes)
+        if done is None:
+            return False
+        self._K, vol = done
+        lumped = np.bincount(T.ravel(), np.repeat(self.material.density * vol / 4.0, 4), minlength=self.n_nodes)
+        self._M = np.repeat(lumped, 3)
+        return True
 
     @property
     def M(self) -> sp.csr_matrix:

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from ..errors import ModelError
-from .jit import compiled as _compiled
+from ..fe.jit import compiled as _compiled
 
 __all__ = ["train", "compiled_forces", "element_forces"]
 

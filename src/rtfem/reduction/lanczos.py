@@ -217,24 +217,21 @@ def block_eigs(
     ``apply(Y)`` returns C Y for a block Y (n, b): one call solves b right-hand sides at once,
     which is what makes the block method pay with a supernodal factorization (a PARDISO solve
     of 8 right-hand sides costs about 3 of one). Each new block Z = C Q_j first loses its
-    components on Q_j and Q_{j-1} (the block three-term recurrence), then is orthogonalized
-    once against the whole basis (classical Gram-Schmidt, BLAS-3), and a second time only for
-    a block whose norm that pass cut below half (the Daniel-Gragg-Kaufman-Stewart test). Where
-    the pass's coefficients P^T Z are all below 1e-12 of the block's norm, Z is already orthogonal
-    to the basis to working precision and the subtraction is skipped: the basis is then read once
-    per block, not twice, and on a large mesh those reads, not the arithmetic, are the cost (the
-    basis is stored column-major, each vector contiguous). T = Q^T C Q is built block column by block column. Every
-    ``check_every`` blocks the Ritz pairs of T are formed; the iteration stops when each of the
-    k largest has |C y - theta y| <= tol * theta, read off the last block row as |R_{j+1} S_j|
-    (Golub & Underwood 1977; Golub & Van Loan sec. 10.3.6).
+    components on Q_j and Q_{j-1} (the block three-term recurrence), then is orthogonalized once
+    against the whole basis (classical Gram-Schmidt, BLAS-3; skipped where all its coefficients
+    are below 1e-12 of the block's norm), a second time only for a block whose norm that pass cut
+    below half (the Daniel-Gragg-Kaufman-Stewart test): on a large mesh the reads of the basis
+    (column-major), not the arithmetic, are the cost. T = Q^T C Q is built block column by block
+    column. Every ``check_every`` blocks the Ritz pairs of T are formed; the iteration stops when
+    each of the k largest has |C y - theta y| <= tol * theta, read off the last block row as
+    |R_{j+1} S_j| (Golub & Underwood 1977; Golub & Van Loan sec. 10.3.6).
 
     Returns theta (k,) descending, Y (n, k) orthonormal Ritz vectors and a dict of counts and
     seconds (``solve_seconds``, ``other_seconds``, ``block_solves``, ``krylov_dim``,
-    ``reorthogonalized``: the blocks that needed the second pass; ``skipped``: those that needed
-    no subtraction), ``coefficients`` S (dim, k)
-    with Y = Q S, so that a caller who kept something per block (rows of the solves that the
-    operator drops) can combine it the same way, and ``image`` = C Y from the Lanczos relation
-    C Q = Q T + Q_{m+1} R_m E_m^T (no further application of C).
+    ``reorthogonalized`` / ``skipped``: the blocks that needed the second pass / no subtraction),
+    ``coefficients`` S (dim, k) with Y = Q S, so that a caller who kept something per block (rows
+    of the solves that the operator drops) can combine it the same way, and ``image`` = C Y from
+    the Lanczos relation C Q = Q T + Q_{m+1} R_m E_m^T (no further application of C).
     Raises :class:`BlockLanczosFailed` when a block loses rank or the basis reaches max_dim.
     """
     b = int(block)

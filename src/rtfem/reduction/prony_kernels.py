@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import compiled
+from ..fe.jit import compiled
 from .tet_kernels import (_add_stress_forces, _cofactor, _deformed_nodes, _gradient, _invariant_point, _jacobi3,
                           _ogden_point, _right_cauchy_green)
 

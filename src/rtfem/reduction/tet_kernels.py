@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .jit import compiled
+from ..fe.jit import compiled
 
 __all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents",
            "law_forces", "law_tangents"]

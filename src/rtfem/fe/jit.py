@@ -1,4 +1,4 @@
-"""The reduced models' compiled kernels: a kernel and the helpers it calls, compiled by numba once
+"""Compiled kernels (the reduced models', the assembly's): a kernel and the helpers it calls, compiled by numba once
 (cached on disk) with one shared globals dict, so that a helper calling another calls its compiled
 twin; None where numba is absent or cannot compile it (the callers then take a numpy path)."""
 

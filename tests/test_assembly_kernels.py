@@ -1,0 +1,91 @@
+"""The compiled assembly (rtfem.fe.assembly_kernels, issue 43) against the numpy path it replaces and
+against closed forms: a linear field's strain energy (the patch test), rigid-body modes, symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import rtfem as rt
+from rtfem.fe import assembly, assembly_kernels
+
+pytestmark = pytest.mark.skipif(not assembly_kernels.available(), reason="numba is not installed: no compiled assembly")
+
+
+@pytest.fixture(scope="module")
+def block():
+    """A tet4 box meshed for this test (not the liver the kernels were timed on), its nodes moved off
+    the grid so that no two tets are alike."""
+    mesh = rt.meshes.box(0.03, 0.02, 0.015, 6, 5, 4)
+    X = np.asarray(mesh.vertices)
+    X = X + np.random.default_rng(1).uniform(-1e-3, 1e-3, X.shape)
+    return rt.TetMesh(X, np.asarray(mesh.tets))
+
+
+def _model(mesh, monkeypatch, how: str, **kw):
+    monkeypatch.setenv("RTFEM_ASSEMBLY", how)
+    model = rt.SolidModel(mesh, rt.Material(E=3e4, nu=0.45, density=1050.0), **kw)
+    model.K
+    return model
+
+
+def test_node_pattern_is_the_pairs_sharing_an_element():
+    rng = np.random.default_rng(0)
+    cells = np.array([rng.choice(30, 4, replace=False) for _ in range(40)])
+    indptr, indices = assembly_kernels.node_pattern(cells, 30)
+    r = np.repeat(cells, 4, axis=1).ravel()
+    c = np.tile(cells, (1, 4)).ravel()
+    ref = sp.coo_matrix((np.ones(r.size), (r, c)), shape=(30, 30)).tocsr()
+    ref.sum_duplicates()
+    ref.sort_indices()
+    assert np.array_equal(indptr, ref.indptr) and np.array_equal(indices, ref.indices)
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_compiled_and_numpy_assembly_agree(block, monkeypatch, element):
+    a = _model(block, monkeypatch, "numpy", element=element)
+    b = _model(block, monkeypatch, "", element=element)
+    assert abs(b.K - b.K.T).max() == 0.0  # exactly symmetric
+    assert abs(a.K - b.K).max() <= 1e-14 * abs(a.K).max()
+    assert np.abs(a.mass_diagonal - b.mass_diagonal).max() <= 1e-14 * a.mass_diagonal.max()
+    assert b.K.has_sorted_indices and np.all(np.diff(b.K.indptr) > 0)
+
+
+def test_shell_blocks_agree(monkeypatch):
+    mesh = rt.meshes.liver(3)
+    a = rt.ShellModel(mesh, rt.Material())
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "numpy")
+    Ka = a.K
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "")
+    Kb = rt.ShellModel(mesh, rt.Material()).K
+    assert abs(Kb - Kb.T).max() == 0.0
+    assert abs(Ka - Kb).max() <= 1e-14 * abs(Ka).max()
+
+
+def test_tet4_patch_test_and_rigid_modes(block, monkeypatch):
+    """A linear field u = A x: its strain energy is V (lam tr(e)^2 / 2 + mu e:e) exactly on any tet4
+    mesh (e the symmetric part of A), and a rigid motion (A skew) has none."""
+    model = _model(block, monkeypatch, "")
+    X = np.asarray(model.mesh.vertices)
+    mat = model.material
+    lam = mat.E * mat.nu / ((1 + mat.nu) * (1 - 2 * mat.nu))
+    mu = mat.E / (2 * (1 + mat.nu))
+    P = X[np.asarray(model.tetmesh.tets)[:, :4]]
+    volume = np.abs(np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0])).sum() / 6
+    A = np.array([[1.0, 0.3, -0.2], [0.1, -0.5, 0.4], [0.25, 0.0, 0.7]]) * 1e-2
+    e = 0.5 * (A + A.T)
+    u = (X @ A.T).ravel()
+    exact = volume * (0.5 * lam * np.trace(e) ** 2 + mu * np.sum(e * e))
+    assert 0.5 * u @ (model.K @ u) == pytest.approx(exact, rel=1e-12)
+    W = 0.5 * (A - A.T)
+    for rigid in ((X @ W.T).ravel(), np.tile([1.0, -2.0, 0.5], X.shape[0])):
+        assert np.abs(model.K @ rigid).max() <= 1e-12 * abs(model.K).max() * np.abs(rigid).max()
+    assert model.mass_diagonal.sum() == pytest.approx(3 * mat.density * volume, rel=1e-12)
+
+
+def test_an_inverted_tet_is_refused():
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
+    cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 2, 1, 3]])  # the last one inverted
+    with pytest.raises(rt.MeshError, match="element 2 has a non-positive Jacobian"):
+        assembly.assemble_tet4(X, cells, 1.0, 1.0, 5)
