@@ -90,3 +90,44 @@ def test_wrong_shapes_and_backends_are_refused():
     fac = linalg.factorize(sp.eye(3, format="csc"))
     with pytest.raises(rt.SolverError, match="rows"):
         fac.solve(np.ones(4))
+
+
+def test_the_upper_triangle_is_taken_from_any_format():
+    """PARDISO reads the upper triangle: from CSR (sorted or not) and CSC alike, empty rows kept."""
+    from rtfem.fe.linalg import _upper_triangle
+
+    A = sp.random(40, 40, density=0.15, random_state=6, format="csr")
+    A = (A + A.T).tolil()  # symmetric, with its last row and column empty
+    A[39, :] = 0
+    A[:, 39] = 0
+    A = A.tocsr()
+    ref = sp.triu(A, format="csr")
+    ref.sort_indices()
+    unsorted = A.copy()
+    for i in range(40):  # reverse each row's column order
+        a, b = unsorted.indptr[i], unsorted.indptr[i + 1]
+        unsorted.indices[a:b] = unsorted.indices[a:b][::-1].copy()
+        unsorted.data[a:b] = unsorted.data[a:b][::-1].copy()
+    unsorted.has_sorted_indices = False
+    for M in (A, A.tocsc(), unsorted, A.tocoo()):
+        indptr, indices, data = _upper_triangle(M)
+        assert np.array_equal(indptr, ref.indptr) and np.array_equal(indices, ref.indices)
+        assert np.array_equal(data, ref.data)
+
+
+@pytest.mark.skipif("pardiso" not in linalg.available_backends(), reason="PARDISO is not installed")
+def test_pardiso_reports_its_factor_and_solves_alike_on_one_thread_or_more(stiffness):
+    from rtfem.fe import linalg as fe_linalg
+
+    model, K, dofs = stiffness
+    b = np.random.default_rng(8).standard_normal((K.shape[0], 8))
+    x = {}
+    for threads in (1, 0):  # one MKL thread for the solve (a small factor's default), MKL's own count
+        f = fe_linalg._Pardiso(K, "K")
+        assert f.factor_nnz >= sp.triu(K).nnz  # the factor holds the matrix's pattern
+        assert f._solve_threads == (1 if f.factor_nnz < fe_linalg._ONE_THREAD_SOLVE else 0)
+        f._solve_threads = threads
+        x[threads] = f.solve(b)
+    res = np.linalg.norm(K @ x[1] - b) / (sp.linalg.norm(K, 1) * np.linalg.norm(x[1]))
+    assert res < 1e-13
+    np.testing.assert_allclose(x[1], x[0], rtol=0, atol=1e-9 * np.abs(x[0]).max())

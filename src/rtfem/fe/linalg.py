@@ -10,6 +10,7 @@ factorization is made once and reused for every right-hand side.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import threading
@@ -44,7 +45,14 @@ def _mkl_pardiso():
             import pypardiso  # noqa: F401  (its presence means the mkl wheel is installed)
             from pypardiso.pardiso_wrapper import PyPardisoSolver
 
-            fn = PyPardisoSolver().libmkl.pardiso
+            lib = PyPardisoSolver().libmkl
+            fn = lib.pardiso
+            try:
+                setter = lib.MKL_Set_Num_Threads_Local
+                setter.argtypes, setter.restype = [ctypes.c_int], ctypes.c_int
+                _MKL_SET_LOCAL[0] = setter
+            except AttributeError:  # an MKL without it: solves keep MKL's thread count
+                pass
             i32 = ctypes.POINTER(ctypes.c_int32)
             fn.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p, i32, i32, i32, i32,
                            i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
@@ -90,26 +98,27 @@ def default_backend() -> str:
 
 class _Pardiso:
     """MKL PARDISO, real symmetric positive definite (mtype 2), on the upper triangle in CSR with
-    zero-based indices (iparm[34] = 1), METIS nested-dissection ordering (iparm[1] = 2). The
-    index arrays are converted once; a solve is one call (phase 33). Memory is released when the
-    object goes away (phase -1). Calls are serialized: one factor, one solve at a time."""
+    zero-based indices (iparm[34] = 1), METIS nested-dissection ordering in its OpenMP version
+    (iparm[1] = 3; the same order run to run here). The index arrays are converted once; a solve
+    is one call (phase 33), on one MKL thread where the factor has fewer than 3 million nonzeros
+    (measured on 2 cores: the embedded liver shell's 14 block solves 102 -> 64 ms, the 4-million
+    tet4 liver's alike either way, the OpenHELP liver's 15 million 1.52 s on two threads against
+    1.93 s on one). Memory is released when the object goes away (phase -1). Calls are
+    serialized: one factor, one solve at a time."""
 
-    def __init__(self, A: sp.csc_matrix, what: str) -> None:
+    def __init__(self, A: sp.csr_matrix, what: str) -> None:
         self._fn = _mkl_pardiso()
         d = A.diagonal()
         if not np.all(d > 0):  # PARDISO's SPD Cholesky needs every diagonal entry, positive
             i = int(np.flatnonzero(~(d > 0))[0])
             raise SolverError(f"{what} is singular or not positive definite (diagonal entry {i} is {d[i]:.3g})")
-        U = sp.triu(A, format="csr")
-        U.sort_indices()
-        self.n = U.shape[0]
-        self._a = np.ascontiguousarray(U.data, dtype=np.float64)
-        self._ia = np.ascontiguousarray(U.indptr, dtype=np.int32)
-        self._ja = np.ascontiguousarray(U.indices, dtype=np.int32)
+        self.n = A.shape[0]
+        self._ia, self._ja, self._a = _upper_triangle(A)
         self._pt = np.zeros(64, dtype=np.int64)
         self._iparm = np.zeros(64, dtype=np.int32)
-        self._iparm[[0, 1, 34]] = (1, 2, 1)  # own settings, METIS ordering, zero-based indices
+        self._iparm[[0, 1, 34]] = (1, 3, 1)  # own settings, METIS ordering (OpenMP: 0.8x the time), zero-based indices
         self._iparm[9] = 13  # pivot perturbation 1e-13 (unused for SPD, set as MKL's default for mtype 11)
+        self._iparm[17] = -1  # report the factor's nonzeros
         self._lock = threading.Lock()
         self._alive = False
         err = self._call(12, np.zeros(1), np.zeros(1), 1)
@@ -119,6 +128,10 @@ class _Pardiso:
                 raise SolverError(f"{what} is singular or not positive definite (PARDISO: zero pivot)")
             raise SolverError(f"PARDISO could not factorize {what} (error {err})")
         self._alive = True
+        self.factor_nnz = int(self._iparm[17])
+        # a small factor's solve is faster on one thread: waking MKL's threads for each supernode
+        # level costs more than they save (benchmarks/precompute.py, 2 cores)
+        self._solve_threads = 1 if self.factor_nnz < _ONE_THREAD_SOLVE else 0
 
     def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> int:
         i32 = ctypes.POINTER(ctypes.c_int32)
@@ -136,7 +149,7 @@ class _Pardiso:
         nrhs = 1 if b.ndim == 1 else b.shape[1]
         bf = np.asfortranarray(b)
         x = np.zeros_like(bf, order="F")
-        with self._lock:
+        with self._lock, _mkl_threads(self._solve_threads):
             err = self._call(33, bf, x, nrhs)
         if err:
             raise SolverError(f"PARDISO solve failed (error {err})")
@@ -151,6 +164,41 @@ class _Pardiso:
                 self._release()
             except Exception:  # interpreter shutting down
                 pass
+
+
+_ONE_THREAD_SOLVE = 3_000_000  # factor nonzeros below which a solve runs on one thread (see _Pardiso)
+
+
+@contextlib.contextmanager
+def _mkl_threads(n: int):
+    """MKL's threads for this thread, n (0: leave them as they are)."""
+    setter = _MKL_SET_LOCAL[0] if n else None
+    if setter is None:
+        yield
+        return
+    previous = setter(n)
+    try:
+        yield
+    finally:
+        setter(previous)
+
+
+_MKL_SET_LOCAL: list = [None]
+
+
+def _upper_triangle(A: sp.spmatrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(indptr, indices, data) in int32/int32/float64 of the upper triangle of a symmetric matrix,
+    sorted CSR. A CSC matrix is read as the CSR of its transpose, the same matrix: no conversion."""
+    S = A.T if sp.isspmatrix_csc(A) else sp.csr_matrix(A)
+    if not S.has_sorted_indices:
+        S = S.copy()
+        S.sort_indices()
+    n = S.shape[0]
+    rows = np.repeat(np.arange(n, dtype=S.indices.dtype), np.diff(S.indptr))
+    keep = S.indices >= rows
+    indptr = np.zeros(n + 1, np.int32)
+    np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
+    return indptr, S.indices[keep].astype(np.int32), np.ascontiguousarray(S.data[keep], dtype=np.float64)
 
 
 class Factorization:
@@ -251,12 +299,12 @@ def factorize(
     ------
     SolverError : the matrix is singular (to working precision) or not positive definite.
     """
-    A = sp.csc_matrix(A, dtype=float)
     if A.shape[0] != A.shape[1]:
         raise SolverError(f"{what} is not square: {A.shape}")
     if backend is None:
         backend = default_backend() if spd else "superlu"
-    if backend == "pardiso":
+    if backend == "pardiso":  # the upper triangle, as CSR, of the matrix in the format it came in
+        A = A if (sp.isspmatrix_csr(A) or sp.isspmatrix_csc(A)) and A.dtype == float else sp.csr_matrix(A, dtype=float)
         if _mkl_pardiso() is None:
             raise SolverError("PARDISO is not installed: pip install pypardiso (or rtfem[fast]; x86-64 only)")
         if not spd:
@@ -264,6 +312,7 @@ def factorize(
         f = _Pardiso(A, what)
         _check_not_singular(A, f.solve, what, norm)
         return Factorization(A, "pardiso", f.solve)
+    A = sp.csc_matrix(A, dtype=float)
     if backend == "cholmod":
         if not _HAVE_CHOLMOD:
             raise SolverError("CHOLMOD is not installed: pip install scikit-sparse (or rtfem[cholmod])")
