@@ -131,3 +131,21 @@ def test_pardiso_reports_its_factor_and_solves_alike_on_one_thread_or_more(stiff
     res = np.linalg.norm(K @ x[1] - b) / (sp.linalg.norm(K, 1) * np.linalg.norm(x[1]))
     assert res < 1e-13
     np.testing.assert_allclose(x[1], x[0], rtol=0, atol=1e-9 * np.abs(x[0]).max())
+
+
+def test_the_basis_products_match_numpy_on_slices_and_other_layouts():
+    """gram (A^T B) and subtract_product (C -= A B), MKL's dgemm where PARDISO's MKL is loaded: the
+    Lanczos basis is a column slice of a column-major array; other layouts take numpy's product."""
+    rng = np.random.default_rng(9)
+    for n in (300, 20_000):  # one MKL thread, then MKL's own count
+        Q = np.asfortranarray(rng.standard_normal((n, 120)))
+        P, Z = Q[:, 10:90], np.asfortranarray(rng.standard_normal((n, 8)))
+        H = linalg.gram(P, Z)
+        np.testing.assert_allclose(H, P.T @ Z, rtol=1e-12, atol=1e-12 * np.abs(P.T @ Z).max())
+        C = Z.copy(order="F")
+        linalg.subtract_product(C, P, H)
+        np.testing.assert_allclose(C, Z - P @ H, rtol=0, atol=1e-12 * np.abs(Z).max())
+        Cc = np.ascontiguousarray(Z)  # row-major: numpy's product
+        linalg.subtract_product(Cc, P, H.T.copy().T)
+        np.testing.assert_allclose(Cc, C, rtol=0, atol=1e-12 * np.abs(Z).max())
+        np.testing.assert_allclose(linalg.gram(np.ascontiguousarray(P), Z), H, rtol=1e-12, atol=1e-12 * np.abs(H).max())

@@ -22,7 +22,7 @@ import scipy.sparse.linalg as spla
 from ..errors import SolverError
 
 __all__ = ["Factorization", "factorize", "available_backends", "default_backend", "nested_dissection",
-           "expand_node_order", "BACKENDS"]
+           "expand_node_order", "BACKENDS", "gram", "subtract_product"]
 
 try:  # optional, faster supernodal Cholesky
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore
@@ -52,6 +52,14 @@ def _mkl_pardiso():
                 setter.argtypes, setter.restype = [ctypes.c_int], ctypes.c_int
                 _MKL_SET_LOCAL[0] = setter
             except AttributeError:  # an MKL without it: solves keep MKL's thread count
+                pass
+            try:
+                gemm = lib.cblas_dgemm
+                c_int, vp = ctypes.c_int, ctypes.c_void_p
+                gemm.argtypes = [c_int] * 6 + [ctypes.c_double, vp, c_int, vp, c_int, ctypes.c_double, vp, c_int]
+                gemm.restype = None
+                _MKL_GEMM[0] = gemm
+            except AttributeError:  # pragma: no cover - every MKL has cblas_dgemm
                 pass
             i32 = ctypes.POINTER(ctypes.c_int32)
             fn.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p, i32, i32, i32, i32,
@@ -184,6 +192,42 @@ def _mkl_threads(n: int):
 
 
 _MKL_SET_LOCAL: list = [None]
+_MKL_GEMM: list = [None]
+_THREADED_GEMM = 1_000_000  # entries of A below which the products run on one MKL thread (waking more costs more)
+
+
+def _column_major(A: np.ndarray) -> int:
+    """The leading dimension of a float64 matrix stored column by column (unit row stride), else 0."""
+    if A.ndim != 2 or A.dtype != np.float64 or A.strides[0] != 8 or A.strides[1] < 8 * A.shape[0]:
+        return 0
+    return A.strides[1] // 8 if A.strides[1] % 8 == 0 else 0
+
+
+def gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A^T B (column-major) for tall column-major A (n, m) and B (n, k): MKL's dgemm where PARDISO's
+    MKL is loaded, else numpy. The Lanczos basis's products are tall and memory-bound: MKL reads
+    the basis 1.6x as fast as OpenBLAS on one thread and 3x on two (46,000 x 160 times 8 columns,
+    2 cores); below a million entries of A one MKL thread is used (waking the others costs more)."""
+    gemm, lda, ldb = _MKL_GEMM[0], _column_major(A), _column_major(B)
+    if gemm is None or not lda or not ldb or 0 in A.shape or B.shape[1] == 0:
+        return np.asfortranarray(A.T @ B)
+    m, k = A.shape[1], B.shape[1]
+    C = np.empty((m, k), order="F")
+    with _mkl_threads(1 if A.size < _THREADED_GEMM else 0):
+        gemm(102, 112, 111, m, k, A.shape[0], 1.0, A.ctypes.data, lda, B.ctypes.data, ldb, 0.0, C.ctypes.data, m)
+    return C
+
+
+def subtract_product(C: np.ndarray, A: np.ndarray, B: np.ndarray) -> None:
+    """C -= A B in place, for column-major C (n, k) and A (n, m): MKL's dgemm where loaded, else numpy."""
+    gemm, lda, ldc = _MKL_GEMM[0], _column_major(A), _column_major(C)
+    if gemm is None or not lda or not ldc or 0 in A.shape or C.shape[1] == 0:
+        C -= A @ B
+        return
+    B = np.asfortranarray(B, dtype=np.float64)
+    n, m, k = A.shape[0], A.shape[1], C.shape[1]
+    with _mkl_threads(1 if A.size < _THREADED_GEMM else 0):
+        gemm(102, 111, 111, n, k, m, -1.0, A.ctypes.data, lda, B.ctypes.data, m, 1.0, C.ctypes.data, ldc)
 
 
 def _upper_triangle(A: sp.spmatrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import SolverError
+from ..fe.linalg import gram, subtract_product
 
 __all__ = ["Lanczos", "REORTHOGONALIZATIONS"]
 
@@ -210,7 +211,8 @@ def block_eigs(
     seed: int = 0,
     report: Callable[[int, int], None] | None = None,
     check_every: int = 2,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+    vectors: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """The k largest eigenpairs of a symmetric positive semi-definite operator C (n x n) by
     block Lanczos with full reorthogonalization and no restart.
 
@@ -226,7 +228,8 @@ def block_eigs(
     each of the k largest has |C y - theta y| <= tol * theta, read off the last block row as
     |R_{j+1} S_j| (Golub & Underwood 1977; Golub & Van Loan sec. 10.3.6).
 
-    Returns theta (k,) descending, Y (n, k) orthonormal Ritz vectors and a dict of counts and
+    Returns theta (k,) descending, Y (n, k) orthonormal Ritz vectors (None with ``vectors=False``,
+    for a caller who needs only the image below) and a dict of counts and
     seconds (``solve_seconds``, ``other_seconds``, ``block_solves``, ``krylov_dim``,
     ``reorthogonalized`` / ``skipped``: the blocks that needed the second pass / no subtraction),
     ``coefficients`` S (dim, k) with Y = Q S, so that a caller who kept something per block (rows
@@ -264,12 +267,9 @@ def block_eigs(
         if dim >= k + b and (blocks % check_every == 0 or dim + b > max_dim):
             ritz = _ritz_pairs(T, R, j, dim, k, tol)
             if ritz is not None:
-                theta, S, RS, worst = ritz
-                Y = P @ S
                 info = {"solve_seconds": solve_seconds, "block_solves": blocks, "krylov_dim": dim, "block": b,
-                        "reorthogonalized": second, "skipped": skipped, "coefficients": S, "image": Y * theta + V @ RS,
-                        "other_seconds": time.perf_counter() - t_start - solve_seconds, "max_residual": worst}
-                return theta, Y, info
+                        "reorthogonalized": second, "skipped": skipped}
+                return _result(P, V, ritz, vectors, info, t_start)
         if dim + b > max_dim:
             raise BlockLanczosFailed(f"{k} eigenpairs did not converge within a basis of {max_dim} vectors")
         scale = np.abs(T[:dim, :dim]).max()
@@ -281,6 +281,17 @@ def block_eigs(
         j = dim
 
 
+def _result(P: np.ndarray, V: np.ndarray, ritz, vectors: bool, info: dict, t_start: float):
+    """block_eigs's answer from converged Ritz pairs: theta, Y = P S (or None), and info with S,
+    C Y = P S theta + V R S_j (the Lanczos relation: no further application of C) and the times."""
+    theta, S, RS, worst = ritz
+    image = P @ (S * theta)
+    image += V @ RS
+    info.update(coefficients=S, image=image, max_residual=worst,
+                other_seconds=time.perf_counter() - t_start - info["solve_seconds"])
+    return theta, (P @ S if vectors else None), info
+
+
 def _orthogonalize(Q: np.ndarray, T: np.ndarray, Z: np.ndarray, j: int, b: int, R_prev: np.ndarray | None) -> int:
     """Z = C Q_j (n, b), in place: without its components on Q_j and Q_{j-1} (the block three-term
     recurrence), then orthogonalized against the whole basis Q[:, :j+b] once (classical
@@ -290,21 +301,21 @@ def _orthogonalize(Q: np.ndarray, T: np.ndarray, Z: np.ndarray, j: int, b: int, 
     dim = j + b
     P = Q[:, :dim]
     Qj = Q[:, j:dim]
-    A = Qj.T @ Z
-    Z -= Qj @ A
+    A = gram(Qj, Z)
+    subtract_product(Z, Qj, A)
     T[j:dim, j:dim] = A
     if R_prev is not None:
-        Z -= Q[:, j - b:j] @ R_prev.T
+        subtract_product(Z, Q[:, j - b:j], R_prev.T)
         T[j - b:j, j:dim] = R_prev.T
     before = np.linalg.norm(Z, axis=0)
-    H = P.T @ Z
+    H = gram(P, Z)
     if np.abs(H).max(initial=0.0) <= _NEGLIGIBLE * before.min(initial=np.inf):
         return 0  # Z is orthogonal to the basis to working precision: subtracting P H changes nothing
-    Z -= P @ H
+    subtract_product(Z, P, H)
     second = bool(np.any(np.linalg.norm(Z, axis=0) < 0.5 * before))
     if second:
-        H2 = P.T @ Z
-        Z -= P @ H2
+        H2 = gram(P, Z)
+        subtract_product(Z, P, H2)
         H += H2
     T[:dim, j:dim] += H
     return 2 if second else 1

@@ -359,9 +359,16 @@ def _block_modes(model, K, M, dofs, fac, n_modes: int, sigma: float, tol: float,
         report(f"block Lanczos: {dim} vectors, {time.perf_counter() - t0:.1f} s", dim, estimate)
 
     report(f"block shift-invert Lanczos for {n_modes} modes (block {_BLOCK})", 0, int(3.4 * n_modes))
-    theta, Y, stats = block_eigs(apply, massed.size, n_modes, block=_BLOCK, tol=tol or _BLOCK_TOL, report=progress)
-    vec = np.zeros((n, n_modes))
-    vec[massed] = stats["image"] / root / theta
+    theta, _, stats = block_eigs(apply, massed.size, n_modes, block=_BLOCK, tol=tol or _BLOCK_TOL, report=progress,
+                                 vectors=False)
+    image = stats["image"]
+    image /= root
+    image /= theta
+    if massed.size == n:  # a solid: every dof massed, the image is the whole vector
+        vec = image
+    else:
+        vec = np.zeros((n, n_modes))
+        vec[massed] = image
     if wanted.size:
         vec[wanted] = np.hstack(kept) @ (stats["coefficients"] / theta)
     timing["solve_seconds"] = stats["solve_seconds"]
@@ -417,7 +424,7 @@ def _shift_invert_modes(model, K, M, dofs, n_modes: int, sigma: float, tol: floa
     quiet = blas_limits(1, "openblas") if fac.backend == "pardiso" else contextlib.nullcontext()
     with quiet:  # MKL's threads do the solves; OpenBLAS's spinning workers would take their cores
         lam, vec, method = _iterate(model, K, M, dofs, fac, n_modes, sigma, tol, solver, report, timing)
-    vec = vec / np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
+    vec /= np.sqrt(np.einsum("ij,ij->j", vec, M @ vec))  # mass-normalize: Phi^T M Phi = I
     return np.sqrt(np.clip(lam, 0.0, None)), vec, method
 
 
