@@ -13,10 +13,13 @@ with a competing busy process; each number the median of --repeat runs, in one p
 - The lowest frequency of each, for a check that the same problem was solved (ccx's S3 is its own
   shell: its frequencies differ from rtfem's a little).
 
-Cases: the embedded liver shell (2,562 vertices, 10 modes), SOFA's liver2 shell (1,170 vertices, scaled to 0.21 m,
-10 modes; ../shared/data/organs), the liver solid of the size of SOFA's ModelOrderReduction scene as
-tet4 (spacing 7 mm: about 4,300 nodes, 20 modes) and, with --large, the OpenHELP liver shell (15,365
-vertices, 100 modes) and the 40,962-vertex liver (100 modes).
+Cases: the embedded liver shell (2,562 vertices, 10 modes); the shells of ../shared/data/organs, 10 modes each:
+SOFA's liver2 (1,170 vertices, scaled to 0.21 m), the OpenHELP gallbladder (7,352) and the GCA small
+intestine (10,002) (SOFA's liver-smooth is left out: its 0.6-degree slivers give the held shell a
+zero-frequency mode, which modal_analysis refuses); the liver solid of the size of SOFA's
+ModelOrderReduction scene as tet4 (spacing 7 mm: 4,664 nodes) and SOFA's liver2 filled by fTetWild at 8 mm
+(4,357 nodes, 20,805 tets), 20 modes each; with --large, the OpenHELP liver shell (15,365 vertices, 100
+modes) and the 40,962-vertex liver (100 modes).
 
     python benchmarks/precompute.py [--repeat 3] [--busy] [--large] [--ccx-threads N]
 """
@@ -46,11 +49,16 @@ CCX = shutil.which("ccx")
 
 
 def cases(large: bool) -> list:
-    """(name, a function making the mesh, solid, r)."""
+    """(name, a function making the mesh, solid, r): every organ of ../shared/data/organs that is there."""
+    shared = [("SOFA liver2 shell", "sofa_liver2.obj", 0.1), ("OpenHELP gallbladder shell", "sofa_env_gallbladder_visual.stl", 1e-3),
+              ("GCA small intestine shell", "GCA-Models_small_intestine_20k.vtk", 1e-3)]
     out = [("liver shell (embedded)", lambda: rt.meshes.liver(), False, 10)]
-    if (ORGANS / "sofa_liver2.obj").is_file():
-        out.append(("SOFA liver2 shell", lambda: rt.load_mesh(ORGANS / "sofa_liver2.obj", scale=0.1), False, 10))
+    out += [(name, lambda f=f, s=s: rt.load_mesh(ORGANS / f, scale=s), False, 10)
+            for name, f, s in shared if (ORGANS / f).is_file()]
     out.append(("liver tet4 (MOR size)", lambda: rt.meshes.liver(solid=True, spacing=0.007), True, 20))
+    if (ORGANS / "sofa_liver2.obj").is_file():  # SOFA's liver filled by fTetWild at 8 mm: the MOR liver's size
+        out.append(("SOFA liver2 tet4 (8 mm)", lambda: rt.tetrahedralize(rt.load_mesh(ORGANS / "sofa_liver2.obj", scale=0.1),
+                                                                         0.008), True, 20))
     if large:
         if (ORGANS / "sofa_env_Liver.stl").is_file():
             out.append(("OpenHELP liver shell", lambda: rt.load_mesh(ORGANS / "sofa_env_Liver.stl", scale=1e-3),

@@ -359,3 +359,37 @@ def test_background_threads_are_stopped_and_joined_before_the_interpreter_exits(
             "time.sleep(0.2)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "worker ended" in r.stdout, (r.returncode, r.stdout, r.stderr[-500:])
+
+
+def _refined_at(mesh, a: int, delta: float):
+    """The surface with vertex a's one-ring refined by a fan of triangles delta times its size."""
+    X = np.asarray(mesh.vertices).tolist()
+    new: dict[int, int] = {}
+
+    def node(v: int) -> int:
+        if v not in new:
+            new[v] = len(X)
+            X.append((np.asarray(X[a]) + delta * (np.asarray(X[v]) - np.asarray(X[a]))).tolist())
+        return new[v]
+
+    out = []
+    for tri in np.asarray(mesh.triangles).tolist():
+        if a not in tri:
+            out.append(tri)
+            continue
+        i = tri.index(a)
+        v1, v2 = tri[(i + 1) % 3], tri[(i + 2) % 3]
+        out += [[a, node(v1), node(v2)], [node(v1), v1, v2], [node(v1), v2, node(v2)]]
+    return rt.TriMesh(np.array(X), np.array(out))
+
+
+def test_a_graded_mesh_is_not_taken_for_a_mechanism():
+    """A vertex refined by triangles 1 % of their neighbours' size has 1e-4 of their mass and the
+    same membrane stiffness: its K_ii / m_i is 1e4 times theirs. The modes are the unrefined
+    mesh's (the old check, against 1e-10 of the largest K_ii / m_i, refused them as a mechanism)."""
+    base = rt.meshes.liver(3)
+    top = int(np.argmax(np.asarray(base.vertices)[:, 2]))
+    fixes = "bottom:0.1"
+    reference = rt.modal_analysis(rt.ShellModel(base, rt.Material()).fix(fixes), 4)
+    graded = rt.modal_analysis(rt.ShellModel(_refined_at(base, top, 1e-2), rt.Material()).fix(fixes), 4)
+    np.testing.assert_allclose(graded.frequencies, reference.frequencies, rtol=1e-5)
