@@ -50,7 +50,8 @@ CCX = shutil.which("ccx")
 
 def cases(large: bool) -> list:
     """(name, a function making the mesh, solid, r): every organ of ../shared/data/organs that is there."""
-    shared = [("SOFA liver2 shell", "sofa_liver2.obj", 0.1), ("OpenHELP gallbladder shell", "sofa_env_gallbladder_visual.stl", 1e-3),
+    shared = [("SOFA liver2 shell", "sofa_liver2.obj", 0.1),
+              ("OpenHELP gallbladder shell", "sofa_env_gallbladder_visual.stl", 1e-3),
               ("GCA small intestine shell", "GCA-Models_small_intestine_20k.vtk", 1e-3)]
     out = [("liver shell (embedded)", lambda: rt.meshes.liver(), False, 10)]
     out += [(name, lambda f=f, s=s: rt.load_mesh(ORGANS / f, scale=s), False, 10)
