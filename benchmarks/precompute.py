@@ -18,7 +18,8 @@ SOFA's liver2 (1,170 vertices, scaled to 0.21 m), the OpenHELP gallbladder (7,35
 intestine (10,002) (SOFA's liver-smooth is left out: its 0.6-degree slivers give the held shell a
 zero-frequency mode, which modal_analysis refuses); the liver solid of the size of SOFA's
 ModelOrderReduction scene as tet4 (spacing 7 mm: 4,664 nodes) and SOFA's liver2 filled by fTetWild at 8 mm
-(4,357 nodes, 20,805 tets), 20 modes each; with --large, the OpenHELP liver shell (15,365 vertices, 100
+(4,300-4,450 nodes, 20,800-21,300 tets: fTetWild differs run to run; the same mesh for all three solvers),
+20 modes each; with --large, the OpenHELP liver shell (15,365 vertices, 100
 modes) and the 40,962-vertex liver (100 modes).
 
     python benchmarks/precompute.py [--repeat 3] [--busy] [--large] [--ccx-threads N]
@@ -50,12 +51,12 @@ CCX = shutil.which("ccx")
 
 def cases(large: bool) -> list:
     """(name, a function making the mesh, solid, r): every organ of ../shared/data/organs that is there."""
-    shared = [("SOFA liver2 shell", "sofa_liver2.obj", 0.1),
-              ("OpenHELP gallbladder shell", "sofa_env_gallbladder_visual.stl", 1e-3),
-              ("GCA small intestine shell", "GCA-Models_small_intestine_20k.vtk", 1e-3)]
+    shared = [("SOFA liver2 shell", "sofa_liver2.obj", 0.1, rt.Material().thickness),
+              ("OpenHELP gallbladder shell (t 1 mm)", "sofa_env_gallbladder_visual.stl", 1e-3, 1e-3),
+              ("GCA small intestine shell (t 1 mm)", "GCA-Models_small_intestine_20k.vtk", 1e-3, 1e-3)]
     out = [("liver shell (embedded)", lambda: rt.meshes.liver(), False, 10)]
-    out += [(name, lambda f=f, s=s: rt.load_mesh(ORGANS / f, scale=s), False, 10)
-            for name, f, s in shared if (ORGANS / f).is_file()]
+    out += [(name, lambda f=f, s=s, t=t: _thick(rt.load_mesh(ORGANS / f, scale=s), t), False, 10)
+            for name, f, s, t in shared if (ORGANS / f).is_file()]
     out.append(("liver tet4 (MOR size)", lambda: rt.meshes.liver(solid=True, spacing=0.007), True, 20))
     if (ORGANS / "sofa_liver2.obj").is_file():  # SOFA's liver filled by fTetWild at 8 mm: the MOR liver's size
         out.append(("SOFA liver2 tet4 (8 mm)", lambda: rt.tetrahedralize(rt.load_mesh(ORGANS / "sofa_liver2.obj", scale=0.1),
@@ -77,8 +78,19 @@ def _fixed(mesh) -> np.ndarray:
     return np.flatnonzero(z <= z.min() + 0.1 * (z.max() - z.min()))
 
 
+def _thick(mesh, thickness: float):
+    """The mesh, marked with the shell thickness both solvers use on it (ccx's S3 expands a shell into
+    wedges, which fold where the thickness exceeds the small organs' curvature radii: 1 mm there)."""
+    mesh.benchmark_thickness = thickness
+    return mesh
+
+
+def _material(mesh) -> rt.Material:
+    return rt.Material(thickness=getattr(mesh, "benchmark_thickness", rt.Material().thickness))
+
+
 def _model(mesh, solid: bool):
-    m = rt.Material()
+    m = _material(mesh)
     model = rt.SolidModel(mesh, m, element="tet4") if solid else rt.ShellModel(mesh, m)
     return model.fix(_fixed(mesh))
 
@@ -99,7 +111,7 @@ def time_eigsh(mesh, solid: bool, r: int) -> tuple[float, float]:
 
 
 def _deck(mesh, solid: bool, r: int) -> str:
-    m, X = rt.Material(), np.asarray(mesh.vertices)
+    m, X = _material(mesh), np.asarray(mesh.vertices)
     cells = np.array(mesh.tets if solid else mesh.triangles)
     if solid:  # ccx wants (x2 - x1) x (x3 - x1) . (x4 - x1) > 0: two nodes swapped where rtfem's order is the other
         P = X[cells]
@@ -126,7 +138,8 @@ def time_ccx(mesh, solid: bool, r: int, threads: int) -> tuple[float, float]:
                              env=dict(os.environ, OMP_NUM_THREADS=str(threads)))
         seconds = time.perf_counter() - t0
         if run.returncode != 0:
-            raise RuntimeError(run.stdout[-2000:] + run.stderr[-1000:])
+            errors = sorted({line.strip() for line in run.stdout.splitlines() if "*ERROR" in line})
+            raise RuntimeError("; ".join(errors) or (run.stdout[-500:] + run.stderr[-500:]))
         text = Path(tmp, "job.dat").read_text()
     rows = text.split("E I G E N V A L U E   O U T P U T")[-1].strip().splitlines()
     first = next(line.split() for line in rows if line.split() and line.split()[0] == "1")
@@ -156,13 +169,18 @@ def main() -> None:
         with busy_core(args.busy):
             t_rt, f_rt = _median(lambda: time_rtfem(mesh, solid, r), args.repeat)
             t_eig, f_eig = (None, None) if args.no_eigsh else _median(lambda: time_eigsh(mesh, solid, r), args.repeat)
-            t_cx, f_cx = (None, None) if CCX is None else _median(lambda: time_ccx(mesh, solid, r, args.ccx_threads),
-                                                                  args.repeat)
+            missing = "-"
+            try:
+                t_cx, f_cx = (None, None) if CCX is None else _median(lambda: time_ccx(mesh, solid, r, args.ccx_threads),
+                                                                      args.repeat)
+            except RuntimeError as exc:  # ccx refused the deck: say so in the row, keep the others
+                print(f"# {name}: ccx failed: {exc}", flush=True)
+                t_cx, f_cx, missing = None, None, "failed"
         n = mesh.n_vertices
-        rows.append([name, f"{n:,}", r, f"{t_rt:.2f}", "-" if t_cx is None else f"{t_cx:.2f}",
-                     "-" if t_cx is None else f"{t_cx / t_rt:.2f}", "-" if t_eig is None else f"{t_eig:.2f}",
+        rows.append([name, f"{n:,}", r, f"{t_rt:.2f}", missing if t_cx is None else f"{t_cx:.2f}",
+                     missing if t_cx is None else f"{t_cx / t_rt:.2f}", "-" if t_eig is None else f"{t_eig:.2f}",
                      "-" if t_eig is None else f"{t_eig / t_rt:.2f}",
-                     f"{f_rt:.4g} / {'-' if f_cx is None else f'{f_cx:.4g}'} / {'-' if f_eig is None else f'{f_eig:.4g}'}"])
+                     f"{f_rt:.4g} / {missing if f_cx is None else f'{f_cx:.4g}'} / {'-' if f_eig is None else f'{f_eig:.4g}'}"])
         print(rows[-1], flush=True)
     print_table(["mesh", "nodes", "r", "rtfem whole (s)", "ccx whole (s)", "ccx / rtfem", "eigsh (s)",
                  "eigsh / rtfem", "f1 rtfem / ccx / eigsh (Hz)"], rows)
