@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 import rtfem as rt
-from rtfem.fe import assembly, assembly_kernels
+from rtfem.fe import assembly, assembly_kernels, solid
 
 pytestmark = pytest.mark.skipif(not assembly_kernels.available(), reason="numba is not installed: no compiled assembly")
 
@@ -42,7 +42,7 @@ def test_node_pattern_is_the_pairs_sharing_an_element():
     assert np.array_equal(indptr, ref.indptr) and np.array_equal(indices, ref.indices)
 
 
-@pytest.mark.parametrize("element", ["tet4", "tet10"])
+@pytest.mark.parametrize("element", ["tet4", "tet10", "tet4-anp"])
 def test_compiled_and_numpy_assembly_agree(block, monkeypatch, element):
     a = _model(block, monkeypatch, "numpy", element=element)
     b = _model(block, monkeypatch, "", element=element)
@@ -63,10 +63,11 @@ def test_shell_blocks_agree(monkeypatch):
     assert abs(Ka - Kb).max() <= 1e-14 * abs(Ka).max()
 
 
-def test_tet4_patch_test_and_rigid_modes(block, monkeypatch):
-    """A linear field u = A x: its strain energy is V (lam tr(e)^2 / 2 + mu e:e) exactly on any tet4
-    mesh (e the symmetric part of A), and a rigid motion (A skew) has none."""
-    model = _model(block, monkeypatch, "")
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_patch_test_and_rigid_modes(block, monkeypatch, element):
+    """A linear field u = A x: its strain energy is V (lam tr(e)^2 / 2 + mu e:e) exactly on any mesh
+    of straight-edged tets (e the symmetric part of A), and a rigid motion (A skew) has none."""
+    model = _model(block, monkeypatch, "", element=element)
     X = np.asarray(model.mesh.vertices)
     mat = model.material
     lam = mat.E * mat.nu / ((1 + mat.nu) * (1 - 2 * mat.nu))
@@ -88,4 +89,4 @@ def test_an_inverted_tet_is_refused():
     X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
     cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 2, 1, 3]])  # the last one inverted
     with pytest.raises(rt.MeshError, match="element 2 has a non-positive Jacobian"):
-        assembly.assemble_tet4(X, cells, 1.0, 1.0, 5)
+        assembly.assemble_solid(X, cells, *solid.stiffness_rule("tet4"), 1.0, 1.0, 5)

@@ -1,7 +1,7 @@
 """Sparse assembly of element matrices through the node graph: the pattern is the nodes' (each pair of
 nodes sharing an element: a tenth of the entries of the dof-level pattern of a tet4 mesh). Where numba
 is installed (:mod:`rtfem.fe.assembly_kernels`) the pattern is built and the element blocks are added
-straight into the dof-level CSR arrays in compiled loops, and the linear tet's stiffness is computed
+straight into the dof-level CSR arrays in compiled loops, and the linear tets' stiffness is computed
 in the same pass; otherwise the blocks are summed into the node pattern by ``np.bincount`` and the
 block matrix becomes CSR with sorted indices. ``benchmarks/assembly.py`` measures both."""
 
@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from ..errors import MeshError
 from . import assembly_kernels as kernels
 
-__all__ = ["assemble_blocks", "assemble_tet4", "compiled_assembly"]
+__all__ = ["assemble_blocks", "assemble_solid", "compiled_assembly"]
 
 
 def compiled_assembly() -> bool:
@@ -30,17 +30,19 @@ def _csr(data: np.ndarray, pattern, n_nodes: int, d: int) -> sp.csr_matrix:
     return A
 
 
-def assemble_tet4(X: np.ndarray, cells: np.ndarray, lam: float, mu: float, n_nodes: int):
-    """The linear tet4 stiffness (Lame lam, mu) and the tets' volumes computed and assembled in one
-    compiled pass, or None where the compiled assembly does not run (the caller takes the numpy
-    path). Raises MeshError for a tet with a non-positive volume."""
+def assemble_solid(X: np.ndarray, cells: np.ndarray, dN: np.ndarray, w: np.ndarray, lam: float, mu: float,
+                   n_nodes: int):
+    """The linear isoparametric tets' stiffness (Lame lam, mu; quadrature gradients dN (q, k, 3) and
+    weights w (q,)) and their volumes computed and assembled in one compiled pass, or None where
+    the compiled assembly does not run (the caller takes the numpy path). Raises MeshError for a
+    tet with a non-positive Jacobian at a point."""
     if not compiled_assembly():
         return None
     pattern = kernels.node_pattern(cells, n_nodes)
-    data, vol, bad = kernels.tet4_stiffness(X, cells, lam, mu, pattern)
+    data, vol, bad = kernels.solid_stiffness(X, cells, dN, w, lam, mu, pattern)
     if bad >= 0:
-        raise MeshError(f"element {bad} has a non-positive Jacobian ({6 * vol[bad]:.3g}) at a quadrature point: "
-                        "an inverted or flat tet; re-mesh")
+        raise MeshError(f"element {bad} has a non-positive Jacobian ({vol[bad]:.3g}) at a quadrature point: an "
+                        "inverted or flat tet, or a 10-node tet folded over itself; straighten its mid-edge nodes or re-mesh")
     return _csr(data, pattern, n_nodes, 3), vol
 
 

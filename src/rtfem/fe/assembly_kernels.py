@@ -1,6 +1,6 @@
 """Compiled assembly (numba): the node pattern of a mesh, element blocks scattered straight into the
-dof-level CSR arrays, and the linear tet's stiffness computed and scattered in one pass, with no
-element-matrix array in between. :mod:`rtfem.fe.assembly` calls these where numba is installed and
+dof-level CSR arrays, and the linear tets' stiffness (tet4, tet10) computed and scattered in one
+pass, with no element-matrix array in between. :mod:`rtfem.fe.assembly` calls these where numba is installed and
 keeps its numpy path otherwise; the two agree to round-off (tests/test_assembly_kernels.py).
 
 Layout. The node pattern is a CSR (indptr p, sorted indices c) of the pairs of nodes that share an
@@ -16,7 +16,7 @@ import numpy as np
 
 from .jit import compiled
 
-__all__ = ["node_pattern", "scatter_blocks", "tet4_stiffness"]
+__all__ = ["node_pattern", "scatter_blocks", "solid_stiffness"]
 
 
 def _pattern_kernel(cells, n_nodes, indptr, indices, counting):
@@ -82,66 +82,78 @@ def _scatter_kernel(cells, Ke, d, indptr, indices, data):
                         data[row + j] += 0.5 * (Ke[e, p * d + i, q * d + j] + Ke[e, q * d + j, p * d + i])
 
 
-def _tet4_kernel(X, cells, lam, mu, indptr, indices, data, vol):
-    """data += the linear tet's stiffness, vol = each tet's volume; returns the first tet whose
-    Jacobian is not positive (then nothing is added for it or after it), or -1."""
-    E = cells.shape[0]
+def _solid_kernel(X, cells, dN, w, lam, mu, indptr, indices, data, vol):
+    """data += the isoparametric tets' linear stiffness (quadrature points dN (q, k, 3), weights w),
+    vol = each tet's volume sum_q w_q det J_q; returns the first tet with a non-positive det J at a
+    point (nothing is added for it or after it), or -1."""
+    E, k = cells.shape
+    nq = w.shape[0]
     J = np.zeros((3, 3))
     C = np.zeros((3, 3))
-    G = np.zeros((4, 3))
+    G = np.zeros((k, 3))
+    Ke = np.zeros((3 * k, 3 * k))
     for e in range(E):
-        for i in range(3):
-            for j in range(3):
-                J[i, j] = X[cells[e, j + 1], i] - X[cells[e, 0], i]  # dx_i / dxi_j
-        C[0, 0] = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]  # the cofactors of J
-        C[0, 1] = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
-        C[0, 2] = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
-        C[1, 0] = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
-        C[1, 1] = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-        C[1, 2] = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
-        C[2, 0] = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
-        C[2, 1] = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
-        C[2, 2] = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-        det = J[0, 0] * C[0, 0] + J[0, 1] * C[0, 1] + J[0, 2] * C[0, 2]
-        if not det > 0.0:
-            vol[e] = det / 6.0
-            return e
-        for m in range(3):  # G = dN J^-1: node m + 1's gradient is row m of J^-1 = column m of cof J / det
+        Ke[:, :] = 0.0
+        v = 0.0
+        for q in range(nq):
             for i in range(3):
-                G[m + 1, i] = C[i, m] / det
-        for i in range(3):
-            G[0, i] = -(G[1, i] + G[2, i] + G[3, i])
-        v = det / 6.0
+                for j in range(3):
+                    acc = 0.0
+                    for a in range(k):
+                        acc += X[cells[e, a], i] * dN[q, a, j]
+                    J[i, j] = acc  # dx_i / dxi_j
+            C[0, 0] = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]  # the cofactors of J
+            C[0, 1] = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
+            C[0, 2] = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
+            C[1, 0] = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
+            C[1, 1] = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+            C[1, 2] = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
+            C[2, 0] = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
+            C[2, 1] = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
+            C[2, 2] = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+            det = J[0, 0] * C[0, 0] + J[0, 1] * C[0, 1] + J[0, 2] * C[0, 2]
+            if not det > 0.0:
+                vol[e] = det
+                return e
+            for a in range(k):  # G = dN J^-1, (J^-1)[j, i] = cof(J)[i, j] / det
+                for i in range(3):
+                    G[a, i] = (dN[q, a, 0] * C[i, 0] + dN[q, a, 1] * C[i, 1] + dN[q, a, 2] * C[i, 2]) / det
+            wd = w[q] * det
+            v += wd
+            for a in range(k):
+                for b in range(k):
+                    gg = G[a, 0] * G[b, 0] + G[a, 1] * G[b, 1] + G[a, 2] * G[b, 2]
+                    for i in range(3):
+                        for j in range(3):
+                            # each product in the same order for (a i, b j) and (b j, a i): exactly symmetric
+                            val = lam * (G[a, i] * G[b, j]) + mu * (G[a, j] * G[b, i])
+                            if i == j:
+                                val += mu * gg
+                            Ke[3 * a + i, 3 * b + j] += wd * val
         vol[e] = v
-        for p in range(4):
-            a = cells[e, p]
-            lo, hi = indptr[a], indptr[a + 1]
+        for a in range(k):
+            node = cells[e, a]
+            lo, hi = indptr[node], indptr[node + 1]
             base = 9 * lo
             width = 3 * (hi - lo)
-            for q in range(4):
-                s = _slot(indices, lo, hi, cells[e, q]) - lo
-                gg = G[p, 0] * G[q, 0] + G[p, 1] * G[q, 1] + G[p, 2] * G[q, 2]
+            for b in range(k):
+                s = _slot(indices, lo, hi, cells[e, b]) - lo
                 for i in range(3):
                     row = base + i * width + 3 * s
                     for j in range(3):
-                        # v (lam G_pi G_qj + mu G_pj G_qi + mu delta_ij G_p . G_q): each product taken
-                        # in the same order for (p i, q j) and (q j, p i), so the matrix is exactly symmetric
-                        val = lam * (G[p, i] * G[q, j]) + mu * (G[p, j] * G[q, i])
-                        if i == j:
-                            val += mu * gg
-                        data[row + j] += v * val
+                        data[row + j] += Ke[3 * a + i, 3 * b + j]
     return -1
 
 
 def _kernel(name: str):
-    table = {"pattern": (_pattern_kernel,), "scatter": (_scatter_kernel, _slot), "tet4": (_tet4_kernel, _slot)}
+    table = {"pattern": (_pattern_kernel,), "scatter": (_scatter_kernel, _slot), "solid": (_solid_kernel, _slot)}
     kernel, *helpers = table[name]
     return compiled(f"assembly.{name}", kernel, *helpers)
 
 
 def available() -> bool:
     """Whether the compiled assembly can run here (numba installed and able to compile)."""
-    return all(_kernel(name) is not None for name in ("pattern", "scatter", "tet4"))
+    return all(_kernel(name) is not None for name in ("pattern", "scatter", "solid"))
 
 
 def node_pattern(cells: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -178,12 +190,14 @@ def scatter_blocks(cells, Ke, pattern, d: int) -> np.ndarray:
     return data
 
 
-def tet4_stiffness(X, cells, lam: float, mu: float, pattern) -> tuple[np.ndarray, np.ndarray, int]:
-    """The dof-level CSR data of the linear tet4 stiffness (Lame lam, mu), the tets' volumes and the
-    first tet with a non-positive Jacobian (-1: none)."""
+def solid_stiffness(X, cells, dN, w, lam: float, mu: float, pattern) -> tuple[np.ndarray, np.ndarray, int]:
+    """The dof-level CSR data of the linear isoparametric tets' stiffness (Lame lam, mu; quadrature
+    gradients dN (q, k, 3) and weights w (q,)), the tets' volumes and the first tet with a
+    non-positive Jacobian (-1: none)."""
     indptr, indices = pattern
     cells = np.ascontiguousarray(cells, dtype=np.int64)
     data = np.zeros(9 * int(indptr[-1]))
     vol = np.zeros(cells.shape[0])
-    bad = _kernel("tet4")(np.ascontiguousarray(X, dtype=float), cells, float(lam), float(mu), indptr, indices, data, vol)
+    bad = _kernel("solid")(np.ascontiguousarray(X, dtype=float), cells, np.ascontiguousarray(dN, dtype=float),
+                           np.ascontiguousarray(w, dtype=float), float(lam), float(mu), indptr, indices, data, vol)
     return data, vol, int(bad)

@@ -87,6 +87,15 @@ def _gradients(X: np.ndarray, dN: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.einsum("kj,mji->mki", dN, np.linalg.inv(J)), det
 
 
+def stiffness_rule(element: str) -> tuple[np.ndarray, np.ndarray]:
+    """The stiffness's quadrature: reference gradients dN (q, k, 3) and weights (q,) summing to 1/6
+    (one point for tet4, whose gradients are constant; Stroud's 4 points for tet10: exact)."""
+    if element in ("tet4", "tet4-anp"):
+        return shape_functions("tet4", np.zeros((1, 3)))[1], np.array([1.0 / 6.0])
+    pts, w = tet_rule(2)
+    return shape_functions("tet10", pts)[1], w
+
+
 def element_matrices(X: np.ndarray, material: Material, element: str, mass: str) -> tuple[np.ndarray, np.ndarray]:
     """Element stiffness (m, 3k, 3k) and mass (m, k, k) per translation component (the full
     element mass is this matrix times I_3; diagonal for ``mass='lumped'``), for nodes X (m, k, 3)."""
@@ -94,23 +103,28 @@ def element_matrices(X: np.ndarray, material: Material, element: str, mass: str)
     if element == "tet4-anp":  # the deviatoric part only: the volumetric one is the nodes' (anp_volumetric)
         lam = -2.0 * mu / 3.0
     m, k = X.shape[0], X.shape[1]
+    dN, w = stiffness_rule(element)
+    Ke = np.zeros((m, 3 * k, 3 * k))
+    vol = np.zeros(m)
+    for q in range(w.size):
+        G, det = _gradients(X, dN[q])
+        Ke += _stiffness_point(G, w[q] * det, lam, mu)
+        vol += w[q] * det
+    return Ke, element_mass(X, material, element, mass, vol)
+
+
+def element_mass(X: np.ndarray, material: Material, element: str, mass: str, vol: np.ndarray) -> np.ndarray:
+    """The element mass (m, k, k) per translation component, for nodes X (m, k, 3) of tets of
+    volumes ``vol`` (m,): diagonal for ``mass='lumped'`` (a quarter each for tet4, HRZ for tet10)."""
+    m, k = X.shape[0], X.shape[1]
     rho = material.density
     if element in ("tet4", "tet4-anp"):
-        G, det = _gradients(X, shape_functions("tet4", np.zeros((1, 3)))[1][0])
-        vol = det / 6.0
-        Ke = _stiffness_point(G, vol, lam, mu)
         if mass == "lumped":
             Me = np.zeros((m, 4, 4))
             Me[:, range(4), range(4)] = (rho * vol / 4)[:, None]
         else:
             Me = (rho * vol / 20)[:, None, None] * (np.ones((4, 4)) + np.eye(4))[None]
-        return Ke, Me
-    pts, w = tet_rule(2)
-    _, dN = shape_functions("tet10", pts)
-    Ke = np.zeros((m, 3 * k, 3 * k))
-    for q in range(pts.shape[0]):
-        G, det = _gradients(X, dN[q])
-        Ke += _stiffness_point(G, w[q] * det, lam, mu)
+        return Me
     pts, w = tet_rule(3)
     N, dN = shape_functions("tet10", pts)
     Me = np.zeros((m, k, k))
@@ -122,7 +136,7 @@ def element_matrices(X: np.ndarray, material: Material, element: str, mass: str)
         total = Me.sum(axis=(1, 2))
         Me = np.zeros_like(Me)
         Me[:, range(k), range(k)] = d * (total / d.sum(axis=1))[:, None]
-    return Ke, Me
+    return Me
 
 
 def anp_volumetric(X: np.ndarray, T: np.ndarray, material: Material, n_nodes: int):

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import solid
-from .assembly import assemble_blocks, assemble_tet4
+from .assembly import assemble_blocks, assemble_solid
 from .. import validate
 from ..errors import ModelError
 from .hyperelastic import Hyperelastic
@@ -98,7 +98,7 @@ class SolidModel(FEModel):
         t0 = time.perf_counter()
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)
-        if self.element == "tet4" and self.mass == "lumped" and self._assemble_compiled(X, T):
+        if self.mass == "lumped" and self._assemble_compiled(X, T):
             self.timings["assemble"] = time.perf_counter() - t0
             return
         ne, k = T.shape
@@ -129,14 +129,23 @@ class SolidModel(FEModel):
         self.timings["assemble"] = time.perf_counter() - t0
 
     def _assemble_compiled(self, X: np.ndarray, T: np.ndarray) -> bool:
-        """The linear tet's stiffness and lumped mass in one compiled pass (where numba runs)."""
+        """The linear tets' stiffness in one compiled pass (where numba runs) and the lumped mass."""
         lam, mu = solid._lame(self.material)
-        done = assemble_tet4(X, T, lam, mu, self.n_nodes)
+        if self.element == "tet4-anp":  # the deviatoric part: the volumetric one is the nodes'
+            lam = -2.0 * mu / 3.0
+        done = assemble_solid(X, T, *solid.stiffness_rule(self.element), lam, mu, self.n_nodes)
         if done is None:
             return False
-        self._K, vol = done
-        lumped = np.bincount(T.ravel(), np.repeat(self.material.density * vol / 4.0, 4), minlength=self.n_nodes)
-        self._M = np.repeat(lumped, 3)
+        K, vol = done
+        if self.element == "tet4-anp":
+            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
+            K = ((K + K.T) * 0.5).tocsr()
+        lumped = np.zeros(self.n_nodes)
+        for s in range(0, T.shape[0], _CHUNK):
+            c = slice(s, min(s + _CHUNK, T.shape[0]))
+            Me = solid.element_mass(X[T[c]], self.material, self.element, "lumped", vol[c])
+            lumped += np.bincount(T[c].ravel(), np.einsum("mii->mi", Me).ravel(), minlength=self.n_nodes)
+        self._K, self._M = K, np.repeat(lumped, 3)
         return True
 
     @property
