@@ -52,15 +52,25 @@ def test_compiled_and_numpy_assembly_agree(block, monkeypatch, element):
     assert b.K.has_sorted_indices and np.all(np.diff(b.K.indptr) > 0)
 
 
-def test_shell_blocks_agree(monkeypatch):
-    mesh = rt.meshes.liver(3)
-    a = rt.ShellModel(mesh, rt.Material())
+@pytest.mark.parametrize("surface", ["liver", "cylinder"])
+def test_the_compiled_shell_is_the_numpy_shell(monkeypatch, surface):
+    """The compiled OPT + DKT triangle (fe/shell_kernels.py) against the batched numpy one, on the
+    liver and on a cylinder whose nodes are moved off their rings (every triangle different)."""
+    mesh = rt.meshes.liver(3) if surface == "liver" else rt.meshes.cylinder()
+    if surface == "cylinder":
+        X = np.asarray(mesh.vertices)
+        mesh = rt.TriMesh(X + np.random.default_rng(2).uniform(-0.02, 0.02, X.shape) * np.ptp(X, axis=0).max() / 10,
+                          np.asarray(mesh.triangles))
+    T, X = np.asarray(mesh.triangles), np.asarray(mesh.vertices)
+    assert assembly.assemble_shell(X, T, rt.Material(), mesh.n_vertices) is not None  # the compiled path runs
     monkeypatch.setenv("RTFEM_ASSEMBLY", "numpy")
+    a = rt.ShellModel(mesh, rt.Material(E=5e4, nu=0.3, thickness=2e-3), rotary_inertia=True)
     Ka = a.K
     monkeypatch.setenv("RTFEM_ASSEMBLY", "")
-    Kb = rt.ShellModel(mesh, rt.Material()).K
-    assert abs(Kb - Kb.T).max() == 0.0
-    assert abs(Ka - Kb).max() <= 1e-14 * abs(Ka).max()
+    b = rt.ShellModel(mesh, rt.Material(E=5e4, nu=0.3, thickness=2e-3), rotary_inertia=True)
+    assert abs(b.K - b.K.T).max() == 0.0
+    assert abs(Ka - b.K).max() <= 1e-14 * abs(Ka).max()
+    assert np.abs(a.mass_diagonal - b.mass_diagonal).max() <= 1e-14 * a.mass_diagonal.max()
 
 
 @pytest.mark.parametrize("element", ["tet4", "tet10"])
@@ -90,3 +100,10 @@ def test_an_inverted_tet_is_refused():
     cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 2, 1, 3]])  # the last one inverted
     with pytest.raises(rt.MeshError, match="element 2 has a non-positive Jacobian"):
         assembly.assemble_solid(X, cells, *solid.stiffness_rule("tet4"), 1.0, 1.0, 5)
+
+
+def test_a_flat_triangle_is_refused():
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]])
+    cells = np.array([[0, 1, 2], [0, 1, 3]])  # the second one has its corners on a line
+    with pytest.raises(rt.MeshError, match="triangle 1 has zero area"):
+        assembly.assemble_shell(X, cells, rt.Material(), 4)

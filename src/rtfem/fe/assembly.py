@@ -14,8 +14,10 @@ import scipy.sparse as sp
 
 from ..errors import MeshError
 from . import assembly_kernels as kernels
+from . import shell_kernels
+from .shell import _OPT_ALPHA_B, _OPT_BETA
 
-__all__ = ["assemble_blocks", "assemble_solid", "compiled_assembly"]
+__all__ = ["assemble_blocks", "assemble_solid", "assemble_shell", "compiled_assembly"]
 
 
 def compiled_assembly() -> bool:
@@ -44,6 +46,22 @@ def assemble_solid(X: np.ndarray, cells: np.ndarray, dN: np.ndarray, w: np.ndarr
         raise MeshError(f"element {bad} has a non-positive Jacobian ({vol[bad]:.3g}) at a quadrature point: an "
                         "inverted or flat tet, or a 10-node tet folded over itself; straighten its mid-edge nodes or re-mesh")
     return _csr(data, pattern, n_nodes, 3), vol
+
+
+def assemble_shell(X: np.ndarray, cells: np.ndarray, material, n_nodes: int):
+    """The flat shell's global stiffness (OPT membrane, DKT bending; 6 dof per node) and the
+    triangles' areas computed and assembled in one compiled pass, or None where the compiled
+    assembly does not run. Raises MeshError for a triangle of zero area."""
+    if not compiled_assembly():
+        return None
+    pattern = kernels.node_pattern(cells, n_nodes)
+    done = shell_kernels.shell_stiffness(X, cells, material, pattern, _OPT_ALPHA_B, _OPT_BETA)
+    if done is None:
+        return None
+    data, area, bad = done
+    if bad >= 0:
+        raise MeshError(f"triangle {bad} has zero area: remove it (rt.load_mesh repairs such faces) or re-mesh")
+    return _csr(data, pattern, n_nodes, 6), area
 
 
 def assemble_blocks(cells: np.ndarray, Ke: np.ndarray, n_nodes: int, d: int) -> sp.csr_matrix:

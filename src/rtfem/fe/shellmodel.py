@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import shell
-from .assembly import assemble_blocks
+from .assembly import assemble_blocks, assemble_shell
 from .. import validate
 from ..errors import ModelError
 from .material import Material
@@ -91,6 +91,13 @@ class ShellModel(FEModel):
         X = np.asarray(self.mesh.vertices)
         ne = T.shape[0]
         dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18)
+        done = assemble_shell(X, T, self.material, self.n_nodes) if self.membrane == "opt" else None
+        if done is not None:  # compiled: the stiffness straight into the CSR arrays
+            self._K, area = done
+            me = shell.element_mass(area, self.material, self.rotary_inertia)
+            self._M = np.bincount(dofs.ravel(), np.tile(me, (1, 3)).ravel(), minlength=self.n_dofs)
+            self.timings["assemble"] = time.perf_counter() - t0
+            return
         data, mass = [], np.zeros(self.n_dofs)
         for s in range(0, ne, _CHUNK):
             c = slice(s, min(s + _CHUNK, ne))
