@@ -54,6 +54,16 @@ def _pattern_kernel(cells, n_nodes, indptr, indices, counting):
             indices[start:start + m].sort()
 
 
+def _cofactor(Fm, cof) -> float:
+    """cof (3, 3) = the cofactor of Fm (3, 3) (det Fm Fm^-T); returns det Fm."""
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
+    return Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
+
+
 def _slot(indices, lo, hi, b):
     """The position of b among the sorted indices[lo:hi] (binary search)."""
     while hi - lo > 1:
@@ -102,16 +112,7 @@ def _solid_kernel(X, cells, dN, w, lam, mu, indptr, indices, data, vol):
                     for a in range(k):
                         acc += X[cells[e, a], i] * dN[q, a, j]
                     J[i, j] = acc  # dx_i / dxi_j
-            C[0, 0] = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]  # the cofactors of J
-            C[0, 1] = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
-            C[0, 2] = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
-            C[1, 0] = J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]
-            C[1, 1] = J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-            C[1, 2] = J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]
-            C[2, 0] = J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]
-            C[2, 1] = J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]
-            C[2, 2] = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-            det = J[0, 0] * C[0, 0] + J[0, 1] * C[0, 1] + J[0, 2] * C[0, 2]
+            det = _cofactor(J, C)  # C = cof J = det J J^-T
             if not det > 0.0:
                 vol[e] = det
                 return e
@@ -146,7 +147,7 @@ def _solid_kernel(X, cells, dN, w, lam, mu, indptr, indices, data, vol):
 
 
 def _kernel(name: str):
-    table = {"pattern": (_pattern_kernel,), "scatter": (_scatter_kernel, _slot), "solid": (_solid_kernel, _slot)}
+    table = {"pattern": (_pattern_kernel,), "scatter": (_scatter_kernel, _slot), "solid": (_solid_kernel, _slot, _cofactor)}
     kernel, *helpers = table[name]
     return compiled(f"assembly.{name}", kernel, *helpers)
 

@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from ..fe.assembly_kernels import _cofactor
 from ..fe.jit import compiled
 
 __all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents",
@@ -310,16 +311,6 @@ def _gradients(V, X, G):
     E, nq, k = G.shape[0], G.shape[1], G.shape[2]
     x = X + V.reshape(E, k, 3)
     return np.einsum("eka,eqkb->eqab", x, G).reshape(E * nq, 3, 3)
-
-
-def _cofactor(Fm, cof) -> float:
-    """cof (3, 3) = the cofactor of Fm (3, 3) (det Fm Fm^-T); returns det Fm."""
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            cof[i, j] = Fm[i1, j1] * Fm[i2, j2] - Fm[i1, j2] * Fm[i2, j1]
-    return Fm[0, 0] * cof[0, 0] + Fm[0, 1] * cof[0, 1] + Fm[0, 2] * cof[0, 2]
 
 
 def _right_cauchy_green(Fm, C) -> None:
