@@ -3,7 +3,7 @@ nodes sharing an element: a tenth of the entries of the dof-level pattern of a t
 is installed (:mod:`rtfem.fe.assembly_kernels`) the pattern is built and the element blocks are added
 straight into the dof-level CSR arrays in compiled loops, and the linear tets' stiffness is computed
 in the same pass; otherwise the blocks are summed into the node pattern by ``np.bincount`` and the
-block matrix becomes CSR with sorted indices. ``benchmarks/assembly.py`` measures both."""
+block matrix becomes CSR with sorted indices. ``benchmarks/assembly_compiled.py`` measures both."""
 
 from __future__ import annotations
 

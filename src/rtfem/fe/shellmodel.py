@@ -89,25 +89,21 @@ class ShellModel(FEModel):
         t0 = time.perf_counter()
         T = np.asarray(self.mesh.triangles)
         X = np.asarray(self.mesh.vertices)
-        ne = T.shape[0]
-        dofs = (6 * T[:, :, None] + np.arange(6)[None, None, :]).reshape(ne, 18)
         done = assemble_shell(X, T, self.material, self.n_nodes) if self.membrane == "opt" else None
-        if done is not None:  # compiled: the stiffness straight into the CSR arrays
-            self._K, area = done
-            me = shell.element_mass(area, self.material, self.rotary_inertia)
-            self._M = np.bincount(dofs.ravel(), np.tile(me, (1, 3)).ravel(), minlength=self.n_dofs)
-            self.timings["assemble"] = time.perf_counter() - t0
-            return
-        data, mass = [], np.zeros(self.n_dofs)
-        for s in range(0, ne, _CHUNK):
-            c = slice(s, min(s + _CHUNK, ne))
-            R, xy, area = shell.local_frames(X[T[c]])
-            data.append(shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R))
-            me = shell.element_mass(area, self.material, self.rotary_inertia)
-            mass += np.bincount(dofs[c].ravel(), np.tile(me, (1, 3)).ravel(), minlength=self.n_dofs)
-        self._K = assemble_blocks(T, np.concatenate(data), self.n_nodes, 6)  # exactly symmetric
-        self._M = mass
+        self._K, area = done if done is not None else self._assemble_numpy(X, T)  # compiled: straight into CSR
+        dofs = 6 * T[:, :, None] + np.arange(6)[None, None, :]
+        me = shell.element_mass(area, self.material, self.rotary_inertia)
+        self._M = np.bincount(dofs.ravel(), np.tile(me, (1, 3)).ravel(), minlength=self.n_dofs)
         self.timings["assemble"] = time.perf_counter() - t0
+
+    def _assemble_numpy(self, X: np.ndarray, T: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The stiffness from batched element matrices, and the triangles' areas."""
+        data, areas = [], []
+        for s in range(0, T.shape[0], _CHUNK):
+            R, xy, area = shell.local_frames(X[T[s:s + _CHUNK]])
+            data.append(shell.to_global(shell.local_stiffness(xy, area, self.material, self.membrane), R))
+            areas.append(area)
+        return assemble_blocks(T, np.concatenate(data), self.n_nodes, 6), np.concatenate(areas)  # exactly symmetric
 
     def _node_graph(self) -> sp.csr_matrix:
         return self.mesh.adjacency()

@@ -87,6 +87,13 @@ def _gradients(X: np.ndarray, dN: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.einsum("kj,mji->mki", dN, np.linalg.inv(J)), det
 
 
+def element_lame(material: Material, element: str) -> tuple[float, float]:
+    """Lame's (lam, mu) of the element's own stiffness: tet4-anp's is the deviatoric part only
+    (lam = -2 mu / 3), its volumetric part being the nodes' (:func:`anp_volumetric`)."""
+    lam, mu = _lame(material)
+    return (-2.0 * mu / 3.0 if element == "tet4-anp" else lam), mu
+
+
 def stiffness_rule(element: str) -> tuple[np.ndarray, np.ndarray]:
     """The stiffness's quadrature: reference gradients dN (q, k, 3) and weights (q,) summing to 1/6
     (one point for tet4, whose gradients are constant; Stroud's 4 points for tet10: exact)."""
@@ -99,9 +106,7 @@ def stiffness_rule(element: str) -> tuple[np.ndarray, np.ndarray]:
 def element_matrices(X: np.ndarray, material: Material, element: str, mass: str) -> tuple[np.ndarray, np.ndarray]:
     """Element stiffness (m, 3k, 3k) and mass (m, k, k) per translation component (the full
     element mass is this matrix times I_3; diagonal for ``mass='lumped'``), for nodes X (m, k, 3)."""
-    lam, mu = _lame(material)
-    if element == "tet4-anp":  # the deviatoric part only: the volumetric one is the nodes' (anp_volumetric)
-        lam = -2.0 * mu / 3.0
+    lam, mu = element_lame(material, element)
     m, k = X.shape[0], X.shape[1]
     dN, w = stiffness_rule(element)
     Ke = np.zeros((m, 3 * k, 3 * k))

@@ -98,9 +98,17 @@ class SolidModel(FEModel):
         t0 = time.perf_counter()
         T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)
-        if self.mass == "lumped" and self._assemble_compiled(X, T):
-            self.timings["assemble"] = time.perf_counter() - t0
-            return
+        done = self._assemble_compiled(X, T) if self.mass == "lumped" else None
+        K, lumped = done if done is not None else self._assemble_numpy(X, T)
+        if self.element == "tet4-anp":  # the volumetric part: one pressure per node
+            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
+            K = ((K + K.T) * 0.5).tocsr()
+        self._K, self._M = K, np.repeat(lumped, 3)
+        self.timings["assemble"] = time.perf_counter() - t0
+
+    def _assemble_numpy(self, X: np.ndarray, T: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The stiffness and the lumped nodal masses from batched element matrices (and the
+        consistent mass matrix, where asked for)."""
         ne, k = T.shape
         kdata, mdata = [], []
         lumped = np.zeros(self.n_nodes)
@@ -114,39 +122,27 @@ class SolidModel(FEModel):
             else:
                 lumped_e = np.einsum("mii->mi", Me)
             lumped += np.bincount(T[c].ravel(), lumped_e.ravel(), minlength=self.n_nodes)
-        K = assemble_blocks(T, np.concatenate(kdata), self.n_nodes, 3)  # exactly symmetric
-        if self.element == "tet4-anp":
-            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
-            K = ((K + K.T) * 0.5).tocsr()
-        self._K = K
-        self._M = np.repeat(lumped, 3)
         if self.mass == "consistent":
             r = np.repeat(T, k, axis=1).ravel()
             c = np.tile(T, (1, k)).ravel()
             Mn = sp.coo_matrix((np.concatenate(mdata), (r, c)), shape=(self.n_nodes, self.n_nodes)).tocsr()
             Mn = ((Mn + Mn.T) * 0.5).tocsr()
             self._Mc = sp.kron(Mn, sp.identity(3), format="csr")
-        self.timings["assemble"] = time.perf_counter() - t0
+        return assemble_blocks(T, np.concatenate(kdata), self.n_nodes, 3), lumped  # exactly symmetric
 
-    def _assemble_compiled(self, X: np.ndarray, T: np.ndarray) -> bool:
-        """The linear tets' stiffness in one compiled pass (where numba runs) and the lumped mass."""
-        lam, mu = solid._lame(self.material)
-        if self.element == "tet4-anp":  # the deviatoric part: the volumetric one is the nodes'
-            lam = -2.0 * mu / 3.0
-        done = assemble_solid(X, T, *solid.stiffness_rule(self.element), lam, mu, self.n_nodes)
+    def _assemble_compiled(self, X: np.ndarray, T: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray] | None:
+        """The stiffness in one compiled pass and the lumped nodal masses, or None where numba does not run."""
+        done = assemble_solid(X, T, *solid.stiffness_rule(self.element), *solid.element_lame(self.material, self.element),
+                              self.n_nodes)
         if done is None:
-            return False
+            return None
         K, vol = done
-        if self.element == "tet4-anp":
-            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
-            K = ((K + K.T) * 0.5).tocsr()
         lumped = np.zeros(self.n_nodes)
         for s in range(0, T.shape[0], _CHUNK):
             c = slice(s, min(s + _CHUNK, T.shape[0]))
             Me = solid.element_mass(X[T[c]], self.material, self.element, "lumped", vol[c])
             lumped += np.bincount(T[c].ravel(), np.einsum("mii->mi", Me).ravel(), minlength=self.n_nodes)
-        self._K, self._M = K, np.repeat(lumped, 3)
-        return True
+        return K, lumped
 
     @property
     def M(self) -> sp.csr_matrix:
