@@ -107,3 +107,41 @@ def test_a_flat_triangle_is_refused():
     cells = np.array([[0, 1, 2], [0, 1, 3]])  # the second one has its corners on a line
     with pytest.raises(rt.MeshError, match="triangle 1 has zero area"):
         assembly.assemble_shell(X, cells, rt.Material(), 4)
+
+
+def test_bad_input_is_refused_before_the_kernels_see_it(block, monkeypatch):
+    """The kernels index without bounds checks: out-of-range cells, wrong shapes and NaN coordinates
+    are refused at the door, and a model whose assembly was refused keeps nothing half-built."""
+    X = np.asarray(block.vertices)
+    T = np.asarray(block.tets)
+    n = X.shape[0]
+    rule = solid.stiffness_rule("tet4")
+    bad_cells = T.copy()
+    bad_cells[3, 1] = n
+    with pytest.raises(rt.MeshError, match="outside 0"):
+        assembly.assemble_solid(X, bad_cells, *rule, 1.0, 1.0, n)
+    with pytest.raises(rt.MeshError, match="finite"):
+        assembly.assemble_solid(np.where(np.arange(n)[:, None] == 5, np.nan, X), T, *rule, 1.0, 1.0, n)
+    with pytest.raises(rt.MeshError, match="cells must be"):
+        assembly.assemble_shell(X, T, rt.Material(), n)  # tets where triangles belong
+    with pytest.raises(rt.ModelError, match="element matrices must be"):
+        assembly.assemble_blocks(T, np.zeros((T.shape[0], 12, 11)), n, 3)
+    with pytest.raises(rt.MeshError, match="outside 0"):
+        assembly.assemble_blocks(-T, np.zeros((T.shape[0], 12, 12)), n, 3)
+    model = rt.SolidModel(block, rt.Material())
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "fast")
+    with pytest.raises(rt.ModelError, match="RTFEM_ASSEMBLY='fast' names no assembly"):
+        model.K
+    assert model._K is None and model._M is None  # nothing half-built
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
+    assert abs(model.K - model.K.T).max() == 0.0  # and it assembles once the setting is right
+
+
+def test_the_basis_products_refuse_mismatched_shapes():
+    A = np.asfortranarray(np.ones((50, 4)))
+    with pytest.raises(rt.SolverError, match="same rows"):
+        rt.linalg.gram(A, np.ones((49, 2), order="F"))
+    C = np.ones((50, 2), order="F")
+    with pytest.raises(rt.SolverError, match="subtract_product needs"):
+        rt.linalg.subtract_product(C, A, np.ones((3, 2)))
+    assert np.all(C == 1.0)  # untouched

@@ -12,7 +12,7 @@ import os
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import MeshError
+from ..errors import MeshError, ModelError
 from . import assembly_kernels as kernels
 from . import shell_kernels
 from .shell import _OPT_ALPHA_B, _OPT_BETA
@@ -21,8 +21,27 @@ __all__ = ["assemble_blocks", "assemble_solid", "assemble_shell", "compiled_asse
 
 
 def compiled_assembly() -> bool:
-    """Whether the compiled assembly runs here (numba installed; ``RTFEM_ASSEMBLY=numpy`` turns it off)."""
-    return os.environ.get("RTFEM_ASSEMBLY", "").strip().lower() != "numpy" and kernels.available()
+    """Whether the compiled assembly runs here: numba installed and ``RTFEM_ASSEMBLY`` unset, empty
+    or "compiled" ("numpy" turns it off; another value is refused with a ModelError)."""
+    how = os.environ.get("RTFEM_ASSEMBLY", "").strip().lower()
+    if how not in ("", "compiled", "numpy"):
+        raise ModelError(f"RTFEM_ASSEMBLY={how!r} names no assembly; choose 'compiled' or 'numpy' (or leave it unset)")
+    return how != "numpy" and kernels.available()
+
+
+def _checked(X, cells, n_nodes: int, k: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """X (n_nodes, 3) finite floats and cells (E, k) node indices within range, k one of ``k``: the
+    compiled kernels index without bounds checks, so nothing else reaches them."""
+    cells = np.asarray(cells)
+    if cells.ndim != 2 or cells.shape[1] not in k or not np.issubdtype(cells.dtype, np.integer):
+        raise MeshError(f"cells must be an integer array (E, {' or '.join(map(str, k))}), got {cells.dtype} {cells.shape}")
+    if cells.size and (cells.min() < 0 or cells.max() >= n_nodes):
+        raise MeshError(f"cells name nodes {cells.min()}..{cells.max()}, outside 0..{n_nodes - 1}")
+    if X is not None:
+        X = np.asarray(X, dtype=float)
+        if X.shape != (n_nodes, 3) or not np.all(np.isfinite(X)):
+            raise MeshError(f"the node coordinates must be ({n_nodes}, 3) finite numbers, got {X.shape}")
+    return X, cells
 
 
 def _csr(data: np.ndarray, pattern, n_nodes: int, d: int) -> sp.csr_matrix:
@@ -40,6 +59,7 @@ def assemble_solid(X: np.ndarray, cells: np.ndarray, dN: np.ndarray, w: np.ndarr
     tet with a non-positive Jacobian at a point."""
     if not compiled_assembly():
         return None
+    X, cells = _checked(X, cells, n_nodes, (4, 10))
     pattern = kernels.node_pattern(cells, n_nodes)
     data, vol, bad = kernels.solid_stiffness(X, cells, dN, w, lam, mu, pattern)
     if bad >= 0:
@@ -54,6 +74,7 @@ def assemble_shell(X: np.ndarray, cells: np.ndarray, material, n_nodes: int):
     assembly does not run. Raises MeshError for a triangle of zero area."""
     if not compiled_assembly():
         return None
+    X, cells = _checked(X, cells, n_nodes, (3,))
     pattern = kernels.node_pattern(cells, n_nodes)
     done = shell_kernels.shell_stiffness(X, cells, material, pattern, _OPT_ALPHA_B, _OPT_BETA)
     if done is None:
@@ -82,7 +103,10 @@ def assemble_blocks(cells: np.ndarray, Ke: np.ndarray, n_nodes: int, d: int) -> 
     scipy.sparse.csr_matrix
         With sorted indices (explicit zeros where a block holds some).
     """
-    cells = np.asarray(cells)
+    _, cells = _checked(None, cells, n_nodes, tuple(range(1, 11)))
+    if np.shape(Ke) != (cells.shape[0], cells.shape[1] * d, cells.shape[1] * d):
+        raise ModelError(f"element matrices must be ({cells.shape[0]}, {cells.shape[1] * d}, {cells.shape[1] * d}) for these "
+                         f"cells and {d} dofs per node, got {np.shape(Ke)}")
     if compiled_assembly():
         pattern = kernels.node_pattern(cells, n_nodes)
         return _csr(kernels.scatter_blocks(cells, Ke, pattern, d), pattern, n_nodes, d)

@@ -208,6 +208,8 @@ def gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     MKL is loaded, else numpy. The Lanczos basis's products are tall and memory-bound: MKL reads
     the basis 1.6x as fast as OpenBLAS on one thread and 3x on two (46,000 x 160 times 8 columns,
     2 cores); below a million entries of A one MKL thread is used (waking the others costs more)."""
+    if np.ndim(A) != 2 or np.ndim(B) != 2 or A.shape[0] != B.shape[0]:
+        raise SolverError(f"gram needs A (n, m) and B (n, k) with the same rows, got {np.shape(A)} and {np.shape(B)}")
     gemm, lda, ldb = _MKL_GEMM[0], _column_major(A), _column_major(B)
     if gemm is None or not lda or not ldb or 0 in A.shape or B.shape[1] == 0:
         return np.asfortranarray(A.T @ B)
@@ -220,6 +222,10 @@ def gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def subtract_product(C: np.ndarray, A: np.ndarray, B: np.ndarray) -> None:
     """C -= A B in place, for column-major C (n, k) and A (n, m): MKL's dgemm where loaded, else numpy."""
+    if np.ndim(A) != 2 or np.ndim(B) != 2 or np.ndim(C) != 2 or A.shape[1] != B.shape[0] or \
+            (A.shape[0], B.shape[1]) != C.shape:
+        raise SolverError(f"subtract_product needs C (n, k), A (n, m), B (m, k), got {np.shape(C)}, {np.shape(A)}, "
+                          f"{np.shape(B)}")
     gemm, lda, ldc = _MKL_GEMM[0], _column_major(A), _column_major(C)
     if gemm is None or not lda or not ldc or 0 in A.shape or C.shape[1] == 0:
         C -= A @ B
