@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import fmt_s, print_table  # noqa: E402
+from _common import busy_core, fmt_s, print_table  # noqa: E402
 
 import rtfem as rt  # noqa: E402
 
@@ -101,10 +101,16 @@ def main() -> None:
     ap.add_argument("--no-openhelp", action="store_true", help="only the embedded livers")
     ap.add_argument("--backends", nargs="+", default=None, help="factorization backends (default: all installed)")
     ap.add_argument("--solver", default="auto", choices=["auto", "block", "arpack"])
+    ap.add_argument("--busy", action="store_true", help="with another process keeping one core busy throughout")
     args = ap.parse_args()
+    with busy_core(args.busy):
+        run(args)
+
+
+def run(args) -> None:
     print(f"# rtfem {rt.__version__}, python {platform.python_version()}, {platform.machine()}, "
           f"{os.cpu_count()} cores, backends: {', '.join(rt.available_backends())}; r = {args.modes}; "
-          f"solver {args.solver}")
+          f"solver {args.solver}{'; one core busy' if args.busy else ''}")
     rows = []
     for name, make in models(args.levels, not args.no_openhelp, args.geodesic):
         model = make()
