@@ -145,8 +145,31 @@ def test_small_loads_give_the_linear_answer(kind):
         assert rel < 2e3 * scale
 
 
+def _round_off(model, res, F) -> float:
+    """The residual's round-off floor at a solution, relative to |F|: the median change of the
+    free-dof internal forces when every displacement moves by one unit in its last place (a
+    double-precision state can be no closer to equilibrium; 6e-10 to 1.5e-9 on the strip)."""
+    system = model.nonlinear()
+    conf = res.configuration
+    f0 = system.evaluate(conf, tangent=False)[0]
+    rng = np.random.default_rng(0)
+    changes = []
+    for _ in range(16):
+        moved = conf.copy()
+        moved.u = conf.u * (1 + rng.choice([-1.0, 1.0], conf.u.shape) * np.finfo(float).eps)
+        changes.append(np.linalg.norm((system.evaluate(moved, tangent=False)[0] - f0)[system.free]))
+    return float(np.median(changes)) / np.linalg.norm(F)
+
+
+BAND = 30.0  # iterates within 30 times the round-off granularity are at the floor (measured: 1.5 - 4 times)
+
+
 @pytest.mark.parametrize("kind", ["shell", "tet10"])
 def test_newton_converges_quadratically(kind):
+    """Newton's tangent is consistent: near the answer r_{k+1} <= C r_k^2 (measured C < 30). Only
+    what holds on any machine is asserted (issue 60): the pairs whose quadratic bound lies above the
+    round-off floor, measured on the solution itself (not the position of the last iterates, which
+    BLAS, the factorization and MKL_CBWR move), and that the iterations end at that floor."""
     if kind == "shell":
         model = _strip(20)
         F = _edge_load(model, 1.0)
@@ -154,19 +177,21 @@ def test_newton_converges_quadratically(kind):
         model = rt.SolidModel(rt.meshes.box(1.0, 0.1, 0.1, 10, 1, 1), rt.Material(E=1e6, nu=0.3), element="tet10")
         model.fix("x0")
         F = model.traction_forces((0.0, 0.0, 100.0), "x1")
-    res = rt.nonlinear.solve_static(model, F, tol=1e-14, max_iterations=40)  # run down to round-off
+    res = rt.nonlinear.solve_static(model, F, tol=1e-14, max_iterations=40, method="newton")  # down to round-off
+    assert set(res.methods) == {"newton"}
+    floor = BAND * _round_off(model, res, F)
+    assert floor < 1e-7  # the shell's floor is 2e-8 of the load, the solid's 2e-9: far below the pairs checked
     checked = 0
     for history in res.residuals:
-        r = np.asarray(history) / np.linalg.norm(F)  # residuals relative to the load
-        floor = r.min()  # round-off: where the last iterations stall
+        r = np.asarray(history) / np.linalg.norm(F)
+        assert r[-1] <= floor, (kind, history)  # each load step ends at the round-off floor
         for a, b in zip(r[:-1], r[1:]):
-            # near the answer r_{k+1} <= C r_k^2 (measured C < 30); a linearly converging method
-            # (rate rho) gives r_{k+1} = rho r_k, above 100 r_k^2 once r_k < rho / 100, which the
-            # iterations down to round-off pass through
-            if a < 1e-2 and b > 10 * floor:
+            # a linearly converging method (rate rho) gives b = rho a, above 100 a^2 once a < rho / 100;
+            # the shell passes 3.2e-4 -> 1.6e-6 and 7.6e-4 -> 2e-9, the solid 3.4e-3 -> 5.3e-6 -> 1.7e-10
+            if a < 1e-2 and 100 * a * a > floor:
                 assert b <= 100 * a * a, (kind, history)
                 checked += 1
-    assert checked >= 1
+    assert checked >= 2
 
 
 def _swing(dt, **options):
@@ -213,11 +238,15 @@ def test_trust_region_reaches_newtons_equilibrium_on_the_elastica():
     assert np.abs(trust.displacements - newton.displacements).max() < 1e-8 * scale  # measured 2e-11
     tip = _tip(model, trust.displacements)
     assert abs(-tip[0] - ELASTICA[2][0]) < 5e-4 and abs(tip[2] - ELASTICA[2][1]) < 5e-4
-    # the potential falls every iteration, the residual need not; the last iteration above the
-    # round-off floor is a Newton step from r < 0.05 down by its square (measured 8e-3 -> 5e-9)
+    # the potential falls every iteration, the residual need not; once the residual is below 0.05
+    # for good, the shift is dropped and Newton's steps reach the round-off floor within 3 iterations
+    # (measured with PARDISO 6e-4, 8e-3, 5e-9; with SuperLU 5.6e-2, 7e-8, 1.3e-9), where a linearly
+    # converging method with a rate of 0.01 would take 5
     r = np.asarray(trust.residuals[-1]) / np.linalg.norm(F)
-    j = np.flatnonzero(r > 10 * r.min())[-1]
-    assert r[j] < 0.05 and r[j + 1] <= 100 * r[j] ** 2, r
+    floor = BAND * _round_off(model, trust, F)
+    last_large = np.flatnonzero(r >= 0.05)[-1]
+    at_floor = np.flatnonzero(r <= floor)
+    assert at_floor.size and at_floor[0] - last_large <= 3, (r, floor)
 
 
 def _tent(n=8, pull=0.04):
