@@ -208,7 +208,10 @@ def test_points_on_held_nodes_are_left_out_the_same_way_compiled_and_in_numpy():
         scene = rt.Scene()
         scene.add_body("block", sim, model.mesh)
         scene.add_plane("floor", (0.0, 0.0, -0.0005), (0.0, 0.0, 1.0), friction=0.3)
-        scene.add_tool("probe", rt.ScriptedDevice(lambda t: np.array([0.05, 0.05, 0.034 - 0.01 * min(t / 0.1, 1.0)])),
+        # off the block's diagonals: at its centre the probe stands on a tie between mirror-image contacts, which
+        # round-off breaks one way compiled and the other in numpy (with MKL_CBWR=COMPATIBLE: lateral forces
+        # swapped, 3.34e-5 against 3.42e-5 N), a choice and not an error of either path
+        scene.add_tool("probe", rt.ScriptedDevice(lambda t: np.array([0.043, 0.058, 0.034 - 0.01 * min(t / 0.1, 1.0)])),
                        radius=0.005, stiffness=300.0)
         scenes.append(scene)
     touched = _same_steps(scenes, 150)

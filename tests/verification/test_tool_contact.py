@@ -237,7 +237,10 @@ def test_every_driver_settles_to_the_quasi_static_contact_force(plate):
     assert abs(last["modal"][2] - ref[2]) < 1e-5 * ref[2] and ripple["modal"] < 1e-4  # measured 1e-6, 3e-5
     assert abs(last["warped"][2] - ref[2]) < 1e-5 * ref[2]  # measured 7e-7
     assert abs(last["newmark HHT"][2] - ref[2]) < 1e-4 * ref[2] and ripple["newmark HHT"] < 0.01  # 3e-6, 9e-4
-    assert ripple["newmark"] > 0.5  # measured 4.4: the force jumps between steps
+    # the force jumps between steps, ten times past HHT's bound: the kicked modes ring undamped, and where the
+    # ringing stands after 600 steps is set by round-off (measured 4.4 in the suite, 1.9 alone, 0.44 with
+    # MKL_CBWR=COMPATIBLE, 0.82 with SuperLU), not by the rule; HHT's ripple is 5e-7 in all of them
+    assert ripple["newmark"] > 0.1
 
 
 def test_a_sphere_pressed_into_a_large_deformation_plate_settles_to_the_nonlinear_static_solve():
