@@ -204,7 +204,7 @@ def test_a_solve_stalling_in_ever_shorter_steps_ends_with_the_solver_error(monke
     full = np.linalg.norm(model.force_vector(F))
     calls = []
 
-    def newton(system, conf, Fk, tol, max_iterations):
+    def newton(system, conf, Fk, tol, max_iterations, watch=None):
         calls.append(np.linalg.norm(Fk) / full)
         return [1.0] * 8, calls[-1] <= 0.6  # 8 residuals: no doubling of the next step
 
@@ -221,3 +221,177 @@ def test_the_system_follows_the_fixes():
     assert model.nonlinear() is s1
     model.fix("y0", dofs="z")
     assert model.nonlinear() is not s1
+
+
+# --- issue 53, section 4: no silent wrong answer ---------------------------------------------------------------
+
+
+def _jaw_block():
+    """A tet10 block (0.1 x 0.04 x 0.04 m, E 4e4) clamped at x = 0, a 15 mm jaw of corner nodes on its
+    top at the other end: the corners held by index, so fix() holds the mid-edge nodes between them."""
+    model = rt.SolidModel(rt.meshes.box(0.1, 0.04, 0.04, nx=10, ny=4, nz=4), rt.Material(E=4e4, nu=0.45),
+                          element="tet10")
+    model.fix("x0")
+    X = np.asarray(model.tetmesh.vertices)
+    corners = np.unique(np.asarray(model.tetmesh.tets)[:, :4])
+    jaw = corners[(X[corners, 0] > 0.085 - 1e-9) & (np.abs(X[corners, 2] - 0.04) < 1e-9)]
+    model.fix(jaw)
+    held_mids = np.setdiff1d(np.flatnonzero(model.held_nodes & (X[:, 0] > 0.085 - 1e-9)), jaw)
+    return model, jaw, held_mids
+
+
+def test_a_jaw_moved_by_its_corners_carries_its_mid_edge_nodes():
+    """Moving only the jaw's corners moves the mid-edge nodes fix() held between them with them: the
+    same equilibrium as the jaw's every node moved explicitly, and at a small pull the linear solve's
+    reaction (a second route). Before, those mid-edge nodes stayed at rest: 6 N for a 2.25 mm pull."""
+    model, jaw, mids = _jaw_block()
+    assert mids.size >= 9  # the jaw's held mid-edge nodes
+    pull = np.zeros((model.n_nodes, 3))
+    pull[jaw, 2] = 2.25e-3
+    corners_only = rt.nonlinear.solve_static(model, None, prescribed=pull)
+    explicit = pull.copy()
+    explicit[mids, 2] = 2.25e-3
+    every = rt.nonlinear.solve_static(model, None, prescribed=explicit)
+    np.testing.assert_allclose(corners_only.displacements, every.displacements, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(corners_only.displacements[mids, 2], 2.25e-3, rtol=0, atol=1e-15)
+    force = corners_only.reactions[np.union1d(jaw, mids), 2].sum()
+    assert 0.05 < force < 0.3  # measured 0.134 N (with the mid-edge nodes at rest the corners alone carried 6 N)
+    # the linear solve of the same support motion, at a hundredth of the pull: the same stiffness
+    small = rt.nonlinear.solve_static(model, None, prescribed=pull / 100)
+    K = model.K.tocsr()
+    free, held = model.free_dofs, model.fixed_dofs
+    u = model.complete_motion(pull / 100).ravel()
+    from scipy.sparse.linalg import spsolve
+
+    u[free] = spsolve(K[free][:, free].tocsc(), -K[free][:, held] @ u[held])
+    linear = (K @ u).reshape(-1, 3)[np.union1d(jaw, mids), 2].sum()
+    assert abs(small.reactions[np.union1d(jaw, mids), 2].sum() - linear) < 0.01 * abs(linear)
+
+
+def test_a_mid_edge_node_given_its_own_motion_keeps_it():
+    model, jaw, mids = _jaw_block()
+    P = np.zeros((model.n_nodes, 3))
+    P[jaw, 2] = 1e-3
+    P[mids[0], 2] = 2e-3
+    done = model.complete_motion(P)
+    assert done[mids[0], 2] == 2e-3 and np.all(done[mids[1:], 2] == 1e-3) and P[mids[1], 2] == 0  # P untouched
+    tet4 = rt.SolidModel(rt.meshes.box(0.1, 0.04, 0.04, nx=2, ny=1, nz=1), model.material).fix("x1")
+    Q = np.zeros((tet4.n_nodes, 3))
+    Q[tet4.select_nodes("x1"), 2] = 1e-3
+    assert np.array_equal(tet4.complete_motion(Q), Q)  # tet4 has no mid-edge nodes to complete
+
+
+def _crushed_block(element="tet4"):
+    model = rt.SolidModel(rt.meshes.box(0.04, 0.04, 0.02, nx=2, ny=2, nz=2), rt.Material(E=1e4, nu=0.3, density=1000.0),
+                          element=element)
+    model.fix("z<1e-9")
+    top = model.select_nodes("z>0.0199999")
+    model.fix(top)
+    return model, top
+
+
+def _inverted_count(model, u):
+    """Tets with a non-positive signed volume of their corners: counted from the coordinates alone."""
+    T = np.asarray(model.tetmesh.tets)[:, :4]
+    x = np.asarray(model.tetmesh.vertices) + u
+    a, b, c, d = (x[T[:, i]] for i in range(4))
+    return int(np.count_nonzero(np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) <= 0))
+
+
+@pytest.mark.parametrize("push, side", [(1.5, 0.003), (1.2, 0.01), (3.0, 0.0)])
+def test_no_solve_converges_onto_inverted_elements(push, side):
+    """The top of a block pushed down through its clamped base: the middle layer has nowhere to go but
+    inside out. The corotated law gives such a state finite forces (its polar decomposition keeps a
+    proper rotation), and Newton converged there: 25-36 inverted tets with converged=True (and at the
+    symmetric push, a LinAlgError from a singular polar derivative). Now each ends in a SolverError that
+    says so, holding the last equilibrium, which has no inverted element."""
+    model, top = _crushed_block()
+    P = np.zeros((model.n_nodes, 3))
+    P[top, 2] = -push * 0.02
+    P[top, 0] = side
+    with pytest.raises(rt.SolverError, match="turned inside out") as info:
+        rt.nonlinear.solve_static(model, None, prescribed=P, method="newton")
+    last = info.value.result
+    assert not last.converged and 0 < last.load_factors[-1] < 1.0
+    assert _inverted_count(model, last.displacements) == 0
+    # a push the block can take is solved (every tet keeps its orientation)
+    res = rt.nonlinear.solve_static(model, None, prescribed=P * 0.5 / push)
+    assert res.converged and _inverted_count(model, res.displacements) == 0
+
+
+def test_the_dynamic_newton_refuses_inverted_elements():
+    """A 50 N point load on a small soft block's top: the step that would turn elements inside out is
+    refused with the reason and the simulator keeps the last accepted state."""
+    model, _ = _crushed_block()
+    model.release()
+    model.fix("z<1e-9")
+    X = np.asarray(model.tetmesh.vertices)
+    node = int(np.argmin(np.linalg.norm(X - [0.02, 0.02, 0.02], axis=1)))
+    sim = rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=50.0), large_deformation=True)
+    F = np.zeros((model.n_nodes, 3))
+    F[node, 2] = -50.0
+    with pytest.raises(rt.SolverError, match="step [0-9]+ was refused: [0-9]+ elements? turned inside out"):
+        for _ in range(200):
+            before, steps = sim.displacements().copy(), sim.steps
+            sim.step(F)
+    assert sim.steps == steps and np.array_equal(sim.displacements(), before)
+    assert _inverted_count(model, before) == 0
+
+
+def test_the_polar_derivative_of_a_flattened_element_is_finite():
+    """Two principal stretches summing to zero (a tet squashed through itself symmetrically) made the
+    corotated tangent's linear solve singular (LinAlgError): it is finite now."""
+    F = np.diag([1.0, 0.5, -0.5])[None]
+    P, psi, dP = solid.corotated_stress(F, 1e4, 5e3)
+    assert np.all(np.isfinite(P)) and np.all(np.isfinite(dP)) and np.isfinite(psi).all()
+
+
+@pytest.mark.parametrize("kind", ["solid", "shell"])
+@pytest.mark.parametrize("distance", [1e3, 1e6])
+def test_a_model_carried_a_kilometre_by_its_supports(kind, distance):
+    """A rigid motion of every support moves the whole model with no strain, however far: before, 1 km
+    was a LinAlgError (solid) or a NaN residual refused as a turned triad (shell)."""
+    if kind == "solid":
+        model = rt.SolidModel(rt.meshes.box(1.0, 0.1, 0.1, 10, 1, 1), rt.Material(E=1e5, nu=0.3))
+    else:
+        model = rt.ShellModel(rt.meshes.plate(1.0, 0.2, 8, 2), rt.Material(E=1e5, nu=0.3, thickness=0.01))
+    model.fix("x0")
+    P = np.zeros((model.n_nodes, model.dofs_per_node))
+    P[model.select_nodes("x0"), :2] = distance
+    res = rt.nonlinear.solve_static(model, None, prescribed=P)
+    assert res.converged
+    # every node carried exactly (to the coordinates' resolution: 8 ulp of the distance)
+    np.testing.assert_allclose(res.displacements, np.tile([distance, distance, 0.0], (model.n_nodes, 1)), rtol=0,
+                               atol=8 * np.finfo(float).eps * distance)
+    assert np.abs(res.reactions).max() < 1e-6
+
+
+def test_a_long_solve_reports_progress_and_stops_at_its_time_limit():
+    model = _strip()
+    F = np.zeros((model.n_nodes, 3))
+    F[model.select_nodes("x1"), 2] = 2.0
+    seen = []
+    res = rt.nonlinear.solve_static(model, F, progress=lambda done, total, message: seen.append((done, message)))
+    iterations = [m for _, m in seen if "iteration" in m]
+    # every iteration is reported (those of refused attempts too), the load factor reached never falls
+    assert len(iterations) >= res.iterations + len(res.load_factors) and "residual" in iterations[0]
+    done = [d for d, _ in seen]
+    assert done == sorted(done) and done[-1] == 1.0
+    with pytest.raises(rt.SolverError, match="time limit of 1e-06 s") as info:
+        rt.nonlinear.solve_static(model, F, time_limit=1e-6)
+    assert not info.value.result.converged and info.value.result.load_factors == []
+
+
+@pytest.mark.parametrize("bad", [dict(progress=5), dict(time_limit=-1.0), dict(time_limit="soon")])
+def test_solve_static_refuses_bad_options(bad):
+    model = _strip()
+    with pytest.raises(rt.ModelError):
+        rt.nonlinear.solve_static(model, None, **bad)
+
+
+def test_solve_static_refuses_what_is_not_a_model():
+    for model in ("liver", 5, None):
+        with pytest.raises(rt.ModelError, match="is not a model"):
+            rt.nonlinear.solve_static(model)
+        with pytest.raises(rt.ModelError, match="is not a model"):
+            rt.nonlinear.NonlinearSystem(model)

@@ -147,11 +147,13 @@ class NonlinearNewmarkSimulator(DirectSimulator):
             return self._M @ a + (1 + al) * g - al * self._g, g, K, ref
 
         def converged(conf, u, g, fac):
-            if not self.system.within_limit(conf):  # a shell triad turned past what the element measures
-                from ..fe.nonlinear import turn_refused
+            self.system.turned, self.system.inverted = 0.0, 0
+            if not self.system.within_limit(conf):  # an element inverted, or a shell triad turned too far
+                from ..fe.nonlinear import inversion_refused, turn_refused
 
-                raise SolverError(f"step {self.steps + 1} was refused: a {turn_refused(self.system.turned)} (the state "
-                                  "is unchanged)")
+                why = inversion_refused(self.system.inverted) if self.system.inverted else \
+                    f"a {turn_refused(self.system.turned)}"
+                raise SolverError(f"step {self.steps + 1} was refused: {why} (the state is unchanged)")
             return conf, u, g, fac
 
         r, g, K, ref = residual(conf, u, True)

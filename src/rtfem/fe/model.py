@@ -137,6 +137,11 @@ class FEModel:
         self._supports_changed()
         return self
 
+    def complete_motion(self, P: np.ndarray) -> np.ndarray:
+        """A prescribed motion of fixed dofs (n, dofs_per_node), completed where the model holds nodes
+        the user did not name (a tet10 solid's mid-edge nodes follow their corners); here as given."""
+        return np.array(P, dtype=float)
+
     def _supports_changed(self) -> None:
         self._factor = None
         self._condensation = None

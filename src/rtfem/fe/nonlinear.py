@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from .. import validate
 from ..errors import ModelError, SolverError
 from .linalg import factorize
+from .protocol import check_model
 from .rotations import rotation
 
 __all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static"]
@@ -69,6 +70,7 @@ class NonlinearSystem:
     from the model's ``_corotational()``."""
 
     def __init__(self, model) -> None:
+        check_model(model)
         model.check_restrained()
         self.model = model
         self.kernel, self.cells = model._corotational()
@@ -93,6 +95,7 @@ class NonlinearSystem:
         self._pattern = (indices, indptr, nf)
         self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
         self.turned = 0.0  # the largest local rotation (degrees) a solve refused
+        self.inverted = 0  # the most elements turned inside out in a configuration a solve refused
 
     def expand(self, values: np.ndarray) -> np.ndarray:
         """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
@@ -127,6 +130,13 @@ class NonlinearSystem:
         """The elements' deformed nodes (m, k, 3) of a configuration."""
         return (np.asarray(self.model.mesh.vertices) + conf.u)[self.cells]
 
+    def resolution(self, conf: Configuration) -> float:
+        """The smallest correction that still moves a node (m): 1e-12 of the model's extent, or a few
+        units in the last place of its farthest coordinate where that is coarser (a model carried 1 km
+        from the origin is resolved to 1e-12 m at best)."""
+        far = float(np.abs(np.asarray(self.model.mesh.vertices) + conf.u).max())
+        return max(1e-12 * self.size, 8.0 * np.finfo(float).eps * far)
+
     def energy(self, conf: Configuration) -> float:
         """The strain energy of a configuration."""
         return self.evaluate(conf, tangent=False)[2]
@@ -140,8 +150,15 @@ class NonlinearSystem:
         return float(self.kernel.local_rotations((X + conf.u)[self.cells], conf.Q[self.cells]).max())
 
     def within_limit(self, conf: Configuration) -> bool:
-        """Whether no shell triad has turned :data:`LOCAL_ROTATION_LIMIT` degrees from an element
-        frame; the largest such turn refused is kept in ``turned`` (for the error message)."""
+        """Whether the elements describe the configuration: no solid element turned inside out
+        (det F <= 0 at a quadrature point or a tet10 corner) and no shell triad turned
+        :data:`LOCAL_ROTATION_LIMIT` degrees from an element frame. The most elements inverted and the
+        largest turn refused are kept in ``inverted`` and ``turned`` (for the error message). No solver
+        reports convergence on a configuration outside the limit."""
+        if not self.rotations:
+            bad = int(np.count_nonzero(self.kernel.inverted(self.deformed(conf))))
+            self.inverted = max(self.inverted, bad)
+            return bad == 0
         angle = self.local_rotation(conf)
         if angle >= LOCAL_ROTATION_LIMIT:
             self.turned = max(self.turned, angle)
@@ -212,7 +229,7 @@ def _prescribed(model, prescribed) -> np.ndarray:
         partial = np.flatnonzero((P[:, 3:] != 0).any(axis=1) & ~model.fixed[:, 3:].all(axis=1))
         if partial.size:
             raise ModelError(f"node {partial[0]}: a prescribed rotation needs all three rotations of the node fixed")
-    return P
+    return model.complete_motion(P)
 
 
 METHODS = ("auto", "newton", "trust-region")
@@ -220,7 +237,7 @@ METHODS = ("auto", "newton", "trust-region")
 
 def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: float = 1e-9,
                  max_iterations: int = 30, max_cuts: int = 12, method: str = "auto",
-                 progress=None) -> NonlinearResult:
+                 progress=None, time_limit: float | None = 600.0) -> NonlinearResult:
     """Geometrically nonlinear static equilibrium f_int(x) = F by Newton's method with load steps.
 
     Parameters
@@ -229,11 +246,13 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     forces : dead nodal loads ((n, 3) array or {node: (fx, fy, fz)}; moments (n, 6) on a shell).
     prescribed : motions of fixed dofs ((n, 3) translations, or (n, 6) with rotation vectors on a
         shell whose rotations are all fixed there), applied with the load factor. A rigid
-        motion of all the supports moves the model without straining it.
+        motion of all the supports moves the model without straining it. On tet10, mid-edge nodes
+        that :meth:`~rtfem.SolidModel.fix` held because their corners are held, and that are given
+        no motion of their own, follow their corners (:meth:`~rtfem.SolidModel.complete_motion`).
     steps : initial number of equal load steps; a step whose Newton iterations do not converge
         is halved (at most ``max_cuts`` times in a row) and retried from the last equilibrium.
     tol : convergence: free-dof residual <= tol * (|lambda F| + |f_int|) (or a correction below
-        1e-12 of the model's size, for a motion with no force to measure against).
+        :meth:`NonlinearSystem.resolution`, for a motion with no force to measure against).
     method : "newton" (each load step by Newton's method), "trust-region" (each load step by the
         trust-region minimization of the total potential, up to 5 * ``max_iterations``
         iterations: slower per step, but it cannot stall on an indefinite or near-singular
@@ -248,7 +267,11 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         up to 132 times the load (0.19 against 0.6 s at P L^2 / EI = 1); on a shell pulled
         into a tent in one step, where Newton stalls, the trust region takes 30 + 11 where
         halving takes 30 + 17.
-    progress : callback(done, total, message) per converged load step.
+    progress : callback(done, total, message): done is the load factor reached (of 1.0), called after
+        every Newton or trust-region iteration (the message says the step, the iteration and its
+        residual) and every converged load step.
+    time_limit : seconds (default 600) after which the solve stops with a SolverError holding the
+        last equilibrium; None: no limit.
 
     Round-off floor. The residual cannot fall below the granularity of the state: the
     displacements are doubles, so moving every one by one unit in the last place (|u| * 2.2e-16)
@@ -258,12 +281,23 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     N/m against a 1 N load), one-ulp moves of u change the residual by 6e-10 of the load, and
     Newton ends at 1e-9 to 2e-9 of it, on any BLAS or factorization (PARDISO, SuperLU,
     MKL_CBWR=COMPATIBLE). No solver of a double-precision state goes lower; a tolerance below
-    that floor ends on the second test (a correction below 1e-12 of the model's size).
+    that floor ends on the second test (a correction below :meth:`NonlinearSystem.resolution`).
 
-    Raises SolverError when a load step cannot be halved further; the error's ``result`` holds
-    the last equilibrium reached (nothing computed is lost).
+    No step is accepted where a solid element is turned inside out (det F <= 0) or a shell triad
+    turned past :data:`LOCAL_ROTATION_LIMIT` degrees: ``converged`` is never True on such a state.
+
+    Raises SolverError when a load step cannot be halved further, or at the time limit; the
+    error's ``result`` holds the last equilibrium reached (nothing computed is lost). ModelError
+    for bad arguments (nothing is computed then).
     """
     t0 = time.perf_counter()
+    check_model(model)
+    if not callable(getattr(model, "nonlinear", None)):
+        raise ModelError(f"model={validate.show(model)} has no nonlinear(): the geometrically nonlinear solve needs a "
+                         "ShellModel or a SolidModel")
+    progress = validate.progress(progress)
+    if time_limit is not None:
+        time_limit = validate.positive(time_limit, "time_limit", "seconds, or None for no limit")
     system = model.nonlinear()
     F = model.force_vector(forces if forces is not None else np.zeros((model.n_nodes, 3)))
     P = _prescribed(model, prescribed)
@@ -277,7 +311,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     if method == "trust-region" and not conservative:
         raise ModelError("method='trust-region' minimizes the total potential, which dead moments do not have on finite "
                          "rotations: apply the moments as force couples, or use method='newton'")
-    system.turned = 0.0  # the arguments are checked: this solve's refused turns only
+    system.turned, system.inverted = 0.0, 0  # the arguments are checked: this solve's refusals only
     fixed_mask = model.fixed
     conf = Configuration.rest(n, dpn == 6)
     applied = 0.0  # load factor of the last equilibrium
@@ -285,14 +319,25 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     step = 1.0 / steps
     cuts = 0
     previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
+    watch = _Watch(t0, time_limit, progress)
     while applied < 1.0 - 1e-12:
         target = min(1.0, applied + step)
         trial = conf.copy()
         if previous is not None:  # secant predictor: continue the last step's motion
             _extrapolate(trial, previous[0], (target - applied) / previous[1])
         _move_supports(trial, P, fixed_mask, applied, target)
-        trial, history, ok, used = _load_step(system, trial, target * F, tol, max_iterations, method, conservative,
-                                              last=cuts >= max_cuts)
+        _carry_rigidly(trial, conf, system, fixed_mask)
+        watch.step = (applied, target)
+        try:
+            trial, history, ok, used = _load_step(system, trial, target * F, tol, max_iterations, method,
+                                                  conservative, last=cuts >= max_cuts, watch=watch)
+        except _OutOfTime:
+            _fill(result, system, conf, t0, converged=False)
+            exc = SolverError(f"the nonlinear solve stopped at its time limit of {time_limit:g} s (time_limit=) at load "
+                              f"factor {applied:.4g}, after {watch.iterations} iterations: the error's result holds the "
+                              "last equilibrium. Pass a longer time_limit (or None), more steps, or a coarser mesh")
+            exc.result = result
+            raise exc from None
         if ok:
             previous = (conf, target - applied)
             conf, applied = trial, target
@@ -314,8 +359,31 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     return result
 
 
+class _OutOfTime(Exception):
+    """A solve ran past its time limit (caught by :func:`solve_static`)."""
+
+
+class _Watch:
+    """A static solve's clock and progress: :meth:`tick` after each iteration reports it and stops
+    the solve (raises :class:`_OutOfTime`) past the time limit."""
+
+    def __init__(self, t0: float, limit: float | None, progress) -> None:
+        self.deadline = None if limit is None else t0 + limit
+        self.progress = progress
+        self.step = (0.0, 1.0)  # the load factors of the last equilibrium and of the step's target
+        self.iterations = 0
+
+    def tick(self, residual: float) -> None:
+        self.iterations += 1
+        if self.progress is not None:
+            a, b = self.step
+            self.progress(a, 1.0, f"load factor {a:.3g} -> {b:.3g}: iteration {self.iterations}, residual {residual:.3g}")
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            raise _OutOfTime
+
+
 def _load_step(system, trial: Configuration, load: np.ndarray, tol: float, max_iterations: int, method: str,
-               conservative: bool, last: bool = True) -> tuple:
+               conservative: bool, last: bool = True, watch: _Watch | None = None) -> tuple:
     """One load step from ``trial``: Newton, or the trust region (for method "trust-region", or with
     "auto" where Newton did not converge and the loads have a potential: where it stalled, or
     diverged on the ``last`` try before the solve gives up; a divergence before is left to the
@@ -324,11 +392,11 @@ def _load_step(system, trial: Configuration, load: np.ndarray, tol: float, max_i
     used = "newton" if method != "trust-region" else "trust-region"
     if used == "newton":
         start = trial.copy() if method == "auto" and conservative else None
-        history, ok = _newton(system, trial, load, tol, max_iterations)
+        history, ok = _newton(system, trial, load, tol, max_iterations, watch)
         if not ok and start is not None and (last or not _diverged(history)):  # minimize from the same start
             used, trial = "trust-region", start
     if used == "trust-region":
-        history, ok = _minimize(system, trial, load, tol, 5 * max_iterations)
+        history, ok = _minimize(system, trial, load, tol, 5 * max_iterations, watch)
     return trial, history, ok, used
 
 
@@ -337,6 +405,8 @@ def _stalled(result: NonlinearResult, system, used: str, applied: float, max_cut
     """The error of a solve that cannot go past ``applied``, holding the last equilibrium (``result``)."""
     turned = system.turned
     limit = f"; steps were refused where a {turn_refused(turned)}" if turned >= LOCAL_ROTATION_LIMIT else ""
+    if system.inverted:
+        limit += f"; steps were refused where {inversion_refused(system.inverted)}"
     exc = SolverError(
         f"{'Newton' if used == 'newton' else 'The trust region'} did not converge past load factor "
         f"{applied:.4g} (step halved {max_cuts} times in a row, or to {step:.2g} of the load; residual "
@@ -362,6 +432,14 @@ def turn_refused(turned: float) -> str:
             "the load over more nodes or refine the mesh there")
 
 
+def inversion_refused(count: int) -> str:
+    """Why a state with ``count`` elements turned inside out is refused, and what to do (the static
+    solver's and the corotational Newmark simulator's messages)."""
+    return (f"{count} element{'s' if count != 1 else ''} turned inside out (det F <= 0): no equilibrium of the "
+            "material there; a support or tool moved through the tissue, or a load too concentrated for the mesh. "
+            "Move it less, spread it over more nodes, or refine the mesh there")
+
+
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
     """Move ``conf`` on by ``ratio`` times its change since ``before`` (rotations by the
     relative rotation's vector)."""
@@ -383,18 +461,45 @@ def _move_supports(conf: Configuration, P: np.ndarray, fixed: np.ndarray, start:
             conf.Q[rot] = rotation(end * P[rot, 3:])
 
 
+def _carry_rigidly(trial: Configuration, conf: Configuration, system: NonlinearSystem, fixed: np.ndarray) -> None:
+    """Where the supports move rigidly in this step (one rotation and translation takes every held node
+    from ``conf`` to ``trial`` within 1e-9 of the motion; Kabsch's fit), the free nodes go with them: the
+    predictor of a model carried by its supports. Otherwise a support moved 1 km is a 1 km stretch of
+    the elements next to it for Newton to undo (a NaN on a shell, inverted tets on a solid). Applies
+    when every node with a fixed translation has all three fixed (a partly held node has no motion to
+    fit)."""
+    held = fixed[:, :3].all(axis=1)
+    if not held.any() or (fixed[:, :3].any(axis=1) & ~held).any():
+        return
+    X = np.asarray(system.model.mesh.vertices)
+    a, b = X[held] + conf.u[held], X[held] + trial.u[held]
+    motion = float(np.abs(b - a).max())
+    if motion == 0.0:
+        return
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    if np.abs((a - ca) @ R.T + cb - b).max() > 1e-9 * motion:
+        return  # not rigid: the supports strain the model, and Newton starts from the last equilibrium
+    free = ~held
+    trial.u[free] = (X[free] + conf.u[free] - ca) @ R.T + cb - X[free]
+    if trial.Q is not None:
+        turn = ~fixed[:, 3:].all(axis=1)  # triads the supports do not prescribe
+        trial.Q[turn] = R @ conf.Q[turn]
+
+
 def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
-            max_iterations: int) -> tuple[list[float], bool]:
+            max_iterations: int, watch: _Watch | None = None) -> tuple[list[float], bool]:
     """Newton iterations on the free dofs from ``conf`` (changed in place). Converged when the
     residual is below ``tol`` times the force scale (|F| + |f_int|), or when a correction moves no
-    translation by more than 1e-12 of the model's size (a state with no force to measure
+    translation by more than :meth:`NonlinearSystem.resolution` (a state with no force to measure
     against, such as a rigid motion of the supports). Returns the residual norms (before each
     iteration, and the last) and whether it converged."""
     free = system.free
     history: list[float] = []
 
     def failed():
-        system.within_limit(conf)  # records a shell triad turned past the limit, for the error message
+        system.within_limit(conf)  # records an inverted element or a triad turned too far, for the error message
         return history, False
 
     for _ in range(max_iterations):
@@ -402,6 +507,8 @@ def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: fl
         r = f[free] - F[free]
         rn = float(np.linalg.norm(r))
         history.append(rn)
+        if watch is not None:
+            watch.tick(rn)
         if _diverged(history):
             return failed()
         if rn <= tol * (float(np.linalg.norm(F)) + float(np.linalg.norm(f))):
@@ -412,7 +519,7 @@ def _newton(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: fl
             return failed()
         full = system.expand(delta)
         conf.update(full)
-        if np.abs(full[:, :3]).max() <= 1e-12 * system.size:
+        if np.abs(full[:, :3]).max() <= system.resolution(conf):
             f, _, _ = system.evaluate(conf, tangent=False)
             history.append(float(np.linalg.norm(f[free] - F[free])))
             return history, system.within_limit(conf)
@@ -437,7 +544,7 @@ def _more_shift(mu: float) -> float:
 
 
 def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: float,
-              max_iterations: int) -> tuple[list[float], bool]:
+              max_iterations: int, watch: _Watch | None = None) -> tuple[list[float], bool]:
     """Trust-region minimization of the total potential Pi = E(x) - F . u from ``conf`` (changed
     in place), by Levenberg-Marquardt shifted Newton steps: (H + mu D) p = -r with H the
     symmetric Hessian (the symmetric part of the spin tangent: its skew part, -1/2 [m]x, is the
@@ -456,7 +563,7 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
     pi = _potential(conf, energy, load)
     scale = float(np.linalg.norm(F))
     history: list[float] = []
-    if not system.within_limit(conf):  # a start the shell cannot describe: a shorter step
+    if not system.within_limit(conf):  # a start the elements cannot describe: a shorter step
         return [float(np.linalg.norm(f[free] - F[free]))], False
     mu, D = 0.0, None
     more = _more_shift
@@ -464,6 +571,8 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
         r = f[free] - F[free]
         rn = float(np.linalg.norm(r))
         history.append(rn)
+        if watch is not None:
+            watch.tick(rn)
         if not np.isfinite(rn):
             return history, False
         if rn <= tol * (scale + float(np.linalg.norm(f))):
@@ -488,7 +597,7 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
             trial = conf.copy()
             full = system.expand(p)
             trial.update(full)
-            if not system.within_limit(trial):  # would turn a triad past the limit: a shorter step
+            if not system.within_limit(trial):  # would invert an element or turn a triad too far: a shorter step
                 mu = more(mu)
                 continue
             ft, Kt, et = system.evaluate(trial)
@@ -507,7 +616,7 @@ def _minimize(system: NonlinearSystem, conf: Configuration, F: np.ndarray, tol: 
             mu = mu / 4.0 if mu > 1e-6 else 0.0
         elif ratio < 0.25:
             mu = more(mu)
-        if newton and np.abs(full[:, :3]).max() <= 1e-12 * system.size:  # a Newton step that moved nothing
+        if newton and np.abs(full[:, :3]).max() <= system.resolution(conf):  # a Newton step that moved nothing
             history.append(float(np.linalg.norm(f[free] - F[free])))
             return history, True
     return history, False

@@ -225,7 +225,12 @@ def corotated_stress(F: np.ndarray, lam: float, mu: float, tangent: bool = True)
     A = B - B.swapaxes(-1, -2)
     y = np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], axis=-1)  # (m, 3, 3, 3)
     Tm = (trE + 3.0)[:, None, None] * I - S
-    w = np.linalg.solve(Tm[:, None, None], y[..., None])[..., 0]
+    try:
+        w = np.linalg.solve(Tm[:, None, None], y[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # two principal stretches sum to zero (an element flattened or turned
+        # inside out through a symmetric state): dR is not unique there; the least-norm one keeps the
+        # tangent finite, and the solvers refuse such a state (CorotationalTets.inverted)
+        w = np.einsum("mij,mcdj->mcdi", np.linalg.pinv(Tm), y)
     dR = np.einsum("mab,mcdbe->mcdae", R, cross_matrices(w))
     dP = (2 * mu * np.eye(9).reshape(3, 3, 3, 3)[None].transpose(0, 3, 4, 1, 2)
           + (lam * trE - 2 * mu)[:, None, None, None, None] * dR
@@ -248,6 +253,7 @@ class CorotationalTets:
 
     def __init__(self, X: np.ndarray, material: Material, element: str) -> None:
         self.lam, self.mu = _lame(material)
+        self._X = X  # the reference nodes (the inversion check's corner gradients are taken from them)
         pts, wts = (np.zeros((1, 3)), np.full(1, 1.0 / 6.0)) if element == "tet4" else tet_rule(2)
         _, dN = shape_functions(element, pts)
         self.G, self.wdet = [], []
@@ -258,6 +264,24 @@ class CorotationalTets:
 
     def _stress(self, F: np.ndarray, tangent: bool):
         return corotated_stress(F, self.lam, self.mu, tangent)
+
+    def inverted(self, x: np.ndarray) -> np.ndarray:
+        """(m,) mask of the elements turned inside out in deformed nodes x (m, k, 3): det F <= 0 at a
+        quadrature point, or (tet10) at a corner, where the curved element can fold while its
+        quadrature points do not. The corotated law's polar decomposition gives such a state a
+        finite energy and force (a proper rotation with a negative stretch), so a solve can
+        converge onto it: the solvers refuse it instead."""
+        if not hasattr(self, "_G_check"):  # the gradients at the corners, once (tet10 only)
+            self._G_check = list(self.G)
+            if x.shape[1] == 10:
+                _, dN = shape_functions("tet10", np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                                                            [0.0, 0.0, 1.0]]))
+                X0 = self._X
+                self._G_check += [_gradients(X0, dN[q])[0] for q in range(4)]
+        bad = np.zeros(x.shape[0], dtype=bool)
+        for G in self._G_check:
+            bad |= np.linalg.det(np.einsum("mka,mkb->mab", x, G)) <= 0.0
+        return bad
 
     def evaluate(self, x: np.ndarray, tangent: bool = True):
         """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies

@@ -196,6 +196,23 @@ class SolidModel(FEModel):
                 self.fixed[mids[self.fixed[i, d] & self.fixed[j, d]], d] = True
         return self
 
+    def complete_motion(self, P: np.ndarray) -> np.ndarray:
+        """A prescribed motion (n, 3) of fixed dofs, completed where :meth:`fix` held nodes the user did
+        not name: on tet10, a mid-edge node held because its two corners are held (and given no motion
+        of its own, zero) moves with the mean of its corners' motions in that dof, the straight edge
+        a quadratic element keeps under a motion given at its corners. Without this a jaw's corners
+        moved 2.25 mm pulled against mid-edge nodes left at rest: 13.6 N against CalculiX's 0.09 N.
+        A mid-edge node given a motion of its own keeps it. Returns a new array."""
+        P = np.array(P, dtype=float)
+        if self.element != "tet10" or not P.any():
+            return P
+        keys, mids = self._edge_mids()
+        i, j = keys // self.n_nodes, keys % self.n_nodes
+        for d in range(3):
+            follow = self.fixed[i, d] & self.fixed[j, d] & self.fixed[mids, d] & (P[mids, d] == 0.0)
+            P[mids[follow], d] = 0.5 * (P[i[follow], d] + P[j[follow], d])
+        return P
+
     def _node_graph(self) -> sp.csr_matrix:
         return self.tetmesh.adjacency()
 
