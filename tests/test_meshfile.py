@@ -104,6 +104,28 @@ def test_broken_files_raise_mesh_error(tmp_path):
         rt.load_mesh(nan, scale=-1)
 
 
+@pytest.mark.parametrize("cells, types, what", [
+    ("CELLS 2 9\n4 0 1 2 3\n3 0 1 2", "10\n10", "cell 1 is VTK type 10 .tetra. with 3 node indices, not 4"),
+    ("CELLS 2 8\n3 0 1 2\n3 0 1 3", "5\n10", "cell 1 is VTK type 10 .tetra. with 3 node indices, not 4"),
+    ("CELLS 2 9\n3 0 1 2\n4 0 1 3 2", "5\n5", "cell 1 is VTK type 5 .triangle. with 4 node indices, not 3"),
+    ("CELLS 1 3\n2 0 1", "7", "cell 0 is VTK type 7 .polygon. with 2 node indices, not at least 3"),
+])
+def test_a_ragged_legacy_vtk_cell_list_is_a_mesh_error(tmp_path, cells, types, what):
+    """Cells whose index count does not match their VTK type (issue 53): a ValueError traceback from
+    numpy's stacking before; one MeshError naming the cell, and the CLI's exit 2."""
+    f = tmp_path / "ragged.vtk"
+    f.write_text("# vtk DataFile Version 3.0\nr\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS 4 float\n"
+                 f"0 0 0 1 0 0 0 1 0 0 0 1\n{cells}\nCELL_TYPES {types.count(chr(10)) + 1}\n{types}\n")
+    with pytest.raises(rt.MeshError, match=what):
+        rt.load_mesh(f)
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "rtfem.cli.main", "info", str(f)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "node indices" in r.stderr
+
+
 
 
 def test_obj_reader_takes_negative_and_slashed_indices(tmp_path):

@@ -343,15 +343,25 @@ def _vtk_strips(rows: list[np.ndarray]) -> list[np.ndarray]:
     return [(r[[j, j + 1, j + 2]] if j % 2 == 0 else r[[j + 1, j, j + 2]])[None, :] for r in rows for j in range(len(r) - 2)]
 
 
+# VTK cell types rtfem reads: the name meshio gives it and its node count (0: a polygon, any count from 3)
+_VTK_TYPES = {5: ("triangle", 3), 9: ("quad", 4), 7: ("polygon", 0), 10: ("tetra", 4), 24: ("tetra10", 10),
+              12: ("hexahedron", 8), 13: ("wedge", 6), 14: ("pyramid", 5), 25: ("hexahedron20", 20),
+              26: ("wedge15", 15), 27: ("pyramid13", 13), 29: ("hexahedron27", 27)}
+
+
 def _vtk_typed_cells(p: Path, cells_conn, types: np.ndarray) -> tuple[list[np.ndarray], np.ndarray | None]:
     """UNSTRUCTURED_GRID cells by VTK type: (triangle 5, quad 9, polygon 7) as triangles, and
     the tets (tetra 10, quadratic tetra 24) when there are any."""
     if cells_conn is None or len(cells_conn) != types.size:
         raise MeshError(f"{str(p)!r}: CELL_TYPES does not match CELLS")
     cells = []
-    for t, name in {5: "triangle", 9: "quad", 7: "polygon", 10: "tetra", 24: "tetra10", 12: "hexahedron", 13: "wedge",
-                    14: "pyramid", 25: "hexahedron20", 26: "wedge15", 27: "pyramid13", 29: "hexahedron27"}.items():
+    for t, (name, size) in _VTK_TYPES.items():
         sel = [np.asarray(cells_conn[i]) for i in np.flatnonzero(types == t)]
+        short = [i for i, c in zip(np.flatnonzero(types == t), sel) if (len(c) != size if size else len(c) < 3)]
+        if short:  # a ragged list: numpy would stack it into an error of its own
+            i = short[0]
+            raise MeshError(f"{str(p)!r}: cell {i} is VTK type {t} ({name}) with {len(cells_conn[i])} node indices, "
+                            f"not {size or 'at least 3'} (a damaged CELLS list or wrong CELL_TYPES); re-export the mesh")
         if sel and name != "polygon":
             cells.append((name, np.array(sel)))
         elif sel:
