@@ -1,6 +1,9 @@
 import subprocess
 import sys
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 import rtfem as rt
 
@@ -53,3 +56,17 @@ def test_info_gives_the_extent_in_metres_and_says_when_it_looks_like_millimetres
     rt.save_mesh(rt.TriMesh(np.asarray(rt.meshes.liver(2).vertices) * 1e3, rt.meshes.liver(2).triangles), path)
     assert main(["info", str(path)]) == 0
     assert "--scale 1e-3" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args", [["info", "--solid", "--scale", "1e-6"], ["modes", "--scale", "1e-6", "-n", "4"],
+                                  ["info", "examples/organ.stl", "--solid", "--scale", "1e-6"]])
+def test_a_micron_organ_is_refused_before_any_work(args, capsys, monkeypatch):
+    """A scale that makes an organ under 1 mm across (issue 53: `rtfem info --solid --scale 1e-6` took
+    it, and meshed it) is a units mistake: exit 2 with the size and the fix, before any meshing."""
+    from rtfem.mesh import meshing
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    monkeypatch.setattr(meshing, "cached_tetrahedralize", lambda *a, **k: pytest.fail("meshed a micron organ"))
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "m across after --scale 1e-06" in err and "at least 1 mm" in err

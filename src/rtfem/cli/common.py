@@ -148,6 +148,7 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
               "pip install 'rtfem[mesh]' (make installs it) to mesh a closed organ into tets", flush=True)
         solid = False
     if path is None:
+        _check_organ_size(meshes.liver(), "the embedded liver", scale, factor=scale)  # before any meshing
         if solid:  # True, or "auto": the embedded liver is closed
             spacing = None if edge_length is None else edge_length / scale
             if not is_cached(meshes.liver(3), spacing):
@@ -158,6 +159,7 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
             mesh = meshes.liver()
         return mesh if scale == 1.0 else mesh.scaled(scale)
     mesh = load_mesh(path, scale=scale)
+    _check_organ_size(mesh, path, scale)
     if solid == "auto" and not isinstance(mesh, TetMesh):
         solid = mesh.is_closed()
         if not solid:
@@ -166,6 +168,22 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
         print(f"meshing     {path} into tets (fTetWild) ...", flush=True)
         mesh = cached_tetrahedralize(mesh, edge_length)
     return mesh
+
+
+SMALLEST_ORGAN = 1e-3  # m: a mesh smaller than this across is a units mistake (a scale given twice, microns)
+
+
+def _check_organ_size(mesh, name: str, scale: float, factor: float = 1.0) -> None:
+    """Refuse a mesh under :data:`SMALLEST_ORGAN` across (times ``factor``, the scale still to be
+    applied): the commands read coordinates as metres, and an organ (or a tissue sample) is
+    millimetres to metres across."""
+    lo, hi = mesh.bounds()
+    size = float(np.max(hi - lo)) * factor
+    if size < SMALLEST_ORGAN:
+        hint = f" after --scale {scale:g}" if scale != 1.0 else ""
+        raise RtfemError(f"{name} is {size:.3g} m across{hint}: the commands read coordinates as metres and an organ is "
+                         f"at least {SMALLEST_ORGAN * 1e3:g} mm across; check --scale (1e-3 turns millimetres into "
+                         "metres; a file already in metres needs none)")
 
 
 def fixed_nodes(mesh, spec: str | None, option: str = "--fix") -> tuple[np.ndarray, str]:
