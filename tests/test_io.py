@@ -64,3 +64,81 @@ def test_an_atomic_write_that_fails_leaves_the_old_file_and_no_temporary(tmp_pat
     with atomic_target(target) as tmp:
         tmp.write_text("new")
     assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt"]
+
+
+def test_a_save_killed_while_it_writes_leaves_no_file_behind(tmp_path):
+    """SIGKILL in the middle of a versioned save (issue 53: its temporary file stayed until the next save
+    of that name): the file being written has no name until it is complete (O_TMPFILE), so nothing is
+    left, and the old file is untouched."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+
+    if not hasattr(os, "O_TMPFILE"):
+        pytest.skip("no O_TMPFILE on this system: the named temporary file is swept at the next save instead")
+    target = tmp_path / "basis.npz"
+    save_versioned(target, "rtfem.Test", 1, {"a": np.arange(3.0)}, {})
+    before = target.read_bytes()
+    code = textwrap.dedent(f"""
+        import time
+        import numpy as np
+        from rtfem import storage
+
+        def hung(fh, **arrays):  # a save that writes a megabyte, then hangs until it is killed
+            fh.write(b"x" * 1000000)
+            fh.flush()
+            print("writing", flush=True)
+            time.sleep(120)
+
+        np.savez = hung
+        storage.save_versioned({str(target)!r}, "rtfem.Test", 1, {{"a": np.zeros(10)}}, {{}})
+    """)
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "writing"
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["basis.npz"] and target.read_bytes() == before
+
+
+def test_a_save_sweeps_the_temporary_files_of_killed_saves_from_its_folder(tmp_path):
+    """A named temporary file a killed writer left (``atomic_target``'s, for writers that need a path)
+    goes at the next save into the folder, whatever that save's name; a live process's stays."""
+    import os
+
+    dead = 2**22 + 12345  # above Linux's default pid_max (4,194,304): no such process
+    stale = tmp_path / f".mesh.vtu.{dead}.abc123.tmp.vtu"
+    live = tmp_path / f".mesh.vtu.{os.getpid()}.def456.tmp.vtu"
+    for f in (stale, live):
+        f.write_text("half")
+    save_versioned(tmp_path / "other.npz", "rtfem.Test", 1, {"a": np.zeros(2)}, {})
+    assert not stale.exists() and live.exists()
+    with atomic_target(tmp_path / "notes.txt") as tmp:
+        tmp.write_text("x")
+    assert live.exists() and sorted(f.name for f in tmp_path.iterdir() if not f.name.startswith(".")) == \
+        ["notes.txt", "other.npz"]
+
+
+@pytest.mark.parametrize("without", ["linkat", "O_TMPFILE"])
+def test_a_versioned_save_without_anonymous_files_still_replaces_in_one_step(tmp_path, monkeypatch, without):
+    """Where the system has no linkat through /proc or no O_TMPFILE, the save falls back on a named
+    temporary file renamed over the target: the same file, and no temporary left."""
+    import os
+
+    from rtfem import storage
+
+    if without == "linkat":
+        monkeypatch.setattr(storage, "_link", lambda fd, name: False)
+    else:
+        monkeypatch.delattr(os, "O_TMPFILE", raising=False)
+    target = tmp_path / "x.npz"
+    for value in (1.0, 2.0):
+        save_versioned(target, "rtfem.Test", 1, {"a": np.full(4, value)}, {"v": value})
+        arrays, info = load_versioned(target, "rtfem.Test", 1, ["a"], "test")
+        assert np.array_equal(arrays["a"], np.full(4, value)) and info["v"] == value
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["x.npz"]

@@ -4,8 +4,11 @@ atomically (a temporary file beside the target, replaced in one step)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import re
+import shutil
 import tempfile
 import zlib
 from pathlib import Path
@@ -16,7 +19,7 @@ import numpy as np
 from . import validate
 from .errors import ModelError
 
-__all__ = ["save_versioned", "load_versioned", "atomic_target"]
+__all__ = ["save_versioned", "load_versioned", "atomic_target", "atomic_stream", "sweep"]
 
 
 @contextlib.contextmanager
@@ -35,9 +38,7 @@ def atomic_target(path: str | os.PathLike, what: str = "file") -> Iterator[Path]
     parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        for old in parent.glob(f".{path.name}.*.tmp{path.suffix}"):  # left by a save that was killed
-            if process_gone(old.name[len(path.name) + 2:].split(".")[0]):
-                old.unlink(missing_ok=True)
+        sweep(parent)
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=parent)
     except OSError as exc:
         raise ModelError(f"cannot write the {what} {str(path)!r}: {exc.strerror or exc}") from None
@@ -59,6 +60,88 @@ def atomic_target(path: str | os.PathLike, what: str = "file") -> Iterator[Path]
         if tmp is not None:
             with contextlib.suppress(OSError):
                 tmp.unlink()
+
+
+_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<pid>[0-9]+)\.[^.]+\.tmp[^/]*$")
+
+
+def sweep(folder: Path) -> None:
+    """Remove the temporary files that saves killed before they finished left in ``folder``
+    (``.<name>.<pid>.<random>.tmp<suffix>`` whose process is gone): at every save into the folder,
+    whatever its name, so a killed save's file does not wait for the next save of the same name.
+    Another running process's temporary files are left alone."""
+    with contextlib.suppress(OSError):
+        for old in folder.glob(".*.tmp*"):
+            m = _TEMPORARY.match(old.name)
+            if m and process_gone(m["pid"]):
+                old.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def atomic_stream(path: Path, what: str = "file") -> Iterator:
+    """An open binary file whose content replaces ``path`` in one step on success, like
+    :func:`atomic_target`, but nameless while it is written where the system allows it (Linux's
+    O_TMPFILE): a save killed at any moment (SIGKILL, a power cut) leaves no file behind. It is
+    given its temporary name only once complete and flushed, for the rename; elsewhere it is
+    :func:`atomic_target`'s named file."""
+    if path.is_dir():
+        raise ModelError(f"{str(path)!r} is a directory; give a file name for the {what}")
+    parent = path.parent
+    flag = getattr(os, "O_TMPFILE", 0)
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        sweep(parent)
+        fd = os.open(parent, flag | os.O_RDWR, 0o666 & ~_umask()) if flag else -1
+    except OSError as exc:
+        if flag and exc.errno in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT):
+            fd = -1  # this file system has no anonymous files
+        else:
+            raise ModelError(f"cannot write the {what} {str(path)!r}: {exc.strerror or exc}") from None
+    if fd < 0:
+        with atomic_target(path, what) as tmp, open(tmp, "wb") as fh:
+            yield fh
+        return
+    try:
+        with os.fdopen(fd, "w+b") as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+            if path.exists():
+                os.fchmod(fh.fileno(), path.stat().st_mode & 0o777)
+            name = parent / f".{path.name}.{os.getpid()}.{os.urandom(4).hex()}.tmp{path.suffix}"
+            if not _link(fh.fileno(), name):  # no linkat here: copy it into a named file
+                fh.seek(0)
+                with atomic_target(path, what) as tmp, open(tmp, "wb") as out:
+                    shutil.copyfileobj(fh, out, 1 << 22)
+                return
+            try:
+                os.replace(name, path)
+            except BaseException:
+                name.unlink(missing_ok=True)
+                raise
+    except OSError as exc:
+        raise ModelError(f"cannot write the {what} {str(path)!r}: {exc.strerror or exc}; the previous file, if any, is "
+                         "unchanged") from None
+
+
+def _link(fd: int, name: Path) -> bool:
+    """Give the anonymous file ``fd`` the name ``name``: linkat(2) of /proc/self/fd/N with
+    AT_SYMLINK_FOLLOW, as open(2) documents for O_TMPFILE (Python's os.link links the /proc entry
+    itself, which fails across file systems). False where that call is not available."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        at_fdcwd, at_symlink_follow = -100, 0x400
+        done = libc.linkat(at_fdcwd, f"/proc/self/fd/{fd}".encode(), at_fdcwd, os.fsencode(name), at_symlink_follow)
+    except (OSError, AttributeError):
+        return False
+    if done != 0:
+        err = ctypes.get_errno()
+        if err in (errno.ENOSYS, errno.ENOENT, errno.EXDEV, errno.EPERM, errno.EOPNOTSUPP):
+            return False
+        raise OSError(err, os.strerror(err))
+    return True
 
 
 def _umask() -> int:
@@ -97,10 +180,9 @@ def save_versioned(path: str | os.PathLike, kind: str, version: int, arrays: dic
     text = json.dumps(dict(info), default=_json_default)
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
     sums = json.dumps({k: _checksum(v) for k, v in arrays.items()})
-    with atomic_target(path, kind.split(".")[-1]) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, format=np.array(kind), version=np.array(version), info_json=np.array(text),
-                     checksums=np.array(sums), **arrays)
+    with atomic_stream(path, kind.split(".")[-1]) as fh:
+        np.savez(fh, format=np.array(kind), version=np.array(version), info_json=np.array(text),
+                 checksums=np.array(sums), **arrays)
     return path
 
 
