@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import csv
+import os
 import subprocess
 import sys
+import time
 import urllib.request
 
 import numpy as np
@@ -265,3 +267,29 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
     assert rc == 0 and "of a 15 mm patch" in out, err
     rc, out, err = run(capsys, "simulate", "--local", 15, "--out", tmp_path / "bad")
     assert rc == 2 and "--method nonlinear" in err and "Traceback" not in err
+
+
+@needs_mesher
+def test_ctrl_c_while_meshing_exits_130_and_leaves_no_scratch(tmp_path):
+    """fTetWild's own SIGINT handler ended the process (-2) and left its scratch folder (issue 53): the
+    mesher runs in a child now, and Ctrl-C is the CLI's interrupt (exit 130, one line), with no scratch
+    folder, no cache entry and no mesher process left."""
+    import glob
+    import signal
+    import tempfile
+
+    env = dict(os.environ, RTFEM_CACHE=str(tmp_path / "cache"))
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "info", "--solid", "--edge-length", "0.0015"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert "meshing" in p.stdout.readline()
+        time.sleep(1.5)  # fTetWild at work (this edge length takes 5-10 s)
+        assert glob.glob(f"{tempfile.gettempdir()}/rtfem-tetwild-{p.pid}-*"), "the mesher was not running"
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, (p.returncode, err)
+    assert not glob.glob(f"{tempfile.gettempdir()}/rtfem-tetwild-{p.pid}-*")
+    assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").iterdir())

@@ -10,14 +10,13 @@ vertex groups are carried over to the nearest new surface nodes.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import importlib.util
+import json
 import os
 import shutil
-import signal
+import subprocess
+import sys
 import tempfile
-import threading
 from functools import lru_cache
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from scipy.spatial import cKDTree
 from .. import validate
 from ..errors import MeshError, RtfemError
 from ..storage import load_versioned, save_versioned
+from ._tetwild import find_wrapper
 from .surface import TriMesh
 from .tetmesh import TetMesh
 
@@ -37,49 +37,13 @@ _EXTRA = "pip install 'rtfem[mesh]' (make installs it)"
 
 @lru_cache(maxsize=1)
 def _wrapper():
-    """fTetWild's compiled entry point, or None. pytetwild's package __init__ imports pyvista (a
-    hard import of an optional dependency in 0.3-0.4); the extension module itself needs only
-    numpy, so it is loaded directly when that import fails."""
-    try:
-        from pytetwild import PyfTetWildWrapper  # noqa: PLC0415
-
-        return PyfTetWildWrapper
-    except ImportError:
-        pass
-    spec = importlib.util.find_spec("pytetwild")
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    for f in Path(list(spec.submodule_search_locations)[0]).glob("PyfTetWildWrapper*"):
-        if f.suffix in (".so", ".pyd"):
-            s = importlib.util.spec_from_file_location("pytetwild.PyfTetWildWrapper", f)
-            module = importlib.util.module_from_spec(s)
-            s.loader.exec_module(module)  # type: ignore[union-attr]
-            return module
-    return None
-
-
-_CWD_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def _scratch_directory():
-    """Run in a temporary working directory: fTetWild writes ``__tracked_surface.stl`` (a debug
-    copy of its envelope) into the current directory, which would litter, or overwrite a file of
-    that name in, the user's folder. The working directory is process-wide: meshing calls are
-    serialized, and another thread's relative paths would see the scratch folder meanwhile."""
-    _remove_stale_scratch()
-    with _CWD_LOCK, tempfile.TemporaryDirectory(prefix=f"rtfem-tetwild-{os.getpid()}-") as scratch:
-        old = os.getcwd()
-        os.chdir(scratch)
-        try:
-            yield
-        finally:
-            os.chdir(old)
+    """fTetWild's compiled entry point in this process, or None (whether the mesh extra is here)."""
+    return find_wrapper()
 
 
 def _remove_stale_scratch() -> None:
-    """Remove the scratch folders of meshing processes that are gone (a process killed mid-mesh,
-    e.g. by fTetWild's own Ctrl-C handler, cannot remove its own)."""
+    """Remove the scratch folders of meshing processes that are gone (a process killed mid-mesh
+    cannot remove its own)."""
     from ..storage import process_gone
 
     for path in Path(tempfile.gettempdir()).glob("rtfem-tetwild-*-*"):
@@ -87,20 +51,31 @@ def _remove_stale_scratch() -> None:
             shutil.rmtree(path, ignore_errors=True)
 
 
-@contextlib.contextmanager
-def _python_sigint():
-    """Keep Python's Ctrl-C handler: fTetWild installs its own, which outlives the call and would
-    make a later Ctrl-C kill the process instead of raising KeyboardInterrupt (losing finished
-    work). Re-installed always: fTetWild replaces the C-level handler behind Python's back, so
-    ``signal.getsignal`` still reports Python's (the README's ``rtfem view organ.stl`` then died
-    of a Ctrl-C with -2 instead of exiting 130)."""
-    main = threading.current_thread() is threading.main_thread()
-    handler = signal.getsignal(signal.SIGINT) if main else None
-    try:
-        yield
-    finally:
-        if main and handler is not None:
-            signal.signal(signal.SIGINT, handler)
+def _run_mesher(V: np.ndarray, F: np.ndarray, fac: float, epsilon: float, optimize: bool,
+                threads: int) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild on unit-sized V, F in a child process (:mod:`rtfem.mesh._tetwild`, run as a script)
+    working in a scratch folder of its own: fTetWild's debug surface does not litter the user's
+    folder, and Ctrl-C (its own SIGINT handler ended the whole process, leaving that folder) ends
+    the child; here it is a KeyboardInterrupt after the child is gone and the folder removed."""
+    _remove_stale_scratch()
+    args = json.dumps({"fac": float(fac), "epsilon": float(epsilon), "optimize": bool(optimize), "threads": int(threads)})
+    with tempfile.TemporaryDirectory(prefix=f"rtfem-tetwild-{os.getpid()}-") as scratch:
+        folder = Path(scratch)
+        np.save(folder / "V.npy", V)
+        np.save(folder / "F.npy", F)
+        child = subprocess.Popen([sys.executable, str(Path(__file__).with_name("_tetwild.py")), scratch, args],
+                                 cwd=scratch, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            _, err = child.communicate()
+        except BaseException:  # Ctrl-C (or anything else) while it meshes: the child goes first
+            child.kill()
+            child.wait()
+            raise
+        if child.returncode != 0:
+            lines = [line for line in err.splitlines() if line.strip()]
+            why = lines[-1] if lines else f"the mesher stopped (exit status {child.returncode})"
+            raise MeshError(f"fTetWild could not mesh the surface: {why}")
+        return np.load(folder / "X.npy"), np.load(folder / "T.npy")
 
 
 MAX_TETS = 3_000_000  # about what fTetWild meshes within this machine's memory (24 GB, a few kB a tet)
@@ -175,14 +150,8 @@ def tetrahedralize(surface: TriMesh, edge_length: float | None = None, *, epsilo
     centre = 0.5 * (np.min(surface.vertices, axis=0) + np.max(surface.vertices, axis=0))
     V = np.array((np.asarray(surface.vertices) - centre) / diag, dtype=np.float64, order="C")
     F = np.array(surface.triangles, dtype=np.uint32, order="C")
-    try:
-        with _scratch_directory(), _python_sigint():
-            X, T = wrapper.tetrahedralize_mesh(V, F, optimize, False, float(fac), 0.0, float(epsilon), 10.0,
-                                               False, threads, 80, 6, True, False, False, np.zeros((0, 3)),
-                                               np.zeros((0, 4), np.int32), np.zeros(0))
-    except Exception as exc:  # the mesher's own failures come as RuntimeError or its own types
-        raise MeshError(f"fTetWild could not mesh the surface: {exc}") from None
-    if T is None or len(T) == 0:
+    X, T = _run_mesher(V, F, fac, epsilon, optimize, threads)
+    if len(T) == 0:
         raise MeshError("fTetWild produced no tets: the surface encloses no volume the mesher could find "
                         "(is it flat, or made of sheets?)")
     mesh = TetMesh(np.asarray(X, dtype=float) * diag + centre, np.asarray(T, dtype=np.int64))
