@@ -14,6 +14,23 @@ of actual to predicted decrease: Nocedal & Wright, Numerical Optimization, 2nd e
 10.3); it ends at a stable equilibrium (positive definite Hessian), quadratically once the shift
 is zero. The dynamic reference (Newton inside implicit Newmark) is
 :class:`rtfem.drivers.nonlinear_newmark.NonlinearNewmarkSimulator`.
+
+Load stepping against the trust region (issue 60). Measured on a strip under P L^2 / EI = 1, 2, 4
+asked in one step: Newton diverges, and halving takes 19, 44, 69 Newton iterations in 2, 5, 9
+steps where the trust region on the whole step took 4 + 39, 4 + 56, 4 + 65, wandering at
+residuals up to 132 times the load (0.19 against 0.6 s at P L^2 / EI = 1); on a shell pulled into
+a tent in one step, where Newton stalls, the trust region takes 30 + 11 iterations where halving
+takes 30 + 17. Hence "auto": a divergence halves the step, a stall calls the trust region.
+
+Round-off floor. The residual cannot fall below the granularity of the state: the displacements
+are doubles, so moving every one by one unit in the last place (|u| * 2.2e-16) changes the
+internal forces by about eps |u| times the stiffest (membrane) stiffness. On a slender
+corotational shell that is far above eps times the load: on the 10 m strip of 0.1 m thickness
+bent by P L^2 / EI = 1 (tip displacements of 3 m, membrane stiffness E t = 1.2e5 N/m against a
+1 N load), one-ulp moves of u change the residual by 6e-10 of the load, and Newton ends at 1e-9 to
+2e-9 of it, on any BLAS or factorization (PARDISO, SuperLU, MKL_CBWR=COMPATIBLE). No solver of a
+double-precision state goes lower; a tolerance below that floor ends on the second test (a
+correction below :meth:`NonlinearSystem.resolution`).
 """
 
 from __future__ import annotations
@@ -27,158 +44,12 @@ from scipy.spatial.transform import Rotation
 
 from .. import validate
 from ..errors import ModelError, SolverError
-from .linalg import factorize
+from .nonlinear_system import (LOCAL_ROTATION_LIMIT, Configuration, NonlinearSystem, inversion_refused,  # noqa: F401
+                               turn_refused)
 from .protocol import check_model
 from .rotations import rotation
 
 __all__ = ["Configuration", "NonlinearSystem", "NonlinearResult", "solve_static"]
-
-
-@dataclass
-class Configuration:
-    """A deformed state: translations u (n, 3) and, on a model with rotations, the nodal
-    rotation matrices Q (n, 3, 3) (None on a solid)."""
-
-    u: np.ndarray
-    Q: np.ndarray | None
-
-    @classmethod
-    def rest(cls, n_nodes: int, rotations: bool) -> "Configuration":
-        return cls(np.zeros((n_nodes, 3)), np.tile(np.eye(3), (n_nodes, 1, 1)) if rotations else None)
-
-    def copy(self) -> "Configuration":
-        return Configuration(self.u.copy(), None if self.Q is None else self.Q.copy())
-
-    def update(self, delta: np.ndarray) -> None:
-        """Add an increment of all dofs (n, dofs_per_node): translations add, rotations compose
-        (Q <- exp([w]x) Q with the spins w)."""
-        self.u += delta[:, :3]
-        if self.Q is not None:
-            moved = np.flatnonzero(np.any(delta[:, 3:] != 0, axis=1))
-            if moved.size:
-                self.Q[moved] = rotation(delta[moved, 3:]) @ self.Q[moved]
-
-    def rotation_vectors(self) -> np.ndarray | None:
-        """The nodal rotations as rotation vectors (n, 3) (None on a solid)."""
-        return None if self.Q is None else Rotation.from_matrix(self.Q).as_rotvec()
-
-
-class NonlinearSystem:
-    """The assembled corotational internal forces and consistent tangent of a model on its
-    free dofs (fixed dofs are eliminated; prescribed motions of them enter through the
-    configuration). Built by ``model.nonlinear()``; the element kernel and connectivity come
-    from the model's ``_corotational()``."""
-
-    def __init__(self, model) -> None:
-        check_model(model)
-        model.check_restrained()
-        self.model = model
-        self.kernel, self.cells = model._corotational()
-        self.dpn = model.dofs_per_node
-        self.rotations = self.dpn == 6
-        n_dofs = model.n_dofs
-        ne, k = self.cells.shape
-        nd = k * self.dpn
-        self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
-        self.free = model.free_dofs
-        pos = np.full(n_dofs, -1)
-        pos[self.free] = np.arange(self.free.size)
-        pe = pos[self.dofs]
-        rows = np.repeat(pe, nd, axis=1).ravel()
-        cols = np.tile(pe, (1, nd)).ravel()
-        self._keep = np.flatnonzero((rows >= 0) & (cols >= 0))
-        nf = self.free.size
-        keys = rows[self._keep].astype(np.int64) * nf + cols[self._keep]
-        uniq, self._slot = np.unique(keys, return_inverse=True)
-        indices = (uniq % nf).astype(np.int32)
-        indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
-        self._pattern = (indices, indptr, nf)
-        self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
-        self.turned = 0.0  # the largest local rotation (degrees) a solve refused
-        self.inverted = 0  # the most elements turned inside out in a configuration a solve refused
-
-    def expand(self, values: np.ndarray) -> np.ndarray:
-        """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
-        full = np.zeros(self.model.n_dofs)
-        full[self.free] = values
-        return full.reshape(self.model.n_nodes, self.dpn)
-
-    def evaluate(self, conf: Configuration, tangent: bool = True, history=None):
-        """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
-        unless ``tangent``) and the strain energy. ``history``: a viscoelastic law's (the
-        simulation's internal variables and its dt; :class:`rtfem.fe.viscoelastic.ViscoelasticTets`)."""
-        X = np.asarray(self.model.mesh.vertices)
-        x = (X + conf.u)[self.cells]
-        if self.rotations:
-            fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
-        elif history is not None:
-            fe, Ke, energy = self.kernel.evaluate(x, tangent, history)
-        else:
-            fe, Ke, energy = self.kernel.evaluate(x, tangent)
-        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
-        K = None
-        if tangent:
-            indices, indptr, nf = self._pattern
-            data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
-            K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
-            patch = getattr(self.kernel, "patch_tangent", None)  # tet4-anp: the nodes' patches couple
-            if patch is not None:
-                K = (K + patch(x)[self.free][:, self.free]).tocsr()
-        return f, K, float(energy.sum())
-
-    def deformed(self, conf: Configuration) -> np.ndarray:
-        """The elements' deformed nodes (m, k, 3) of a configuration."""
-        return (np.asarray(self.model.mesh.vertices) + conf.u)[self.cells]
-
-    def resolution(self, conf: Configuration) -> float:
-        """The smallest correction that still moves a node (m): 1e-12 of the model's extent, or a few
-        units in the last place of its farthest coordinate where that is coarser (a model carried 1 km
-        from the origin is resolved to 1e-12 m at best)."""
-        far = float(np.abs(np.asarray(self.model.mesh.vertices) + conf.u).max())
-        return max(1e-12 * self.size, 8.0 * np.finfo(float).eps * far)
-
-    def energy(self, conf: Configuration) -> float:
-        """The strain energy of a configuration."""
-        return self.evaluate(conf, tangent=False)[2]
-
-    def local_rotation(self, conf: Configuration) -> float:
-        """The largest rotation (degrees) of a shell's nodal triad relative to an element's
-        corotated frame (0 on a solid, whose polar decomposition has no such limit)."""
-        if not self.rotations:
-            return 0.0
-        X = np.asarray(self.model.mesh.vertices)
-        return float(self.kernel.local_rotations((X + conf.u)[self.cells], conf.Q[self.cells]).max())
-
-    def within_limit(self, conf: Configuration) -> bool:
-        """Whether the elements describe the configuration: no solid element turned inside out
-        (det F <= 0 at a quadrature point or a tet10 corner) and no shell triad turned
-        :data:`LOCAL_ROTATION_LIMIT` degrees from an element frame. The most elements inverted and the
-        largest turn refused are kept in ``inverted`` and ``turned`` (for the error message). No solver
-        reports convergence on a configuration outside the limit."""
-        if not self.rotations:
-            bad = int(np.count_nonzero(self.kernel.inverted(self.deformed(conf))))
-            self.inverted = max(self.inverted, bad)
-            return bad == 0
-        angle = self.local_rotation(conf)
-        if angle >= LOCAL_ROTATION_LIMIT:
-            self.turned = max(self.turned, angle)
-            return False
-        return True
-
-    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
-        """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
-        rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
-        SolverError (a symmetric matrix that must be positive definite)."""
-        order = lambda: self.model.dof_order(self.free)  # noqa: E731
-        if spd_only:
-            return factorize(K, spd=True, what=what, order=order)
-        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
-        if sym:
-            try:
-                return factorize(K, spd=True, what=what, order=order)
-            except SolverError:
-                pass  # indefinite (past a limit point, or compressed): LU below
-        return factorize(K, spd=False, what=what, order=order)
 
 
 @dataclass
@@ -259,29 +130,16 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         tangent) or "auto" (Newton; where Newton diverges, its residual growing a thousandfold,
         the step was too long for the tangent and is halved, Crisfield's load stepping, down to
         ``max_cuts`` times; where Newton stalls, or diverges on the last try, the trust region
-        on that step before it is halved). The trust region needs a
-        potential: dead forces, no moments (a dead moment does no path-independent work on
-        finite rotations). Measured on a strip under P L^2 / EI = 1, 2, 4 asked in one step:
-        Newton diverges, and halving takes 19, 44, 69 Newton iterations in 2, 5, 9 steps where
-        the trust region on the whole step took 4 + 39, 4 + 56, 4 + 65, wandering at residuals
-        up to 132 times the load (0.19 against 0.6 s at P L^2 / EI = 1); on a shell pulled
-        into a tent in one step, where Newton stalls, the trust region takes 30 + 11 where
-        halving takes 30 + 17.
+        on that step before it is halved; measured in the module's notes). The trust region
+        needs a potential: dead forces, no moments (a dead moment does no path-independent
+        work on finite rotations).
     progress : callback(done, total, message): done is the load factor reached (of 1.0), called after
         every Newton or trust-region iteration (the message says the step, the iteration and its
         residual) and every converged load step.
     time_limit : seconds (default 600) after which the solve stops with a SolverError holding the
         last equilibrium; None: no limit.
-
-    Round-off floor. The residual cannot fall below the granularity of the state: the
-    displacements are doubles, so moving every one by one unit in the last place (|u| * 2.2e-16)
-    changes the internal forces by about eps |u| times the stiffest (membrane) stiffness. On a
-    slender corotational shell that is far above eps times the load: on the 10 m strip of 0.1 m
-    thickness bent by P L^2 / EI = 1 (tip displacements of 3 m, membrane stiffness E t = 1.2e5
-    N/m against a 1 N load), one-ulp moves of u change the residual by 6e-10 of the load, and
-    Newton ends at 1e-9 to 2e-9 of it, on any BLAS or factorization (PARDISO, SuperLU,
-    MKL_CBWR=COMPATIBLE). No solver of a double-precision state goes lower; a tolerance below
-    that floor ends on the second test (a correction below :meth:`NonlinearSystem.resolution`).
+    The residual's round-off floor on a slender shell is far above eps times the load (1e-9 of it
+    on the module notes' strip): the granularity of a double-precision state; see the module.
 
     No step is accepted where a solid element is turned inside out (det F <= 0) or a shell triad
     turned past :data:`LOCAL_ROTATION_LIMIT` degrees: ``converged`` is never True on such a state.
@@ -291,10 +149,7 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     for bad arguments (nothing is computed then).
     """
     t0 = time.perf_counter()
-    check_model(model)
-    if not callable(getattr(model, "nonlinear", None)):
-        raise ModelError(f"model={validate.show(model)} has no nonlinear(): the geometrically nonlinear solve needs a "
-                         "ShellModel or a SolidModel")
+    _check_solver_model(model)
     progress = validate.progress(progress)
     if time_limit is not None:
         time_limit = validate.positive(time_limit, "time_limit", "seconds, or None for no limit")
@@ -307,56 +162,96 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
     max_cuts = validate.count(max_cuts, "max_cuts", 0, 60)
     method = validate.choice(method, "method", METHODS)
     n, dpn = model.n_nodes, model.dofs_per_node
+    conservative = _conservative(F, n, dpn, method)
+    system.turned, system.inverted = 0.0, 0  # the arguments are checked: this solve's refusals only
+    path = _LoadPath(system, F, P, _Settings(tol, max_iterations, max_cuts, method, conservative,
+                                             _Watch(t0, time_limit, progress)), t0)
+    try:
+        return path.run(1.0 / steps)
+    except _OutOfTime:
+        _fill(path.result, system, path.conf, t0, converged=False)
+        exc = SolverError(f"the nonlinear solve stopped at its time limit of {time_limit:g} s (time_limit=) at load "
+                          f"factor {path.applied:.4g}, after {path.settings.watch.iterations} iterations: the error's "
+                          "result holds the last equilibrium. Pass a longer time_limit (or None), more steps, or a "
+                          "coarser mesh")
+        exc.result = path.result
+        raise exc from None
+
+
+@dataclass
+class _Settings:
+    tol: float
+    max_iterations: int
+    max_cuts: int
+    method: str
+    conservative: bool
+    watch: "_Watch"
+
+
+class _LoadPath:
+    """The load steps of one static solve, from rest to the whole load: the last equilibrium
+    (``conf`` at load factor ``applied``) and what the result keeps of the way."""
+
+    def __init__(self, system: NonlinearSystem, F: np.ndarray, P: np.ndarray, settings: _Settings, t0: float) -> None:
+        model = system.model
+        self.system, self.F, self.P, self.settings, self.t0 = system, F, P, settings, t0
+        self.conf = Configuration.rest(model.n_nodes, model.dofs_per_node == 6)
+        self.applied = 0.0  # load factor of the last equilibrium
+        self.result = NonlinearResult(np.zeros((model.n_nodes, 3)), None, np.zeros((model.n_nodes, 3)))
+
+    def run(self, step: float) -> NonlinearResult:
+        """Load steps of ``step`` at first: doubled after an easy one, halved after a failed one."""
+        system, st, fixed_mask, result = self.system, self.settings, self.system.model.fixed, self.result
+        progress = st.watch.progress
+        cuts = 0
+        previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
+        while self.applied < 1.0 - 1e-12:
+            conf, applied = self.conf, self.applied
+            target = min(1.0, applied + step)
+            trial = conf.copy()
+            if previous is not None:  # secant predictor: continue the last step's motion
+                _extrapolate(trial, previous[0], (target - applied) / previous[1])
+            _move_supports(trial, self.P, fixed_mask, applied, target)
+            _carry_rigidly(trial, conf, system, fixed_mask)
+            st.watch.step = (applied, target)
+            trial, history, ok, used = _load_step(system, trial, target * self.F, st.tol, st.max_iterations,
+                                                  st.method, st.conservative, last=cuts >= st.max_cuts, watch=st.watch)
+            if ok:
+                previous = (conf, target - applied)
+                self.conf, self.applied = trial, target
+                result.load_factors.append(target)
+                result.residuals.append(history)
+                result.methods.append(used)
+                if cuts == 0 and len(history) <= (6 if used == "newton" else 12):
+                    step *= 2.0  # easy going: longer steps
+                cuts = 0
+                if progress is not None:
+                    progress(target, 1.0, f"load factor {target:.3g}")
+                continue
+            cuts += 1
+            if cuts > st.max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
+                _fill(result, system, conf, self.t0, converged=False)
+                raise _stalled(result, system, used, applied, st.max_cuts, step, history)
+            step *= 0.5
+        _fill(result, system, self.conf, self.t0, converged=True)
+        return result
+
+
+def _check_solver_model(model) -> None:
+    """A model the nonlinear solve can take: the Model protocol and ``nonlinear()``."""
+    check_model(model)
+    if not callable(getattr(model, "nonlinear", None)):
+        raise ModelError(f"model={validate.show(model)} has no nonlinear(): the geometrically nonlinear solve needs a "
+                         "ShellModel or a SolidModel")
+
+
+def _conservative(F: np.ndarray, n: int, dpn: int, method: str) -> bool:
+    """Whether the loads have a potential (no dead moments); the trust region needs one."""
     conservative = dpn == 3 or not F.reshape(n, dpn)[:, 3:].any()
     if method == "trust-region" and not conservative:
         raise ModelError("method='trust-region' minimizes the total potential, which dead moments do not have on finite "
                          "rotations: apply the moments as force couples, or use method='newton'")
-    system.turned, system.inverted = 0.0, 0  # the arguments are checked: this solve's refusals only
-    fixed_mask = model.fixed
-    conf = Configuration.rest(n, dpn == 6)
-    applied = 0.0  # load factor of the last equilibrium
-    result = NonlinearResult(np.zeros((n, 3)), None, np.zeros((n, 3)))
-    step = 1.0 / steps
-    cuts = 0
-    previous: tuple[Configuration, float] | None = None  # the equilibrium before, and the step to it
-    watch = _Watch(t0, time_limit, progress)
-    while applied < 1.0 - 1e-12:
-        target = min(1.0, applied + step)
-        trial = conf.copy()
-        if previous is not None:  # secant predictor: continue the last step's motion
-            _extrapolate(trial, previous[0], (target - applied) / previous[1])
-        _move_supports(trial, P, fixed_mask, applied, target)
-        _carry_rigidly(trial, conf, system, fixed_mask)
-        watch.step = (applied, target)
-        try:
-            trial, history, ok, used = _load_step(system, trial, target * F, tol, max_iterations, method,
-                                                  conservative, last=cuts >= max_cuts, watch=watch)
-        except _OutOfTime:
-            _fill(result, system, conf, t0, converged=False)
-            exc = SolverError(f"the nonlinear solve stopped at its time limit of {time_limit:g} s (time_limit=) at load "
-                              f"factor {applied:.4g}, after {watch.iterations} iterations: the error's result holds the "
-                              "last equilibrium. Pass a longer time_limit (or None), more steps, or a coarser mesh")
-            exc.result = result
-            raise exc from None
-        if ok:
-            previous = (conf, target - applied)
-            conf, applied = trial, target
-            result.load_factors.append(target)
-            result.residuals.append(history)
-            result.methods.append(used)
-            if cuts == 0 and len(history) <= (6 if used == "newton" else 12):
-                step *= 2.0  # easy going: longer steps
-            cuts = 0
-            if progress is not None:
-                progress(applied, 1.0, f"load factor {applied:.3g}")
-            continue
-        cuts += 1
-        if cuts > max_cuts or step < MIN_LOAD_STEP:  # halved too often, or in short steps down to nothing
-            _fill(result, system, conf, t0, converged=False)
-            raise _stalled(result, system, used, applied, max_cuts, step, history)
-        step *= 0.5
-    _fill(result, system, conf, t0, converged=True)
-    return result
+    return conservative
 
 
 class _OutOfTime(Exception):
@@ -417,29 +312,6 @@ def _stalled(result: NonlinearResult, system, used: str, applied: float, max_cut
 
 
 MIN_LOAD_STEP = 1e-9  # a load step halved below this fraction of the load ends the solve (it stalls there)
-# a shell triad may turn at most this far (degrees) from an element's corotated frame: the
-# element's rotational deformation is the rotation vector (log map) of that turn, exact up to 180
-# degrees, where its axis flips and a turn beyond costs less than it should (its derivatives grow
-# without bound on the way); an equilibrium beyond is not accepted
-LOCAL_ROTATION_LIMIT = 150.0
-
-
-def turn_refused(turned: float) -> str:
-    """Why a step that turns a shell triad ``turned`` degrees is refused, and what to do (the static
-    solver's and the corotational Newmark simulator's messages)."""
-    return (f"shell triad turned {turned:.0f} degrees from an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the "
-            "corotational shell describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
-            "the load over more nodes or refine the mesh there")
-
-
-def inversion_refused(count: int) -> str:
-    """Why a state with ``count`` elements turned inside out is refused, and what to do (the static
-    solver's and the corotational Newmark simulator's messages)."""
-    return (f"{count} element{'s' if count != 1 else ''} turned inside out (det F <= 0): no equilibrium of the "
-            "material there; a support or tool moved through the tissue, or a load too concentrated for the mesh. "
-            "Move it less, spread it over more nodes, or refine the mesh there")
-
-
 def _extrapolate(conf: Configuration, before: Configuration, ratio: float) -> None:
     """Move ``conf`` on by ``ratio`` times its change since ``before`` (rotations by the
     relative rotation's vector)."""

@@ -1,0 +1,190 @@
+"""The geometrically nonlinear system of a model: its corotational (or hyperelastic) internal forces
+and consistent tangent on the free dofs over a :class:`Configuration`, and the limits of what its
+elements describe (an element turned inside out, a shell triad turned too far), which no solver
+accepts. Built by ``model.nonlinear()``; solved by :func:`rtfem.fe.nonlinear.solve_static` and
+:class:`rtfem.drivers.nonlinear_newmark.NonlinearNewmarkSimulator`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from .linalg import factorize
+from .protocol import check_model
+from .rotations import rotation
+from ..errors import SolverError
+
+__all__ = ["Configuration", "NonlinearSystem", "LOCAL_ROTATION_LIMIT", "turn_refused", "inversion_refused"]
+
+
+@dataclass
+class Configuration:
+    """A deformed state: translations u (n, 3) and, on a model with rotations, the nodal
+    rotation matrices Q (n, 3, 3) (None on a solid)."""
+
+    u: np.ndarray
+    Q: np.ndarray | None
+
+    @classmethod
+    def rest(cls, n_nodes: int, rotations: bool) -> "Configuration":
+        return cls(np.zeros((n_nodes, 3)), np.tile(np.eye(3), (n_nodes, 1, 1)) if rotations else None)
+
+    def copy(self) -> "Configuration":
+        return Configuration(self.u.copy(), None if self.Q is None else self.Q.copy())
+
+    def update(self, delta: np.ndarray) -> None:
+        """Add an increment of all dofs (n, dofs_per_node): translations add, rotations compose
+        (Q <- exp([w]x) Q with the spins w)."""
+        self.u += delta[:, :3]
+        if self.Q is not None:
+            moved = np.flatnonzero(np.any(delta[:, 3:] != 0, axis=1))
+            if moved.size:
+                self.Q[moved] = rotation(delta[moved, 3:]) @ self.Q[moved]
+
+    def rotation_vectors(self) -> np.ndarray | None:
+        """The nodal rotations as rotation vectors (n, 3) (None on a solid)."""
+        return None if self.Q is None else Rotation.from_matrix(self.Q).as_rotvec()
+
+
+class NonlinearSystem:
+    """The assembled corotational internal forces and consistent tangent of a model on its
+    free dofs (fixed dofs are eliminated; prescribed motions of them enter through the
+    configuration). Built by ``model.nonlinear()``; the element kernel and connectivity come
+    from the model's ``_corotational()``."""
+
+    def __init__(self, model) -> None:
+        check_model(model)
+        model.check_restrained()
+        self.model = model
+        self.kernel, self.cells = model._corotational()
+        self.dpn = model.dofs_per_node
+        self.rotations = self.dpn == 6
+        n_dofs = model.n_dofs
+        ne, k = self.cells.shape
+        nd = k * self.dpn
+        self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
+        self.free = model.free_dofs
+        pos = np.full(n_dofs, -1)
+        pos[self.free] = np.arange(self.free.size)
+        pe = pos[self.dofs]
+        rows = np.repeat(pe, nd, axis=1).ravel()
+        cols = np.tile(pe, (1, nd)).ravel()
+        self._keep = np.flatnonzero((rows >= 0) & (cols >= 0))
+        nf = self.free.size
+        keys = rows[self._keep].astype(np.int64) * nf + cols[self._keep]
+        uniq, self._slot = np.unique(keys, return_inverse=True)
+        indices = (uniq % nf).astype(np.int32)
+        indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
+        self._pattern = (indices, indptr, nf)
+        self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
+        self.turned = 0.0  # the largest local rotation (degrees) a solve refused
+        self.inverted = 0  # the most elements turned inside out in a configuration a solve refused
+
+    def expand(self, values: np.ndarray) -> np.ndarray:
+        """Values on the free dofs as (n, dofs_per_node), zero on the fixed ones."""
+        full = np.zeros(self.model.n_dofs)
+        full[self.free] = values
+        return full.reshape(self.model.n_nodes, self.dpn)
+
+    def evaluate(self, conf: Configuration, tangent: bool = True, history=None):
+        """Internal forces on all dofs (n_dofs,), the tangent on the free dofs (sparse; None
+        unless ``tangent``) and the strain energy. ``history``: a viscoelastic law's (the
+        simulation's internal variables and its dt; :class:`rtfem.fe.viscoelastic.ViscoelasticTets`)."""
+        X = np.asarray(self.model.mesh.vertices)
+        x = (X + conf.u)[self.cells]
+        if self.rotations:
+            fe, Ke, energy = self.kernel.evaluate(x, conf.Q[self.cells], tangent)
+        elif history is not None:
+            fe, Ke, energy = self.kernel.evaluate(x, tangent, history)
+        else:
+            fe, Ke, energy = self.kernel.evaluate(x, tangent)
+        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
+        K = None
+        if tangent:
+            indices, indptr, nf = self._pattern
+            data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
+            K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
+            patch = getattr(self.kernel, "patch_tangent", None)  # tet4-anp: the nodes' patches couple
+            if patch is not None:
+                K = (K + patch(x)[self.free][:, self.free]).tocsr()
+        return f, K, float(energy.sum())
+
+    def deformed(self, conf: Configuration) -> np.ndarray:
+        """The elements' deformed nodes (m, k, 3) of a configuration."""
+        return (np.asarray(self.model.mesh.vertices) + conf.u)[self.cells]
+
+    def resolution(self, conf: Configuration) -> float:
+        """The smallest correction that still moves a node (m): 1e-12 of the model's extent, or a few
+        units in the last place of its farthest coordinate where that is coarser (a model carried 1 km
+        from the origin is resolved to 1e-12 m at best)."""
+        far = float(np.abs(np.asarray(self.model.mesh.vertices) + conf.u).max())
+        return max(1e-12 * self.size, 8.0 * np.finfo(float).eps * far)
+
+    def energy(self, conf: Configuration) -> float:
+        """The strain energy of a configuration."""
+        return self.evaluate(conf, tangent=False)[2]
+
+    def local_rotation(self, conf: Configuration) -> float:
+        """The largest rotation (degrees) of a shell's nodal triad relative to an element's
+        corotated frame (0 on a solid, whose polar decomposition has no such limit)."""
+        if not self.rotations:
+            return 0.0
+        X = np.asarray(self.model.mesh.vertices)
+        return float(self.kernel.local_rotations((X + conf.u)[self.cells], conf.Q[self.cells]).max())
+
+    def within_limit(self, conf: Configuration) -> bool:
+        """Whether the elements describe the configuration: no solid element turned inside out
+        (det F <= 0 at a quadrature point or a tet10 corner) and no shell triad turned
+        :data:`LOCAL_ROTATION_LIMIT` degrees from an element frame. The most elements inverted and the
+        largest turn refused are kept in ``inverted`` and ``turned`` (for the error message). No solver
+        reports convergence on a configuration outside the limit."""
+        if not self.rotations:
+            bad = int(np.count_nonzero(self.kernel.inverted(self.deformed(conf))))
+            self.inverted = max(self.inverted, bad)
+            return bad == 0
+        angle = self.local_rotation(conf)
+        if angle >= LOCAL_ROTATION_LIMIT:
+            self.turned = max(self.turned, angle)
+            return False
+        return True
+
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
+        """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
+        rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
+        SolverError (a symmetric matrix that must be positive definite)."""
+        order = lambda: self.model.dof_order(self.free)  # noqa: E731
+        if spd_only:
+            return factorize(K, spd=True, what=what, order=order)
+        sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
+        if sym:
+            try:
+                return factorize(K, spd=True, what=what, order=order)
+            except SolverError:
+                pass  # indefinite (past a limit point, or compressed): LU below
+        return factorize(K, spd=False, what=what, order=order)
+
+
+# a shell triad may turn at most this far (degrees) from an element's corotated frame: the
+# element's rotational deformation is the rotation vector (log map) of that turn, exact up to 180
+# degrees, where its axis flips and a turn beyond costs less than it should (its derivatives grow
+# without bound on the way); an equilibrium beyond is not accepted
+LOCAL_ROTATION_LIMIT = 150.0
+
+
+def turn_refused(turned: float) -> str:
+    """Why a step that turns a shell triad ``turned`` degrees is refused, and what to do (the static
+    solver's and the corotational Newmark simulator's messages)."""
+    return (f"shell triad turned {turned:.0f} degrees from an element's frame, past the {LOCAL_ROTATION_LIMIT:.0f} the "
+            "corotational shell describes: a kink sharper than the mesh can turn, as at a vertex pulled alone; spread "
+            "the load over more nodes or refine the mesh there")
+
+
+def inversion_refused(count: int) -> str:
+    """Why a state with ``count`` elements turned inside out is refused, and what to do (the static
+    solver's and the corotational Newmark simulator's messages)."""
+    return (f"{count} element{'s' if count != 1 else ''} turned inside out (det F <= 0): no equilibrium of the "
+            "material there; a support or tool moved through the tissue, or a load too concentrated for the mesh. "
+            "Move it less, spread it over more nodes, or refine the mesh there")
