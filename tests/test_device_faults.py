@@ -8,6 +8,7 @@ closed), and on OpenHaptics and Force Dimension against the stub libraries of te
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 
@@ -139,3 +140,227 @@ def test_the_devices_input_is_checked_before_the_servo(x, buttons, detail):
     assert np.array_equal(dev._tick(x, buttons), ZERO) and np.array_equal(dev.servo.force, ZERO)
     assert dev.stop_reason == f"the device sent input that is malformed or out of range: {detail}"
     assert dev.log == ["zero", "shutdown"]
+
+
+# ----------------------------------------------------------------- Haply, a hostile Inverse Service
+
+
+def _state(x="0.01", y="0.02", z="0.03", buttons='{"a": false, "b": false, "c": false}', device="05DA", pad=""):
+    """A state message as raw JSON text, so that a test can put anything in any field."""
+    return (f'{{"inverse3": [{{"device_id": "{device}", "state": {{"cursor_position": {{"x": {x}, "y": {y}, '
+            f'"z": {z}}}}}}}], "wireless_verse_grip": [{{"device_id": "61576", "state": {{"buttons": {buttons}}}}}]'
+            f'{pad}}}')
+
+
+SILENCE, CLOSE = "silence", "close"
+
+
+def _recv(ws):
+    try:
+        return ws.recv()
+    except Exception:  # the client closed
+        return None
+
+
+def _send(ws, frame):
+    try:
+        ws.send(frame)
+    except Exception:  # the client closed meanwhile: what it sent before is still read
+        pass
+
+
+class InverseService:
+    """A fake Inverse Service on loopback that records every command on every connection. It sends
+    good states until it has been commanded at least ``trigger`` N; then, once, it sends ``hostile``
+    (a text or binary frame) instead of the next state, or falls silent (SILENCE), or closes the
+    connection (CLOSE); after that it only records what it is sent, on any connection. With
+    ``hostile=None`` it only sends good states."""
+
+    def __init__(self, hostile, trigger=2.9):
+        from websockets.sync.server import serve
+
+        self.hostile, self.trigger = hostile, trigger
+        self.commands: list[tuple[int, list[float]]] = []  # (connection, force)
+        self.connections = self.open = 0
+        self.fired = False
+        self.lock = threading.Lock()
+        self.server = serve(self._handler, "127.0.0.1", 0, max_size=2**20)
+        self.url = f"ws://127.0.0.1:{self.server.socket.getsockname()[1]}"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def _handler(self, ws):
+        with self.lock:
+            self.connections += 1
+            self.open += 1
+            n = self.connections
+        try:
+            _send(ws, _state())
+            while True:
+                try:
+                    msg = json.loads(ws.recv())
+                except Exception:  # the client closed
+                    return
+                f = [msg["inverse3"][0]["commands"]["set_cursor_force"]["values"][c] for c in "xyz"]
+                self.commands.append((n, f))
+                if self.fired:
+                    continue
+                if self.hostile is not None and np.linalg.norm(f) >= self.trigger:
+                    self.fired = True
+                    if self.hostile == CLOSE:
+                        ws.close()
+                        return
+                    if self.hostile != SILENCE:
+                        _send(ws, self.hostile)
+                    continue
+                time.sleep(0.0005)
+                _send(ws, _state())
+        finally:
+            with self.lock:
+                self.open -= 1
+
+    def stop(self):
+        self.server.shutdown()
+
+
+def _haply_fault(hostile, *, timeout=2.0, inject=None):
+    """Open a Haply on an InverseService sending ``hostile``, command 3 N, wait for the fault: (the
+    service, the device)."""
+    service = InverseService(hostile)
+    try:
+        dev = rt.devices.Haply(service.url, workspace=Workspace(), max_force=5.0, max_rate=1e5, watchdog=10**6,
+                               timeout=timeout)
+        try:
+            if inject is not None:
+                inject(dev)
+            dev.set_force(0.0, [0.0, 0.0, 3.0])
+            _until(lambda: dev.stop_reason is not None and not dev._thread.is_alive())
+            _until(lambda: service.open == 0)  # every connection closed
+        finally:
+            dev.close()
+    finally:
+        service.stop()
+    return service, dev
+
+
+def _assert_zero_last(service, *, connections=1):
+    forces = [f for _, f in service.commands]
+    assert [0.0, 0.0, 3.0] in forces  # 3 N was commanded before the fault
+    assert service.commands[-1][1] == ZERO  # and the last command the service received is an explicit zero
+    assert service.connections == connections and service.open == 0
+
+
+REFUSED = "the device sent input that is malformed or out of range: the Inverse Service's message: "
+HOSTILE = {
+    "not JSON": ("not the service's json", "not JSON (JSONDecodeError: Expecting value: line 1 column 1 (char 0))"),
+    "NaN": (_state(x="NaN"), "NaN where a number belongs (JSON has no such value)"),
+    "Infinity": (_state(z="-Infinity"), "-Infinity where a number belongs (JSON has no such value)"),
+    "1e400": (_state(y="1e400"), "cursor_position.y = inf m is not a finite coordinate within 10 m of the service's "
+                                 "origin"),
+    "a JSON list": ("[1, 2, 3]", "a JSON list, not an object"),
+    "a binary frame": (b"\x00\x01\x02", "a binary frame of 3 bytes, not the service's JSON text"),
+    "a 400-digit integer": (_state(x="9" * 400), "cursor_position.x is an integer of about 10^400 m, beyond 10 m of "
+                                                 "the service's origin"),
+    "nested 30,000 deep": ("[" * 30000 + "]" * 30000, "30000 JSON objects and arrays (nested or not), over 256"),
+    "2,000 buttons": (_state(buttons="{" + ", ".join(f'"b{i}": true' for i in range(2000)) + "}"),
+                      "2000 buttons on the VerseGrip, over 32"),
+    "x = true, y = '0.01'": (_state(x="true", y='"0.01"'), "cursor_position.x is True, not a number"),
+    "y = '0.01'": (_state(y='"0.01"'), "cursor_position.y is '0.01', not a number"),
+    "11 m away": (_state(x="11.0"), "cursor_position.x = 11.0 m is not a finite coordinate within 10 m of the "
+                                    "service's origin"),
+    "a button 'yes'": (_state(buttons='{"a": "yes"}'), "button 'a' is 'yes', not true or false"),
+    "another device": (_state(device="0000"), "no state for Inverse3 '05DA'"),
+    "no cursor": ('{"inverse3": [{"device_id": "05DA", "state": {}}]}',
+                  "inverse3[0].state.cursor_position is None, not a JSON object"),
+}
+
+
+@pytest.mark.parametrize("case", list(HOSTILE))
+def test_haply_a_hostile_frame_ends_in_a_zero_force_command_and_a_closed_connection(case):
+    frame, detail = HOSTILE[case]
+    service, dev = _haply_fault(frame)
+    _assert_zero_last(service)
+    assert dev.stop_reason == REFUSED + detail
+    with pytest.raises(rt.DeviceError, match="open a new rt.devices.Haply"):
+        dev.restart()
+
+
+@pytest.mark.parametrize("case, frame", [("nested 100,000 deep", "[" * 100000 + "]" * 100000),
+                                         ("a 1 MB frame", _state(pad=', "pad": "' + "x" * 2**20 + '"'))])
+def test_haply_a_frame_over_64_kib_is_refused_unread_and_zero_commanded_on_a_new_connection(case, frame):
+    service, dev = _haply_fault(frame)
+    _assert_zero_last(service, connections=2)  # the refused frame closed the first connection
+    assert service.commands[-1][0] == 2
+    assert dev.stop_reason == ("the device sent input that is malformed or out of range: the Inverse Service sent a "
+                               "frame the WebSocket layer refused (close code 1009: over 64 KiB)")
+
+
+def test_haply_silence_ends_in_a_zero_force_command_and_a_closed_connection():
+    service, dev = _haply_fault(SILENCE, timeout=0.3)
+    _assert_zero_last(service)
+    assert dev.stop_reason == "the device disconnected: no state from the Inverse Service for 0.3 s"
+
+
+def test_haply_a_closed_connection_ends_in_a_zero_force_command_on_a_new_one():
+    service, dev = _haply_fault(CLOSE)
+    _assert_zero_last(service, connections=2)
+    assert dev.stop_reason == "the device disconnected: the Inverse Service closed the connection"
+
+
+@pytest.mark.parametrize("error", [RecursionError("injected"), OverflowError("injected"), MemoryError("injected")])
+def test_haply_an_exception_on_the_servo_thread_is_a_fault(error):
+    """What killed the thread before (a RecursionError, an OverflowError), from anywhere in the tick."""
+
+    def inject(dev):
+        tick = dev.servo.tick
+
+        def failing(x, buttons=0):
+            if np.linalg.norm(dev.servo.force) > 2.9:  # once 3 N is being rendered
+                raise error
+            return tick(x, buttons)
+
+        dev.servo.tick = failing
+
+    service = InverseService(None)  # never hostile: the adapter fails on its own
+    try:
+        dev = rt.devices.Haply(service.url, workspace=Workspace(), max_force=5.0, max_rate=1e5, watchdog=10**6)
+        inject(dev)
+        dev.set_force(0.0, [0.0, 0.0, 3.0])
+        _until(lambda: dev.stop_reason is not None and not dev._thread.is_alive())
+        _until(lambda: service.open == 0)
+    finally:
+        service.stop()
+    _assert_zero_last(service)
+    assert dev.stop_reason == f"the adapter failed: {type(error).__name__} in a Haply Inverse3's servo: injected"
+
+
+def test_haply_close_commands_zero_before_closing():
+    service = InverseService(None)
+    try:
+        with rt.devices.Haply(service.url, workspace=Workspace(), max_force=5.0, max_rate=1e5,
+                              watchdog=10**6) as dev:
+            dev.set_force(0.0, [0.0, 0.0, 3.0])
+            _until(lambda: any(f == [0.0, 0.0, 3.0] for _, f in service.commands))
+        _until(lambda: service.open == 0)
+    finally:
+        service.stop()
+    _assert_zero_last(service)
+    assert dev.stop_reason == "closed"
+
+
+@pytest.mark.parametrize("first, detail", [
+    (b"\x00", "Refused: a binary frame of 1 bytes, not the service's JSON text"),
+    ("[" * 1000 + "]" * 1000, "Refused: 1000 JSON objects and arrays (nested or not), over 256"),
+    ('{"inverse3": [{"device_id": true}]}', "Refused: device_id True is not a string or integer of at most 64 "
+                                            "characters")])
+def test_haply_a_hostile_first_message_is_refused(first, detail):
+    from websockets.sync.server import serve
+
+    server = serve(lambda ws: (_send(ws, first), _recv(ws)), "127.0.0.1", 0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
+    try:
+        with pytest.raises(rt.DeviceError) as err:
+            rt.devices.Haply(url, max_force=2.0, timeout=1.0)
+        assert str(err.value) == f"Haply: the first message from {url} is not the Inverse Service's state ({detail})"
+    finally:
+        server.shutdown()
