@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+from test_devices import _recorded, _script, _stub, _wait_frames
 
 import rtfem as rt
 from rtfem.interaction.devices import Workspace
@@ -364,3 +365,99 @@ def test_haply_a_hostile_first_message_is_refused(first, detail):
         assert str(err.value) == f"Haply: the first message from {url} is not the Inverse Service's state ({detail})"
     finally:
         server.shutdown()
+
+
+# -------------------------------------------------------------------------- OpenHaptics, stubbed
+
+
+@pytest.fixture(scope="module")
+def libhd(tmp_path_factory):
+    return _stub(tmp_path_factory, "hd_stub.c", "libHD_faults.so")
+
+
+def _rendering_1n(dev, lib):
+    """Render 1 N (one force from the loop: the watchdog is off) and wait until the device has it."""
+    dev.set_force(0.0, [0.0, 0.0, 1.0])
+    _until(lambda: lib.stub_frame() > 5 and np.allclose(_recorded(lib, lib.stub_frame())[lib.stub_frame() - 1],
+                                                        [0.0, 0.0, 1.0]))
+
+
+def _openhaptics_fault(lib, path, stylus_mm, inject=None, disconnect=None):
+    _script(lib, stylus_mm)
+    dev = rt.devices.OpenHaptics(library=path, workspace=Workspace(), max_rate=1e5, watchdog=10**6)
+    try:
+        assert lib.stub_force_output() == 1
+        _rendering_1n(dev, lib)
+        if inject is not None:
+            inject(dev)
+        if disconnect is not None:
+            lib.stub_disconnect(lib.stub_frame() + 5)
+        _until(lambda: dev.stop_reason is not None)
+        k = lib.stub_frame()
+        _wait_frames(lib, k + 5)  # frames go on: each writes zero
+        k = lib.stub_frame()
+        last = _recorded(lib, k)[k - 5:k]
+        state = lib.stub_force_output(), lib.stub_scheduled()
+    finally:
+        dev.close()
+    assert lib.stub_scheduled() == 0  # close stopped the scheduler and unscheduled the servo
+    return dev, last, state
+
+
+@pytest.mark.parametrize("where, detail", [
+    (np.nan, "a position that is not finite (nan, 0.0, 0.0)"),
+    (1e7, "a position of (1e+04, 0, 0) m, beyond 10 m of the device's origin")])
+def test_openhaptics_a_position_not_finite_or_out_of_reach_zeroes_and_disables_the_force(libhd, where, detail):
+    path, lib = libhd
+    stylus = np.zeros((400, 3))
+    stylus[300:, 0] = where  # mm, from frame 300 on
+    dev, last, (output, scheduled) = _openhaptics_fault(lib, path, stylus)
+    assert np.array_equal(last, np.zeros((5, 3)))  # the force written in the frames after the fault
+    assert output == 0 and scheduled == 1  # force output off; the callback is kept, writing zero
+    assert dev.stop_reason == f"the device sent input that is malformed or out of range: {detail}"
+
+
+def test_openhaptics_a_disconnection_zeroes_and_disables_the_force(libhd):
+    path, lib = libhd
+    dev, last, (output, scheduled) = _openhaptics_fault(lib, path, np.zeros((1, 3)), disconnect=True)
+    assert np.array_equal(last, np.zeros((5, 3))) and output == 0 and scheduled == 1
+    assert dev.stop_reason == "the device disconnected: HD_COMM_ERROR (0x0302)"
+    with pytest.raises(rt.DeviceError, match=r"an OpenHaptics device is closed \(the device disconnected"):
+        dev.restart()
+
+
+@pytest.mark.parametrize("error", [RecursionError("injected"), MemoryError("injected"), ZeroDivisionError("injected")])
+def test_openhaptics_an_exception_in_the_callback_is_a_fault_not_a_dropped_callback(libhd, error):
+    """An exception out of a ctypes callback returns 0 (HD_CALLBACK_DONE): the scheduler used to drop
+    the servo with the last force on the motors and no reason."""
+    path, lib = libhd
+
+    def inject(dev):
+        def failing(x, buttons=0):
+            raise error
+
+        dev.servo.tick = failing
+
+    dev, last, (output, scheduled) = _openhaptics_fault(lib, path, np.zeros((1, 3)), inject=inject)
+    assert np.array_equal(last, np.zeros((5, 3))) and output == 0 and scheduled == 1
+    assert dev.stop_reason == f"the adapter failed: {type(error).__name__} in an OpenHaptics device's servo: injected"
+
+
+def test_openhaptics_a_recoverable_hd_error_leaves_it_idle_at_zero_until_restart(libhd):
+    path, lib = libhd
+    _script(lib, np.zeros((1, 3)))
+    with rt.devices.OpenHaptics(library=path, workspace=Workspace(), max_rate=1e5, watchdog=10**6) as dev:
+        _rendering_1n(dev, lib)
+        lib.stub_fail(lib.stub_frame() + 3, 0x0201)  # HD_EXCEEDED_MAX_FORCE
+        _until(lambda: dev.stop_reason is not None)
+        k = lib.stub_frame()
+        _wait_frames(lib, k + 5)
+        assert np.array_equal(_recorded(lib, k + 5)[k:k + 5], np.zeros((5, 3)))
+        assert lib.stub_force_output() == 1  # idle, not released
+        assert dev.stop_reason == "the device reported an error: HD_EXCEEDED_MAX_FORCE (0x0201)"
+        dev.restart()
+        dev.set_force(0.0, [0.0, 0.0, 1.0])
+        _until(lambda: np.allclose(_recorded(lib, lib.stub_frame())[lib.stub_frame() - 1], [0.0, 0.0, 1.0]))
+    k = lib.stub_frame()
+    assert np.array_equal(_recorded(lib, k)[k - 1], ZERO)  # close wrote a zero frame before stopping
+    assert dev.stop_reason == "closed" and lib.stub_scheduled() == 0
