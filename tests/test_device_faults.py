@@ -375,6 +375,11 @@ def libhd(tmp_path_factory):
     return _stub(tmp_path_factory, "hd_stub.c", "libHD_faults.so")
 
 
+@pytest.fixture(scope="module")
+def libdhd(tmp_path_factory):
+    return _stub(tmp_path_factory, "dhd_stub.c", "libdhd_faults.so")
+
+
 def _rendering_1n(dev, lib):
     """Render 1 N (one force from the loop: the watchdog is off) and wait until the device has it."""
     dev.set_force(0.0, [0.0, 0.0, 1.0])
@@ -461,3 +466,75 @@ def test_openhaptics_a_recoverable_hd_error_leaves_it_idle_at_zero_until_restart
     k = lib.stub_frame()
     assert np.array_equal(_recorded(lib, k)[k - 1], ZERO)  # close wrote a zero frame before stopping
     assert dev.stop_reason == "closed" and lib.stub_scheduled() == 0
+
+
+# ---------------------------------------------------------------------- Force Dimension, stubbed
+
+
+def _forcedimension_fault(lib, path, handle, inject=None, fail=None):
+    _script(lib, handle)
+    dev = rt.devices.ForceDimension(library=path, workspace=Workspace(), max_force=5.0, max_rate=1e5,
+                                    watchdog=10**6)
+    try:
+        _rendering_1n(dev, lib)
+        if inject is not None:
+            inject(dev)
+        if fail is not None:
+            lib.stub_fail(lib.stub_frame() + 5, fail)
+        _until(lambda: dev.stop_reason is not None and not dev._thread.thread.is_alive())
+        k = lib.stub_frame()
+        last, state = _recorded(lib, k)[k - 1], lib.stub_state()
+    finally:
+        dev.close()
+    return dev, last, state
+
+
+@pytest.mark.parametrize("where, detail", [
+    (np.nan, "a position that is not finite (0.0, nan, 0.0)"),
+    (-40.0, "a position of (0, -40, 0) m, beyond 10 m of the device's origin")])
+def test_forcedimension_a_position_not_finite_or_out_of_reach_zeroes_and_closes(libdhd, where, detail):
+    path, lib = libdhd
+    handle = np.zeros((400, 3))
+    handle[300:, 1] = where  # m, from the 300th read on
+    dev, last, state = _forcedimension_fault(lib, path, handle)
+    assert np.array_equal(last, ZERO) and state == 0  # the last force written is zero; force off, device closed
+    assert dev.stop_reason == f"the device sent input that is malformed or out of range: {detail}"
+    with pytest.raises(rt.DeviceError, match=r"a Force Dimension device is closed"):
+        dev.restart()
+
+
+@pytest.mark.parametrize("code, reason", [
+    (2, "the device disconnected: communication error between the host and the device (DHD error 2)"),
+    (1, "the device reported an error: undefined error (DHD error 1)")])
+def test_forcedimension_an_sdk_error_zeroes_and_closes(libdhd, code, reason):
+    path, lib = libdhd
+    dev, last, state = _forcedimension_fault(lib, path, np.zeros((1, 3)), fail=code)
+    assert np.array_equal(last, ZERO) and state == 0
+    assert dev.stop_reason == reason
+
+
+@pytest.mark.parametrize("error", [RecursionError("injected"), OverflowError("injected"), MemoryError("injected")])
+def test_forcedimension_an_exception_on_the_servo_thread_is_a_fault(libdhd, error):
+    path, lib = libdhd
+
+    def inject(dev):
+        def failing(x, buttons=0):
+            raise error
+
+        dev.servo.tick = failing
+
+    dev, last, state = _forcedimension_fault(lib, path, np.zeros((1, 3)), inject=inject)
+    assert np.array_equal(last, ZERO) and state == 0
+    assert dev.stop_reason == f"the adapter failed: {type(error).__name__} in a Force Dimension device's servo: injected"
+    assert dev.servo_error is error
+
+
+def test_forcedimension_close_writes_zero_last(libdhd):
+    path, lib = libdhd
+    _script(lib, np.zeros((1, 3)))
+    with rt.devices.ForceDimension(library=path, workspace=Workspace(), max_force=5.0, max_rate=1e5,
+                                   watchdog=10**6) as dev:
+        _rendering_1n(dev, lib)
+    k = lib.stub_frame()
+    assert np.array_equal(_recorded(lib, k)[k - 1], ZERO) and lib.stub_state() == 0
+    assert dev.stop_reason == "closed"
