@@ -113,6 +113,14 @@ def test_what_fails_in_the_zero_command_or_the_release_is_noted_and_the_rest_sti
     assert dev.log == ["zero", "shutdown"] and dev.stop_reason.startswith("the adapter failed: boom; no zero-force")
 
 
+@pytest.mark.parametrize("code", ["3", 1, 99, None])
+def test_a_fault_given_a_code_that_is_not_a_devices_counts_as_the_adapters_failure(code):
+    dev = BareAdapter()
+    dev.fault(code, "lost")
+    assert dev.stop_reason == f"the adapter failed: lost (fault() was given code {code!r}, not a device's)"
+    assert dev.log == ["zero", "shutdown"]
+
+
 def test_faults_from_many_threads_release_once():
     dev = BareAdapter()
     start = threading.Barrier(8)

@@ -25,7 +25,7 @@ import numpy as np
 from ... import validate
 from ...errors import DeviceError
 from .base import SharedDevice
-from .servo import SIMULATION_STOPS, Servo
+from .servo import SIMULATION_STOPS, STOP_REASONS, Servo
 from .workspace import Workspace
 
 __all__ = ["HardwareDevice", "REACH", "MAX_BUTTONS"]
@@ -81,7 +81,9 @@ class HardwareDevice(SharedDevice):
 
     def fault(self, code: int, detail: str = "", *, release: bool = True) -> None:
         """The one path of every fault: stop the servo with ``code`` (a key of
-        :data:`~rtfem.interaction.devices.servo.STOP_REASONS`; zero force at its output), record
+        :data:`~rtfem.interaction.devices.servo.STOP_REASONS`: 2 the device reported an error, 3 it
+        disconnected (or fell silent), 4 closed, 6 its input was malformed or out of range, 7 the
+        adapter failed; any other code counts as 7; zero force at the servo's output), record
         ``detail`` (``stop_reason`` reads the reason, then the detail), command zero force
         (:meth:`_command_zero`) and, with ``release``, release the device (:meth:`_shutdown`; no
         restart after it). ``release=False`` leaves it safely idle: open, the servo rendering zero
@@ -95,7 +97,9 @@ class HardwareDevice(SharedDevice):
         that arrives while it runs is raised again once every step has run."""
         pending = None
         try:
-            pending = self._fault(int(code), validate.one_line(str(detail), 300), bool(release))
+            if isinstance(code, bool) or not isinstance(code, int) or code not in STOP_REASONS or code in SIMULATION_STOPS:
+                detail, code = f"{detail} (fault() was given code {validate.show(code, 20)}, not a device's)", 7
+            pending = self._fault(code, validate.one_line(str(detail), 300), bool(release))
         except BaseException as exc:  # noqa: BLE001 - a fault must not raise (a lock, a format)
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 pending = exc
@@ -104,7 +108,8 @@ class HardwareDevice(SharedDevice):
 
     def _fault(self, code: int, detail: str, release: bool) -> BaseException | None:
         lock = getattr(self, "_fault_lock", None)
-        on_servo = threading.get_ident() == self._servo_ident
+        me = threading.get_ident()  # the servo's thread: the SDK's scheduler's, else the adapter's _thread
+        on_servo = me == self._servo_ident or me == getattr(getattr(self, "_thread", None), "ident", None)
         if lock is not None and not lock.acquire(blocking=not on_servo):
             return None  # another thread is in a fault now: it zeroes, stops this thread and releases
         try:
