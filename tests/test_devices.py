@@ -402,8 +402,8 @@ def test_haply_positions_forces_and_buttons_through_the_service():
 
 def test_haply_stops_when_the_service_goes_or_sends_garbage():
     for kw, reason in ((dict(close_after=30), "the device disconnected: the Inverse Service closed the connection"),
-                       (dict(garbage_after=30), "the device reported an error: a message that is not the service's "
-                                                "state (JSONDecodeError")):
+                       (dict(garbage_after=30), "the device sent input that is malformed or out of range: the "
+                                                "Inverse Service's message: not JSON (JSONDecodeError")):
         service = FakeInverseService(np.zeros((1, 3)), **kw)
         try:
             with rt.devices.Haply(service.url, max_force=2.0) as dev:

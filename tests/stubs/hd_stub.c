@@ -2,7 +2,8 @@
    rtfem's adapter calls (names, constants and signatures of the SDK's hdDefines.h 3.00,
    hdScheduler.h, hdDevice.h), a scheduler thread at 1 kHz, a scripted stylus (positions in mm
    and buttons per servo frame), the forces the adapter writes recorded per frame, and errors or
-   a disconnection injected at a chosen frame. Not the SDK: a test double. */
+   a disconnection injected at a chosen frame; whether force output is enabled (hdEnable / hdDisable
+   of HD_FORCE_OUTPUT) and whether the servo callback is still scheduled. Not the SDK: a test double. */
 #include <pthread.h>
 #include <string.h>
 #include <time.h>
@@ -24,6 +25,7 @@ static unsigned int fail_code = 0;
 static double nominal_max_force = 3.3;                     /* N */
 static double usable[6] = {-80, -60, -35, 80, 60, 35};     /* mm */
 static double cur_force[3];
+static volatile int force_output = 0;
 static HDSchedulerCallback callback = 0;
 static void *callback_data = 0;
 static pthread_t thread;
@@ -63,7 +65,8 @@ HDErrorInfo hdGetError(void) {
     return e;
 }
 const char *hdGetErrorString(unsigned int code) { (void)code; return "stub"; }
-void hdEnable(unsigned int cap) { (void)cap; }
+void hdEnable(unsigned int cap) { if (cap == 0x4000) force_output = 1; }
+void hdDisable(unsigned int cap) { if (cap == 0x4000) force_output = 0; }
 void hdGetDoublev(unsigned int p, double *v) {
     int k = now();
     if (p == 0x2050) { v[0] = traj[k][0]; v[1] = traj[k][1]; v[2] = traj[k][2]; }
@@ -111,4 +114,6 @@ int stub_frame(void) { return frame; }
 void stub_forces(double *out, int n) { if (n > MAXN) n = MAXN; memcpy(out, forces, sizeof(double) * 3 * n); }
 void stub_fail(int at, unsigned int code) { fail_frame = at; fail_code = code; }
 void stub_disconnect(int at) { disconnect_frame = at; }
+int stub_force_output(void) { return force_output; }
+int stub_scheduled(void) { return callback != 0; }
 void stub_reset(void) { fail_frame = disconnect_frame = -1; n_err = 0; frame = 0; n_script = 0; callback = 0; }

@@ -9,6 +9,7 @@ scheduler: the servo (:mod:`.servo`) runs on a thread of its own at ``rate``.
 from __future__ import annotations
 
 import ctypes
+import threading
 from ctypes import POINTER, byref, c_byte, c_char_p, c_double, c_int, c_ubyte
 
 import numpy as np
@@ -40,8 +41,6 @@ def dhd_library(library=None) -> ctypes.CDLL:
 
 
 class ForceDimension(HardwareDevice):
-    NAME = "a Force Dimension device"
-
     """A Force Dimension device (omega, sigma, delta, Novint Falcon) as an rtfem Device.
 
     Parameters
@@ -65,7 +64,13 @@ class ForceDimension(HardwareDevice):
         limit and no max_force, the force not enabled.
     ModelError
         A bad workspace, usable box, max_force, max_rate, watchdog, rate or buttons.
+
+    Every fault (a DHD call that fails, a position that is not finite or beyond 10 m, an exception on
+    the servo thread, ``close()``) stops the servo thread, writes zero force, disables the force and
+    closes the device, and sets ``stop_reason``; after it, open a new ForceDimension.
     """
+
+    NAME = "a Force Dimension device"
 
     def __init__(self, library=None, *, workspace: Workspace | None = None, usable=OMEGA_BOX,
                  max_force: float | None = None, max_rate: float = 1000.0, watchdog: int = 50, rate: float = 1000.0,
@@ -90,34 +95,40 @@ class ForceDimension(HardwareDevice):
             if dhd.dhdEnableForce(1, device) < 0:
                 raise DeviceError(f"Force Dimension: dhdEnableForce failed: {self._last_error()}")
             self._p = (c_double(), c_double(), c_double())
-            self._thread = ServoThread(self._servo, rate, "rtfem-dhd-servo").start()
+            self._thread = ServoThread(self._servo, rate, "rtfem-dhd-servo", on_error=self._failed).start(at_exit=self.close)
         except BaseException:
             self._shutdown()
             raise
 
     def _last_error(self) -> str:
         text = self._dhd.dhdErrorGetLastStr()
-        return f"{text.decode(errors='replace') if text else 'no text'} (DHD error {self._dhd.dhdErrorGetLast()})"
+        text = validate.one_line(text.decode(errors="replace"), 120) if text else "no text"
+        return f"{text} (DHD error {self._dhd.dhdErrorGetLast()})"
 
-    def _fail(self) -> None:
+    def _sdk_fault(self, prefix: str = "") -> None:
+        """A DHD call that failed: a fault (disconnected, or the device's error), the device released."""
         code = self._dhd.dhdErrorGetLast()
-        self._detail = self._last_error()
-        self.servo.stop(3 if code in _DISCONNECTED else 2)
+        self.fault(3 if code in _DISCONNECTED else 2, prefix + self._last_error())
 
     def _servo(self) -> bool:
-        """One servo tick on the servo thread (always True: a stopped servo keeps reading, force zero)."""
+        """One servo tick on the servo thread; False (the thread ends) once a fault released the device."""
+        self._servo_ident = threading.get_ident()
         dhd, device, (px, py, pz) = self._dhd, self._id, self._p
+        if self._released or device is None:
+            return False
         if dhd.dhdGetPosition(byref(px), byref(py), byref(pz), device) < 0:
-            self._fail()
-            dhd.dhdSetForce(0.0, 0.0, 0.0, device)
-            return True
+            self._sdk_fault()
+            return False
         buttons = 0
         for i in range(self.n_buttons):
             if dhd.dhdGetButton(i, device) == 1:
                 buttons |= 1 << i
-        f = self.servo.tick((px.value, py.value, pz.value), buttons)
+        f = self._tick((px.value, py.value, pz.value), buttons)
+        if self._released:  # the position was refused: the fault zeroed the force and closed the device
+            return False
         if dhd.dhdSetForce(float(f[0]), float(f[1]), float(f[2]), device) < 0:
-            self._fail()
+            self._sdk_fault("dhdSetForce: ")
+            return False
         return True
 
     def _open(self) -> bool:
@@ -125,16 +136,23 @@ class ForceDimension(HardwareDevice):
 
     @property
     def servo_error(self) -> BaseException | None:
-        """An exception that ended the servo thread (None while it runs)."""
+        """An exception that ended the servo thread (None while it runs); ``stop_reason`` names it too."""
         return None if self._thread is None else self._thread.error
 
-    def _shutdown(self) -> None:
-        """Stop the servo thread, zero the force and close the device."""
+    def _command_zero(self) -> None:
+        """Stop the servo thread (joined, unless this is it: no force is written after this one), then
+        write zero force."""
         if self._thread is not None:
             self._thread.stop()
-            self._thread = None
+        if self._id is not None and self._dhd.dhdSetForce(0.0, 0.0, 0.0, self._id) < 0:
+            raise DeviceError(f"dhdSetForce(0, 0, 0) failed: {self._last_error()}")
+
+    def _shutdown(self) -> None:
+        """Stop the servo thread, zero the force, disable it and close the device (idempotent)."""
+        if self._thread is not None:
+            self._thread.stop()
         if self._id is not None:
-            self._dhd.dhdSetForce(0.0, 0.0, 0.0, self._id)
-            self._dhd.dhdEnableForce(0, self._id)
-            self._dhd.dhdClose(self._id)
-            self._id = None
+            device, self._id = self._id, None
+            self._dhd.dhdSetForce(0.0, 0.0, 0.0, device)
+            self._dhd.dhdEnableForce(0, device)
+            self._dhd.dhdClose(device)

@@ -50,24 +50,31 @@ def load_library(library, env: str, names: tuple[str, ...], what: str, how: str,
 
 class ServoThread:
     """A thread calling ``tick()`` at ``rate`` Hz on an absolute schedule (sleep, then spin the last
-    ``spin`` seconds), until ``stop()`` or until ``tick`` returns False; an exception in ``tick``
-    ends it and is kept in ``error``. For SDKs without a scheduler of their own (Force Dimension's)."""
+    ``spin`` seconds), until ``stop()`` or until ``tick`` returns False; an exception in ``tick`` (any
+    BaseException: a RecursionError, a MemoryError) ends it, is kept in ``error`` and handed to
+    ``on_error`` (an adapter's fault: zero force, the reason recorded), which is called on this
+    thread and whose own exceptions are dropped. For SDKs without a scheduler of their own (Force
+    Dimension's)."""
 
-    def __init__(self, tick, rate: float, name: str, spin: float = 2e-4) -> None:
-        self._tick, self.period, self.spin = tick, 1.0 / rate, spin
+    def __init__(self, tick, rate: float, name: str, spin: float = 2e-4, on_error=None) -> None:
+        self._tick, self.period, self.spin, self.on_error = tick, 1.0 / rate, spin, on_error
         self._stop = threading.Event()
         self.error: BaseException | None = None
         self.ticks = 0
+        self.ident: int | None = None  # the thread's threading.get_ident() once it runs
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
 
-    def start(self) -> "ServoThread":
+    def start(self, at_exit=None) -> "ServoThread":
+        """Start the thread; at the interpreter's exit ``at_exit()`` is called (an adapter's close: zero
+        force, the device released), else :meth:`stop`."""
         from ...threads import background
 
-        background(self.thread, self.stop)
+        background(self.thread, self.stop if at_exit is None else at_exit)
         self.thread.start()
         return self
 
     def _run(self) -> None:
+        self.ident = threading.get_ident()
         t0 = time.perf_counter()
         k = 0
         try:
@@ -82,11 +89,16 @@ class ServoThread:
                     return
                 self.ticks += 1
                 k = max(k + 1, int((time.perf_counter() - t0) / self.period))  # late: no burst
-        except BaseException as exc:  # noqa: BLE001 - kept for the owner to report
+        except BaseException as exc:  # noqa: BLE001 - kept for the owner and handed to on_error
             self.error = exc
+            if self.on_error is not None:
+                try:
+                    self.on_error(exc)
+                except BaseException:  # noqa: BLE001, S110 - the owner's fault path never raises; nothing left to do
+                    pass
 
     def stop(self, timeout: float = 2.0) -> None:
+        """Ask the thread to end and wait for it (``timeout`` s; not when called on the thread itself)."""
         self._stop.set()
         if self.thread.is_alive() and threading.current_thread() is not self.thread:
             self.thread.join(timeout)
-

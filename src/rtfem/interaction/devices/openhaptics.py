@@ -9,7 +9,10 @@ loop meets it in the shared mailbox.
 
 from __future__ import annotations
 
+import atexit
 import ctypes
+import threading
+import weakref
 from ctypes import CFUNCTYPE, POINTER, Structure, byref, c_char_p, c_double, c_int, c_uint, c_ulong, c_ushort, c_void_p
 
 import numpy as np
@@ -56,7 +59,7 @@ _SIGNATURES = {
     "hdMakeCurrentDevice": ([c_uint], None), "hdBeginFrame": ([c_uint], None), "hdEndFrame": ([c_uint], None),
     "hdGetError": ([], HDErrorInfo), "hdGetErrorString": ([c_uint], c_char_p), "hdEnable": ([c_uint], None),
     "hdGetDoublev": ([c_uint, POINTER(c_double)], None), "hdGetIntegerv": ([c_uint, POINTER(c_int)], None),
-    "hdSetDoublev": ([c_uint, POINTER(c_double)], None), "hdStartScheduler": ([], None),
+    "hdSetDoublev": ([c_uint, POINTER(c_double)], None), "hdDisable": ([c_uint], None), "hdStartScheduler": ([], None),
     "hdStopScheduler": ([], None), "hdScheduleAsynchronous": ([CALLBACK, c_void_p, c_ushort], c_ulong),
     "hdUnschedule": ([c_ulong], None),
 }
@@ -67,6 +70,12 @@ HOW = ("Install 3D Systems' OpenHaptics (the Touch device drivers and the OpenHa
 def hd_library(library=None) -> ctypes.CDLL:
     """The HD API's library with its functions' signatures declared."""
     return load_library(library, "RTFEM_OPENHAPTICS_LIB", ("HD", "libHD.so"), "OpenHaptics", HOW, _SIGNATURES)
+
+
+def _close_at_exit(ref) -> None:
+    dev = ref()
+    if dev is not None:
+        dev.close()
 
 
 def error_name(code: int) -> str:
@@ -96,6 +105,13 @@ class OpenHaptics(HardwareDevice):
         started (the HD error's name and code).
     ModelError
         A bad device name, workspace, max_force, max_rate or watchdog.
+
+    Every fault writes zero force in the current or next frame and every frame after it. A
+    disconnection (HD_DEVICE_FAULT, HD_COMM_ERROR, HD_COMM_CONFIG_ERROR), a position that is not
+    finite or beyond 10 m, or an exception in the callback also disables the force output (the
+    scheduler and the device are released by ``close()``: not from the scheduler's own thread); the
+    SDK's other errors (HD_EXCEEDED_MAX_FORCE...) leave it idle, rendering zero until
+    :meth:`restart`. ``stop_reason`` names the HD error or the exception.
     """
 
     RATE = 1000.0  # Hz: the HD scheduler's default rate
@@ -125,11 +141,13 @@ class OpenHaptics(HardwareDevice):
             self._start_servo(workspace, (np.array(usable[:3]) * 1e-3, np.array(usable[3:]) * 1e-3),  # mm -> m
                               limit, max_rate, watchdog, self.RATE)
             self._position_mm, self._buttons, self._force = (c_double * 3)(), c_int(), (c_double * 3)()
+            self._zero, self._zero_only, self._zero_written = (c_double * 3)(), False, threading.Event()
             self._callback = CALLBACK(self._servo)  # kept: the scheduler holds a pointer to it
             hd.hdEnable(HD_FORCE_OUTPUT)
             self._handle = hd.hdScheduleAsynchronous(self._callback, None, HD_DEFAULT_SCHEDULER_PRIORITY)
             hd.hdStartScheduler()
             self._raise_error("hdStartScheduler")
+            atexit.register(_close_at_exit, weakref.ref(self))  # zero force, the scheduler stopped, at exit
         except BaseException:
             self._shutdown()
             raise
@@ -141,28 +159,84 @@ class OpenHaptics(HardwareDevice):
                               f"{err.internalErrorCode}")
 
     def _servo(self, data) -> int:
-        """The HD scheduler's callback: one servo tick inside a frame."""
+        """The HD scheduler's callback: one servo tick inside a frame. Nothing escapes it (an exception
+        out of a ctypes callback returns 0, HD_CALLBACK_DONE: the scheduler would drop the callback with
+        the last force still on the motors): every error is a fault, and once the force was zeroed by
+        one the callback only writes zero."""
+        hd, in_frame = self._hd, False
+        try:
+            self._servo_ident = threading.get_ident()
+            if self._zero_only:
+                self._zero_frame()
+                return HD_CALLBACK_CONTINUE
+            hd.hdBeginFrame(self._hhd)
+            in_frame = True
+            hd.hdGetDoublev(HD_CURRENT_POSITION, self._position_mm)
+            hd.hdGetIntegerv(HD_CURRENT_BUTTONS, byref(self._buttons))
+            p = self._position_mm
+            f = self._tick((p[0] * 1e-3, p[1] * 1e-3, p[2] * 1e-3), self._buttons.value)
+            self._force[0], self._force[1], self._force[2] = f[0], f[1], f[2]
+            hd.hdSetDoublev(HD_CURRENT_FORCE, self._force)
+            in_frame = False
+            hd.hdEndFrame(self._hhd)
+            err = hd.hdGetError()
+            if err.errorCode != HD_SUCCESS:
+                gone = err.errorCode in _DISCONNECTED  # a recoverable error leaves it idle (restart())
+                self.fault(3 if gone else 2, error_name(err.errorCode), release=gone)
+        except BaseException as exc:  # noqa: BLE001 - a fault, never out of the callback
+            try:
+                if in_frame:
+                    hd.hdSetDoublev(HD_CURRENT_FORCE, self._zero)
+                    hd.hdEndFrame(self._hhd)
+            except BaseException:  # noqa: BLE001, S110 - the next frames write zero
+                pass
+            self._failed(exc)
+        return HD_CALLBACK_CONTINUE
+
+    def _zero_frame(self) -> None:
+        """A frame that writes zero force and nothing else (the HD errors it raises are drained)."""
         hd = self._hd
         hd.hdBeginFrame(self._hhd)
-        hd.hdGetDoublev(HD_CURRENT_POSITION, self._position_mm)
-        hd.hdGetIntegerv(HD_CURRENT_BUTTONS, byref(self._buttons))
-        p = self._position_mm
-        f = self.servo.tick((p[0] * 1e-3, p[1] * 1e-3, p[2] * 1e-3), self._buttons.value)
-        self._force[0], self._force[1], self._force[2] = f[0], f[1], f[2]
-        hd.hdSetDoublev(HD_CURRENT_FORCE, self._force)
+        hd.hdSetDoublev(HD_CURRENT_FORCE, self._zero)
         hd.hdEndFrame(self._hhd)
-        err = hd.hdGetError()
-        if err.errorCode != HD_SUCCESS:
-            self._detail = error_name(err.errorCode)
-            self.servo.stop(3 if err.errorCode in _DISCONNECTED else 2)
-        return HD_CALLBACK_CONTINUE
+        for _ in range(64):
+            if hd.hdGetError().errorCode == HD_SUCCESS:
+                break
+        self._zero_written.set()
+
+    def _command_zero(self) -> None:
+        """From now on every frame writes zero force (this one too, on the scheduler's thread); from
+        another thread, wait until the scheduler has written a zero frame."""
+        self._zero_written.clear()
+        self._zero_only = True
+        if self._handle is None or threading.get_ident() == self._servo_ident:
+            return
+        if not self._zero_written.wait(0.25):
+            raise DeviceError("the HD scheduler ran no frame in 0.25 s to write the zero force")
+
+    def restart(self) -> None:
+        """Render again after the simulation's stop or a recoverable HD error (HD_EXCEEDED_MAX_FORCE...);
+        after a disconnection, an error in the adapter or a close, open a new OpenHaptics."""
+        super().restart()
+        self._zero_only = False
+
+    def close(self) -> None:
+        """Stop rendering (zero force written), stop the scheduler and disable the device; closing twice
+        does nothing."""
+        super().close()
+        self._shutdown()  # what a fault on the scheduler's thread could not do there
 
     def _open(self) -> bool:
         return self._handle is not None
 
     def _shutdown(self) -> None:
-        """Stop the scheduler, unschedule the servo and disable the device."""
+        """Disable the force output; off the scheduler's thread also stop the scheduler, unschedule the
+        servo and disable the device (on it, the callback writes zero until :meth:`close`)."""
         hd = self._hd
+        if getattr(self, "_hhd", None) is not None:
+            hd.hdDisable(HD_FORCE_OUTPUT)
+        if threading.get_ident() == self._servo_ident:
+            return
         if self._handle is not None:
             hd.hdStopScheduler()
             hd.hdUnschedule(self._handle)

@@ -14,6 +14,9 @@ Safety, in this order every servo tick:
 * **rate**: the force changes by at most ``max_rate`` N/s (an increase; a stop zeroes at once).
 
 A stopped servo renders zero until :meth:`Servo.restart`; the simulation's state is untouched.
+The adapters' faults (the device's errors, a disconnection, input malformed or out of range, an
+exception in the adapter, a close) stop it from outside, through ``HardwareDevice.fault``, which
+also commands zero force to the device and releases it.
 The step is one function on one float64 array (:data:`LAYOUT`) so that the same code runs in
 Python, compiled by numba, or as a C callback of a device's scheduler without the GIL.
 """
@@ -28,7 +31,7 @@ from ... import validate
 from .base import MAILBOX
 from .workspace import Workspace
 
-__all__ = ["Servo", "STOP_REASONS", "LAYOUT"]
+__all__ = ["Servo", "STOP_REASONS", "SIMULATION_STOPS", "LAYOUT"]
 
 # the servo's array: [0, 8) the mailbox (position, force, forces written, buttons); [8, 22) the
 # workspace (scale, R, offset, clutch mask); then the limits, the state and the device's I/O
@@ -39,7 +42,12 @@ LAYOUT = 44
 
 STOP_REASONS = {1: "the simulation fell behind: no force from its loop for {watch} servo ticks",
                 2: "the device reported an error", 3: "the device disconnected", 4: "closed",
-                5: "the simulation's force was not finite"}
+                5: "the simulation's force was not finite",
+                6: "the device sent input that is malformed or out of range",
+                7: "the adapter failed"}
+#: the stops the simulation causes (the device is fine; :meth:`Servo.restart` renders again); the others
+#: are the device's or the adapter's faults and go through ``HardwareDevice.fault``
+SIMULATION_STOPS = (1, 5)
 
 
 def servo_step(b):
@@ -165,9 +173,10 @@ class Servo:
         self.step(self.buf)
         return self.buf[_OUT:_OUT + 3].copy()
 
-    def stop(self, code: int) -> None:
-        """Stop rendering (zero force) with a reason (a key of :data:`STOP_REASONS`)."""
-        if self.buf[_STOP] == 0.0:
+    def stop(self, code: int, *, replace: bool = False) -> None:
+        """Stop rendering (zero force) with a reason (a key of :data:`STOP_REASONS`); the first
+        reason is kept unless ``replace``."""
+        if self.buf[_STOP] == 0.0 or replace:
             self.buf[_STOP] = float(code)
         self.buf[_OUT:_OUT + 3] = 0.0
         self.buf[_LAST:_LAST + 3] = 0.0
@@ -176,6 +185,11 @@ class Servo:
         """Render again after a stop (the force ramps up from zero at the rate limit)."""
         self.buf[_STOP] = self.buf[_IDLE] = 0.0
         self.buf[_COUNT] = self.buf[6]
+
+    @property
+    def code(self) -> int:
+        """The stop's code (a key of :data:`STOP_REASONS`; 0 while rendering)."""
+        return int(self.buf[_STOP])
 
     @property
     def reason(self) -> str | None:
