@@ -212,7 +212,8 @@ def _checksum(a: np.ndarray) -> int:
     return crc
 
 
-def _available_bytes() -> int:
+def physical_memory() -> int:
+    """This machine's physical memory in bytes (what a load or a precompute may at most take)."""
     try:
         return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
@@ -224,7 +225,7 @@ def _read_npz(path: Path, what: str, max_bytes: int | None) -> dict[str, np.ndar
     import zipfile
 
     where = repr(str(path))
-    limit = _available_bytes() if max_bytes is None else int(max_bytes)
+    limit = physical_memory() if max_bytes is None else int(max_bytes)
     try:
         zf = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
