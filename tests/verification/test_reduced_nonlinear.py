@@ -934,7 +934,7 @@ def test_the_build_memory_estimate_against_the_measured_peak():
     from rtfem.reduction.reduced import build_bytes
 
     model, modes, node = _jaw_block_modes()
-    estimate, size = build_bytes(model, 12, 8, ([node], 0.02))
+    estimate, size = build_bytes(model, 12 + 8 * 9 // 2, ([node], 0.02))
     tracemalloc.start()
     try:
         sim = reduced_nonlinear_driver(model, modes, 1e-3, rt.Damping(alpha=8.0), derivatives=8, local=([node], 0.02))
@@ -965,3 +965,16 @@ def test_a_patch_too_large_for_this_machine_is_refused_before_the_precompute(mon
     rc = main(["simulate", "--method", "nonlinear", "--solid", "-n", "12", "--local", "60", "--duration", "0.01",
                "--out", str(tmp_path / "run")])
     assert rc == 2 and "needs about" in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_a_grab_patch_too_large_is_refused_by_localize_itself(monkeypatch):
+    """The viewer localizes at each grab (ReducedNonlinearSimulator.localized -> localize): the same
+    estimate refuses there, before the patch's columns are allocated."""
+    from rtfem import storage
+
+    model, modes, node = _jaw_block_modes()
+    red = ReducedNonlinearModel(model, modes, 4)
+    monkeypatch.setattr(storage, "physical_memory", lambda: 10**9)
+    with pytest.raises(rt.ModelError, match="with a 60 mm patch .* needs about"):
+        red.localize([node], 0.06)
+    assert red.localize([node], 0.01).size > red.size  # a small patch still fits

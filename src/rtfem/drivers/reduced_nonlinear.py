@@ -16,7 +16,7 @@ from .base import ForceInput, StaticCorrection
 from .tangent import Linearization
 
 from ..reduction.element_terms import _projection_rows
-from ..reduction.reduced import ReducedNonlinearModel
+from ..reduction.reduced import ReducedNonlinearModel, check_build_memory
 
 __all__ = ["ReducedNonlinearSimulator", "reduced_nonlinear_driver"]
 
@@ -559,28 +559,11 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     refresh = validate.count(refresh, "refresh", 1, 10**6)
     background = validate.flag(background, "background")
     derivatives = min(derivatives, getattr(modes, "n_modes", derivatives))
-    _fits_in_memory(model, modes, derivatives, local)  # before the derivatives' minutes
+    if hasattr(modes, "n_modes") and callable(getattr(model, "nonlinear", None)):  # else the build says what is wrong
+        check_build_memory(model, modes.n_modes + derivatives * (derivatives + 1) // 2, local)  # before the derivatives
     red = ReducedNonlinearModel(model, modes, derivatives, progress=progress, scheduler=scheduler)
     if local is not None:
         red = red.localize(*local)
     red.train_cubature(16, tol=0.05)
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread, precision=precision,
                                      static_correction=static_correction, refresh=refresh, background=background)
-
-
-def _fits_in_memory(model, modes, derivatives: int, local: tuple | None) -> None:
-    """Refuse, before any precompute, a reduced model whose build would take over 3/4 of this machine's
-    memory (:func:`rtfem.reduction.reduced.build_bytes`): a 5 cm patch on a fine liver ran out of memory
-    after 93 s of modal derivatives."""
-    from ..reduction.reduced import build_bytes
-    from ..storage import physical_memory
-
-    if getattr(model, "nonlinear", None) is None or not hasattr(modes, "n_modes"):
-        return  # not a model or basis the build takes: its own checks say so
-    need, size = build_bytes(model, modes.n_modes, derivatives, local)
-    have = physical_memory()
-    if need > 0.75 * have:
-        patch = "" if local is None else f" with a {local[1] * 1e3:g} mm patch"
-        raise ModelError(f"the reduced nonlinear model{patch} ({size} coordinates) needs about {need / 1e9:.1f} GB to "
-                         f"build, more than 3/4 of this machine's {have / 1e9:.1f} GB: give a smaller --local radius "
-                         "(local=), fewer modes or derivatives, or a coarser mesh")

@@ -37,7 +37,7 @@ from .modal import check_model_key, mesh_fingerprint
 from ..fe.nonlinear import MIN_LOAD_STEP, Configuration
 from ..fe.rotations import integrated_rotation, rotation
 
-__all__ = ["build_bytes", "patch_nodes", "ReducedNonlinearModel", "ReducedStatic"]
+__all__ = ["build_bytes", "check_build_memory", "patch_nodes", "ReducedNonlinearModel", "ReducedStatic"]
 
 
 @dataclass
@@ -65,25 +65,38 @@ def patch_nodes(model, nodes: np.ndarray, radius: float) -> np.ndarray:
     return np.flatnonzero(cKDTree(X[nodes]).query(X)[0] <= radius)
 
 
-def build_bytes(model, n_modes: int, derivatives: int, local: tuple | None = None, poses: int = 16) -> tuple[int, int]:
-    """(about the peak memory in bytes, the basis size r) of building a reduced nonlinear model of
-    ``n_modes`` modes and the derivatives of ``derivatives`` of them, localized on ``local`` = (nodes,
-    radius) and its cubature trained on ``poses`` poses, before any of it is computed: the element
-    basis rows (E nd r), the training matrix and its stacking (2 poses r E), the basis and its
-    orthonormalization (2 N r) and a patch's columns (4 N p), 8 bytes each, for E elements of nd
-    dofs, N free dofs and p patch dofs. Measured on the solid default liver (4,942 tet10, 20 modes
-    and the derivatives of 20) with a 2 / 5 cm patch: a peak of 2.4 / 10.7 GB above the start,
-    estimated 1.9 / 10.0 GB (benchmark: rtfem simulate --method nonlinear --local 20 / 50)."""
+def build_bytes(model, base: int, local: tuple | None = None, poses: int = 16) -> tuple[int, int]:
+    """(about the peak memory in bytes, the basis size r) of building a reduced nonlinear model whose
+    basis has ``base`` columns before a patch (modes + d (d + 1) / 2 derivatives), localized on
+    ``local`` = (nodes, radius), and of training its cubature on ``poses`` poses, before any of it is
+    computed: the element basis rows (E nd r), the training matrix and its stacking (2 poses r E), the
+    basis and its orthonormalization (2 N r) and a patch's columns (4 N p), 8 bytes each, for E
+    elements of nd dofs, N free dofs and p patch dofs. Measured on the solid default liver (4,942
+    tet10, 20 modes and the derivatives of 20) with a 2 / 5 cm patch: a peak of 2.4 / 10.7 GB above
+    the start, estimated 1.9 / 10.0 GB; on a tet10 block 1.03-1.37 times tracemalloc's peak."""
     system = model.nonlinear()
     E, nd = system.dofs.shape
     N = system.free.size
-    r = n_modes + derivatives * (derivatives + 1) // 2
     p = 0
     if local is not None:
-        near = patch_nodes(model, *local)
-        p = int(np.count_nonzero(~model.fixed[near]))
-    r += p
+        p = int(np.count_nonzero(~model.fixed[patch_nodes(model, *local)]))
+    r = base + p
     return 8 * (E * nd * r + 2 * poses * r * E + 2 * N * r + 4 * N * p), r
+
+
+def check_build_memory(model, base: int, local: tuple | None = None) -> None:
+    """Refuse, before it is computed, a reduced model whose build (:func:`build_bytes`) would take
+    over 3/4 of this machine's memory: a 5 cm patch on a fine liver ran out of memory after 93 s of
+    modal derivatives (issue 53)."""
+    from ..storage import physical_memory
+
+    need, size = build_bytes(model, base, local)
+    have = physical_memory()
+    if need > 0.75 * have:
+        patch = "" if local is None else f" with a {local[1] * 1e3:g} mm patch"
+        raise ModelError(f"the reduced nonlinear model{patch} ({size} coordinates) needs about {need / 1e9:.1f} GB to "
+                         f"build, more than 3/4 of this machine's {have / 1e9:.1f} GB: give a smaller --local radius "
+                         "(local=), fewer modes or derivatives, or a coarser mesh")
 
 
 class ReducedNonlinearModel(ElementTerms):
@@ -292,6 +305,8 @@ class ReducedNonlinearModel(ElementTerms):
         nodes = validate.nodes(nodes, n)
         radius = validate.positive(radius, "radius", "a distance in m such as 0.02")
         near = patch_nodes(self.model, nodes, radius)
+        parent = self if self.local is None else self.local["parent"]
+        check_build_memory(self.model, parent.size, (nodes, radius))
         pos = np.full(self.model.n_dofs, -1)
         pos[self.free] = np.arange(self.free.size)
         rows = pos[(self.dpn * near[:, None] + np.arange(self.dpn)).ravel()]
@@ -299,7 +314,6 @@ class ReducedNonlinearModel(ElementTerms):
         if rows.size == 0:
             raise ModelError(f"no free node lies within {radius:g} m of nodes {nodes.tolist()}: pick a free node or a "
                              "larger radius")
-        parent = self if self.local is None else self.local["parent"]
         E = np.zeros((self.free.size, rows.size))
         E[rows, np.arange(rows.size)] = 1.0
         out = object.__new__(type(self))
