@@ -35,17 +35,14 @@ BACKENDS = ("pardiso", "cholmod", "superlu")
 
 
 def _mkl_pardiso():
-    """MKL's ``pardiso`` entry point (located the way pypardiso locates mkl_rt), or None."""
+    """MKL's ``pardiso`` entry point (its runtime library found by :func:`_load_mkl_rt`), or None."""
     global _PARDISO
     if _PARDISO is False:
         # MKL's OpenMP threads otherwise spin 200 ms after each solve, taking the cores from the
         # BLAS of the Lanczos iteration between solves (measured: ARPACK's share 2.3x slower)
         os.environ.setdefault("KMP_BLOCKTIME", "0")
         try:
-            import pypardiso  # noqa: F401  (its presence means the mkl wheel is installed)
-            from pypardiso.pardiso_wrapper import PyPardisoSolver
-
-            lib = PyPardisoSolver().libmkl
+            lib = _load_mkl_rt()
             fn = lib.pardiso
             try:
                 setter = lib.MKL_Set_Num_Threads_Local
@@ -72,6 +69,29 @@ def _mkl_pardiso():
 
 
 _PARDISO = False  # not looked for yet
+
+
+def _load_mkl_rt() -> ctypes.CDLL:
+    """MKL's runtime library: $PYPARDISO_MKL_RT, else the file the ``mkl`` wheel installed (its
+    RECORD lists it: 1 ms), else the dynamic loader's. pypardiso's own constructor globs the whole
+    environment recursively for it (0.63 s), and importing pypardiso builds one such solver: the
+    first factorization of a process paid 1.06 s for the lookup alone. Raises OSError when none loads."""
+    import importlib.metadata
+    from ctypes.util import find_library
+
+    candidates = [os.environ["PYPARDISO_MKL_RT"]] if os.environ.get("PYPARDISO_MKL_RT") else []
+    try:
+        files = importlib.metadata.files("mkl") or []
+        candidates += sorted((str(f.locate()) for f in files if "mkl_rt" in f.name), key=len)
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    candidates += [name for name in (find_library("mkl_rt"), find_library("mkl_rt.1")) if name]
+    for path in candidates:
+        try:
+            return ctypes.CDLL(path)
+        except OSError:
+            continue
+    raise OSError("MKL's runtime library (mkl_rt) is not installed: pip install 'rtfem[fast]'")
 
 
 def available_backends() -> list[str]:
