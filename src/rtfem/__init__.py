@@ -1,45 +1,84 @@
-"""rtfem: real-time simulation of dynamically deformable finite-element models (shells and solids)."""
+"""rtfem: real-time simulation of dynamically deformable finite-element models (shells and solids).
 
-from .mesh import meshes
+The public names (``rt.X``) are imported when first used (PEP 562): ``import rtfem`` itself loads
+the error classes only, so a script, the command line and a worker start without the viewer, the
+contact solver, the devices or numba's kernels until they are asked for (issue 54: 0.72 s before).
+"""
+
+from importlib import import_module
+
 from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
-from .fe.material import Damping, Material
-from .fe.hyperelastic import MooneyRivlin, NeoHookean, Ogden
-from .fe.viscoelastic import Prony
-from .fe.fitting import fit_material
-from .mesh.repair import MeshReport
-from .mesh.surface import TriMesh
-from .mesh.tetmesh import TetMesh
-from .mesh.files import load_mesh, save_mesh
-from .fe import linalg
-from .fe.linalg import available_backends
-from .reduction.modal import ModalBasis, modal_analysis
-from .interaction import devices
-from .interaction.devices import CallbackDevice, ScriptedDevice, SharedDevice
-from .interaction.haptics import Grasp, Probe
-from .interaction.loop import HapticLoop
-from .interaction.contact import Tool, ToolContact
-from .interaction.scene import Scene
-from .interaction.scene_tools import Keyframes
-from .interaction import contact
-from .drivers.impedance import ImpedanceMap, Load
-from .drivers.impedance_driver import ImpedanceDriver
-from .fe.protocol import Model
-from .fe.shellmodel import ShellModel
-from .fe.build import make_model
-from .fe.solidmodel import SolidModel
-from .mesh.meshing import tetrahedralize
-from .mesh.selection import select_nodes
-from .drivers.fullorder import CentralDifferenceSimulator, DirectSimulator, NewmarkSimulator
-from .drivers.nonlinear_newmark import NonlinearNewmarkSimulator
-from .drivers.base import Driver
-from .drivers.modal import ModalSimulator
-from .drivers.static import StaticDriver
-from .reduction.sldm import SLDM
-from .fe import nonlinear
-from .reduction.reduced import ReducedNonlinearModel
-from .drivers.reduced_nonlinear import ReducedNonlinearSimulator
 
 __version__ = "0.1.0"
+
+# name -> (module, attribute in it; None: the module itself)
+_LAZY = {
+    "meshes": (".mesh.meshes", None),
+    "Damping": (".fe.material", 'Damping'),
+    "Material": (".fe.material", 'Material'),
+    "MooneyRivlin": (".fe.hyperelastic", 'MooneyRivlin'),
+    "NeoHookean": (".fe.hyperelastic", 'NeoHookean'),
+    "Ogden": (".fe.hyperelastic", 'Ogden'),
+    "Prony": (".fe.viscoelastic", 'Prony'),
+    "fit_material": (".fe.fitting", 'fit_material'),
+    "MeshReport": (".mesh.repair", 'MeshReport'),
+    "TriMesh": (".mesh.surface", 'TriMesh'),
+    "TetMesh": (".mesh.tetmesh", 'TetMesh'),
+    "load_mesh": (".mesh.files", 'load_mesh'),
+    "save_mesh": (".mesh.files", 'save_mesh'),
+    "linalg": (".fe.linalg", None),
+    "available_backends": (".fe.linalg", 'available_backends'),
+    "ModalBasis": (".reduction.modal", 'ModalBasis'),
+    "modal_analysis": (".reduction.modal", 'modal_analysis'),
+    "devices": (".interaction.devices", None),
+    "CallbackDevice": (".interaction.devices", 'CallbackDevice'),
+    "ScriptedDevice": (".interaction.devices", 'ScriptedDevice'),
+    "SharedDevice": (".interaction.devices", 'SharedDevice'),
+    "Grasp": (".interaction.haptics", 'Grasp'),
+    "Probe": (".interaction.haptics", 'Probe'),
+    "HapticLoop": (".interaction.loop", 'HapticLoop'),
+    "Tool": (".interaction.contact", 'Tool'),
+    "ToolContact": (".interaction.contact", 'ToolContact'),
+    "Scene": (".interaction.scene", 'Scene'),
+    "Keyframes": (".interaction.scene_tools", 'Keyframes'),
+    "contact": (".interaction.contact", None),
+    "ImpedanceMap": (".drivers.impedance", 'ImpedanceMap'),
+    "Load": (".drivers.impedance", 'Load'),
+    "ImpedanceDriver": (".drivers.impedance_driver", 'ImpedanceDriver'),
+    "Model": (".fe.protocol", 'Model'),
+    "ShellModel": (".fe.shellmodel", 'ShellModel'),
+    "make_model": (".fe.build", 'make_model'),
+    "SolidModel": (".fe.solidmodel", 'SolidModel'),
+    "tetrahedralize": (".mesh.meshing", 'tetrahedralize'),
+    "select_nodes": (".mesh.selection", 'select_nodes'),
+    "CentralDifferenceSimulator": (".drivers.fullorder", 'CentralDifferenceSimulator'),
+    "DirectSimulator": (".drivers.fullorder", 'DirectSimulator'),
+    "NewmarkSimulator": (".drivers.fullorder", 'NewmarkSimulator'),
+    "NonlinearNewmarkSimulator": (".drivers.nonlinear_newmark", 'NonlinearNewmarkSimulator'),
+    "Driver": (".drivers.base", 'Driver'),
+    "ModalSimulator": (".drivers.modal", 'ModalSimulator'),
+    "StaticDriver": (".drivers.static", 'StaticDriver'),
+    "SLDM": (".reduction.sldm", 'SLDM'),
+    "nonlinear": (".fe.nonlinear", None),
+    "ReducedNonlinearModel": (".reduction.reduced", 'ReducedNonlinearModel'),
+    "ReducedNonlinearSimulator": (".drivers.reduced_nonlinear", 'ReducedNonlinearSimulator'),
+}
+
+
+def __getattr__(name: str):
+    try:
+        module, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module 'rtfem' has no attribute {name!r}") from None
+    value = import_module(module, __name__)
+    if attr is not None:
+        value = getattr(value, attr)
+    globals()[name] = value  # once: later lookups are plain attribute reads
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
 
 __all__ = [
     "Damping",
