@@ -113,7 +113,10 @@ class RunWriter:
 
     def __init__(self, folder: str | os.PathLike, mesh, header: list[str], frame_every: int = 1,
                  name: str = "response", frame_folder: str | os.PathLike | None = None) -> None:
+        from ..storage import file_stem
+
         self.folder = Path(folder)
+        file_stem(name, "name")  # <name>.csv and <name>.pvd stay in the folder
         if self.folder.exists() and not self.folder.is_dir():
             raise ModelError(f"{str(folder)!r} is a file; give a folder for the frames")
         self.folder.mkdir(parents=True, exist_ok=True)
