@@ -234,6 +234,20 @@ def test_a_fifo_is_refused_at_once(folder, kind):
     _refused(_cli(*_command(kind, "pipe.toml"), cwd=folder, timeout=30), "not a regular file")
 
 
+def test_a_load_file_that_is_a_fifo_is_refused_at_once(folder):
+    os.mkfifo(folder / "loads.csv")
+    _refused(_cli("simulate", "box.vtu", "--fix", "z<0.001", "-n", "3", "--load", "loads.csv", "--out", "out",
+                  "--duration", "0.01", cwd=folder, timeout=30), "not a regular file")
+
+
+@pytest.mark.parametrize("url", ["ws://203.0.113.5:10001", "wss://example.org/haply", "ws://localhost.evil.org:1"])
+def test_a_scene_file_cannot_choose_a_remote_device_service(folder, url):
+    tool = f'[[tool]]\nname = "hand"\ndevice = "haply"\nurl = "{url}"\n'
+    (folder / "scene.toml").write_text(SCENE.format(name='"box"') + tool)
+    with pytest.raises(ModelError, match="a device on this machine only"):
+        load_scene(folder / "scene.toml", progress=lambda m: pytest.fail(f"work began: {m}"))
+
+
 @pytest.mark.parametrize("kind", ["scene", "plan"])
 def test_a_link_to_dev_zero_is_refused_at_once(folder, kind):
     if not Path("/dev/zero").exists():

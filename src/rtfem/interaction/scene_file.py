@@ -199,6 +199,8 @@ def close_devices(scene: Scene) -> None:
 
 
 def _open_device(table: dict, where: _Where, live: bool):
+    from urllib.parse import urlsplit
+
     from .devices import DEVICES, open_device
 
     if not live:
@@ -216,6 +218,11 @@ def _open_device(table: dict, where: _Where, live: bool):
     url = table.get("url", "ws://localhost:10001")
     if not isinstance(url, str) or not url.startswith(("ws://", "wss://")):
         raise where.error("url", f"{validate.show(url)}: give the Haply Inverse Service's ws:// address")
+    host = urlsplit(url).hostname or ""
+    if not (host == "localhost" or host.startswith("127.") or host == "::1"):
+        raise where.error("url", f"{validate.show(url)}: a scene file names a device on this machine only (localhost, "
+                          "127.0.0.1, [::1]); a file never chooses where rtfem connects. For a service elsewhere, use "
+                          "rtfem view --device haply --haply-url on the command line")
     port = where.check("port", validate.count, table.get("port", 18944), "port", 1, 65535, what="a TCP port")
     return where.check("device", open_device, name, max_force, url, port)
 

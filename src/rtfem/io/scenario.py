@@ -57,7 +57,10 @@ class LoadSchedule:
     def from_csv(cls, path: str | os.PathLike, n_nodes: int) -> "LoadSchedule":
         """Read rows ``t,node,fx,fy,fz`` (a header line and # comments are skipped); errors name
         the file and line."""
+        from ..storage import regular_file
+
         rows = []
+        regular_file(path, "load file")  # a pipe or /dev/zero would never end
         try:
             with open(path, newline="") as fh:
                 for i, row in enumerate(csv.reader(fh), start=1):
