@@ -48,7 +48,7 @@
     name = "probe"                 # the device's first button)
     device = "igtl"                # openhaptics, forcedimension, haply or igtl (rtfem devices: which are here)
     max_force = 5.0                # the most the device renders (N; default 10)
-    port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001"
+    port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001" (this machine)
 
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
 The file is read as :func:`rtfem.storage.read_toml` reads one (a regular file within a size cap,
