@@ -89,7 +89,7 @@ def test_a_batch_writes_what_the_library_builds_and_resumes(plan, capsys):
     ("[[organ]]\nname = 'a'\n[[organ]]\nname = 'a'\n", "its own name"),
     ("[[organ]]\nname = 'a'\nbuild = ['maps']\n", "give a list of modes, map, reduced"),
     ("out = 'x'\n", "at least one [[organ]]"),
-    ("[[organ]\n", "cannot read the plan"),
+    ("[[organ]\n", "not a TOML plan"),
 ])
 def test_a_bad_plan_is_one_line(tmp_path, capsys, text, said):
     (tmp_path / "plan.toml").write_text(text)

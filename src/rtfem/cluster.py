@@ -4,11 +4,15 @@ results come back as they finish.
 
 The stages that are sets of independent solves (an impedance map's columns, ...) take
 ``scheduler=``: ``None`` (here, as before), ``"tcp://HOST:PORT"`` (a running ``dask scheduler``
-with its ``dask worker`` processes), ``"local:N"`` (a LocalCluster of N worker processes on this
-machine, one thread each) or a ``distributed.Client``. A worker builds the model and its
-factorization from a small recipe (the mesh and the settings) once and keeps them
-(:func:`worker_cached`); a task carries a list of nodes. Dask reruns the tasks of a worker that dies
-on the others; what had come back is kept.
+with its ``dask worker`` processes; ``"tls://HOST:PORT"`` with certificates, :func:`security`),
+``"local:N"`` (a LocalCluster of N worker processes on this machine, one thread each, on loopback)
+or a ``distributed.Client``. A worker builds the model and its factorization from a small recipe
+(the mesh and the settings) once and keeps them (:func:`worker_cached`); a task carries a list of
+nodes. Dask reruns the tasks of a worker that dies on the others; what had come back is kept.
+
+Dask has no sandbox: whoever reaches a scheduler runs code on its workers, and a client unpickles
+what comes back, so a hostile scheduler or worker runs code on the client. Connect only to a
+cluster you run, across a network over ``tls://`` (both sides' certificates checked).
 """
 
 from __future__ import annotations
@@ -17,9 +21,10 @@ import threading
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator
 
+from . import validate
 from .errors import ModelError, SolverError
 
-__all__ = ["connect", "run_tasks", "worker_cached", "CONNECT_TIMEOUT"]
+__all__ = ["connect", "check_address", "is_loopback", "security", "run_tasks", "worker_cached", "CONNECT_TIMEOUT"]
 
 CONNECT_TIMEOUT = 10.0  # s to reach a scheduler before the one-line error
 _CACHE: dict = {}  # per process (a worker's): key -> what it built
@@ -36,14 +41,80 @@ def _distributed():
     return distributed
 
 
+def check_address(scheduler) -> str:
+    """The scheduler's address as text once it is one of the forms :func:`connect` takes:
+    ``local:N`` (1 <= N <= 256), ``tcp://HOST:PORT`` or ``tls://HOST:PORT`` (HOST a name, an IPv4
+    address or a bracketed IPv6 one; PORT 1 to 65535).
+
+    Raises
+    ------
+    ModelError
+        Any other text (one line saying the forms).
+    """
+    import re
+
+    text = str(scheduler).strip()
+    if text.startswith("local:"):
+        n = int(text[6:]) if text[6:].isdigit() else 0
+        if not 1 <= n <= 256:
+            raise ModelError(f"scheduler={text!r}: local:N takes a number of worker processes from 1 to 256")
+        return text
+    m = re.fullmatch(r"(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][A-Za-z0-9.-]*):([0-9]{1,5})", text)
+    if m is None or not 1 <= int(m.group(3)) <= 65535:
+        raise ModelError(f"scheduler={validate.show(text)}: give a Dask scheduler's address tcp://HOST:PORT (or "
+                         "tls://HOST:PORT with certificates), or local:N for N worker processes on this machine")
+    return text
+
+
+def is_loopback(address: str) -> bool:
+    """Whether a ``tcp://`` or ``tls://`` address names this machine's loopback (localhost, 127.x, [::1])."""
+    host = address.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]").lower()
+    return host == "localhost" or host.startswith("127.") or host == "::1"
+
+
+def security(ca_file, cert, key=None):
+    """A ``distributed.security.Security`` for a client of a ``tls://`` scheduler: the CA's
+    certificates (PEM) that the scheduler's certificate must be signed by, and this client's
+    certificate (and its key, when the certificate file does not hold it), also signed by that CA:
+    Dask's TLS checks both sides, so only holders of such a certificate reach the scheduler.
+
+    The command line checks that each is a regular file first (a pipe would block the ssl module).
+
+    Raises
+    ------
+    ModelError
+        Dask is not installed; files Python's ssl module cannot load (missing, not PEM, a key that
+        does not match the certificate).
+    """
+    import ssl
+
+    distributed = _distributed()
+    try:
+        sec = distributed.security.Security(tls_ca_file=str(ca_file), tls_client_cert=str(cert),
+                                            tls_client_key=None if key is None else str(key), require_encryption=True)
+        sec.get_connection_args("client")  # loads them now: a bad file is said before any work
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise ModelError(f"the TLS files (--tls-ca-file {ca_file}, --tls-cert {cert}"
+                         + (f", --tls-key {key}" if key else "") + f") cannot be used: {validate.one_line(str(exc))}; "
+                         "give PEM files: the CA's certificate, and this client's certificate and key signed by it"
+                         ) from None
+    return sec
+
+
 @contextmanager
-def connect(scheduler) -> Iterator[object]:
+def connect(scheduler, *, security=None) -> Iterator[object]:
     """A ``distributed.Client`` for ``scheduler`` (see the module's docstring), closed on exit
     (a LocalCluster with it; a Client given is left open).
 
+    A ``local:N`` cluster listens on this machine's loopback only (its scheduler, workers and
+    dashboard): nothing on the network reaches it. Whoever reaches a Dask scheduler runs code on its
+    workers and, through the results it sends back (unpickled here), on this client: connect only to
+    a scheduler you trust, over ``tls://`` across a network.
+
     Parameters
     ----------
-    scheduler : "tcp://HOST:PORT", "local:N" or a ``distributed.Client``.
+    scheduler : "tcp://HOST:PORT", "tls://HOST:PORT", "local:N" or a ``distributed.Client``.
+    security : a ``distributed.security.Security`` (:func:`security`) for a ``tls://`` address.
 
     Returns
     -------
@@ -52,24 +123,20 @@ def connect(scheduler) -> Iterator[object]:
     Raises
     ------
     ModelError
-        Dask is not installed, the text is neither form, or the scheduler cannot be reached within
+        Dask is not installed, the text is none of the forms (:func:`check_address`), a ``tls://``
+        address without ``security``, or the scheduler cannot be reached within
         :data:`CONNECT_TIMEOUT` s (one line naming the address).
     """
     distributed = _distributed()
     if isinstance(scheduler, distributed.Client):
         yield scheduler
         return
-    text = str(scheduler).strip()
+    text = check_address(scheduler)
     if text.startswith("local:"):
+        n = int(text[6:])
         try:
-            n = int(text[6:])
-        except ValueError:
-            n = 0
-        if not 1 <= n <= 256:
-            raise ModelError(f"scheduler={text!r}: local:N takes a number of worker processes from 1 to 256")
-        try:
-            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=":0", silence_logs=50)
+            cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                               dashboard_address="127.0.0.1:0", silence_logs=50)
         except (RuntimeError, OSError) as exc:
             raise ModelError(f"could not start a LocalCluster of {n} worker processes ({exc}): worker processes "
                              "re-import the main script, so a script read from standard input cannot start them; "
@@ -78,14 +145,16 @@ def connect(scheduler) -> Iterator[object]:
         with cluster, distributed.Client(cluster) as client:
             yield client
         return
-    if "://" not in text:
-        raise ModelError(f"scheduler={text!r}: give a Dask scheduler's address tcp://HOST:PORT, or local:N for N "
-                         "worker processes on this machine")
+    if text.startswith("tls://") and security is None:
+        raise ModelError(f"{text}: a tls:// scheduler needs certificates: --tls-ca-file, --tls-cert and --tls-key on the "
+                         "command line (security=rtfem.cluster.security(...) in Python)")
     try:
-        client = distributed.Client(text, timeout=CONNECT_TIMEOUT)
-    except (OSError, TimeoutError):
-        raise ModelError(f"could not reach the Dask scheduler at {text} within {CONNECT_TIMEOUT:g} s: start it with "
-                         "'dask scheduler' and its workers with 'dask worker ADDRESS'") from None
+        client = distributed.Client(text, timeout=CONNECT_TIMEOUT, security=security)
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        tls = " over TLS (are the certificates the cluster's?)" if text.startswith("tls://") else ""
+        raise ModelError(f"could not reach the Dask scheduler at {text} within {CONNECT_TIMEOUT:g} s{tls} "
+                         f"({validate.one_line(str(exc), 120)}): start it with 'dask scheduler' and its workers with "
+                         "'dask worker ADDRESS'") from None
     try:
         yield client
     finally:

@@ -259,6 +259,22 @@ def model_options(args, mesh) -> dict:
     return {"element": args.element, "mass": args.mass} if isinstance(mesh, TetMesh) else {}
 
 
+def warn(text: str) -> None:
+    """A warning of the command line: one line on stderr (the work goes on)."""
+    print(f"rtfem: warning: {_one_line(text)}", file=sys.stderr, flush=True)
+
+
+LOCKING_NU = 0.49  # plain tet4 at or above this Poisson's ratio locks
+
+
+def locking_warning(element: str | None, nu: float) -> str | None:
+    """What a model of plain tet4 at nu >= :data:`LOCKING_NU` deserves to be told (None otherwise)."""
+    if element != "tet4" or nu < LOCKING_NU:
+        return None
+    return (f"tet4 at nu = {nu:g} locks: linear tets of a nearly incompressible material are far too stiff "
+            "(displacements and frequencies wrong by factors, worse as nu nears 0.5); use --element tet4-anp or tet10")
+
+
 def build_model(args, *, quiet: bool = False):
     from ..fe.material import Material
     from ..fe.build import make_model
@@ -268,6 +284,9 @@ def build_model(args, *, quiet: bool = False):
     material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
     material = material_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
     mesh = mesh_of_args(args)
+    locking = locking_warning(args.element, args.nu) if isinstance(mesh, TetMesh) else None
+    if locking and not quiet:
+        warn(locking)
     nodes, how = fixed_nodes(mesh, args.fix)
     model = make_model(mesh, material, **model_options(args, mesh))
     model.fix(nodes)
@@ -307,3 +326,60 @@ def _modes(model, args, *, quiet=False):
         return modal_analysis(model, r)
     with progress_bar(f"modes (r = {r})", unit="solve") as bar:
         return modal_analysis(model, r, progress=bar)
+
+
+# ---------------------------------------------------------------- a Dask cluster (--scheduler)
+def add_scheduler_options(p: argparse.ArgumentParser, what: str) -> None:
+    """--scheduler (``what`` says what runs there) and Dask's TLS certificates for tls:// addresses."""
+    p.add_argument("--scheduler", metavar="ADDRESS", help=what + ". Dask runs code from any client that reaches its "
+                   "scheduler, and this one unpickles what comes back: across a network use tls:// (see the manual: "
+                   "Precompute on a cluster)")
+    g = p.add_argument_group("a cluster over TLS (--scheduler tls://HOST:PORT; Dask's certificates, PEM files)")
+    g.add_argument("--tls-ca-file", metavar="PEM", help="the CA certificate(s) that signed the scheduler's certificate "
+                   "and this client's")
+    g.add_argument("--tls-cert", metavar="PEM", help="this client's certificate, signed by that CA")
+    g.add_argument("--tls-key", metavar="PEM", help="this client's private key (when the --tls-cert file does not hold it)")
+
+
+def check_scheduler(args) -> str | None:
+    """The command line's --scheduler, checked before any work: its form, the TLS files a tls:// address
+    needs (each a regular file), and a warning for plain tcp:// beyond this machine. None: here."""
+    from ..cluster import check_address, is_loopback
+    from ..storage import regular_file
+
+    tls = {"--tls-ca-file": getattr(args, "tls_ca_file", None), "--tls-cert": getattr(args, "tls_cert", None),
+           "--tls-key": getattr(args, "tls_key", None)}
+    address = None if args.scheduler is None else check_address(args.scheduler)
+    given = [flag for flag, v in tls.items() if v is not None]
+    if given and not (address or "").startswith("tls://"):
+        raise RtfemError(f"{', '.join(given)}: the certificates are for --scheduler tls://HOST:PORT")
+    if address is None:
+        return None
+    if address.startswith("tls://"):
+        missing = [flag for flag in ("--tls-ca-file", "--tls-cert") if tls[flag] is None]
+        if missing:
+            raise RtfemError(f"--scheduler {address}: a tls:// scheduler needs {' and '.join(missing)} (and --tls-key "
+                             "when the certificate file does not hold the key): the CA's certificate and this client's, "
+                             "signed by it")
+        for flag, value in tls.items():
+            if value is not None:
+                regular_file(value, f"{flag} file", error=RtfemError)
+    elif address.startswith("tcp://") and not is_loopback(address):
+        warn(f"--scheduler {address} is plain tcp://: neither encrypted nor authenticated, so whoever reaches that "
+             "scheduler (or sits between) can run code on this machine through Dask; use tls:// with certificates, "
+             "or a private network you trust")
+    return address
+
+
+@contextlib.contextmanager
+def scheduler_of(args, address: str | None):
+    """What the library's ``scheduler=`` takes for the checked ``address`` (:func:`check_scheduler`):
+    None (here), the address (tcp://, local:N), or a Client connected over TLS with the --tls-*
+    certificates (closed on exit)."""
+    if address is None or not address.startswith("tls://"):
+        yield address
+        return
+    from ..cluster import connect, security
+
+    with connect(address, security=security(args.tls_ca_file, args.tls_cert, args.tls_key)) as client:
+        yield client

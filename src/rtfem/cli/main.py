@@ -31,9 +31,9 @@ import numpy as np
 from .. import validate
 from ..errors import ModelError, RtfemError
 from .common import (
-    MAX_FRAMES, MAX_STEPS, _Parser, _modes, _one_line, _vector, add_model_options, build_model, count,
-    damping_of, fixed_nodes, fraction, mesh_of_args, model_options, nonnegative, open_fraction, port,
-    positive, progress_bar, time_list,
+    MAX_FRAMES, MAX_STEPS, _Parser, _modes, _one_line, _vector, add_model_options, add_scheduler_options, build_model,
+    check_scheduler, count, damping_of, fixed_nodes, fraction, mesh_of_args, model_options, nonnegative, open_fraction,
+    port, positive, progress_bar, scheduler_of, time_list,
 )
 
 if TYPE_CHECKING:
@@ -193,9 +193,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .scene import is_scene, simulate_scene
 
     if is_scene(args):  # a scene file (or --example): its bodies, obstacles, gravity
-
         return simulate_scene(args)
     n_steps, frame_every = _check_simulate(args)
+    address = check_scheduler(args)  # its form and certificates before any work
+    if address is not None and args.method != "nonlinear":
+        raise RtfemError("--scheduler computes the modal derivatives of --method nonlinear; the other methods run here")
     model = build_model(args)
     if not args.load and args.depth > 0.5 * model.mesh.diagonal():  # before any precompute
         raise ModelError(f"--depth {args.depth:g} m is more than half the organ's size ({model.mesh.diagonal():.3g} m "
@@ -219,9 +221,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if args.local:  # the patch around the probed vertex, or the loaded nodes
             local = (schedule.nodes if schedule is not None else [_probe_point(model, args.at)], args.local * 1e-3)
         modes = _modes(model, args)
-        with progress_bar("modal derivatives", unit="mode") as bar:
+        with scheduler_of(args, address) as scheduler, progress_bar("modal derivatives", unit="mode") as bar:
             sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar,
-                                           scheduler=args.scheduler)
+                                           scheduler=scheduler)
         info = sim.reduced.info
         patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
                                                 f"({info['local']['nodes']} nodes)")
@@ -262,6 +264,7 @@ def cmd_impedance(args: argparse.Namespace) -> int:
     from ..drivers.impedance import ImpedanceMap
 
     output = _output_file(args.output)
+    address = check_scheduler(args)  # its form and certificates before any work
     model = build_model(args)
     times = args.times
     nodes = None
@@ -270,7 +273,7 @@ def cmd_impedance(args: argparse.Namespace) -> int:
         print(f"loaded      {nodes.size} nodes ({how})")
     kw = dict(nodes=nodes, radius=args.radius, metric=args.metric, threshold=args.threshold, method=args.method,
               n_modes=args.modes, tol=args.tol, workers=args.workers, memory_limit=args.memory_limit * 2**30,
-              scheduler=args.scheduler)
+              scheduler=address)
     if times is not None:
         kw["times"] = times
     size = ImpedanceMap.estimate_bytes(model, nodes=nodes, radius=args.radius, metric=args.metric,
@@ -282,7 +285,7 @@ def cmd_impedance(args: argparse.Namespace) -> int:
         raise RtfemError(f"the map would be about {size['bytes'] / 2**30:.1f} GiB, more than {LARGE_MAP / 2**30:g} GiB: "
                          "pass --allow-large to write it, or give a smaller --radius, a --threshold, fewer --times or "
                          "--nodes")
-    with progress_bar("impedance", unit="nodes") as bar:
+    with scheduler_of(args, address) as kw["scheduler"], progress_bar("impedance", unit="nodes") as bar:
         imap = ImpedanceMap.build(model, damping_of(args), progress=bar, **kw)
     if not imap.info.get("complete", True):
         # interrupted: keep what was finished, beside (never over) the requested output
@@ -462,8 +465,8 @@ def _add_simulate(sub) -> None:
                         "and the modal derivatives of up to 20 of them, cubature forces; large deformation, shell or solid)")
     p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: also every dof within MM mm of the "
                    "probed (or loaded) vertex in the basis, for pulls of centimetres (see the manual: Which model when)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="--method nonlinear: the modal derivatives on a Dask cluster "
-                   "(tcp://HOST:PORT or local:N; the cluster extra)")
+    add_scheduler_options(p, "--method nonlinear: the modal derivatives on a Dask cluster (tcp://HOST:PORT, "
+                          "tls://HOST:PORT with --tls-*, or local:N; the cluster extra)")
     p.add_argument("--example", choices=("gallbladder",), help="run a scene shipped with rtfem: gallbladder (the "
                    "liver and the gallbladder hung beneath it, a grasper retracting its fundus, a probe on the liver)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
@@ -489,9 +492,9 @@ def _add_impedance(sub) -> None:
     p.add_argument("--method", choices=("modal", "sldm"), default="modal", help="modal (r modes + static correction) or sldm")
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--workers", type=count, default=1, help="threads (default 1)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="compute the columns on a Dask cluster: tcp://HOST:PORT (a "
-                   "running 'dask scheduler' and its workers) or local:N (N worker processes here); needs the cluster "
-                   "extra")
+    add_scheduler_options(p, "compute the columns on a Dask cluster: tcp://HOST:PORT (a running 'dask scheduler' and "
+                          "its workers), tls://HOST:PORT (with --tls-*) or local:N (N worker processes here, on "
+                          "loopback); needs the cluster extra")
     p.add_argument("--memory-limit", type=positive, default=4.0, help="refuse maps above this many GiB (default 4)")
     p.add_argument("--allow-large", action="store_true", help="write a map estimated past 1 GiB (refused otherwise)")
     p.set_defaults(func=cmd_impedance)

@@ -72,15 +72,29 @@ def view_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+def _body_folder(out: Path, name: str) -> Path:
+    """``out/<name>``, a body's folder: its name one that may name files, the folder (and the
+    files named after the body in it) inside ``out`` once links are followed."""
+    from ..storage import file_stem, inside
+
+    file_stem(name, "body name", error=RtfemError)
+    folder = out / name
+    for path in (folder, folder / f"{name}.pvd", folder / f"{name}.csv"):
+        inside(out, path, f"body {name!r}'s output", error=RtfemError)
+    return folder
+
+
 def simulate_scene(args: argparse.Namespace) -> int:
     """Run the scene file ``args.mesh`` for ``args.duration`` s into ``args.out``: a folder per body with
     its ``<body>.pvd`` frames (``--fps``) and ``<body>.csv`` (t and the total contact force on it), and
     ``contacts.csv`` with t, a, b, fx, fy, fz: the force on body a from obstacle, body or attachment b, every step."""
     from ..interaction.scene_file import contact_rows, load_scene
     from ..io.scenario import RunWriter
-    from ..storage import atomic_target
+    from ..storage import atomic_target, inside
     from ..threads import runtime
 
+    if getattr(args, "scheduler", None) is not None:
+        raise RtfemError("--scheduler is for --method nonlinear on one organ; a scene's bodies are reduced here")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RtfemError(f"--out {args.out!r} is a file; give a folder for the frames")
@@ -93,7 +107,7 @@ def simulate_scene(args: argparse.Namespace) -> int:
     frame_every = max(1, int(round(1 / args.fps / dt)))
     if n_steps // frame_every > MAX_FRAMES:
         raise RtfemError(f"--fps {args.fps:g} writes {n_steps // frame_every:,} frames a body, more than {MAX_FRAMES:,}")
-    writers = {b.name: RunWriter(out / b.name, getattr(b.model, "tetmesh", b.mesh), ["t", "fx", "fy", "fz"],
+    writers = {b.name: RunWriter(_body_folder(out, b.name), getattr(b.model, "tetmesh", b.mesh), ["t", "fx", "fy", "fz"],
                                  frame_every, name=b.name) for b in scene.bodies}
     rows = []
     t0 = time.perf_counter()
@@ -111,7 +125,7 @@ def simulate_scene(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     for w in writers.values():
         w.close()
-    path = out / "contacts.csv"
+    path = inside(out, out / "contacts.csv", "contacts file")
     with atomic_target(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t", "a", "b", "fx", "fy", "fz"])

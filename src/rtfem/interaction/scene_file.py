@@ -48,9 +48,14 @@
     name = "probe"                 # the device's first button)
     device = "igtl"                # openhaptics, forcedimension, haply or igtl (rtfem devices: which are here)
     max_force = 5.0                # the most the device renders (N; default 10)
-    port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001"
+    port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001" (this machine)
 
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
+The file is read as :func:`rtfem.storage.read_toml` reads one (a regular file within a size cap,
+nested at most 16 deep); names are ones that may name files (``rtfem simulate`` writes a folder per
+body: no path separators, no control or bidirectional-text characters); at most
+:data:`MAX_TABLES` tables of each kind; a scripted path stays within 1 km of the origin. All of this
+is checked before any device is opened or any body meshed.
 A live device is opened before any precompute (a missing SDK is said at once), fitted to the
 bodies' bounds where it has a workspace to fit, and closed again if the file turns out bad; close
 them with :func:`close_devices` when done.
@@ -75,6 +80,10 @@ ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
 TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed", "device", "max_force", "url", "port"}
 MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
 BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
+#: the most tables of each kind a scene file may have: each body is meshed and reduced before the first
+#: step (seconds to minutes each), and every step solves one contact problem over all of them
+MAX_TABLES = {"body": 32, "obstacle": 64, "attachment": 256, "tool": 32}
+MAX_GRAVITY = 1e3  # m/s^2
 
 
 class _Where:
@@ -122,20 +131,17 @@ def load_scene(path, *, progress=None, dt: float | None = None, live: bool = Tru
         A file that is not TOML, an unknown, missing or bad key (the message names the file, the
         table and the key), a mesh file that cannot be read, a body that cannot be modelled.
     """
-    import tomllib
+    from ..storage import read_toml
 
     p = Path(validate.path_like(path, "path"))
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ModelError(f"{p}: cannot read the scene file ({exc.strerror or exc})") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ModelError(f"{p}: not a TOML scene file: {exc}") from None
+    doc = read_toml(p, "scene file")  # a regular file within the size cap, nested at most 16 deep
     top = _Where(p, "the top level")
     top.keys(doc, TOP_KEYS)
+    _check_counts(doc, top)
     gravity = top.check("gravity", validate.vector, doc.get("gravity", (0.0, 0.0, -9.81)), "gravity", 3)
+    if not np.linalg.norm(gravity) <= MAX_GRAVITY:
+        raise top.error("gravity", f"{np.asarray(gravity).tolist()} m/s^2 is more than {MAX_GRAVITY:g} m/s^2 (100 g): "
+                        "give the acceleration in m/s^2, e.g. [0, 0, -9.81]")
     dt = top.check("dt", validate.time_step, doc.get("dt", 1e-3) if dt is None else dt, "dt")
     friction = top.check("friction", validate.in_range, doc.get("friction", 0.0), "friction", 0.0, 10.0,
                          what="Coulomb's coefficient between bodies")
@@ -155,12 +161,33 @@ def load_scene(path, *, progress=None, dt: float | None = None, live: bool = Tru
         for i, table in enumerate(tools):
             if isinstance(table, dict) and "device" in table:
                 devices[i] = _open_device(table, _Where(p, _table_name("tool", i, table)), live)
+        places = [_Where(p, _table_name("tool", i, table)) for i, table in enumerate(tools)]
+        tools = [(where, _tool(table, where, devices.get(i))) for i, (table, where) in enumerate(zip(tools, places))]
         _fill(scene, doc, p, bodies, obstacles, tools, devices, dt, progress)
     except BaseException:
         for device in devices.values():
             device.close()
         raise
     return scene
+
+
+def _check_counts(doc: dict, top: _Where) -> None:
+    """Each kind of table within :data:`MAX_TABLES`, and every table's name one that may name files,
+    before any device is opened or any body meshed."""
+    from ..storage import file_stem
+
+    for kind, most in MAX_TABLES.items():
+        tables = doc.get(kind, [])
+        tables = tables if isinstance(tables, list) else [tables]
+        if len(tables) > most:
+            raise top.error(kind, f"{len(tables):,} [[{kind}]] tables, more than the {most} a scene may have: "
+                            + ("each body is meshed and its modes computed before the first step (seconds to minutes "
+                               "each), and every step solves the contacts of all of them together" if kind == "body"
+                               else "every step works through each of them"))
+        for i, table in enumerate(tables):
+            if isinstance(table, dict) and "name" in table:
+                where = _Where(top.path, _table_name(kind, i, table))
+                where.check("name", file_stem, table["name"], "the name")
 
 
 def close_devices(scene: Scene) -> None:
@@ -172,6 +199,8 @@ def close_devices(scene: Scene) -> None:
 
 
 def _open_device(table: dict, where: _Where, live: bool):
+    from urllib.parse import urlsplit
+
     from .devices import DEVICES, open_device
 
     if not live:
@@ -189,12 +218,18 @@ def _open_device(table: dict, where: _Where, live: bool):
     url = table.get("url", "ws://localhost:10001")
     if not isinstance(url, str) or not url.startswith(("ws://", "wss://")):
         raise where.error("url", f"{validate.show(url)}: give the Haply Inverse Service's ws:// address")
+    host = urlsplit(url).hostname or ""
+    if not (host == "localhost" or host.startswith("127.") or host == "::1"):
+        raise where.error("url", f"{validate.show(url)}: a scene file names a device on this machine only (localhost, "
+                          "127.0.0.1, [::1]); a file never chooses where rtfem connects. For a service elsewhere, use "
+                          "rtfem view --device haply --haply-url on the command line")
     port = where.check("port", validate.count, table.get("port", 18944), "port", 1, 65535, what="a TCP port")
     return where.check("device", open_device, name, max_force, url, port)
 
 
 def _fill(scene: Scene, doc: dict, p: Path, bodies, obstacles, tools, devices: dict, dt: float, progress) -> None:
-    """The file's bodies, obstacles, attachments and tools into ``scene`` (the live ``devices`` opened)."""
+    """The file's bodies, obstacles, attachments and ``tools`` (checked: (where, what add_tool takes))
+    into ``scene`` (the live ``devices`` opened)."""
     for i, table in enumerate(bodies):
         where = _Where(p, _table_name("body", i, table))
         if progress is not None:
@@ -218,8 +253,8 @@ def _fill(scene: Scene, doc: dict, p: Path, bodies, obstacles, tools, devices: d
         where.check("stiffness", validate.positive, table.get("stiffness", 500.0), "stiffness", "a spring in N/m")
         where.check("nodes", scene.attach, table["name"], table["body"], table["nodes"],
                     None if to == "world" else to, stiffness=table.get("stiffness", 500.0))
-    for i, table in enumerate(tools):
-        _add_tool(scene, table, _Where(p, _table_name("tool", i, table)), devices.get(i))
+    for where, (name, device, kind, options) in tools:  # checked before the bodies (_tool)
+        where.check("name", scene.add_tool, name, device, kind=kind, **options)
     if devices:  # the devices' workspaces fitted to the bodies (where the adapter fits one)
         X = np.concatenate([b.X[b.surface] for b in scene.bodies])
         for device in devices.values():
@@ -254,7 +289,9 @@ def _add_obstacle(scene: Scene, table, where: _Where, folder: Path) -> None:
     where.check("plane", scene.add_plane, table["name"], plane["point"], plane["normal"], friction)
 
 
-def _add_tool(scene: Scene, table, where: _Where, device=None) -> None:
+def _tool(table, where: _Where, device=None) -> tuple:
+    """A [[tool]] table checked (before any body is meshed): its name, device (a scripted one for a
+    path), kind and options, what :meth:`Scene.add_tool` takes."""
     from .scene_tools import Keyframes
 
     if not isinstance(table, dict):
@@ -275,7 +312,7 @@ def _add_tool(scene: Scene, table, where: _Where, device=None) -> None:
                           ("friction", validate.in_range, (0.0, 10.0))):
         if key in options:
             where.check(key, fn, options[key], key, *args)
-    where.check("name", scene.add_tool, table["name"], device, kind=kind, **options)
+    return table["name"], device, kind, options
 
 
 def _table_name(kind: str, i: int, table) -> str:

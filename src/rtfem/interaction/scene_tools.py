@@ -35,6 +35,8 @@ from .contact import Tool
 __all__ = ["SceneTool", "Keyframes"]
 
 KINDS = ("probe", "grasper")
+REACH = 1e3  # m: a scripted hand farther than this from the origin is a unit mistake (or overflows the contacts)
+MAX_TIME = 1e6  # s
 
 
 def _frames(normals: np.ndarray) -> np.ndarray:
@@ -177,7 +179,8 @@ class Keyframes:
     Raises
     ------
     ModelError
-        Rows of the wrong shape, times not increasing, non-finite values.
+        Rows of the wrong shape, times not increasing, non-finite values, a position farther than
+        :data:`REACH` from the origin.
     """
 
     def __init__(self, path, closed=()) -> None:
@@ -186,6 +189,12 @@ class Keyframes:
             raise ModelError(f"path must be rows [t, x, y, z] (s, m), got shape {p.shape}")
         if np.any(np.diff(p[:, 0]) <= 0):
             raise ModelError("path: the times must increase from row to row")
+        far = np.flatnonzero(np.abs(p[:, 1:]).max(axis=1) > REACH)
+        if far.size:
+            raise ModelError(f"path: row {far[0] + 1} puts the hand at {p[far[0], 1:].tolist()} m, more than {REACH:g} m "
+                             "from the origin: give positions in metres (a mesh in millimetres wants scale = 1e-3)")
+        if np.abs(p[:, 0]).max() > MAX_TIME:
+            raise ModelError(f"path: times beyond {MAX_TIME:g} s: give them in seconds")
         c = np.zeros((0, 2)) if len(closed) == 0 else validate.real_array(closed, "closed", 2)
         if c.ndim != 2 or c.shape[1] != 2 or np.any(c[:, 1] <= c[:, 0]):
             raise ModelError("closed must be rows [t_on, t_off] (s) with t_off > t_on")

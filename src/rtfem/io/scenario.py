@@ -57,7 +57,10 @@ class LoadSchedule:
     def from_csv(cls, path: str | os.PathLike, n_nodes: int) -> "LoadSchedule":
         """Read rows ``t,node,fx,fy,fz`` (a header line and # comments are skipped); errors name
         the file and line."""
+        from ..storage import regular_file
+
         rows = []
+        regular_file(path, "load file")  # a pipe or /dev/zero would never end
         try:
             with open(path, newline="") as fh:
                 for i, row in enumerate(csv.reader(fh), start=1):
@@ -113,7 +116,10 @@ class RunWriter:
 
     def __init__(self, folder: str | os.PathLike, mesh, header: list[str], frame_every: int = 1,
                  name: str = "response", frame_folder: str | os.PathLike | None = None) -> None:
+        from ..storage import file_stem
+
         self.folder = Path(folder)
+        file_stem(name, "name")  # <name>.csv and <name>.pvd stay in the folder
         if self.folder.exists() and not self.folder.is_dir():
             raise ModelError(f"{str(folder)!r} is a file; give a folder for the frames")
         self.folder.mkdir(parents=True, exist_ok=True)

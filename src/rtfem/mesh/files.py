@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import MeshError, ModelError
+from ..storage import regular_file
 from .surface import TriMesh
 from .tetmesh import TetMesh
 
@@ -53,13 +54,7 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
     s = validate.positive(scale, "scale", "a factor on the coordinates (1e-3 turns mm into m)", error=MeshError)
     repair = validate.flag(repair, "repair", error=MeshError)
     merge_tol = validate.in_range(merge_tol, "merge_tol", 0.0, 1.0, hi_open=True, error=MeshError)
-    if not p.exists():
-        raise MeshError(f"mesh file {str(p)!r} does not exist")
-    if p.is_dir():
-        raise MeshError(f"{str(p)!r} is a directory, not a mesh file")
-    if not p.is_file():
-        raise MeshError(f"{str(p)!r} is not a regular file (a pipe, a device or a socket, which may never end): give "
-                        "a mesh file on disk")
+    regular_file(p, "mesh file", error=MeshError)  # a pipe or /dev/zero would never end
     points, triangles, tets, groups = _read(p)
     if tets is not None:
         mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups)
