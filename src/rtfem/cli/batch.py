@@ -24,7 +24,7 @@ A plan::
 On a cluster the folder (and the mesh files) must be reachable by every worker at the same path:
 a shared file system (NFS, a cluster's scratch), or a folder synced to an object store afterwards.
 
-A plan is someone's file: it is read as :func:`rtfem.storage.read_toml` reads one (a regular file,
+A plan is someone's file: it is read as :func:`rtfem.userfiles.read_toml` reads one (a regular file,
 size-capped, nested at most 16 deep), every key is checked before any work (all problems said at
 once), it never chooses a remote cluster (``--scheduler`` does), and what it writes stays in the
 output folder (organ names are file stems: no separators, no control or bidirectional characters).
@@ -63,7 +63,7 @@ def load_plan(path: str | Path, *, out: str | Path | None = None) -> tuple[Path,
     Parameters
     ----------
     path : the plan file (TOML; see the module's docstring): a regular file within the size cap
-        (:func:`rtfem.storage.read_toml`).
+        (:func:`rtfem.userfiles.read_toml`).
     out : the output folder the command line gives (``--out``); None: the plan's ``out``, which must
         stay inside the plan's folder.
 
@@ -80,7 +80,7 @@ def load_plan(path: str | Path, *, out: str | Path | None = None) -> tuple[Path,
         build, an ``out`` outside the plan's folder, a ``scheduler`` other than ``local:N`` (a
         file never chooses a remote cluster: the command line's ``--scheduler`` does).
     """
-    from ..storage import read_toml
+    from ..userfiles import read_toml
 
     path = Path(path)
     plan = read_toml(path, "plan", error=RtfemError)
@@ -167,7 +167,7 @@ def _plan_out(path: Path, value, given, problems: list) -> Path:
 def _checks() -> dict:
     """Each plan key's check: value -> None, or raises an RtfemError saying what is wrong."""
     from ..fe.solid import ELEMENTS
-    from ..storage import file_stem
+    from ..userfiles import file_stem
 
     def number(key, *, lo=None, hi=None, what=""):
         if lo is not None:
@@ -211,7 +211,7 @@ def _boolean(key: str, value) -> None:
 
 def _check_table(table: dict, where: str, folder: Path, problems: list) -> None:
     """Every key of one table of the plan ([defaults] or an organ) known and of its type and range."""
-    from ..storage import regular_file
+    from ..userfiles import regular_file
 
     checks = _checks()
     bad = sorted(set(table) - set(KEYS), key=str)
@@ -294,7 +294,7 @@ def _organ(spec: dict, out: Path, row: dict) -> None:
     from ..drivers.impedance import ImpedanceMap
     from ..reduction.modal import ModalBasis, modal_analysis
     from ..reduction.reduced import ReducedNonlinearModel
-    from ..storage import file_stem, inside
+    from ..userfiles import file_stem, inside
     from .common import build_model
 
     files = {kind: inside(out, out / f"{file_stem(spec['name'], 'name')}.{kind}.npz", "organ's file") for kind in BUILD}
@@ -378,7 +378,7 @@ def _run(out: Path, specs: list, scheduler) -> int:
     """The organs, on ``scheduler`` (an address or a Client) or here; the summary; the exit code."""
     from ..cluster import connect, run_tasks
 
-    from ..storage import inside
+    from ..userfiles import inside
 
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -419,7 +419,7 @@ def _summary(out: Path, specs: list, rows: list, seconds: float) -> None:
     order = {s["name"]: i for i, s in enumerate(specs)}
     rows = sorted(rows, key=lambda r: order[r["name"]])
     head = ["name", "nodes", "dof", "built", "kept", "seconds", "error"]
-    from ..storage import inside
+    from ..userfiles import inside
 
     with open(inside(out, out / "summary.csv", "summary"), "w", newline="") as fh:
         w = csv.writer(fh)

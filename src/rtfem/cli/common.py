@@ -345,7 +345,7 @@ def check_scheduler(args) -> str | None:
     """The command line's --scheduler, checked before any work: its form, the TLS files a tls:// address
     needs (each a regular file), and a warning for plain tcp:// beyond this machine. None: here."""
     from ..cluster import check_address, is_loopback
-    from ..storage import regular_file
+    from ..userfiles import regular_file
 
     tls = {"--tls-ca-file": getattr(args, "tls_ca_file", None), "--tls-cert": getattr(args, "tls_cert", None),
            "--tls-key": getattr(args, "tls_key", None)}

@@ -75,7 +75,7 @@ def view_scene(args: argparse.Namespace) -> int:
 def _body_folder(out: Path, name: str) -> Path:
     """``out/<name>``, a body's folder: its name one that may name files, the folder (and the
     files named after the body in it) inside ``out`` once links are followed."""
-    from ..storage import file_stem, inside
+    from ..userfiles import file_stem, inside
 
     file_stem(name, "body name", error=RtfemError)
     folder = out / name
@@ -90,7 +90,8 @@ def simulate_scene(args: argparse.Namespace) -> int:
     ``contacts.csv`` with t, a, b, fx, fy, fz: the force on body a from obstacle, body or attachment b, every step."""
     from ..interaction.scene_file import contact_rows, load_scene
     from ..io.scenario import RunWriter
-    from ..storage import atomic_target, inside
+    from ..storage import atomic_target
+    from ..userfiles import inside
     from ..threads import runtime
 
     if getattr(args, "scheduler", None) is not None:

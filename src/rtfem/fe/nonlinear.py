@@ -138,15 +138,21 @@ def solve_static(model, forces=None, *, prescribed=None, steps: int = 1, tol: fl
         residual) and every converged load step.
     time_limit : seconds (default 600) after which the solve stops with a SolverError holding the
         last equilibrium; None: no limit.
-    The residual's round-off floor on a slender shell is far above eps times the load (1e-9 of it
-    on the module notes' strip): the granularity of a double-precision state; see the module.
 
+    Raises
+    ------
+    SolverError
+        A load step that cannot be halved further, or the time limit; the error's ``result`` holds
+        the last equilibrium reached (nothing computed is lost).
+    ModelError
+        Bad arguments (nothing is computed then).
+
+    Notes
+    -----
     No step is accepted where a solid element is turned inside out (det F <= 0) or a shell triad
     turned past :data:`LOCAL_ROTATION_LIMIT` degrees: ``converged`` is never True on such a state.
-
-    Raises SolverError when a load step cannot be halved further, or at the time limit; the
-    error's ``result`` holds the last equilibrium reached (nothing computed is lost). ModelError
-    for bad arguments (nothing is computed then).
+    The residual's round-off floor on a slender shell is far above eps times the load (1e-9 of it
+    on the module notes' strip): the granularity of a double-precision state; see the module.
     """
     t0 = time.perf_counter()
     _check_solver_model(model)

@@ -51,7 +51,7 @@
     port = 18944                   # igtl: the OpenIGTLink port; haply: url = "ws://localhost:10001" (this machine)
 
 Every error names the file, the table (``[[body]] 2 "box"``) and the key, and says what it needs.
-The file is read as :func:`rtfem.storage.read_toml` reads one (a regular file within a size cap,
+The file is read as :func:`rtfem.userfiles.read_toml` reads one (a regular file within a size cap,
 nested at most 16 deep); names are ones that may name files (``rtfem simulate`` writes a folder per
 body: no path separators, no control or bidirectional-text characters); at most
 :data:`MAX_TABLES` tables of each kind; a scripted path stays within 1 km of the origin. All of this
@@ -131,7 +131,7 @@ def load_scene(path, *, progress=None, dt: float | None = None, live: bool = Tru
         A file that is not TOML, an unknown, missing or bad key (the message names the file, the
         table and the key), a mesh file that cannot be read, a body that cannot be modelled.
     """
-    from ..storage import read_toml
+    from ..userfiles import read_toml
 
     p = Path(validate.path_like(path, "path"))
     doc = read_toml(p, "scene file")  # a regular file within the size cap, nested at most 16 deep
@@ -174,7 +174,7 @@ def load_scene(path, *, progress=None, dt: float | None = None, live: bool = Tru
 def _check_counts(doc: dict, top: _Where) -> None:
     """Each kind of table within :data:`MAX_TABLES`, and every table's name one that may name files,
     before any device is opened or any body meshed."""
-    from ..storage import file_stem
+    from ..userfiles import file_stem
 
     for kind, most in MAX_TABLES.items():
         tables = doc.get(kind, [])

@@ -57,7 +57,7 @@ class LoadSchedule:
     def from_csv(cls, path: str | os.PathLike, n_nodes: int) -> "LoadSchedule":
         """Read rows ``t,node,fx,fy,fz`` (a header line and # comments are skipped); errors name
         the file and line."""
-        from ..storage import regular_file
+        from ..userfiles import regular_file
 
         rows = []
         regular_file(path, "load file")  # a pipe or /dev/zero would never end
@@ -116,7 +116,7 @@ class RunWriter:
 
     def __init__(self, folder: str | os.PathLike, mesh, header: list[str], frame_every: int = 1,
                  name: str = "response", frame_folder: str | os.PathLike | None = None) -> None:
-        from ..storage import file_stem
+        from ..userfiles import file_stem
 
         self.folder = Path(folder)
         file_stem(name, "name")  # <name>.csv and <name>.pvd stay in the folder

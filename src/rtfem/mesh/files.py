@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import MeshError, ModelError
-from ..storage import regular_file
+from ..userfiles import regular_file
 from .surface import TriMesh
 from .tetmesh import TetMesh
 
