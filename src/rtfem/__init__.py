@@ -62,6 +62,8 @@ _LAZY = {
     "nonlinear": (".fe.nonlinear", None),
     "ReducedNonlinearModel": (".reduction.reduced", 'ReducedNonlinearModel'),
     "ReducedNonlinearSimulator": (".drivers.reduced_nonlinear", 'ReducedNonlinearSimulator'),
+    "precompute": (".reduction.precompute", 'precompute'),
+    "cache": (".cache", None),
 }
 
 
@@ -136,4 +138,6 @@ __all__ = [
     "devices",
     "nonlinear",
     "save_mesh",
+    "precompute",
+    "cache",
 ]

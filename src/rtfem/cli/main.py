@@ -13,6 +13,7 @@
     rtfem devices                          the haptic device adapters: found here, or what to install
     rtfem igtl [MESH]                      an OpenIGTLink server: a tracked tool in, the organ and its force out
     rtfem demo                             the scripted demo of `make demo HEADLESS=1`
+    rtfem cache [--clear]                  the precomputed meshes, modes and reduced models kept here
 
 Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupted.
 """
@@ -30,6 +31,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError, RtfemError
+from .cache import report as cache_report
 from .common import (
     MAX_FRAMES, MAX_STEPS, _Parser, _modes, _one_line, _vector, add_model_options, add_scheduler_options, build_model,
     check_scheduler, count, damping_of, fixed_nodes, fraction, mesh_of_args, model_options, nonnegative, open_fraction,
@@ -223,7 +225,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         modes = _modes(model, args)
         with scheduler_of(args, address) as scheduler, progress_bar("modal derivatives", unit="mode") as bar:
             sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar,
-                                           scheduler=scheduler)
+                                           scheduler=scheduler, cache=True)
+        print(cache_report(modes=modes, reduced_model=sim.reduced))
         info = sim.reduced.info
         patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
                                                 f"({info['local']['nodes']} nodes)")
@@ -393,6 +396,7 @@ def _view(args: argparse.Namespace, settings, device) -> int:
     finally:
         bars.close()
     print(f"precomputed {settings.label} in {time.perf_counter() - t0:.1f} s", flush=True)
+    print(cache_report(modes=session.modes, reduced_model=getattr(session.driver, "reduced", None)), flush=True)
     if args.benchmark is not None:
         import json
 
@@ -559,18 +563,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
                                  "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
                                  epilog="Every command runs on the embedded default liver when no MESH is given.")
-    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_info_and_modes(sub)
-    _add_simulate(sub)
-    _add_impedance(sub)
     from .batch import add_batch_command
-
-    add_batch_command(sub)
-    _add_bench_and_pictures(sub)
-    _add_view_and_demo(sub)
+    from .cache import add_cache_command
     from .devices import add_device_commands
 
-    add_device_commands(sub)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_info_and_modes, _add_simulate, _add_impedance, add_batch_command, _add_bench_and_pictures,
+                _add_view_and_demo, add_device_commands, add_cache_command):
+        add(sub)
     return ap
 
 
