@@ -136,12 +136,16 @@ CENTRE = np.array([50.0, 50.0, 0.0])  # mm: the plate's centre, its surface at z
 PRESSED = CENTRE + [0.0, 0.0, 5.0 - 3.0]  # the 5 mm sphere's bottom 3 mm below the surface
 
 
-def _press(client: Raw, xyz=PRESSED, seconds=0.5) -> np.ndarray:
-    """Stream a pose for ``seconds``; the last Force read (N)."""
+def _press(client: Raw, xyz=PRESSED, seconds=0.5, timeout=10.0) -> np.ndarray:
+    """Stream a pose for ``seconds``, and on while no force comes back (a loop still starting, on a
+    busy machine) up to ``timeout``; the last Force read (N)."""
     t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
+    force = np.zeros(3)
+    while time.perf_counter() - t0 < seconds or (not np.any(force) and time.perf_counter() - t0 < timeout):
         client.send(_pose(xyz))
-        client.read(0.01)
+        forces = _forces(client.read(0.01))
+        if forces:
+            force = forces[-1]
     forces = _forces(client.read(0.1, until=lambda m: bool(_forces(m))))
     assert forces, "no Force came back"
     return forces[-1]
