@@ -9,8 +9,11 @@ from __future__ import annotations
 import logging
 import os
 import select
+import signal
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 
@@ -353,6 +356,118 @@ def test_a_bridge_that_stops_says_why_to_its_clients_and_to_its_owner(server, mo
         server.error = None  # the fixture checks that nothing else went wrong
     finally:
         client.close()
+
+
+# ------------------------------------------------------------------ rtfem igtl
+
+
+class _Proc:
+    """``rtfem igtl`` in a subprocess, its stdout and stderr read as they come."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "igtl", *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        self.out: list[str] = []
+        self.err: list[str] = []
+        for stream, lines in ((self.proc.stdout, self.out), (self.proc.stderr, self.err)):
+            threading.Thread(target=lambda s=stream, l=lines: l.extend(iter(s.readline, "")), daemon=True).start()
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> None:
+        _until(lambda: any(text in line for line in self.out + self.err) or self.proc.poll() is not None, timeout,
+               what=repr(text))
+        assert any(text in line for line in self.out + self.err), (self.out, self.err)
+
+    def stop(self, sig) -> tuple[int, float]:
+        t0 = time.perf_counter()
+        self.proc.send_signal(sig)
+        rc = self.proc.wait(timeout=10)
+        time.sleep(0.1)
+        return rc, time.perf_counter() - t0
+
+
+@pytest.fixture(scope="module")
+def plate_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("igtl") / "plate.stl"
+    rt.save_mesh(rt.meshes.plate(0.1, nx=6), path)
+    return [str(path), "--fix", "x<0.001", "-n", "6", "--E", "300000"]
+
+
+def test_rtfem_igtl_on_every_interface_warns_serves_and_stops_on_sigterm(plate_file):
+    """--host 0.0.0.0: a warning, then served (a client on loopback presses and feels the force); a
+    normal disconnect and an abrupt one (reset) are one line each, no traceback; SIGTERM ends it in
+    a few seconds with rc 0 and a line saying so."""
+    port = _free_port()
+    proc = _Proc(*plate_file, "--host", "0.0.0.0", "--port", str(port))
+    try:
+        proc.wait_for("serving OpenIGTLink")
+        assert any("warning: 0.0.0.0 is not a loopback address" in line for line in proc.err), proc.err
+        client = Raw(port)
+        tip = [95.0, 50.0, 5.0 - 2.0]  # mm: 2 mm into the free edge
+        assert _press(client, tip, seconds=1.0)[2] > 1e-4  # N, up: the tool pushed back out
+        client.close()
+        proc.wait_for("disconnected")
+        reset = Raw(port)
+        reset.read(0.3)  # Forces and Organs are coming; then a reset (SO_LINGER 0) while they are sent
+        reset.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        reset.close()
+        time.sleep(0.5)
+        rc, took = proc.stop(signal.SIGTERM)
+        assert rc == 0 and took < 5.0, (rc, took, proc.err)
+        assert any("stopped by SIGTERM" in line for line in proc.out), proc.out
+        assert not any("Traceback" in line for line in proc.err), proc.err
+        assert sum("disconnected" in line for line in proc.err) == 2, proc.err
+    finally:
+        if proc.proc.poll() is None:
+            proc.proc.kill()
+
+
+def test_rtfem_igtl_after_a_header_fragment_serves_and_stops_on_sigint(plate_file):
+    """20 bytes of a header then a close, on `rtfem igtl`: the next client is served and SIGINT
+    (Ctrl-C) ends it in a few seconds, rc 0."""
+    port = _free_port()
+    proc = _Proc(*plate_file, "--port", str(port))
+    try:
+        proc.wait_for("serving OpenIGTLink")
+        bad = Raw(port)
+        bad.send(_pose([1.0, 1.0, 1.0])[:20])
+        bad.close()
+        proc.wait_for("in the middle of a message")
+        client = Raw(port)
+        assert _press(client, [95.0, 50.0, 3.0], seconds=1.0)[2] > 1e-4
+        rc, took = proc.stop(signal.SIGINT)
+        client.close()
+        assert rc == 0 and took < 5.0, (rc, took, proc.err)
+        assert any("stopped by SIGINT" in line for line in proc.out) and any("poses taken" in line for line in proc.out)
+        assert not any("Traceback" in line for line in proc.err), proc.err
+    finally:
+        if proc.proc.poll() is None:
+            proc.proc.kill()
+
+
+def test_rtfem_igtl_exits_non_zero_when_the_bridge_stops(plate_file, monkeypatch, capsys):
+    from rtfem.cli.main import main
+
+    def broken(self):
+        raise RuntimeError("the driver is gone")
+
+    monkeypatch.setattr(rt.devices.IGTLServer, "surface_displacements", broken)
+    assert main(["igtl", *plate_file, "--port", str(_free_port()), "--seconds", "20"]) == 2
+    err = capsys.readouterr().err
+    assert "rtfem: error: the OpenIGTLink bridge stopped: RuntimeError: the driver is gone" in err
+
+
+def test_rtfem_igtl_refuses_an_address_not_of_this_machine_before_any_work(plate_file, capsys):
+    from rtfem.cli.main import main
+
+    t0 = time.perf_counter()
+    assert main(["igtl", *plate_file, "--host", "192.0.2.1", "--port", str(_free_port())]) == 2
+    assert time.perf_counter() - t0 < 5.0
+    assert "cannot listen on 192.0.2.1" in capsys.readouterr().err
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        assert main(["igtl", *plate_file, "--port", str(busy.getsockname()[1])]) == 2
+        assert "choose another --port" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ IGTLDevice: every fault, one path
