@@ -77,7 +77,7 @@ def cmd_igtl(args: argparse.Namespace) -> int:
     from ..drivers.modal import ModalSimulator
     from ..interaction.devices import IGTLServer
     from ..interaction.devices.igtl import warn_exposed
-    from ..interaction.devices.igtl_wire import listen_socket
+    from ..interaction.devices.igtl_net import listen_socket
     from .common import _modes
 
     with _igtl_log():

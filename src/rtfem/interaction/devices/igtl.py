@@ -1,6 +1,6 @@
 """An OpenIGTLink bridge to surgical navigation (3D Slicer's OpenIGTLinkIF, PLUS, ROS bridges):
 a tracked tool streamed in, the deformed organ and the contact force streamed out, over rtfem's
-own OpenIGTLink server (:mod:`.igtl_wire`: several clients at once, a deadline per message, bounded
+own OpenIGTLink server (:mod:`.igtl_net`: several clients at once, a deadline per message, bounded
 sizes; the ``igtl`` extra brings the CRC it needs).
 
 In: a TRANSFORM named ``ToolToReference`` (4x4, millimetres, the organ's coordinates) places a
@@ -32,6 +32,7 @@ import numpy as np
 from ... import validate
 from ...errors import DeviceError
 from . import igtl_wire as wire
+from .igtl_net import Peer, WireServer
 from .base import SharedDevice
 from .hardware import HardwareDevice
 from .native import ServoThread
@@ -62,7 +63,7 @@ def warn_exposed(host: str, port: int) -> None:
 
 class IGTLLink:
     """One OpenIGTLink server and its messages: the tool's pose and the buttons in, Status and Force
-    out, to any number of clients (see :class:`~rtfem.interaction.devices.igtl_wire.WireServer`).
+    out, to any number of clients (see :class:`~rtfem.interaction.devices.igtl_net.WireServer`).
 
     Parameters
     ----------
@@ -86,7 +87,7 @@ class IGTLLink:
     def __init__(self, port: int = 18944, host: str = "127.0.0.1", *, message_timeout: float = 2.0,
                  send_timeout: float = 10.0, max_clients: int = 16) -> None:
         self.port = validate.count(port, "port", 1, 65535, what="a TCP port")
-        self.server = wire.WireServer(
+        self.server = WireServer(
             host, self.port, self._on_message, self._on_close,
             message_timeout=validate.in_range(message_timeout, "message_timeout", 0.0, 3600.0, lo_open=True,
                                               what="seconds"),
@@ -98,7 +99,7 @@ class IGTLLink:
         self._lock = threading.Lock()
         self._position: np.ndarray | None = None
         self._events: deque = deque(maxlen=64)
-        self.source: wire.Peer | None = None  # the client whose pose was taken last
+        self.source: Peer | None = None  # the client whose pose was taken last
         self.last_pose: float | None = None   # time.monotonic() of the last pose taken
         self.arrived = threading.Event()      # set by a pose or an event
         self.refused = self.received = 0
@@ -114,7 +115,7 @@ class IGTLLink:
         return self
 
     # ------------------------------------------------------------------ out
-    def status(self, text: str, peer: wire.Peer | None = None) -> None:
+    def status(self, text: str, peer: Peer | None = None) -> None:
         """A STRING ``Status`` to ``peer``, or to every client."""
         self.server.send(None, wire.pack("STRING", self.STATUS, wire.string_body(validate.one_line(text, 2000))), peer)
 
@@ -131,7 +132,7 @@ class IGTLLink:
         self.server.send(self.FORCE, wire.pack("TRANSFORM", self.FORCE, wire.transform_body(M)))
 
     # ------------------------------------------------------------------ in (the server's thread)
-    def _on_message(self, peer: wire.Peer, header: wire.Header, body: bytes) -> None:
+    def _on_message(self, peer: Peer, header: wire.Header, body: bytes) -> None:
         if not header.name_ok:
             self._refuse(peer, "a message", "its device name is not printable UTF-8", event=False)
             return
@@ -173,7 +174,7 @@ class IGTLLink:
             raise ValueError(f"{validate.show(text, 30)} is not a bit mask (a whole number 0..{2**31 - 1})")
         return int(text)
 
-    def _refuse(self, peer: wire.Peer, name: str, reason: str, event: bool = True) -> None:
+    def _refuse(self, peer: Peer, name: str, reason: str, event: bool = True) -> None:
         text = f"refused {name}: {reason}"
         with self._lock:
             self.refused += 1
@@ -184,7 +185,7 @@ class IGTLLink:
         if event:
             self.arrived.set()
 
-    def _on_close(self, peer: wire.Peer, reason: str) -> None:
+    def _on_close(self, peer: Peer, reason: str) -> None:
         with self._lock:
             if peer is not self.source:
                 return
