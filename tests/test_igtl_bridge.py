@@ -573,3 +573,19 @@ def test_igtl_device_close_sends_a_last_zero_force_and_frees_the_port(device):
     assert client.eof and _forces(rest) and np.all(_forces(rest)[-1] == 0.0)
     assert dev.stop_reason == "closed"
     rt.devices.IGTLDevice(dev.link.port).close()
+
+
+def test_a_flood_of_bad_poses_is_refused_in_a_few_log_lines(caplog):
+    """2,000 refused poses in a burst: each answered, the log one line a second at most."""
+    caplog.set_level(logging.INFO, logger="rtfem.igtl")
+    link = IGTLLink(_free_port()).start()
+    try:
+        client = Raw(link.port)
+        client.send(_pose([np.nan, 0.0, 0.0]) * 2000)
+        _until(lambda: link.refused == 2000, what="every pose refused")
+        lines = [r for r in caplog.records if "refused ToolToReference" in r.getMessage()]
+        assert 1 <= len(lines) <= 3, len(lines)
+        client.send(_pose([1.0, 0.0, 0.0]))
+        _until(lambda: link.received == 1, what="a valid pose after the flood")
+    finally:
+        link.close()

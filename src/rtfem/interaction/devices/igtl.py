@@ -104,6 +104,7 @@ class IGTLLink:
         self.arrived = threading.Event()      # set by a pose or an event
         self.refused = self.received = 0
         self.buttons = 0
+        self._logged, self._unlogged = -np.inf, 0  # the last refusal logged, and those since
 
     @property
     def error(self) -> str | None:
@@ -176,11 +177,17 @@ class IGTLLink:
 
     def _refuse(self, peer: Peer, name: str, reason: str, event: bool = True) -> None:
         text = f"refused {name}: {reason}"
+        now = time.monotonic()
         with self._lock:
             self.refused += 1
             if event:
                 self._events.append(("refused", name, text))
-        log.info("%s from %s", text, peer.address)
+            quiet, self._unlogged = now - self._logged < 1.0, self._unlogged + 1
+            if not quiet:  # one line a second at most, whatever a peer sends
+                more = f" ({self._unlogged - 1} more refused since the last line)" if self._unlogged > 1 else ""
+                self._logged, self._unlogged = now, 0
+        if not quiet:
+            log.info("%s from %s%s", text, peer.address, more)
         self.status(text, peer)
         if event:
             self.arrived.set()
