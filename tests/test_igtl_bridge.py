@@ -589,3 +589,22 @@ def test_a_flood_of_bad_poses_is_refused_in_a_few_log_lines(caplog):
         _until(lambda: link.received == 1, what="a valid pose after the flood")
     finally:
         link.close()
+
+
+def test_a_client_that_reads_nothing_is_dropped_and_holds_no_more_than_a_message_of_each_name(caplog):
+    link = IGTLLink(_free_port(), send_timeout=0.5).start()
+    deaf = socket.create_connection(("127.0.0.1", link.port))
+    try:
+        _until(lambda: link.server.clients == 1)
+        frame = wire.pack("POLYDATA", "Organ", b"\0" * (1 << 20))
+        t0 = time.perf_counter()
+        while link.server.clients and time.perf_counter() - t0 < 20.0:
+            link.send("Organ", frame)  # the newest replaces the one waiting: one frame held, never a queue
+            peers = list(link.server._peers)
+            assert all(len(p.outbox) <= 1 for p in peers)
+            time.sleep(0.01)
+        assert link.server.clients == 0
+        assert "dropped: read nothing sent to it for 0.5 s" in caplog.text
+    finally:
+        deaf.close()
+        link.close()

@@ -123,7 +123,7 @@ class WireServer:
     ----------
     host, port : where to listen.
     on_message : ``on_message(peer, header, body)``, called on the server's thread with each complete
-        message (its body unchecked: :func:`content_of` checks it).
+        message (its body unchecked: :func:`.igtl_wire.content_of` checks it).
     on_close : ``on_close(peer, reason)``, called on the server's thread when a client goes.
     message_timeout : seconds from a message's first byte to its last.
     send_timeout : seconds a client may leave what is sent to it unread before it is dropped.
