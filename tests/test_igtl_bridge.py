@@ -489,16 +489,23 @@ def device():
 
 
 def _zero_after_fault(dev, client, reason: str) -> None:
+    """The one fault path, seen from outside: the reason, zero force at the servo and as the last
+    Force each client reads, the link closed (the client reads its end), the port free, no restart."""
     _until(lambda: dev.stop_reason is not None, what="the fault")
     assert reason in dev.stop_reason, dev.stop_reason
     assert np.all(dev.servo.force == 0.0)
-    later = _forces(client.read(0.3))  # those sent before the fault first, if the client had not read them
+    later = _forces(client.read(2.0))  # those sent before the fault first, if the client had not read them
     zero = [i for i, f in enumerate(later) if np.all(f == 0.0)]
     assert zero and all(np.all(f == 0.0) for f in later[zero[0]:]), later
+    assert client.eof  # released: the link is closed
+    with pytest.raises(rt.DeviceError, match="open a new one"):
+        dev.restart()
+    rt.devices.IGTLDevice(dev.link.port).close()  # the port is free
 
 
 @pytest.mark.parametrize("bad, reason", [
-    (_pose([1e10, 0.0, 0.0]), "the device reported an error: refused ToolToReference: its translation"),
+    (_pose([1e10, 0.0, 0.0]), "the device sent input that is malformed or out of range: refused ToolToReference: "
+                              "its translation (1e+10, 0, 0) mm lies more than 10000 mm from the origin"),
     (_pose([np.nan, 0.0, 0.0]), "non-finite"),
     (wire.pack("TRANSFORM", "ToolToReference", b"\0" * 44), "a TRANSFORM body of 44 bytes"),
     (_string("1", name="ToolToReference"), "a STRING message, not a TRANSFORM"),
@@ -509,21 +516,17 @@ def test_igtl_device_faults_on_a_bad_pose_or_buttons(device, bad, reason):
     dev, client = device
     client.send(bad)
     _zero_after_fault(dev, client, reason)
-    assert any(s.startswith("refused") for s in _statuses(client.seen))
-    client.send(_pose([10.0, 20.0, 30.0]))  # valid again: still stopped until restart()
-    time.sleep(0.05)
-    assert reason in dev.stop_reason and np.all(dev.servo.force == 0.0)
+    assert any(s.startswith("refused") for s in _statuses(client.seen))  # the sender was told why
 
 
-def test_igtl_device_renders_again_after_restart(device):
-    """A refused pose leaves the device safely idle (its link serving, zero force): restart() renders again."""
+def test_igtl_device_faults_when_its_servo_fails(device, monkeypatch):
     dev, client = device
-    client.send(_pose([0.0, 0.0, 1e10]))
-    _zero_after_fault(dev, client, "refused ToolToReference")
-    dev.restart()
-    dev.set_force(0.0, [0.0, 0.0, 1.0])
-    forces = _forces(client.read(2.0, until=lambda m: any(np.allclose(f, [0, 0, 1]) for f in _forces(m))))
-    assert np.allclose(forces[-1], [0.0, 0.0, 1.0]) and dev.stop_reason is None
+
+    def broken():
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(dev.link, "poll", broken)
+    _zero_after_fault(dev, client, "the adapter failed: RuntimeError in an OpenIGTLink tool's servo: a bug")
 
 
 def test_igtl_device_faults_when_the_poses_sender_disconnects(device):

@@ -16,8 +16,8 @@ message is refused. A malformed, non-finite or out-of-range transform (a transla
 the hand, a STRING ``Buttons`` holding a bit mask is its buttons (OpenIGTLink has no button message:
 this is rtfem's convention), and the force the hand feels goes back as ``Force``. Any fault (a
 refused pose or Buttons, the pose's sender gone or dropped, no pose for ``pose_timeout``, an error
-of the link) stops its servo through one path: zero force, sent at once, and the reason in
-``stop_reason``.
+of the link or of the servo) goes through :meth:`HardwareDevice.fault`: zero force, sent at once to
+every client, the reason in ``stop_reason``, the link closed.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ log = logging.getLogger("rtfem.igtl")
 #: the farthest a tracked pose's translation may lie from the organ's origin (mm): 10 m, beyond any
 #: tracker's reach; a pose farther is refused, not clipped
 POSE_LIMIT_MM = 1e4
-_FAULT_INPUT, _FAULT_GONE = 2, 3  # servo stop codes: the device reported an error, it disconnected
+_BAD_INPUT, _GONE, _FAILED = 6, 3, 7  # HardwareDevice.fault's codes: malformed input, disconnected, the adapter failed
 
 
 _WARNED: set = set()
@@ -383,11 +383,12 @@ class IGTLDevice(HardwareDevice):
     feels goes back as the ``Force`` TRANSFORM (N) at up to ``force_rate``. The servo runs on a thread
     of its own at ``rate``, with the adapters' safety (a clamp, a rate limit, the watchdog).
 
-    A refused pose or Buttons (malformed, non-finite, beyond :data:`POSE_LIMIT_MM`), the pose's
-    sender disconnecting or dropped (its message late: the link's ``message_timeout``), no pose for
-    ``pose_timeout`` seconds, or an error of the link or of the servo's tick stop the servo: zero
-    force at once (sent to every client), the reason in :attr:`stop_reason`; :meth:`restart` renders
-    again. ``close()`` sends a last zero force and frees the port.
+    Every fault goes through :meth:`HardwareDevice.fault`: a refused pose or Buttons (malformed,
+    non-finite, beyond :data:`POSE_LIMIT_MM`; code 6), the pose's sender disconnecting or dropped
+    (its message late: the link's ``message_timeout``; code 3), no pose for ``pose_timeout`` seconds
+    (code 3), the link's server or the servo's tick failing (code 7). The servo stops (zero force
+    from that tick), ``stop_reason`` says why, a zero ``Force`` goes to every client and the link is
+    closed (its port free): open a new device. ``close()`` does the same with "closed".
 
     Parameters
     ----------
@@ -396,7 +397,7 @@ class IGTLDevice(HardwareDevice):
         organ's coordinates).
     max_force, max_rate, watchdog, rate : the servo's (N, N/s, servo ticks, Hz).
     force_rate : the most Force messages sent per second.
-    pose_timeout : seconds without a pose, once one came, before the servo stops (None: poses may
+    pose_timeout : seconds without a pose, once one came, before the device stops (None: poses may
         pause, as 3D Slicer's do: it sends a transform only when it changes; a tracker that streams,
         PLUS's, can say e.g. 0.5).
 
@@ -424,50 +425,34 @@ class IGTLDevice(HardwareDevice):
         self._x = np.zeros(3)
         self._last_force = 0.0
         self._since = time.monotonic()  # pose_timeout counts from the last pose, or from this (a restart)
-        self._thread = ServoThread(self._servo, rate, "rtfem-igtl-servo").start()
+        self._thread = ServoThread(self._step, rate, "rtfem-igtl-servo", on_error=self._failed).start(at_exit=self.close)
 
-    def _servo(self) -> bool:
-        try:
-            return self._tick()
-        except Exception as exc:  # noqa: BLE001 - one path for every fault, then the thread ends
-            self._fault(_FAULT_INPUT, f"the OpenIGTLink servo failed ({type(exc).__name__}: {exc})")
-            return False
-
-    def _tick(self) -> bool:
+    def _step(self) -> bool:
+        """One servo tick: what came from the link (faults first), the servo, the Force out; False once
+        a fault released the device (the thread ends)."""
         link = self.link
         position = link.poll()
         for kind, _, why in link.events():
-            self._fault(_FAULT_INPUT if kind == "refused" else _FAULT_GONE, why)
+            self.fault(_BAD_INPUT if kind == "refused" else _GONE, why)
         if link.error is not None:
-            self._fault(_FAULT_GONE, f"the OpenIGTLink server stopped ({link.error})")
-            return False
+            self.fault(_FAILED, f"the OpenIGTLink server stopped ({link.error})")
         if position is not None:
             self._x = position
-        if self.pose_timeout is not None and link.last_pose is not None and self.servo.reason is None:
+        if self.pose_timeout is not None and link.last_pose is not None and not self._released:
             quiet = time.monotonic() - max(link.last_pose, self._since)
             if quiet > self.pose_timeout:
-                self._fault(_FAULT_GONE, f"no {link.TOOL} pose for {quiet:.2f} s (pose_timeout={self.pose_timeout:g})")
-        f = self.servo.tick(self._x, link.buttons)
+                self.fault(_GONE, f"no {link.TOOL} pose for {quiet:.2f} s (pose_timeout={self.pose_timeout:g})")
+        if self._released:
+            return False
+        f = self._tick(self._x, link.buttons)
         now = time.perf_counter()
         if now - self._last_force >= self.force_period:
             link.send_force(f)
             self._last_force = now
-        return True
-
-    def _fault(self, code: int, detail: str) -> None:
-        """Every fault's one path: HardwareDevice.fault (zero force at the servo's output, the reason
-        kept, :meth:`_command_zero`) where it exists, else the same here."""
-        fault = getattr(super(), "fault", None)
-        if fault is not None:
-            fault(code, detail)
-            return
-        if self.servo.reason is None:  # the first fault's reason stays
-            self._detail = validate.one_line(detail, 500)
-        self.servo.stop(code)
-        self._command_zero()
+        return not self._released
 
     def _command_zero(self) -> None:
-        """An explicit zero force to every client, now."""
+        """An explicit zero Force to every client, now (it goes out before the link closes)."""
         if self.link is not None:
             self.link.send_force(np.zeros(3))
             self._last_force = time.perf_counter()
@@ -480,12 +465,10 @@ class IGTLDevice(HardwareDevice):
         return self._thread is not None and self._thread.thread.is_alive()
 
     def _shutdown(self) -> None:
-        """Stop the servo thread, send a last zero force and stop the server."""
+        """Stop the servo thread (not joined from itself) and the link (what waits to be sent, the
+        zero Force, goes out first; the port is free after it)."""
         if self._thread is not None:
             self._thread.stop()
             self._thread = None
         if self.link is not None:
-            try:
-                self._command_zero()
-            finally:
-                self.link.close()
+            self.link.close()
