@@ -41,8 +41,8 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
 
     hd, hd_what = loads(openhaptics.hd_library)
     dhd, dhd_what = loads(forcedimension.dhd_library)
-    try:
-        import pyigtl  # noqa: F401
+    try:  # rtfem's own OpenIGTLink transport needs crcmod's CRC-64 (the igtl extra brings it with pyigtl)
+        import crcmod  # noqa: F401
 
         igtl = True
     except ImportError:
@@ -59,7 +59,8 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
         ("forcedimension", "Force Dimension SDK (libdhd)", dhd, dhd_what),
         ("haply", f"Haply Inverse Service at {haply_url}", listening,
          "listening" if listening else ("pip install websockets (the viewer extra)" if not ws else haply.HOW)),
-        ("igtl", "pyigtl (OpenIGTLink)", igtl, "installed" if igtl else "pip install 'rtfem[igtl]' (make installs it)"),
+        ("igtl", "OpenIGTLink (crcmod, the igtl extra)", igtl,
+         "installed" if igtl else "pip install 'rtfem[igtl]' (make installs it)"),
     ]
 
 
