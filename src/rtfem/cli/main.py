@@ -481,7 +481,7 @@ def _add_simulate(sub) -> None:
     p.add_argument("--stiffness", type=positive, default=200.0, help="probe coupling spring in N/m (default 200)")
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--fps", type=positive, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
-    p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
+    p.add_argument("-o", "--out", default="out/simulate", help="output folder (default out/simulate)")
     p.set_defaults(func=cmd_simulate)
 
 def _add_impedance(sub) -> None:
@@ -513,7 +513,7 @@ def _add_bench_and_pictures(sub) -> None:
 
     p = sub.add_parser("pictures", help="PNG mode shapes and deformed states, a GIF of a response, and plots")
     add_model_options(p)
-    p.add_argument("--out", default="out/pictures", help="output folder (default out/pictures)")
+    p.add_argument("-o", "--out", default="out/pictures", help="output folder (default out/pictures)")
     p.add_argument("--no-gif", action="store_true", help="skip the animated GIF")
     p.add_argument("--mp4", action="store_true", help="also write an MP4 (needs imageio-ffmpeg)")
     p.add_argument("--no-scaling", action="store_true", help="skip the scaling curves (they time the liver at 3 sizes)")
@@ -555,7 +555,7 @@ def _add_view_and_demo(sub) -> None:
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
-    p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
+    p.add_argument("-o", "--out", default="out/demo", help="output folder (default: out/demo)")
     p.set_defaults(func=cmd_demo)
 
 
