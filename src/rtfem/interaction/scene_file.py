@@ -332,7 +332,7 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
     from ..drivers.modal import ModalSimulator
     from ..fe.build import make_model
     from ..fe.material import Damping, Material
-    from ..reduction.modal import modal_analysis
+    from ..reduction.precompute import cached_modes
 
     if not isinstance(table, dict):
         raise where.error(None, "must be a table")
@@ -351,7 +351,7 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
         where.check("fix", model.check_restrained)
     modes = where.check("modes", validate.count, table.get("modes", 20), "modes", 1, 2000)
     alpha = where.check("alpha", validate.nonnegative, table.get("alpha", 10.0), "alpha", "damping in 1/s")
-    basis = where.check("modes", modal_analysis, model, modes)
+    basis = where.check("modes", cached_modes, model, modes)  # through the precompute cache
     driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
     where.check("name", scene.add_body, table["name"], driver, model.mesh)
     scene.bodies[-1].model = model
