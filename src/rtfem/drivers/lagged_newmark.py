@@ -156,17 +156,22 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             return self._kernels.tangent(conf.u)
         return self.system.evaluate(conf, True, history)[1]
 
-    def _factorize(self, conf, history):
-        """The factorization of the Newmark tangent at ``conf`` (the HHT-weighted stiffness)."""
-        K = self._tangent(conf, history)
-        fac = self.system.solver((self._dyn + (1 + self._hht) * K).tocsr(), "the Newmark tangent")
+    def _factorize(self, conf, history, reuse=None):
+        """The factorization of the Newmark tangent at ``conf`` (the HHT-weighted stiffness): ``reuse``
+        (a factorization of this system's pattern, not in use elsewhere) factorized again in place where
+        the backend can (PARDISO's numeric phase alone: the ordering kept), else a new one."""
+        A = (self._dyn + (1 + self._hht) * self._tangent(conf, history)).tocsr()
         with self._lock:
             self.refreshes += 1
-        return fac
+        if reuse is not None and reuse.refactor(A):
+            return reuse
+        return self.system.solver(A, "the Newmark tangent", refactorable=not self.background)
 
     def _refactor(self, conf, u: np.ndarray, history) -> None:
-        """The factor of the Newmark tangent at ``conf`` (displacements ``u``), kept with where it was made."""
-        self._factor = (self._factorize(conf, history), self.steps)
+        """The factor of the Newmark tangent at ``conf`` (displacements ``u``), kept with where it was made
+        (the old one factorized again in place where nothing else holds it: no thread is at work)."""
+        reuse = None if self.background or self._factor is None else self._factor[0]
+        self._factor = (self._factorize(conf, history, reuse), self.steps)
         self._ref_u, self._ref_step = u.copy(), np.array([float(self.steps)])
         if self._visc.size:
             self._ref_visc = self._visc.copy()

@@ -159,17 +159,17 @@ class NonlinearSystem:
             return False
         return True
 
-    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False, refactorable: bool = False):
         """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
         rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
         SolverError (a symmetric matrix that must be positive definite)."""
         order = lambda: self.model.dof_order(self.free)  # noqa: E731
         if spd_only:
-            return factorize(K, spd=True, what=what, order=order)
+            return factorize(K, spd=True, what=what, order=order, refactorable=refactorable)
         sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
         if sym:
             try:
-                return factorize(K, spd=True, what=what, order=order)
+                return factorize(K, spd=True, what=what, order=order, refactorable=refactorable)
             except SolverError:
                 pass  # indefinite (past a limit point, or compressed): LU below
         return factorize(K, spd=False, what=what, order=order)
