@@ -22,7 +22,7 @@ from ..fe.assembly_kernels import _cofactor
 from ..fe.jit import compiled
 
 __all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents",
-           "law_forces", "law_tangents", "inverted_elements"]
+           "law_forces", "law_tangents", "inverted_elements", "solid_node_forces"]
 
 
 def _polar_rotation(Fm, R, Z):
@@ -148,6 +148,52 @@ def _solid_element_forces(V, X, G, wdet, lm, F):
                 for b in range(3):
                     P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
             _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
+
+
+def _solid_node_forces(u, cells, X, G, wdet, lm, f):
+    """f (3n,) = the corotated-linear tets' internal forces summed at the nodes, at nodal displacements
+    u (n, 3): :func:`_solid_element_forces` on u[cells] with the gather and the sum in the same loop
+    (a full-order step's force evaluation: no (E, 3k) arrays in between)."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    x = np.zeros((k, 3))
+    Fm = np.zeros((3, 3))
+    R = np.zeros((3, 3))
+    Z = np.zeros((3, 3))
+    P = np.zeros((3, 3))
+    Fe = np.zeros(3 * k)
+    f[:] = 0.0
+    for e in range(E):
+        for i in range(k):
+            n = cells[e, i]
+            for c in range(3):
+                x[i, c] = X[e, i, c] + u[n, c]
+        Fe[:] = 0.0
+        lam, mu = lm[e, 0], lm[e, 1]
+        for q in range(nq):
+            _gradient(x, G[e, q], Fm)
+            _rotation(Fm, R, Z)
+            trS = 0.0
+            for a in range(3):
+                for b in range(3):
+                    trS += R[a, b] * Fm[a, b]
+            t = lam * (trS - 3.0)
+            for a in range(3):
+                for b in range(3):
+                    P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
+            _add_stress_forces(P, G[e, q], wdet[e, q], Fe)
+        for i in range(k):
+            n = cells[e, i]
+            for c in range(3):
+                f[3 * n + c] += Fe[3 * i + c]
+
+
+def solid_node_forces(u, cells, X, G, wdet, lm, f) -> bool:
+    """f (3n,) = :func:`_solid_node_forces` compiled; False (f untouched) without numba."""
+    fn = compiled("solid-nodes", _solid_node_forces, _polar_rotation, _rotation, _gradient, _add_stress_forces)
+    if fn is None:
+        return False
+    fn(u, cells, X, G, wdet, lm, f)
+    return True
 
 
 def _point_tangent(Ge, R, Fm, lam, mu, w, K, RG, RW, T):
