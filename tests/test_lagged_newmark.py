@@ -91,12 +91,9 @@ def test_a_factor_refreshed_on_a_thread_gives_the_same_motion():
 def test_where_the_chord_diverges_newton_takes_the_step():
     """A stiff bar swung at a coarse step (dt 10 ms: the mass no longer dominates the Newmark matrix) makes the
     lagged chord diverge; those steps are Newton's, and the motion is the reference's."""
-    E, h = 1e7, 0.1
-    model = rt.SolidModel(rt.meshes.box(1.0, h, h, 10, 1, 1), rt.Material(E=E, nu=0.3, density=1000.0))
-    model.fix("x0")
-    F = np.zeros((model.n_nodes, 3))
-    end = model.select_nodes("x1")
-    F[end, 2] = 6.0 * E * h**4 / 12 / end.size
+    from verification.test_large_deformation import swung_cantilever
+
+    model, F, _ = swung_cantilever()
     sims = [rt.DirectSimulator(model, 0.01, None, large_deformation=True, solver=s, tol=1e-8)
             for s in ("lagged", "newton")]
     for _ in range(30):
