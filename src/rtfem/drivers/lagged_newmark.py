@@ -42,14 +42,14 @@ class _Kernels:
     def __init__(self, system) -> None:
         from ..fe.solid import CorotationalTets, HyperelasticTets
         from ..fe.viscoelastic import ViscoelasticTets
-        from ..reduction import tet_kernels as tk
+        from ..reduction import tet_kernels as tk, tet_node_kernels as tnk
 
         kern = system.kernel
         self.ok = (system.dpn == 3 and isinstance(kern, CorotationalTets) and not isinstance(kern, ViscoelasticTets)
                    and not hasattr(kern, "patch_tangent") and tk.compiled_solid_forces() is not None)
         if not self.ok:
             return
-        self.tk, self.system = tk, system
+        self.tk, self.tnk, self.system = tk, tnk, system
         cells = system.cells
         self.cells = np.ascontiguousarray(cells, dtype=np.int64)
         self.X = np.ascontiguousarray(np.asarray(system.model.mesh.vertices, dtype=float)[cells])
@@ -64,7 +64,7 @@ class _Kernels:
 
     def inverted(self, u: np.ndarray) -> int:
         """How many elements are turned inside out at nodal displacements u (n, 3)."""
-        return int(np.count_nonzero(self.tk.inverted_elements(self._dofs(u), self.X, self.G_check)))
+        return int(np.count_nonzero(self.tnk.inverted_elements(self._dofs(u), self.X, self.G_check)))
 
     def _dofs(self, u: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(u[self.cells].reshape(self.cells.shape[0], -1))
@@ -73,7 +73,7 @@ class _Kernels:
         """The internal forces (n_dofs,) at nodal displacements u (n, 3)."""
         if self.law is None:
             f = np.empty(self.system.model.n_dofs)
-            if self.tk.solid_node_forces(np.ascontiguousarray(u, dtype=float), self.cells, self.X, self.G, self.wdet,
+            if self.tnk.solid_node_forces(np.ascontiguousarray(u, dtype=float), self.cells, self.X, self.G, self.wdet,
                                          self.lm, f):
                 return f
         V = self._dofs(u)

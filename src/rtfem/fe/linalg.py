@@ -400,9 +400,7 @@ def factorize(
         and CHOLMOD order by themselves (the callable is then never called).
     norm : the 1-norm used in the singularity check (default ||A||_1); a penalized matrix
         passes the norm of the physical stiffness, whose conditioning is what matters.
-    refactorable : the result will be factorized again with new values on the same pattern
-        (:meth:`Factorization.refactor`; PARDISO then keeps its ordering and runs every phase on
-        the same threads).
+    refactorable : to be factorized again on the same pattern (:meth:`Factorization.refactor`).
 
     Raises
     ------
