@@ -95,6 +95,17 @@ class Settings:
         return {"modal": "modal (warped)", "direct": "direct (corotational)"}.get(self.method, self.method)
 
 
+def describe_material(model) -> str:
+    """The model's material in words: a hyperelastic law with its moduli, or the linear one's E and nu
+    (a shell's thickness too)."""
+    law = getattr(model, "law", None)
+    if law is not None:
+        return f"{law.name} {law!r}"
+    m = model.material
+    text = f"linear elastic, E = {m.E / 1e3:g} kPa, nu = {m.nu:g}, density {m.density:g} kg/m^3"
+    return text + (f", thickness {m.thickness * 1e3:g} mm" if getattr(model, "element", None) is None else "")
+
+
 def _large(method: str, large) -> bool:
     large = validate.flag(large, "large")
     if large and method == "impedance":
