@@ -352,6 +352,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     from ..viewer.session import Settings
     from .scene import is_scene, view_scene
 
+    if args.mesh and not args.example and _is_run(args.mesh):
+        return _view_run(args)
     if is_scene(args):
         check_address(args.host, args.port)
         return view_scene(args)
@@ -409,6 +411,25 @@ def _view(args: argparse.Namespace, settings, device) -> int:
         print(f"rtfem view: the hand is the {args.device} device's; its first button grabs (rtfem devices checks it)",
               flush=True)
     serve(session=session, host=args.host, port=args.port)
+    return 0
+
+
+def _is_run(path: str) -> bool:
+    from pathlib import Path
+
+    return Path(path).suffix.lower() == ".pvd" or Path(path).is_dir()
+
+
+def _view_run(args: argparse.Namespace) -> int:
+    """``rtfem view out.pvd`` / ``rtfem view DIR``: replay a written run (:mod:`rtfem.viewer.replay`)."""
+    for flag, what in (("benchmark", "--benchmark"), ("device", "--device")):
+        if getattr(args, flag, None):
+            raise RtfemError(f"{what} is for a live organ; {args.mesh} is a written run, which the viewer replays")
+    check_address(args.host, args.port)
+    from ..viewer.replay import serve_replay
+
+    serve_replay(args.mesh, host=args.host, port=args.port,
+                 progress=lambda message: print(f"replay      {message}", flush=True))
     return 0
 
 
@@ -548,6 +569,9 @@ def _add_view_and_demo(sub) -> None:
                    "and says so)")
     p.add_argument("--example", choices=("gallbladder",), help="show a scene shipped with rtfem (MESH may also be a "
                    "scene file, .toml): gallbladder, the liver and the gallbladder beneath it, a grasper and a probe")
+    p.epilog = ("MESH may also be a scene file (.toml: its bodies, obstacles and tools, played from when the page "
+                "opens), or a written run to replay: a .pvd collection, or the folder rtfem simulate wrote (-o DIR; "
+                "a scene's run: one .pvd per body in its subfolders)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
