@@ -184,3 +184,48 @@ def test_the_viewer_waits_for_a_browser_and_draws_the_planes_tools_and_attachmen
     assert probe["shape"] == "sphere" and probe["position"] == pytest.approx([-0.05, 0.0, 0.065])
     assert viewer.glyphs.tools[1][1].parts[0].radius == 0.005  # the probe's sphere is the file's radius
     assert "mouse" not in drawn["tools"]  # the mouse's tools are drawn as the hand and the pressing probe
+
+
+def test_every_kind_of_tool_obstacle_and_attachment_is_drawn_as_what_it_is():
+    """A plate clamped at one edge, a capsule and a jaw-plate probe, a grasper on a scripted grip, a
+    mesh obstacle and a plane, a spring to the world: each drawn (the served state names each glyph's
+    shape), the grasper open until its grip closes and then tied to the nodes it holds."""
+    pytest.importorskip("viser")
+    import rtfem as rt
+    from rtfem.interaction.scene_tools import Keyframes
+    from rtfem.viewer.scene_view import SceneViewer
+
+    mesh = rt.meshes.plate(0.1, nx=6)
+    model = rt.ShellModel(mesh, rt.Material(E=1e5, thickness=0.003))
+    model.fix("x0")
+    scene = rt.Scene()
+    scene.add_body("plate", rt.ModalSimulator(rt.modal_analysis(model, 8), 2e-3, rt.Damping(alpha=10.0)), mesh)
+    scene.bodies[0].model = model
+    scene.add_plane("floor", (0.0, 0.0, -0.05), (0.0, 0.0, 1.0))
+    ball = rt.meshes.icosphere(0.01, 1)
+    scene.add_obstacle("block", rt.TriMesh(np.asarray(ball.vertices) + [0.05, 0.05, -0.03], ball.triangles))
+    scene.attach("spring", "plate", "x1", stiffness=50.0)
+    far = [[0.0, 0.05, 0.05, 0.2]]
+    scene.add_tool("rod", rt.ScriptedDevice(Keyframes(far)), shape=rt.Tool.capsule(0.003, 0.02))
+    scene.add_tool("paddle", rt.ScriptedDevice(Keyframes([[0.0, 0.02, 0.05, 0.2]])), shape=rt.Tool.jaw(0.01, 0.02, 0.002))
+    grip = Keyframes([[0.0, 0.1, 0.05, 0.0]], closed=[[0.01, 1.0]])
+    scene.add_tool("forceps", grip.device(), kind="grasper", radius=0.012)
+    viewer = SceneViewer(SceneSession(scene, playing=False), port=_free_port())
+    try:
+        viewer._draw_tools(viewer._u)
+        before = viewer.state()["drawn"]
+        for _ in range(10):
+            viewer.session.step()
+        viewer._draw_tools(viewer.session.surface_displacements())
+        after = viewer.state()["drawn"]
+    finally:
+        viewer.server.stop()
+    assert before["planes"] == ["floor"] and before["obstacles"] == ["block"] and before["supports"] == ["plate"]
+    assert before["attachments"] == ["spring"]
+    tools = before["tools"]
+    assert tools["rod"]["shape"] == "capsule" and tools["paddle"]["shape"] == "jaw"
+    assert tools["forceps"]["shape"] == "grasper" and not tools["forceps"]["closed"]
+    assert tools["rod"]["position"] == pytest.approx([0.05, 0.05, 0.2])
+    grasper = after["tools"]["forceps"]
+    assert grasper["closed"] and grasper["holds"] == "plate" and grasper["held_nodes"] >= 1
+

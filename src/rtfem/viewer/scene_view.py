@@ -53,6 +53,10 @@ def describe_body(body) -> str:
     return f"**{body.name}**: {kind}, {model.n_nodes:,} nodes; {describe_material(model)}; {driver}"
 
 
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
+
+
 def tint(base, amount: np.ndarray) -> np.ndarray:
     """(k, 4) sRGB colours: ``base`` lightened toward white by ``amount`` (0..1) of the way."""
     a = np.clip(amount, 0.0, 1.0)[:, None] * 0.75
@@ -138,7 +142,7 @@ class SceneViewer(Served):
         bodies = "  \n".join(f"{describe_body(b)} ({'#%02x%02x%02x' % COLOURS[k % len(COLOURS)]})"
                              for k, b in enumerate(sc_.bodies))
         gui.add_markdown(f"### rtfem scene\n{HELP}\n\n{bodies}  \nstep dt = {sc_.dt * 1e3:g} ms; "
-                         f"{len(sc_.obstacles)} obstacles, {len(sc_.attachments)} attachments")
+                         f"{_count(len(sc_.obstacles), 'obstacle')}, {_count(len(sc_.attachments), 'attachment')}")
         self.transport = Transport(gui, s, step=sc_.dt)
         self.stats_md = gui.add_markdown("waiting for the first browser ..." if self._wait else "starting ...")
 
