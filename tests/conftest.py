@@ -14,6 +14,22 @@ import rtfem as rt
 if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+# The suite keeps its precompute cache (tet meshes, modes, reduced models: rtfem.cache) in a folder of its
+# own, made afresh for each run, so that it neither reads nor fills the user's ~/.cache/rtfem; its
+# subprocesses inherit the setting. RTFEM_CACHE set by the caller is kept.
+_OWN_CACHE = None
+if not os.environ.get("RTFEM_CACHE"):
+    import tempfile
+
+    _OWN_CACHE = os.environ["RTFEM_CACHE"] = tempfile.mkdtemp(prefix="rtfem-test-cache-")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _OWN_CACHE is not None:
+        import shutil
+
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+
 #: reference data shipped beside the project (../shared/data), never inside it
 SHARED_DATA = Path(os.environ.get("RTFEM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 ORGANS = SHARED_DATA / "organs"

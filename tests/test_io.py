@@ -13,18 +13,42 @@ from rtfem.io import write_pvd, write_vtu
 from rtfem.storage import atomic_target, load_versioned, save_versioned
 
 
-def test_vtu_holds_the_deformed_points_and_the_displacement_field(tmp_path):
+def test_vtu_holds_the_reference_points_and_the_displacement_field(tmp_path):
+    """ParaView's convention: the points at rest and the field beside them, so that Warp By Vector
+    (points + displacement) is the deformed organ, counted once; the field data says which."""
     import meshio
 
     mesh = rt.meshes.liver(2)
+    X = np.asarray(mesh.vertices)
     U = np.random.default_rng(0).normal(scale=1e-3, size=(mesh.n_vertices, 3))
     m = meshio.read(write_vtu(tmp_path / "a.vtu", mesh, U))
-    np.testing.assert_allclose(m.points, np.asarray(mesh.vertices) + U, rtol=1e-12)
-    np.testing.assert_allclose(m.point_data["displacement"], U, rtol=1e-12)
+    np.testing.assert_array_equal(m.points, X)
+    np.testing.assert_array_equal(m.points + m.point_data["displacement"], X + U)
     np.testing.assert_allclose(m.point_data["displacement_magnitude"], np.linalg.norm(U, axis=1), rtol=1e-12)
     assert np.array_equal(m.cells_dict["triangle"], mesh.triangles)
-    und = meshio.read(write_vtu(tmp_path / "b.vtu", mesh, U, deformed=False))
-    np.testing.assert_allclose(und.points, mesh.vertices, rtol=1e-12)
+    assert m.field_data["rtfem_reference_points"].tolist() == [1]
+    moved = meshio.read(write_vtu(tmp_path / "b.vtu", mesh, U, deformed=True))  # asked for: the points displaced
+    np.testing.assert_allclose(moved.points, X + U, rtol=1e-12)
+    assert moved.field_data["rtfem_reference_points"].tolist() == [0]
+    with pytest.raises(rt.ModelError, match="deformed"):
+        write_vtu(tmp_path / "c.vtu", mesh, U, deformed="yes")
+
+
+def test_a_runs_frames_are_the_reference_points_with_the_displacement(tmp_path):
+    """RunWriter (rtfem simulate, scenes) writes its frames through write_vtu: reference + field."""
+    import meshio
+
+    from rtfem.io.scenario import RunWriter
+
+    tets = rt.meshes.box(0.1, 0.1, 0.05, nx=2, ny=2, nz=1)
+    U = np.random.default_rng(1).normal(scale=1e-3, size=(tets.n_vertices, 3))
+    writer = RunWriter(tmp_path, tets, ["t"], 1)
+    writer.frame(0, 0.0, U)
+    writer.close()
+    m = meshio.read(tmp_path / "frame_00000.vtu")
+    assert m.cells[0].type == "tetra"
+    np.testing.assert_array_equal(m.points, tets.vertices)
+    np.testing.assert_array_equal(m.points + m.point_data["displacement"], np.asarray(tets.vertices) + U)
 
 
 def test_pvd_lists_the_frames_in_time_order(tmp_path):

@@ -73,10 +73,12 @@ _SAVER = textwrap.dedent("""
     t0 = time.perf_counter(); new.save(target + ".probe.npz"); t_save = time.perf_counter() - t0
     print("ready", t_save, flush=True)
     while True:
-        try:  # a Ctrl-C that lands after a save finished (while waiting here) is not the test's subject
-            line = sys.stdin.readline()
-        except KeyboardInterrupt:
-            continue
+        # a Ctrl-C that lands after a save finished (while waiting here) is not the test's subject: it is
+        # ignored while idle (caught as KeyboardInterrupt instead, one landing just after readline had
+        # taken the harness's "go" lost that line, and the saver waited for it for ever)
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        line = sys.stdin.readline()
+        signal.signal(signal.SIGINT, previous)
         if not line or line.strip() == "quit":
             break
         old.save(target)

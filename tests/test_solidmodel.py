@@ -227,7 +227,7 @@ def test_volume_vtu_carries_the_displacements(tmp_path, beam):
     m = meshio.read(path)
     assert m.cells[0].type == "tetra" and len(m.cells[0].data) == model.tetmesh.n_tets
     np.testing.assert_allclose(m.point_data["displacement"], u)
-    np.testing.assert_allclose(m.points, model.tetmesh.vertices + u)
+    np.testing.assert_allclose(m.points, model.tetmesh.vertices)  # at rest: ParaView's Warp By Vector adds u
 
 
 needs_mesher = pytest.mark.skipif(not rt.mesh.meshing.mesher_available(), reason="the mesh extra (pytetwild) is not installed")

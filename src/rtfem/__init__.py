@@ -8,6 +8,9 @@ contact solver, the devices or numba's kernels until they are asked for (issue 5
 from importlib import import_module
 
 from .errors import DeviceError, MeshError, ModelError, RtfemError, RtfemWarning, SolverError
+from .lazy import submodules
+
+_submodule = submodules(__name__)
 
 __version__ = "0.1.0"
 
@@ -62,14 +65,15 @@ _LAZY = {
     "nonlinear": (".fe.nonlinear", None),
     "ReducedNonlinearModel": (".reduction.reduced", 'ReducedNonlinearModel'),
     "ReducedNonlinearSimulator": (".drivers.reduced_nonlinear", 'ReducedNonlinearSimulator'),
+    "precompute": (".reduction.precompute", 'precompute'),
+    "cache": (".cache", None),
 }
 
 
 def __getattr__(name: str):
-    try:
-        module, attr = _LAZY[name]
-    except KeyError:
-        raise AttributeError(f"module 'rtfem' has no attribute {name!r}") from None
+    if name not in _LAZY:
+        return _submodule(name)  # rt.mesh, rt.io, ...: the subpackages on first use
+    module, attr = _LAZY[name]
     value = import_module(module, __name__)
     if attr is not None:
         value = getattr(value, attr)
@@ -136,4 +140,6 @@ __all__ = [
     "devices",
     "nonlinear",
     "save_mesh",
+    "precompute",
+    "cache",
 ]

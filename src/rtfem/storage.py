@@ -17,9 +17,8 @@ from typing import Iterator
 
 import numpy as np
 
-from . import validate
 from .errors import ModelError
-from .userfiles import regular_file
+from .userfiles import _clean, _size, regular_file
 
 __all__ = ["save_versioned", "load_versioned", "atomic_target", "atomic_stream", "sweep", "physical_memory"]
 
@@ -271,17 +270,6 @@ def _read_npz(path: Path, what: str, max_bytes: int | None) -> dict[str, np.ndar
             except Exception as exc:
                 raise ModelError(f"{where}: field {field!r} could not be read ({_clean(exc)}); the file is damaged") from None
     return out
-
-
-def _clean(exc: BaseException) -> str:
-    return validate.one_line(str(exc), 160)
-
-
-def _size(nbytes: int) -> str:
-    for unit, k in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
-        if nbytes >= k:
-            return f"{nbytes / k:.3g} {unit}"
-    return f"{nbytes} bytes"
 
 
 def _old_info(keys, values) -> dict:

@@ -194,15 +194,21 @@ def test_newton_converges_quadratically(kind):
     assert checked >= 2
 
 
-def _swing(dt, **options):
-    """A cantilever pushed by P L^2 / EI = 6 for a quarter period (0.5 s), then free and undamped:
-    the energies of the free motion and the largest tip motion."""
+def swung_cantilever():
+    """A stiff tet4 cantilever (1 x 0.1 x 0.1 m, E 1e7) and the end load P L^2 / EI = 6 that swings it."""
     E, h = 1e7, 0.1
     model = rt.SolidModel(rt.meshes.box(1.0, h, h, 10, 1, 1), rt.Material(E=E, nu=0.3, density=1000.0))
     model.fix("x0")
     F = np.zeros((model.n_nodes, 3))
     end = model.select_nodes("x1")
     F[end, 2] = 6.0 * E * h**4 / 12 / end.size
+    return model, F, end
+
+
+def _swing(dt, **options):
+    """The cantilever pushed for a quarter period (0.5 s), then free and undamped: the energies of the
+    free motion and the largest tip motion."""
+    model, F, end = swung_cantilever()
     sim = rt.DirectSimulator(model, dt, None, large_deformation=True, **options)
     for _ in range(round(0.5 / dt)):
         sim.step(F)

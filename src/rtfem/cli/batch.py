@@ -444,7 +444,7 @@ def add_batch_command(sub) -> None:
                        "the plan, one organ a task on a Dask cluster (--scheduler) or here; what is there and valid "
                        "is kept; a summary table (summary.csv). See the manual: Precompute on a cluster.")
     p.add_argument("plan", help="the plan (TOML)")
-    p.add_argument("--out", metavar="DIR", help="the output folder (default: the plan's out, a folder beside the plan)")
+    p.add_argument("-o", "--out", metavar="DIR", help="the output folder (default: the plan's out, a folder beside the plan)")
     add_scheduler_options(p, "the organs on a Dask cluster: tcp://HOST:PORT, tls://HOST:PORT (with --tls-*) or local:N "
                           "(N worker processes here, on loopback); a plan's scheduler may only be local:N")
     p.set_defaults(func=cmd_batch)

@@ -317,15 +317,16 @@ MAX_FRAMES = 10_000  # VTU frames of one run
 
 
 def _modes(model, args, *, quiet=False):
-    from ..reduction.modal import modal_analysis
+    """The r lowest modes of ``model``, through the precompute cache (rtfem.cache)."""
+    from ..reduction.precompute import cached_modes
 
     r = args.modes
     if r < 1:
         raise RtfemError(f"--modes {r}: ask for at least one mode")
     if quiet:
-        return modal_analysis(model, r)
+        return cached_modes(model, r)
     with progress_bar(f"modes (r = {r})", unit="solve") as bar:
-        return modal_analysis(model, r, progress=bar)
+        return cached_modes(model, r, progress=bar)
 
 
 # ---------------------------------------------------------------- a Dask cluster (--scheduler)

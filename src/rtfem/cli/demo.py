@@ -148,7 +148,7 @@ def haptic_session(seconds: float = 3.0, n_modes: int = 40) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rtfem.cli.demo", description=__doc__)
-    ap.add_argument("--out", default="out/demo", help="folder for the output files (default: out/demo)")
+    ap.add_argument("-o", "--out", default="out/demo", help="folder for the output files (default: out/demo)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

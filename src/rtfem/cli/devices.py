@@ -4,7 +4,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
+import signal
 import socket
+import sys
+import threading
 import time
 from urllib.parse import urlparse
 
@@ -36,8 +41,8 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
 
     hd, hd_what = loads(openhaptics.hd_library)
     dhd, dhd_what = loads(forcedimension.dhd_library)
-    try:
-        import pyigtl  # noqa: F401
+    try:  # rtfem's own OpenIGTLink transport needs crcmod's CRC-64 (the igtl extra brings it with pyigtl)
+        import crcmod  # noqa: F401
 
         igtl = True
     except ImportError:
@@ -54,7 +59,8 @@ def adapters(haply_url: str = "ws://localhost:10001") -> list[tuple[str, str, bo
         ("forcedimension", "Force Dimension SDK (libdhd)", dhd, dhd_what),
         ("haply", f"Haply Inverse Service at {haply_url}", listening,
          "listening" if listening else ("pip install websockets (the viewer extra)" if not ws else haply.HOW)),
-        ("igtl", "pyigtl (OpenIGTLink)", igtl, "installed" if igtl else "pip install 'rtfem[igtl]' (make installs it)"),
+        ("igtl", "OpenIGTLink (crcmod, the igtl extra)", igtl,
+         "installed" if igtl else "pip install 'rtfem[igtl]' (make installs it)"),
     ]
 
 
@@ -67,24 +73,82 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def cmd_igtl(args: argparse.Namespace) -> int:
+    """Serve until --seconds, SIGINT (Ctrl-C) or SIGTERM (rc 0, a line saying which); a bridge that
+    stops on its own ends the command with rc 2 and the reason."""
     from ..drivers.modal import ModalSimulator
     from ..interaction.devices import IGTLServer
+    from ..interaction.devices.igtl import warn_exposed
+    from ..interaction.devices.igtl_net import listen_socket
     from .common import _modes
 
-    model = build_model(args)
-    modes = _modes(model, args)
-    driver = ModalSimulator(modes, args.dt, damping_of(args), static_correction=True)
-    with IGTLServer(model.mesh, driver, port=args.port, host=args.host, tool_radius=args.tool_radius * 1e-3,
-                    stiffness=args.stiffness) as server:
+    with _igtl_log():
+        sock, loopback = listen_socket(args.host, args.port)  # a bad address or a busy port: said before any work
+        sock.close()
+        if not loopback:
+            warn_exposed(args.host, args.port)
+        model = build_model(args)
+        modes = _modes(model, args)
+        driver = ModalSimulator(modes, args.dt, damping_of(args), static_correction=True)
+        return _serve_igtl(args, IGTLServer(model.mesh, driver, port=args.port, host=args.host,
+                                            tool_radius=args.tool_radius * 1e-3, stiffness=args.stiffness))
+
+
+def _serve_igtl(args: argparse.Namespace, server) -> int:
+    with _stop_signals() as stopped, server:
         print(f"rtfem igtl: serving OpenIGTLink on {args.host}:{server.port}: send a TRANSFORM '{server.TOOL}' (mm); "
               f"'{server.ORGAN}' (POLYDATA, mm) and '{server.FORCE}' (TRANSFORM, N) come back. Ctrl-C stops.", flush=True)
         t0 = time.perf_counter()
         while args.seconds is None or time.perf_counter() - t0 < args.seconds:
-            time.sleep(0.1)
-            if server.loop.error is not None:
-                raise RtfemError(f"the contact loop stopped: {server.loop.error}")
+            if stopped.wait(0.1):
+                print(f"rtfem igtl: stopped by {stopped.name}", flush=True)
+                break
+            if server.error is not None:
+                raise RtfemError(f"the OpenIGTLink bridge stopped: {server.error}")
         print(f"rtfem igtl: {server.received} poses taken, {server.refused} messages refused", flush=True)
     return 0
+
+
+@contextlib.contextmanager
+def _igtl_log():
+    """The bridge's log (clients coming and going, dropped, refused messages) as lines on stderr."""
+    logger = logging.getLogger("rtfem.igtl")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("rtfem igtl: %(message)s"))
+    level, propagate = logger.level, logger.propagate
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+class _Stopped(threading.Event):
+    name = ""
+
+
+@contextlib.contextmanager
+def _stop_signals():
+    """An Event set by SIGINT or SIGTERM while the block runs (on the main thread; elsewhere never),
+    the previous handlers put back after it."""
+    stopped = _Stopped()
+    if threading.current_thread() is not threading.main_thread():
+        yield stopped
+        return
+
+    def handler(signum, frame):
+        stopped.name = signal.Signals(signum).name
+        stopped.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stopped
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def add_device_commands(sub) -> None:
@@ -97,7 +161,8 @@ def add_device_commands(sub) -> None:
                                     "the deformed organ and the contact force sent back")
     add_model_options(p)
     p.add_argument("--port", type=port, default=18944, help="port (default 18944, OpenIGTLink's)")
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only; any other, "
+                   "0.0.0.0 included, lets the network send poses and read the organ: a warning says so)")
     p.add_argument("--tool-radius", type=positive, default=5.0, metavar="MM", help="the sphere tool's radius in mm "
                    "(default 5)")
     p.add_argument("--stiffness", type=positive, default=200.0, help="coupling spring between the tracked pose and the "

@@ -13,6 +13,7 @@
     rtfem devices                          the haptic device adapters: found here, or what to install
     rtfem igtl [MESH]                      an OpenIGTLink server: a tracked tool in, the organ and its force out
     rtfem demo                             the scripted demo of `make demo HEADLESS=1`
+    rtfem cache [--clear]                  the precomputed meshes, modes and reduced models kept here
 
 Exit codes: 0 ok, 2 bad input (one line on stderr, no traceback), 130 interrupted.
 """
@@ -30,6 +31,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError, RtfemError
+from .cache import report as cache_report
 from .common import (
     MAX_FRAMES, MAX_STEPS, _Parser, _modes, _one_line, _vector, add_model_options, add_scheduler_options, build_model,
     check_scheduler, count, damping_of, fixed_nodes, fraction, mesh_of_args, nonnegative, open_fraction,
@@ -223,7 +225,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         modes = _modes(model, args)
         with scheduler_of(args, address) as scheduler, progress_bar("modal derivatives", unit="mode") as bar:
             sim = reduced_nonlinear_driver(model, modes, args.dt, damping, local=local, progress=bar,
-                                           scheduler=scheduler)
+                                           scheduler=scheduler, cache=True)
+        print(cache_report(modes=modes, reduced_model=sim.reduced))
         info = sim.reduced.info
         patch = "" if "local" not in info else (f" + {info['local']['coordinates']} of a {args.local:g} mm patch "
                                                 f"({info['local']['nodes']} nodes)")
@@ -372,7 +375,7 @@ def _add_simulate(sub) -> None:
     p.add_argument("--stiffness", type=positive, default=200.0, help="probe coupling spring in N/m (default 200)")
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--fps", type=positive, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
-    p.add_argument("--out", default="out/simulate", help="output folder (default out/simulate)")
+    p.add_argument("-o", "--out", default="out/simulate", help="output folder (default out/simulate)")
     p.set_defaults(func=cmd_simulate)
 
 def _add_impedance(sub) -> None:
@@ -404,7 +407,7 @@ def _add_bench_and_pictures(sub) -> None:
 
     p = sub.add_parser("pictures", help="PNG mode shapes and deformed states, a GIF of a response, and plots")
     add_model_options(p)
-    p.add_argument("--out", default="out/pictures", help="output folder (default out/pictures)")
+    p.add_argument("-o", "--out", default="out/pictures", help="output folder (default out/pictures)")
     p.add_argument("--no-gif", action="store_true", help="skip the animated GIF")
     p.add_argument("--mp4", action="store_true", help="also write an MP4 (needs imageio-ffmpeg)")
     p.add_argument("--no-scaling", action="store_true", help="skip the scaling curves (they time the liver at 3 sizes)")
@@ -451,7 +454,7 @@ def _add_view_and_demo(sub) -> None:
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")
-    p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
+    p.add_argument("-o", "--out", default="out/demo", help="output folder (default: out/demo)")
     p.set_defaults(func=cmd_demo)
 
 
@@ -459,18 +462,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="rtfem", description="Real-time simulation of deformable finite-element (shell and solid) "
                                  "models: modal analysis, spectral Lanczos decomposition, impedance maps.",
                                  epilog="Every command runs on the embedded default liver when no MESH is given.")
-    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_info_and_modes(sub)
-    _add_simulate(sub)
-    _add_impedance(sub)
     from .batch import add_batch_command
-
-    add_batch_command(sub)
-    _add_bench_and_pictures(sub)
-    _add_view_and_demo(sub)
+    from .cache import add_cache_command
     from .devices import add_device_commands
 
-    add_device_commands(sub)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_info_and_modes, _add_simulate, _add_impedance, add_batch_command, _add_bench_and_pictures,
+                _add_view_and_demo, add_device_commands, add_cache_command):
+        add(sub)
     return ap
 
 

@@ -152,7 +152,15 @@ def simulate_scene(args: argparse.Namespace) -> int:
     print(f"ran         {n_steps} steps of {dt * 1e3:g} ms in {elapsed:.2f} s ({n_steps * dt / elapsed:.2f} x real time)")
     for b in scene.bodies:
         f = sum((f for (a, _), f in scene.contacts.items() if a == b.name), np.zeros(3))
-        print(f"body        {b.name}: {b.mass:.4g} kg (weight {b.mass * np.linalg.norm(scene.gravity):.4g} N); "
-              f"force of obstacles, bodies and attachments now {np.round(f, 4).tolist()} N")
+        print(f"body        {b.name}: {b.mass:.4g} kg (weight {b.mass * np.linalg.norm(scene.gravity):.4g} N), "
+              f"{_material(b.model)}; force of obstacles, bodies and attachments now {np.round(f, 4).tolist()} N")
     print(f"wrote       {path} ({len(rows)} rows) and {', '.join(f'{b.name}/{b.name}.pvd' for b in scene.bodies)}")
     return 0
+
+
+def _material(model) -> str:
+    """What a body's material is, and what its modes use of it (a law's linearization at rest)."""
+    law, lin = getattr(model, "law", None), model.material
+    if law is None:
+        return f"linear, E = {lin.E:.4g} Pa, nu = {lin.nu:.4g}"
+    return f"{law!r} on its modes: its linearization at rest, E = {lin.E:.4g} Pa, nu = {lin.nu:.4g}"

@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from ..errors import RtfemError
+from .cache import report as cache_report
 from .common import build_model, model_options, progress_bar
 
 
@@ -80,6 +81,7 @@ def _view(args: argparse.Namespace, settings, device) -> int:
     finally:
         bars.close()
     print(f"precomputed {settings.label} in {time.perf_counter() - t0:.1f} s", flush=True)
+    print(cache_report(modes=session.modes, reduced_model=getattr(session.driver, "reduced", None)), flush=True)
     if args.benchmark is not None:
         import json
 

@@ -74,10 +74,10 @@ class DirectSimulator(ForceInput):
                 if cls is not NewmarkSimulator:
                     raise ModelError("large_deformation=True runs Newton inside implicit Newmark: use method='newmark' "
                                      "(a shell's massless rotations have no explicit update)")
-                cls = DirectSimulator._nonlinear  # rtfem.drivers.nonlinear_newmark registers it
+                cls = _large_deformation_class(model, options.get("solver"))
         return super().__new__(cls)
 
-    _nonlinear: type | None = None  # the class DirectSimulator(..., large_deformation=True) makes
+    _nonlinear: type | None = None  # the Newton step's class (rtfem.drivers.nonlinear_newmark registers it)
 
     def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
                  large_deformation: bool | None = None) -> None:
@@ -486,3 +486,17 @@ class CentralDifferenceSimulator(DirectSimulator):
 
 
 _METHOD_CLASS = {"newmark": NewmarkSimulator, "central": CentralDifferenceSimulator}
+
+
+LARGE_DEFORMATION_SOLVERS = ("lagged", "newton")
+
+
+def _large_deformation_class(model, solver):
+    """The class of DirectSimulator(..., large_deformation=True, solver=...): "lagged" (chord iterations
+    on a lagged tangent: :class:`~rtfem.drivers.lagged_newmark.LaggedNewmarkSimulator`, the default for
+    a solid) or "newton" (Newton every step: the reference, and the default for a shell, whose
+    rotations the fast kernels do not take)."""
+    if solver is None:
+        solver = "lagged" if getattr(model, "dofs_per_node", 6) == 3 else "newton"
+    solver = validate.choice(solver, "solver", LARGE_DEFORMATION_SOLVERS)
+    return DirectSimulator._nonlinear._solvers[solver]

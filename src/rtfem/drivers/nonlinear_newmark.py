@@ -62,9 +62,17 @@ class NonlinearNewmarkSimulator(DirectSimulator):
     compliance_changes = True  # the tangent follows the motion (consumers must not cache W)
     _state = ("_u", "_v", "_a", "_g", "_held")  # the held loads: where the one-step contract is linearized
 
+    solver = "newton"
+    #: the large-deformation steps by name (rtfem.drivers.lagged_newmark registers "lagged")
+    _solvers: dict = {}
+
     def __init__(self, model, dt: float, damping: Damping | None = None, *, method: str | None = None,
                  large_deformation: bool | None = None, numerical_damping: float = 0.05, tol: float = 1e-8,
-                 max_iterations: int = 25) -> None:
+                 max_iterations: int = 25, solver: str | None = None) -> None:
+        if solver is not None and solver != self.solver:
+            raise ModelError(f"solver={validate.show(solver)} given to {type(self).__name__}, whose step is "
+                             f"{self.solver!r}; build it with rt.DirectSimulator(model, dt, damping, "
+                             "large_deformation=True, solver=...)")
         super().__init__(model, dt, damping, method=method, large_deformation=large_deformation)
         from ..fe.nonlinear import Configuration
 
@@ -267,4 +275,5 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         return float(0.5 * self._v @ (self._M @ self._v)) + self.system.energy(self.configuration)
 
 
+NonlinearNewmarkSimulator._solvers["newton"] = NonlinearNewmarkSimulator
 DirectSimulator._nonlinear = NonlinearNewmarkSimulator

@@ -538,7 +538,8 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
 def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = None, *, derivatives: int = 20,
                              spread: int = 1, precision: str = "double", static_correction: bool = True,
                              local: tuple | None = None, refresh: int = 20, background: bool = False,
-                             progress: Callable[[int, int, str], None] | None = None, scheduler=None):
+                             progress: Callable[[int, int, str], None] | None = None, scheduler=None,
+                             cache: bool = False):
     """The reduced nonlinear Driver in one call, as ``rtfem simulate --method nonlinear`` and the
     viewer build it: a :class:`ReducedNonlinearModel` on ``modes`` and the modal derivatives of the
     lowest min(derivatives, r) of them, its cubature (16 poses, 5 % training error) and a
@@ -552,7 +553,9 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     for offline runs; on the default liver a refresh costs ~13 ms) or, with ``background``, on a
     thread so that the step never waits (the real-time setting: the viewer's). Shells and solids:
     the compiled cubature kernels are the corotational triangle's and the corotated tet's. ``scheduler``:
-    the modal derivatives on a Dask cluster (:meth:`ReducedNonlinearModel.derivatives`)."""
+    the modal derivatives on a Dask cluster (:meth:`ReducedNonlinearModel.derivatives`). ``cache``: the
+    reduced model and its cubature through the precompute cache (:func:`rtfem.reduction.precompute.cached_reduced`;
+    a patch is localized and trained afresh on the cached model), as ``rtfem view`` and ``simulate`` do."""
     if local is not None:
         if not isinstance(local, (tuple, list)) or len(local) != 2:
             raise ModelError(f"local={validate.show(local)} must be (nodes, radius in m), e.g. ([node], 0.02)")
@@ -565,9 +568,15 @@ def reduced_nonlinear_driver(model, modes, dt: float, damping: Damping | None = 
     derivatives = min(derivatives, getattr(modes, "n_modes", derivatives))
     if hasattr(modes, "n_modes") and callable(getattr(model, "nonlinear", None)):  # else the build says what is wrong
         check_build_memory(model, modes.n_modes + derivatives * (derivatives + 1) // 2, local)  # before the derivatives
-    red = ReducedNonlinearModel(model, modes, derivatives, progress=progress, scheduler=scheduler)
+    if validate.flag(cache, "cache"):
+        from ..reduction.precompute import cached_reduced
+
+        red = cached_reduced(model, modes, derivatives, cubature=local is None, progress=progress, scheduler=scheduler)
+    else:
+        red = ReducedNonlinearModel(model, modes, derivatives, progress=progress, scheduler=scheduler)
     if local is not None:
         red = red.localize(*local)
-    red.train_cubature(16, tol=0.05)
+    if local is not None or not cache:
+        red.train_cubature(16, tol=0.05)
     return ReducedNonlinearSimulator(red, dt, damping, spread=spread, precision=precision,
                                      static_correction=static_correction, refresh=refresh, background=background)

@@ -35,7 +35,7 @@ from .. import validate
 from ..errors import ModelError
 from .material import Material
 
-__all__ = ["Hyperelastic", "NeoHookean", "MooneyRivlin", "Ogden", "law_from_text", "LAWS"]
+__all__ = ["Hyperelastic", "NeoHookean", "MooneyRivlin", "Ogden", "law_from_text", "make_law", "LAWS"]
 
 
 def _det(F):
@@ -295,17 +295,68 @@ class Ogden(Hyperelastic):
 LAWS = ("linear", "neo-hookean", "mooney-rivlin", "ogden")
 
 
+def make_law(name: str, material: Material, *, mu=None, kappa=None, c10=None, c01=None, alpha=None):
+    """The law ``name`` of :data:`LAWS`, its moduli those given and the rest from ``material`` as the
+    command line's ``--E``, ``--nu`` and ``--density`` give them: the one builder behind ``--material``
+    (:func:`law_from_text`) and a scene file's ``material`` table
+    (:func:`rtfem.fe.viscoelastic.material_from_table`).
+
+    Parameters
+    ----------
+    name : "linear" (``material`` itself), "neo-hookean", "mooney-rivlin" or "ogden".
+    material : the linear Material: its density, its E and nu for what is not given.
+    mu : neo-Hookean: its shear modulus (default ``material``'s, E / (2 (1 + nu))); Ogden: the
+        moduli mu_i (a list).
+    kappa : the bulk modulus (Pa); default: the law's shear modulus at rest times ``material``'s
+        kappa / mu, i.e. the same Poisson's ratio at rest.
+    c10, c01 : Mooney-Rivlin's moduli (Pa), both needed.
+    alpha : Ogden's exponents, one per mu_i.
+
+    Returns
+    -------
+    Material or Hyperelastic
+
+    Raises
+    ------
+    ModelError
+        An unknown name, a Mooney-Rivlin or Ogden law without its moduli, what the law's
+        constructor refuses (a modulus that is not a finite number, kappa <= 0, ...).
+    """
+    E, nu = material.E, material.nu
+    mu_0, kappa_0 = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))  # material's; a law keeps kappa_0 / mu_0
+    if name == "linear":
+        return material
+    if name == "neo-hookean":
+        if mu is None:
+            return NeoHookean(mu_0, kappa_0 if kappa is None else kappa, material.density)
+        mu = validate.positive(mu, "mu", "the shear modulus in Pa, e.g. 2000")
+        return NeoHookean(mu, mu * kappa_0 / mu_0 if kappa is None else kappa, material.density)
+    if name == "mooney-rivlin":
+        if c10 is None or c01 is None:
+            raise ModelError("mooney-rivlin needs both its moduli, c10 and c01 (Pa)")
+        c10, c01 = validate.number(c10, "c10", "C10 in Pa"), validate.number(c01, "c01", "C01 in Pa")
+        return MooneyRivlin(c10, c01, 2 * (c10 + c01) * kappa_0 / mu_0 if kappa is None else kappa, material.density)
+    if name == "ogden":
+        if mu is None or alpha is None:
+            raise ModelError("ogden needs its moduli mu = [mu_1, ...] (Pa) and exponents alpha = [alpha_1, ...], as "
+                             "many of each")
+        mu = np.atleast_1d(validate.real_array(mu, "mu"))
+        alpha = np.atleast_1d(validate.real_array(alpha, "alpha"))
+        return Ogden(mu.tolist(), alpha.tolist(), float(mu.sum()) * kappa_0 / mu_0 if kappa is None else kappa,
+                     material.density)
+    raise ModelError(f"law {validate.show(name)}: choose one of {', '.join(LAWS)}")
+
+
 def law_from_text(text: str, material: Material):
     """The material a command line names (``--material``): "linear" (``material`` itself),
     "neo-hookean" (mu and kappa of ``material``'s E and nu), "mooney-rivlin:C10,C01" or
     "ogden:mu1,alpha1[,mu2,alpha2,...]" (moduli in Pa; kappa keeps ``material``'s ratio kappa / mu,
     i.e. the same Poisson's ratio at rest); the density is ``material``'s (a relaxing law:
-    :func:`rtfem.fe.viscoelastic.material_from_text`). Raises ModelError naming what is wrong."""
+    :func:`rtfem.fe.viscoelastic.material_from_text`; the law built by :func:`make_law`). Raises
+    ModelError naming what is wrong."""
     text = str(text).strip()
     name, _, values = text.partition(":")
     name = name.strip().lower()
-    E, nu = material.E, material.nu
-    mu, kappa = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
     if name == "liver":
         raise ModelError("--material liver: published liver parameters are not in rtfem yet (issue 41 item 4); give "
                          "the law and its parameters, e.g. --material mooney-rivlin:C10,C01 or ogden:mu1,alpha1")
@@ -315,7 +366,7 @@ def law_from_text(text: str, material: Material):
     if name in ("linear", "neo-hookean"):
         if values:
             raise ModelError(f"--material {text!r}: {name} takes no parameters (its moduli are --E and --nu's)")
-        return material if name == "linear" else NeoHookean(mu, kappa, material.density)
+        return make_law(name, material)
     try:
         numbers = [float(v) for v in values.split(",")] if values.strip() else []
     except ValueError:
@@ -323,10 +374,8 @@ def law_from_text(text: str, material: Material):
     if name == "mooney-rivlin":
         if len(numbers) != 2:
             raise ModelError(f"--material {text!r}: give mooney-rivlin:C10,C01 (two moduli in Pa)")
-        c10, c01 = numbers
-        return MooneyRivlin(c10, c01, 2 * (c10 + c01) * kappa / mu, material.density)
+        return make_law(name, material, c10=numbers[0], c01=numbers[1])
     if len(numbers) < 2 or len(numbers) % 2:
         raise ModelError(f"--material {text!r}: give ogden:mu1,alpha1[,mu2,alpha2,...] (pairs of a modulus in Pa and "
                          "an exponent)")
-    mus, alphas = numbers[0::2], numbers[1::2]
-    return Ogden(mus, alphas, sum(mus) * kappa / mu, material.density)
+    return make_law(name, material, mu=numbers[0::2], alpha=numbers[1::2])

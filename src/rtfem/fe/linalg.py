@@ -134,8 +134,13 @@ class _Pardiso:
     1.93 s on one). Memory is released when the object goes away (phase -1). Calls are
     serialized: one factor, one solve at a time."""
 
-    def __init__(self, A: sp.csr_matrix, what: str) -> None:
+    def __init__(self, A: sp.csr_matrix, what: str, refactorable: bool = False) -> None:
         self._fn = _mkl_pardiso()
+        # a handle to be factorized again (refactor) runs every phase on the same MKL threads: after a
+        # solve on one thread, a numeric factorization read past PARDISO's buffers (a segmentation fault
+        # on a 1,500-dof tet10 tangent, whatever the threads of that factorization); one thread below
+        # 100,000 dofs (the solves' rule, and the other core stays free), MKL's threads above
+        self._fixed_threads = (1 if A.shape[0] < 100_000 else 0) if refactorable else None
         d = A.diagonal()
         if not np.all(d > 0):  # PARDISO's SPD Cholesky needs every diagonal entry, positive
             i = int(np.flatnonzero(~(d > 0))[0])
@@ -149,7 +154,8 @@ class _Pardiso:
         self._iparm[17] = -1  # report the factor's nonzeros
         self._lock = threading.Lock()
         self._alive = False
-        err = self._call(12, np.zeros(1), np.zeros(1), 1)
+        with _mkl_threads(self._fixed_threads or 0):
+            err = self._call(12, np.zeros(1), np.zeros(1), 1)
         if err:
             self._release()
             if err == -4:
@@ -160,6 +166,25 @@ class _Pardiso:
         # a small factor's solve is faster on one thread: waking MKL's threads for each supernode
         # level costs more than they save (benchmarks/precompute.py, 2 cores)
         self._solve_threads = 1 if self.factor_nnz < _ONE_THREAD_SOLVE else 0
+        if self._fixed_threads is not None:
+            self._solve_threads = self._fixed_threads
+
+    def refactor(self, A: sp.spmatrix) -> bool:
+        """Factorize new values of the same pattern again, numerically only (phase 22: METIS's order
+        and the symbolic factor are kept). False, nothing changed, where the pattern differs or the
+        handle was not made refactorable."""
+        if self._fixed_threads is None:
+            return False
+        ia, ja, a = _upper_triangle(A)
+        if ia.shape != self._ia.shape or ja.shape != self._ja.shape or not np.array_equal(ja, self._ja) \
+                or not np.array_equal(ia, self._ia):
+            return False
+        with self._lock, _mkl_threads(self._fixed_threads):
+            self._a = a
+            err = self._call(22, np.zeros(1), np.zeros(1), 1)
+        if err:
+            raise SolverError(f"PARDISO could not factorize the matrix again (error {err}: not positive definite)")
+        return True
 
     def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> int:
         i32 = ctypes.POINTER(ctypes.c_int32)
@@ -276,12 +301,22 @@ class Factorization:
     Solves from several threads (a contact's background preparation beside the force loop) take
     turns: no backend promises that two solves on one factor may overlap."""
 
-    def __init__(self, A: sp.spmatrix, backend: str, solver) -> None:
+    def __init__(self, A: sp.spmatrix, backend: str, solver, refactor=None) -> None:
         self.shape = A.shape
         self.nnz = A.nnz
         self.backend = backend
         self._solver = solver
+        self._refactor = refactor
         self._lock = threading.Lock()
+
+    def refactor(self, A: sp.spmatrix) -> bool:
+        """Factorize ``A``, new values on the pattern this was made of, in place (PARDISO: numerically
+        only, its ordering and symbolic factor kept; a lagged tangent's refresh). False, nothing
+        changed, where the backend cannot or the pattern differs: make a new factorization then."""
+        if self._refactor is None or A.shape != self.shape:
+            return False
+        with self._lock:
+            return bool(self._refactor(A))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, dtype=float)
@@ -349,6 +384,7 @@ def factorize(
     what: str = "matrix",
     order: np.ndarray | None = None,
     norm: float | None = None,
+    refactorable: bool = False,
 ) -> Factorization:
     """Factorize a sparse square matrix.
 
@@ -364,6 +400,7 @@ def factorize(
         and CHOLMOD order by themselves (the callable is then never called).
     norm : the 1-norm used in the singularity check (default ||A||_1); a penalized matrix
         passes the norm of the physical stiffness, whose conditioning is what matters.
+    refactorable : to be factorized again on the same pattern (:meth:`Factorization.refactor`).
 
     Raises
     ------
@@ -379,9 +416,9 @@ def factorize(
             raise SolverError("PARDISO is not installed: pip install pypardiso (or rtfem[fast]; x86-64 only)")
         if not spd:
             raise SolverError("the PARDISO backend here is the SPD Cholesky: use backend='superlu' for other matrices")
-        f = _Pardiso(A, what)
+        f = _Pardiso(A, what, refactorable)
         _check_not_singular(A, f.solve, what, norm)
-        return Factorization(A, "pardiso", f.solve)
+        return Factorization(A, "pardiso", f.solve, f.refactor)
     A = sp.csc_matrix(A, dtype=float)
     if backend == "cholmod":
         if not _HAVE_CHOLMOD:

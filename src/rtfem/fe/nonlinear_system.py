@@ -101,16 +101,24 @@ class NonlinearSystem:
             fe, Ke, energy = self.kernel.evaluate(x, tangent, history)
         else:
             fe, Ke, energy = self.kernel.evaluate(x, tangent)
-        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
+        f = self.gather(fe)
         K = None
         if tangent:
-            indices, indptr, nf = self._pattern
-            data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
-            K = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
+            K = self.tangent_matrix(Ke)
             patch = getattr(self.kernel, "patch_tangent", None)  # tet4-anp: the nodes' patches couple
             if patch is not None:
                 K = (K + patch(x)[self.free][:, self.free]).tocsr()
         return f, K, float(energy.sum())
+
+    def gather(self, fe: np.ndarray) -> np.ndarray:
+        """The element forces (m, k dofs_per_node) summed at the model's dofs (n_dofs,)."""
+        return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.model.n_dofs)
+
+    def tangent_matrix(self, Ke: np.ndarray) -> sp.csr_matrix:
+        """The element tangents (m, nd, nd) assembled on the free dofs (CSR, the system's pattern)."""
+        indices, indptr, nf = self._pattern
+        data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
+        return sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
 
     def deformed(self, conf: Configuration) -> np.ndarray:
         """The elements' deformed nodes (m, k, 3) of a configuration."""
@@ -151,17 +159,17 @@ class NonlinearSystem:
             return False
         return True
 
-    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False):
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False, refactorable: bool = False):
         """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
         rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
         SolverError (a symmetric matrix that must be positive definite)."""
         order = lambda: self.model.dof_order(self.free)  # noqa: E731
         if spd_only:
-            return factorize(K, spd=True, what=what, order=order)
+            return factorize(K, spd=True, what=what, order=order, refactorable=refactorable)
         sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()
         if sym:
             try:
-                return factorize(K, spd=True, what=what, order=order)
+                return factorize(K, spd=True, what=what, order=order, refactorable=refactorable)
             except SolverError:
                 pass  # indefinite (past a limit point, or compressed): LU below
         return factorize(K, spd=False, what=what, order=order)

@@ -28,10 +28,11 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError
-from .hyperelastic import Hyperelastic, _cofactor, _det, law_from_text
+from .hyperelastic import LAWS, Hyperelastic, _cofactor, _det, law_from_text, make_law
 from .solid import HyperelasticTets, _tangent_point
 
-__all__ = ["Prony", "ViscoelasticTets", "material_from_text", "prony_step", "prony_commit", "history_size"]
+__all__ = ["Prony", "ViscoelasticTets", "material_from_text", "material_from_table", "prony_step", "prony_commit",
+           "history_size"]
 
 
 class Prony(Hyperelastic):
@@ -253,3 +254,77 @@ def material_from_text(text: str, material):
         raise ModelError(f"--material {text!r}: a Prony series relaxes a hyperelastic law: give neo-hookean, "
                          "mooney-rivlin:... or ogden:... before +prony")
     return Prony(law, numbers[0::2], numbers[1::2])
+
+
+#: the keys of a material table for each law (``law`` itself besides): E and nu stand in for the
+#: moduli a table leaves out, as --E and --nu do for --material
+TABLE_KEYS = {
+    "linear": ("E", "nu", "density", "thickness"),
+    "neo-hookean": ("mu", "kappa", "E", "nu", "density", "prony"),
+    "mooney-rivlin": ("c10", "c01", "kappa", "nu", "density", "prony"),
+    "ogden": ("mu", "alpha", "kappa", "nu", "density", "prony"),
+}
+#: what each key is, for the messages
+TABLE_WHAT = {"E": "Young's modulus in Pa", "nu": "Poisson's ratio", "density": "the mass density in kg/m^3",
+              "thickness": "a shell's thickness in m", "mu": "the shear modulus in Pa", "kappa": "the bulk modulus in Pa",
+              "c10": "C10 in Pa", "c01": "C01 in Pa", "alpha": "Ogden's exponents"}
+
+
+def material_from_table(table):
+    """The material a table names (a scene file's ``material = {...}``): any law ``--material``
+    takes, with its parameters as keys, built by :func:`rtfem.fe.hyperelastic.make_law` as the
+    command line's are.
+
+    ``law`` (default "linear") and its keys: linear: E, nu, density, thickness; neo-hookean: mu and
+    kappa, or E and nu; mooney-rivlin: c10, c01 (Pa), kappa or nu; ogden: mu = [mu_1, ...], alpha =
+    [alpha_1, ...], kappa or nu; each hyperelastic law optionally ``prony = {g = [...], tau = [...]}``
+    (:class:`Prony`). A modulus left out comes from E and nu (default :class:`~rtfem.Material`'s) as
+    --E and --nu give it: a neo-Hookean mu = E / (2 (1 + nu)), every law's kappa keeps nu's ratio
+    kappa / mu; density defaults to Material's.
+
+    Parameters
+    ----------
+    table : a dict, e.g. ``{"law": "neo-hookean", "mu": 2000.0, "kappa": 50000.0, "density": 1060.0}``.
+
+    Returns
+    -------
+    Material, Hyperelastic or Prony
+
+    Raises
+    ------
+    ModelError
+        Not a table, an unknown law or a key the law does not take, a key given twice over (mu and E,
+        kappa and nu), a value that is not a finite number of its range (the message names the key).
+    """
+    from .material import Material
+
+    if not isinstance(table, dict):
+        raise ModelError(f"{validate.show(table)} must be a table, e.g. {{ law = 'neo-hookean', mu = 2000, kappa = "
+                         "50000, density = 1060 }")
+    law = validate.choice(table.get("law", "linear"), "law", LAWS)
+    keys = TABLE_KEYS[law]
+    for key in table:
+        if key != "law" and key not in keys:
+            hint = (": a Prony series relaxes a hyperelastic law (neo-hookean, mooney-rivlin, ogden)" if key == "prony"
+                    else f": {law}'s shear modulus is its own ({', '.join(keys[:2])}); nu or kappa give its bulk modulus"
+                    if key == "E" else f" (law {law!r} takes {', '.join(keys)})")
+            raise ModelError(f"{key}: not a key of law {law!r}{hint}")
+    for a, b in (("mu", "E"), ("kappa", "nu")):
+        if a in table and b in table:
+            raise ModelError(f"{a} and {b}: give one (without {a}, {b} gives it, as --{b} does for --material)")
+    base = {k: validate.number(table[k], k, TABLE_WHAT[k]) for k in ("E", "nu", "density", "thickness") if k in table}
+    material = Material(**base)
+    moduli = {k: table[k] for k in ("mu", "kappa", "c10", "c01", "alpha") if k in table}
+    for k in ("kappa", "c10", "c01"):
+        if k in moduli:
+            moduli[k] = validate.number(moduli[k], k, TABLE_WHAT[k])
+    if "kappa" in moduli:
+        validate.positive(moduli["kappa"], "kappa", TABLE_WHAT["kappa"])
+    out = make_law(law, material, **moduli)
+    if "prony" not in table:
+        return out
+    prony = table["prony"]
+    if not isinstance(prony, dict) or set(prony) != {"g", "tau"}:
+        raise ModelError("prony must be { g = [g_1, ...], tau = [tau_1, ...] } (fractions of the isochoric stress and "
+                         "their relaxation times in s)")
+    return Prony(out, prony["g"], prony["tau"])

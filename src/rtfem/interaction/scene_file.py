@@ -12,10 +12,17 @@
     mesh = "box.vtu"               # a path relative to this file (a surface with kind = "solid" is meshed
                                    # into tets), or an embedded mesh: "rtfem:liver", "rtfem:gallbladder:3"
     scale = 1.0                    # coordinates' factor (1e-3: a mesh in mm)
+    rotate = [90, 0, 30]           # degrees about the scene's x, then y, then z axis (extrinsic), about the
+                                   # file's origin (after scale); default none
+    translate = [0.2, 0, 0.005]    # then moved by this (m): the body's rest is R (scale X) + translate
     kind = "solid"                 # or "shell" (default: a volume file is a solid, a surface a shell)
     element = "tet10"              # solids: tet4 or tet10 (default tet10)
-    material = { E = 3e4, nu = 0.45, density = 1060, thickness = 0.004 }
-    fix = "bottom:0.1"             # a node selection (rt.select_nodes); absent: a free body
+    material = { E = 3e4, nu = 0.45, density = 1060, thickness = 0.004 }   # law = "linear" (the default)
+    # or any law --material takes (solids; the modal body uses its linearization at rest):
+    # material = { law = "neo-hookean", mu = 3000, kappa = 30000, density = 1060 }       (or E and nu)
+    # material = { law = "mooney-rivlin", c10 = 500, c01 = 200, kappa = 30000 }         (or nu for kappa)
+    # material = { law = "ogden", mu = [2000], alpha = [8], nu = 0.45, prony = { g = [0.5], tau = [0.1] } }
+    fix = "bottom:0.1"             # a node selection (rt.select_nodes) of the placed body; absent: a free body
     modes = 20                     # the modal basis (a free body's six rigid-body modes among them)
     alpha = 10.0                   # mass-proportional damping (1/s)
 
@@ -74,16 +81,16 @@ from .scene import Scene
 __all__ = ["load_scene", "close_devices", "BODY_KEYS", "OBSTACLE_KEYS", "ATTACHMENT_KEYS", "TOOL_KEYS"]
 
 TOP_KEYS = {"gravity", "dt", "friction", "view", "body", "obstacle", "attachment", "tool"}
-BODY_KEYS = {"name", "mesh", "scale", "kind", "element", "material", "fix", "modes", "alpha"}
+BODY_KEYS = {"name", "mesh", "scale", "rotate", "translate", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "mesh", "scale", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
 TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed", "device", "max_force", "url", "port"}
-MATERIAL_KEYS = {"E", "nu", "density", "thickness"}
 BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
 #: the most tables of each kind a scene file may have: each body is meshed and reduced before the first
 #: step (seconds to minutes each), and every step solves one contact problem over all of them
 MAX_TABLES = {"body": 32, "obstacle": 64, "attachment": 256, "tool": 32}
 MAX_GRAVITY = 1e3  # m/s^2
+MAX_PLACE = 1e3  # m: a body placed within 1 km of the origin (as a scripted path)
 
 
 class _Where:
@@ -325,31 +332,17 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
     from ..drivers.modal import ModalSimulator
     from ..fe.build import make_model
     from ..fe.material import Damping, Material
-    from ..mesh.files import load_mesh
-    from ..mesh.tetmesh import TetMesh
-    from ..reduction.modal import modal_analysis
+    from ..reduction.precompute import cached_modes
 
     if not isinstance(table, dict):
         raise where.error(None, "must be a table")
     where.keys(table, BODY_KEYS, ("name", "mesh"))
-    scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
-    if str(table["mesh"]).startswith(BUILTIN):
-        mesh = _builtin(str(table["mesh"]), where)
-    else:
-        mesh = where.check("mesh", load_mesh, folder / str(table["mesh"]), scale=scale)
-    kind = table.get("kind", "solid" if isinstance(mesh, TetMesh) else "shell")
-    if kind not in ("solid", "shell"):
-        raise where.error("kind", f"{kind!r}: give 'solid' or 'shell'")
-    if kind == "solid" and not isinstance(mesh, TetMesh):
-        from ..mesh.meshing import tetrahedralize
-
-        mesh = where.check("mesh", tetrahedralize, mesh)
-    if kind == "shell" and isinstance(mesh, TetMesh):
-        mesh = mesh.surface
-    material = table.get("material", {})
-    if not isinstance(material, dict) or not set(material) <= MATERIAL_KEYS:
-        raise where.error("material", f"must be a table of {', '.join(sorted(MATERIAL_KEYS))}")
-    mat = where.check("material", Material, **material)
+    mat = _material(table, where)  # before any meshing
+    mesh, kind = _body_mesh(table, where, folder)
+    if kind == "shell" and not isinstance(mat, Material):
+        law = table["material"].get("law")
+        raise where.error("material", f"law {law!r} is for solids (kind = 'solid', tets); a shell takes law = 'linear' "
+                          "with E, nu, density and thickness")
     options = {"element": table.get("element", "tet10")} if kind == "solid" else {}
     model = where.check("element" if options else "mesh", make_model, mesh, mat, **options)
     fix = table.get("fix")
@@ -358,10 +351,80 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
         where.check("fix", model.check_restrained)
     modes = where.check("modes", validate.count, table.get("modes", 20), "modes", 1, 2000)
     alpha = where.check("alpha", validate.nonnegative, table.get("alpha", 10.0), "alpha", "damping in 1/s")
-    basis = where.check("modes", modal_analysis, model, modes)
+    basis = where.check("modes", cached_modes, model, modes)  # through the precompute cache
     driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
     where.check("name", scene.add_body, table["name"], driver, model.mesh)
     scene.bodies[-1].model = model
+
+
+def _body_mesh(table: dict, where: _Where, folder: Path):
+    """The body's mesh, of its kind ("solid": tets, a surface file meshed; "shell": a surface), placed:
+    scaled, rotated, translated (:func:`placement`)."""
+    from ..mesh.files import load_mesh
+    from ..mesh.tetmesh import TetMesh
+
+    scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
+    R, t = placement(table, where)
+    if str(table["mesh"]).startswith(BUILTIN):
+        mesh = _builtin(str(table["mesh"]), where)
+        mesh = mesh if scale == 1.0 else mesh.scaled(scale)
+    else:
+        mesh = where.check("mesh", load_mesh, folder / str(table["mesh"]), scale=scale)
+    kind = table.get("kind", "solid" if isinstance(mesh, TetMesh) else "shell")
+    if kind not in ("solid", "shell"):
+        raise where.error("kind", f"{validate.show(kind)}: give 'solid' or 'shell'")
+    if kind == "solid" and not isinstance(mesh, TetMesh):
+        from ..mesh.meshing import tetrahedralize
+
+        mesh = where.check("mesh", tetrahedralize, mesh)
+    if R is not None:
+        X = np.asarray(mesh.vertices) @ R.T + t
+        cells = mesh.tets if isinstance(mesh, TetMesh) else mesh.triangles
+        mesh = type(mesh)(X, cells, repair=False, groups=mesh.groups)
+    if kind == "shell" and isinstance(mesh, TetMesh):
+        mesh = mesh.surface
+    return mesh, kind
+
+
+def placement(table: dict, where: _Where) -> tuple[np.ndarray | None, np.ndarray]:
+    """A body's ``rotate = [rx, ry, rz]`` (degrees) and ``translate = [x, y, z]`` (m) as R (3, 3)
+    and t (3,): the mesh's point X (after ``scale``) is placed at R X + t, R = Rz(rz) Ry(ry) Rx(rx):
+    turned about the scene's fixed x axis by rx, then about its fixed y axis by ry, then about its
+    fixed z axis by rz (extrinsic x-y-z; scipy's ``Rotation.from_euler("xyz", ..., degrees=True)``),
+    about the origin of the file's coordinates, then moved by t. R is None when neither is given."""
+    if "rotate" not in table and "translate" not in table:
+        return None, np.zeros(3)
+    rotate = _triple(table, "rotate", where, "[rx, ry, rz], degrees about x, then y, then z")
+    if not np.all(np.abs(rotate) <= 360.0):
+        raise where.error("rotate", f"{np.asarray(rotate).tolist()}: give the angles in degrees, -360 .. 360 each "
+                          "(about x, then y, then z)")
+    t = _triple(table, "translate", where, "[x, y, z] in m")
+    if not np.linalg.norm(t) <= MAX_PLACE:
+        raise where.error("translate", f"{np.asarray(t).tolist()} m is more than {MAX_PLACE:g} m from the origin: give "
+                          "the offset in metres")
+    R = np.eye(3)
+    for axis, angle in enumerate(np.radians(rotate)):
+        c, s = np.cos(angle), np.sin(angle)
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        turn = np.eye(3)
+        turn[i, i], turn[i, j], turn[j, i], turn[j, j] = c, -s, s, c
+        R = turn @ R
+    return R, np.asarray(t, dtype=float)
+
+
+def _triple(table: dict, key: str, where: _Where, what: str) -> np.ndarray:
+    try:
+        return validate.vector(table.get(key, (0.0, 0.0, 0.0)), key, 3)
+    except RtfemError as exc:
+        raise where.error(key, f"{exc} ({key} = {what})") from None
+
+
+def _material(table: dict, where: _Where):
+    """The body's ``material`` table: any law ``--material`` takes
+    (:func:`rtfem.fe.viscoelastic.material_from_table`)."""
+    from ..fe.viscoelastic import material_from_table
+
+    return where.check("material", material_from_table, table.get("material", {}))
 
 
 def _builtin(spec: str, where: _Where):

@@ -3,3 +3,7 @@
 from .vtk import write_pvd, write_vtu
 
 __all__ = ["write_vtu", "write_pvd"]
+
+from ..lazy import submodules  # noqa: E402
+
+__getattr__ = submodules(__name__)  # submodules on first use (rt.mesh.meshing)

@@ -22,19 +22,22 @@ def write_vtu(
     mesh,
     displacements: np.ndarray | None = None,
     *,
-    deformed: bool = True,
+    deformed: bool = False,
     point_data: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write a mesh (a TriMesh, or a TetMesh: the volume with its tets) and a displacement
     field (n, 3) as a VTU file.
 
-    With ``deformed`` the points are written at their displaced positions, so the file shows
-    the deformed organ as it is; the field is stored as point data ``displacement`` and
-    ``displacement_magnitude`` either way (ParaView: colour by it, or Warp By Vector).
+    The points are the mesh's reference (undeformed) positions and the field is point data
+    ``displacement`` (with ``displacement_magnitude``): ParaView's convention, so that its Warp By
+    Vector (scale 1) shows the deformed organ, deformed = points + displacement. The file says so
+    in its field data: ``rtfem_reference_points`` = 1. ``deformed=True`` writes the displaced points
+    instead (``rtfem_reference_points`` = 0): then warping by the field counts it twice.
     """
     import meshio
 
     path = Path(validate.path_like(path, "path"))
+    deformed = validate.flag(deformed, "deformed")
     cells = mesh_cells(mesh)
     X = np.asarray(mesh.vertices, dtype=float)
     data = {}
@@ -49,9 +52,21 @@ def write_vtu(
         data["displacement_magnitude"] = np.linalg.norm(u, axis=1)
         if deformed:
             X = X + u
+    reference = not (deformed and displacements is not None)
     with atomic_target(path, "VTU file") as tmp:
         meshio.write_points_cells(str(tmp), X, cells, point_data=data, binary=True, file_format="vtu")
+        _mark_points(tmp, reference)
     return path
+
+
+def _mark_points(path: Path, reference: bool) -> None:
+    """Add the field data ``rtfem_reference_points`` (1: the points are at rest, 0: displaced) to the
+    VTU meshio wrote at ``path`` (meshio's VTU writer writes no field data): the first element of the
+    ``UnstructuredGrid``, where VTK reads a dataset's field data."""
+    text = path.read_bytes()
+    mark = (b'<UnstructuredGrid>\n<FieldData>\n<DataArray type="Int8" Name="rtfem_reference_points" '
+            b'NumberOfTuples="1" format="ascii">' + (b"1" if reference else b"0") + b"</DataArray>\n</FieldData>")
+    path.write_bytes(text.replace(b"<UnstructuredGrid>", mark, 1))
 
 
 def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.PathLike]]) -> Path:

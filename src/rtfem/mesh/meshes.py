@@ -205,7 +205,7 @@ def liver(level: int = 4, *, solid: bool = False, spacing: float | None = None):
     ``spacing=0.0075`` gives about 4,300 nodes and 21,000 tets, the size of SOFA's liver
     scene); groups carried over to the nearest surface nodes. The mesher's output differs from
     run to run, so the mesh is made once per machine and kept on disk
-    (:func:`rtfem.mesh.meshing.cache_dir`): the same call then gives the same mesh.
+    (:func:`rtfem.cache.cache_dir`): the same call then gives the same mesh.
     """
     level = _count("level", level, 1, 8)
     solid = validate.flag(solid, "solid", error=MeshError)

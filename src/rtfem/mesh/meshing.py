@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import MeshError, RtfemError
+from ..cache import cache_dir
 from ..storage import load_versioned, save_versioned
 from ._tetwild import find_wrapper
 from .surface import TriMesh
@@ -175,13 +176,6 @@ def _carry_groups(surface: TriMesh, mesh: TetMesh) -> TetMesh:
         else:
             groups[name] = new[np.isin(nearest, idx)]
     return TetMesh(mesh.vertices, mesh.tets, repair=False, groups=groups)
-
-
-def cache_dir() -> Path:
-    """Where generated tet meshes are kept: $RTFEM_CACHE, else $XDG_CACHE_HOME/rtfem, else ~/.cache/rtfem."""
-    if os.environ.get("RTFEM_CACHE"):
-        return Path(os.environ["RTFEM_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rtfem"
 
 
 def _cache_entry(surface: TriMesh, edge_length: float | None) -> tuple[str, Path]:

@@ -121,33 +121,36 @@ def _add_stress_forces(P, Ge, w, Fe):
             Fe[3 * i + a] += w * s
 
 
+def _element_forces(x, Ge, we, lam, mu, Fe, Fm, R, Z, P):
+    """Fe (3k) = one corotated-linear tet's nodal forces at its deformed nodes x (k, 3): at each
+    quadrature point (shape gradients Ge (nq, k, 3), weights we (nq)) f_i += w P G_i with
+    P = 2 mu (F - R) + lambda tr(S - I) R, tr S = tr(R^T F). Fm, R, Z, P (3, 3) scratch."""
+    Fe[:] = 0.0
+    for q in range(Ge.shape[0]):
+        _gradient(x, Ge[q], Fm)
+        _rotation(Fm, R, Z)
+        trS = 0.0
+        for a in range(3):
+            for b in range(3):
+                trS += R[a, b] * Fm[a, b]
+        t = lam * (trS - 3.0)
+        for a in range(3):
+            for b in range(3):
+                P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
+        _add_stress_forces(P, Ge[q], we[q], Fe)
+
+
 def _solid_element_forces(V, X, G, wdet, lm, F):
     """F (E, 3k) = the corotated-linear tets' nodal forces (mu |F - R|^2 + lambda/2 tr(S - I)^2, as
     :class:`rtfem.fe.solid.CorotationalTets`) at element dofs V (E, 3k): X (E, k, 3) rest nodes,
     G (E, nq, k, 3) the shape gradients and wdet (E, nq) the weights of each quadrature point,
-    lm (E, 2) the Lame constants. f_i = sum_q wdet P G_i with P = 2 mu (F - R) + lambda tr(S - I) R."""
-    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    lm (E, 2) the Lame constants (:func:`_element_forces` each)."""
+    E, k = G.shape[0], G.shape[2]
     x = np.zeros((k, 3))
-    Fm = np.zeros((3, 3))
-    R = np.zeros((3, 3))
-    Z = np.zeros((3, 3))
-    P = np.zeros((3, 3))
+    Fm, R, Z, P = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
     for e in range(E):
         _deformed_nodes(X, V, e, x)
-        F[e, :] = 0.0
-        lam, mu = lm[e, 0], lm[e, 1]
-        for q in range(nq):
-            _gradient(x, G[e, q], Fm)
-            _rotation(Fm, R, Z)
-            trS = 0.0  # tr S = tr(R^T F)
-            for a in range(3):
-                for b in range(3):
-                    trS += R[a, b] * Fm[a, b]
-            t = lam * (trS - 3.0)
-            for a in range(3):
-                for b in range(3):
-                    P[a, b] = 2.0 * mu * (Fm[a, b] - R[a, b]) + t * R[a, b]
-            _add_stress_forces(P, G[e, q], wdet[e, q], F[e])
+        _element_forces(x, G[e], wdet[e], lm[e, 0], lm[e, 1], F[e], Fm, R, Z, P)
 
 
 def _point_tangent(Ge, R, Fm, lam, mu, w, K, RG, RW, T):
@@ -281,8 +284,8 @@ def solid_tangents_numpy(V, X, G, wdet, lm, K) -> None:
 
 def compiled_solid_forces():
     """The compiled corotated-tet force kernel (numba), or None where numba is absent or cannot compile it."""
-    return compiled("solid", _solid_element_forces, _polar_rotation, _rotation, _gradient, _deformed_nodes,
-                    _add_stress_forces)
+    return compiled("solid", _solid_element_forces, _element_forces, _polar_rotation, _rotation, _gradient,
+                    _deformed_nodes, _add_stress_forces)
 
 
 def compiled_solid_tangents():

@@ -8,3 +8,7 @@ behind it) needs nothing beyond the core.
 from .session import METHODS, Session, Settings
 
 __all__ = ["METHODS", "Session", "Settings"]
+
+from ..lazy import submodules  # noqa: E402
+
+__getattr__ = submodules(__name__)  # submodules on first use (rt.mesh.meshing)

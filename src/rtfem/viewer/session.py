@@ -36,7 +36,8 @@ from ..fe.hyperelastic import Hyperelastic
 from ..fe.material import Damping, Material
 from ..mesh.surface import TriMesh
 from ..mesh.tetmesh import TetMesh
-from ..reduction.modal import ModalBasis, modal_analysis
+from ..reduction.modal import ModalBasis
+from ..reduction.precompute import cached_modes
 from ..drivers.reduced_nonlinear import reduced_nonlinear_driver
 from ..fe.build import make_model
 from ..drivers import gpu
@@ -226,7 +227,7 @@ class Session(PhysicsThread):
         if s.method == "nonlinear":  # static correction, single precision; spread 1 (benchmarks/viewer_settings.py)
             return reduced_nonlinear_driver(model, modes, s.dt, damping, derivatives=s.derivatives, spread=s.spread,
                                             precision="single", background=True,
-                                            progress=self._report("modal derivatives"))
+                                            progress=self._report("modal derivatives"), cache=True)
         return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
@@ -238,7 +239,7 @@ class Session(PhysicsThread):
             basis: ModalBasis | None = getattr(self, "modes", None)
             if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
                 r = max(s.n_modes, 40)
-                basis = modal_analysis(model, r, progress=self._report(f"modes (r = {r})"))
+                basis = cached_modes(model, r, progress=self._report(f"modes (r = {r})"))
             modes = basis.truncated(s.n_modes) if basis.n_modes > s.n_modes else basis  # the r in use
             damping = Damping(alpha=s.alpha)
             self.building = f"building the {s.method} driver ..."

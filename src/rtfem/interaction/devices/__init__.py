@@ -57,3 +57,7 @@ def open_device(name: str, max_force: float = 10.0, haply_url: str = "ws://local
     if name == "haply":
         return Haply(haply_url, max_force=max_force)
     return IGTLDevice(igtl_port, max_force=max_force)
+
+from ...lazy import submodules  # noqa: E402
+
+__getattr__ = submodules(__name__)  # submodules on first use (rt.mesh.meshing)

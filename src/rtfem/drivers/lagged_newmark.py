@@ -1,0 +1,317 @@
+"""The fast full-order large-deformation step (issue 55): the same HHT-Newmark equations as
+:class:`~rtfem.drivers.nonlinear_newmark.NonlinearNewmarkSimulator`, solved by chord iterations on
+a lagged Newmark tangent, factorized once and refreshed every ``refresh`` steps (or on a thread),
+with the internal forces from compiled element kernels.
+
+Why it is fast. At a haptic or visual step (dt of a millisecond) the Newmark matrix
+A = M / (beta dt^2) + gamma / (beta dt) B + (1 + a) K_t is dominated by its mass term on every mode
+the step resolves, so a factor of A at a recent state is a good inverse of today's: each iteration
+x <- x - A_ref^-1 r(x) contracts the residual by about |A_ref^-1 (A_t - A_ref)|, the change of the
+tangent since the refresh weighed against the mass. An iteration costs one evaluation of the
+internal forces (the compiled corotated or hyperelastic tet kernels of the reduced models,
+:mod:`rtfem.reduction.tet_kernels`: no Python per element) and one pair of triangular solves; the
+forces at the end of a step are those at the start of the next, so a step that converges at once
+costs one force evaluation and one solve (a linearly implicit step, Baraff & Witkin 1998, whose
+residual is checked). The factor is that of Courtecuisse, Allard, Duriez & Cotin (2010): a
+factorization of a recent tangent, refreshed in the background (``background=True``) or every
+``refresh`` steps (reproducible), and at once where the chord stalls; the contact compliances of
+the one-step contract come from it (Saupin et al.; Courtecuisse et al. 2014).
+
+The step converges to the same equations as the Newton step (each step's residual below ``tol``
+times the force scale), so it settles to the same equilibrium as :func:`rtfem.nonlinear.solve_static`.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from .. import validate
+from ..errors import SolverError
+from .nonlinear_newmark import NonlinearNewmarkSimulator
+
+__all__ = ["LaggedNewmarkSimulator"]
+
+
+class _Kernels:
+    """A solid's element forces and tangents by the compiled kernels (corotated linear material,
+    neo-Hookean, Mooney-Rivlin, Ogden), or None where they do not apply (shells, tet4-anp, a Prony
+    law, no numba): the system's own batched evaluation is used then."""
+
+    def __init__(self, system) -> None:
+        from ..fe.solid import CorotationalTets, HyperelasticTets
+        from ..fe.viscoelastic import ViscoelasticTets
+        from ..reduction import tet_kernels as tk, tet_node_kernels as tnk
+
+        kern = system.kernel
+        self.ok = (system.dpn == 3 and isinstance(kern, CorotationalTets) and not isinstance(kern, ViscoelasticTets)
+                   and not hasattr(kern, "patch_tangent") and tk.compiled_solid_forces() is not None)
+        if not self.ok:
+            return
+        self.tk, self.tnk, self.system = tk, tnk, system
+        cells = system.cells
+        self.cells = np.ascontiguousarray(cells, dtype=np.int64)
+        self.X = np.ascontiguousarray(np.asarray(system.model.mesh.vertices, dtype=float)[cells])
+        self.G = np.ascontiguousarray(np.stack(kern.G, axis=1))
+        self.wdet = np.ascontiguousarray(np.stack(kern.wdet, axis=1))
+        self.lm = np.tile([kern.lam, kern.mu], (cells.shape[0], 1))
+        self.law = kern.law if isinstance(kern, HyperelasticTets) else None
+        E, k = cells.shape
+        self._F = np.empty((E, 3 * k))
+        kern.inverted(self.X + 0.0)  # builds the points the inversion check looks at (a tet10's corners too)
+        self.G_check = np.ascontiguousarray(np.stack(kern._G_check, axis=1))
+
+    def inverted(self, u: np.ndarray) -> int:
+        """How many elements are turned inside out at nodal displacements u (n, 3)."""
+        return int(np.count_nonzero(self.tnk.inverted_elements(self._dofs(u), self.X, self.G_check)))
+
+    def _dofs(self, u: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(u[self.cells].reshape(self.cells.shape[0], -1))
+
+    def forces(self, u: np.ndarray) -> np.ndarray:
+        """The internal forces (n_dofs,) at nodal displacements u (n, 3)."""
+        if self.law is None:
+            f = np.empty(self.system.model.n_dofs)
+            if self.tnk.solid_node_forces(np.ascontiguousarray(u, dtype=float), self.cells, self.X, self.G, self.wdet,
+                                         self.lm, f):
+                return f
+        V = self._dofs(u)
+        if self.law is None:
+            self.tk.solid_element_forces(V, self.X, self.G, self.wdet, self.lm, self._F)
+        else:
+            self.tk.law_forces(V, self.X, self.G, self.wdet, self.law, self._F)
+        return self.system.gather(self._F)
+
+    def tangent(self, u: np.ndarray):
+        """The tangent stiffness on the free dofs (CSR) at nodal displacements u (n, 3)."""
+        V = self._dofs(u)
+        Ke = np.empty((V.shape[0], V.shape[1], V.shape[1]))
+        if self.law is None:
+            self.tk.solid_element_tangents(V, self.X, self.G, self.wdet, self.lm, Ke)
+        else:
+            self.tk.law_tangents(V, self.X, self.G, self.wdet, self.law, Ke)
+        return self.system.tangent_matrix(Ke)
+
+
+class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
+    """The full-order large-deformation step by chord iterations on a lagged Newmark tangent (see
+    the module): what ``rt.DirectSimulator(model, dt, damping, large_deformation=True)`` makes for a
+    solid (``solver="newton"`` makes the Newton-converged reference,
+    :class:`~rtfem.NonlinearNewmarkSimulator`, for any model). A Driver like the others.
+
+    Parameters
+    ----------
+    model, dt, damping, numerical_damping : as :class:`~rtfem.NonlinearNewmarkSimulator`.
+    tol : each step iterates until its residual is below ``tol`` times the force scale (|F| + |f| +
+        |M a|; default 1e-4: on a bar swung to a tenth of its length the motion then agrees with the
+        Newton reference's, converged to 1e-8, to 3e-5 .. 6.5e-5 of it; at rest the equilibrium is the
+        same whatever the tolerance, a residual of zero).
+    max_iterations : chord iterations per step before the step fails (default 40).
+    refresh : the tangent is refactorized every ``refresh`` steps (default 20), and at once in a step
+        whose chord iterations pass ``stall`` (default 4), so that the run is reproducible.
+    background : refresh on a thread instead, each step taking the newest factor ready (the
+        real-time setting: a step never waits for a factorization; not reproducible run to run).
+
+    Raises
+    ------
+    ModelError
+        As :class:`~rtfem.NonlinearNewmarkSimulator`; tol, max_iterations, refresh or stall out of
+        range.
+    SolverError
+        At run time: a step does not converge (a smaller dt or more damping), or its state is one the
+        elements cannot describe (an element turned inside out).
+    """
+
+    solver = "lagged"
+
+    def __init__(self, model, dt: float, damping=None, *, method: str | None = None,
+                 large_deformation: bool | None = None, numerical_damping: float = 0.05, tol: float = 1e-4,
+                 max_iterations: int = 40, refresh: int = 20, stall: int = 4, background: bool = False,
+                 solver: str | None = None) -> None:
+        super().__init__(model, dt, damping, method=method, large_deformation=large_deformation,
+                         numerical_damping=numerical_damping, tol=tol, max_iterations=max_iterations,
+                         solver=solver)
+        self.refresh = validate.count(refresh, "refresh", 1, 10**6)
+        self.stall = validate.count(stall, "stall", 1, 1000)
+        self.background = validate.flag(background, "background")
+        self._kernels = _Kernels(self.system)
+        self._f = None  # the internal forces at the committed configuration (the next step's first residual)
+        self._factor = None  # (factorization of the Newmark tangent, the step it was made at)
+        # where the factor was made (its displacements, its step, a Prony law's history then): part of
+        # the state, so that a restored state iterates with the same factor and replays bit for bit
+        self._ref_u, self._ref_step = np.zeros_like(self._u), np.zeros(1)
+        self._state = (*self._state, "_ref_u", "_ref_step")
+        if self._visc.size:
+            self._ref_visc = self._visc.copy()
+            self._state = (*self._state, "_ref_visc")
+        self._pending: threading.Thread | None = None
+        self._ready = None  # a factor made on the thread, waiting for the next step
+        self._lock = threading.Lock()
+        self.refreshes = 0  # factorizations made (all of them, the thread's and Newton's included)
+        self.newton_steps = 0  # steps where the chord diverged and Newton's method took the step
+        self.iterations = 0
+
+    # ---------------------------------------------------------------- forces and the lagged factor
+    def _forces(self, conf, history) -> np.ndarray:
+        if self._kernels.ok:
+            return self._kernels.forces(conf.u)
+        return self.system.evaluate(conf, False, history)[0]
+
+    def _tangent(self, conf, history):
+        if self._kernels.ok:
+            return self._kernels.tangent(conf.u)
+        return self.system.evaluate(conf, True, history)[1]
+
+    def _factorize(self, conf, history, reuse=None):
+        """The factorization of the Newmark tangent at ``conf`` (the HHT-weighted stiffness): ``reuse``
+        (a factorization of this system's pattern, not in use elsewhere) factorized again in place where
+        the backend can (PARDISO's numeric phase alone: the ordering kept), else a new one."""
+        A = (self._dyn + (1 + self._hht) * self._tangent(conf, history)).tocsr()
+        with self._lock:
+            self.refreshes += 1
+        if reuse is not None and reuse.refactor(A):
+            return reuse
+        return self.system.solver(A, "the Newmark tangent", refactorable=not self.background)
+
+    def _refactor(self, conf, u: np.ndarray, history) -> None:
+        """The factor of the Newmark tangent at ``conf`` (displacements ``u``), kept with where it was made
+        (the old one factorized again in place where nothing else holds it: no thread is at work)."""
+        reuse = None if self.background or self._factor is None else self._factor[0]
+        self._factor = (self._factorize(conf, history, reuse), self.steps)
+        self._ref_u, self._ref_step = u.copy(), np.array([float(self.steps)])
+        if self._visc.size:
+            self._ref_visc = self._visc.copy()
+
+    def _refresh_on_thread(self) -> None:
+        conf, u, steps = self.configuration.copy(), self._u.copy(), self.steps
+        history = (self._visc.copy(), self.dt) if self._visc.size else None
+
+        def work():
+            try:
+                fac = self._factorize(conf, history)
+            except Exception:  # an indefinite tangent (a buckling state): keep the old factor
+                return
+            with self._lock:
+                self._ready = (fac, steps, u, None if history is None else history[0])
+
+        self._pending = threading.Thread(target=work, name="rtfem-fullorder-tangent", daemon=True)
+        self._pending.start()
+
+    def _lagged(self, conf, history):
+        """The factor this step iterates with: refreshed on schedule (here, or the thread's newest)."""
+        if self._factor is None:  # at the start, or after a restore: the factor of the state's reference
+            ref = self.configuration.copy()
+            ref.u = self.system.expand(self._ref_u)[:, :3].copy()  # (a solid's: no rotations to restore)
+            ref_history = (self._ref_visc, self.dt) if self._visc.size else None
+            self._factor = (self._factorize(ref, ref_history), int(self._ref_step[0]))
+        if self.background:
+            with self._lock:
+                ready, self._ready = self._ready, None
+            if ready is not None:
+                self._factor = ready[:2]
+                self._ref_u, self._ref_step = ready[2], np.array([float(ready[1])])
+                if ready[3] is not None:
+                    self._ref_visc = ready[3]
+            if (self._pending is None or not self._pending.is_alive()) and self.steps - self._factor[1] >= 1:
+                self._refresh_on_thread()
+        elif self.steps - self._factor[1] >= self.refresh:
+            self._refactor(conf, self._u, history)
+        return self._factor[0]
+
+    # ---------------------------------------------------------------- the step
+    def _solve_step(self, F: np.ndarray):
+        """Chord iterations on the HHT residual from the current state; returns (configuration, u,
+        g, the factor iterated with) without changing the state."""
+        al = self._hht
+        conf = self.configuration.copy()
+        u = self._u.copy()
+        Ff = F[self._solved]
+        history = (self._visc, self.dt) if self._visc.size else None
+        f = self._f if self._f is not None else self._forces(conf, history)
+        fac = self._lagged(conf, history)
+        norm_F = float(np.linalg.norm(Ff))
+        previous = np.inf
+        for it in range(self.max_iterations + 1):
+            a, v = self._kinematics(u)
+            g = f[self._solved] + self._B @ v - Ff
+            Ma = self._M @ a
+            r = Ma + (1 + al) * g - al * self._g
+            rn = float(np.linalg.norm(r))
+            if not rn < previous:  # the chord does not contract (a stale tangent far from this motion, or a
+                return self._newton_step(F, history)  # step the mass does not dominate): Newton's step here
+            if it > 0 and rn <= self.tol * (norm_F + float(np.linalg.norm(f)) + float(np.linalg.norm(Ma)) + 1e-300):
+                self.iterations = it
+                self._f_trial = f
+                return self._accepted(conf, u, g, fac)
+            if it == self.max_iterations:
+                break
+            if it == self.stall:  # the tangent moved far since the refresh: a fresh factor here (Newton's)
+                self._refactor(conf, u, history)
+                fac = self._factor[0]
+            delta = -fac.solve(r)
+            conf.update(self.system.expand(delta))
+            u = u + delta
+            f = self._forces(conf, history)
+            previous = rn
+        raise SolverError(f"the full-order step {self.steps + 1} did not converge in {self.max_iterations} iterations "
+                          f"(residual {rn:.3g}): the step is too large for this motion; use a smaller dt or more "
+                          "damping (the state is unchanged)")
+
+    def _newton_step(self, F: np.ndarray, history):
+        """The step by Newton's method with its line search (the reference's), from the step's start:
+        where the chord diverges. The tangent at its answer is the lagged one after."""
+        tol = self.tol
+        self.tol = min(tol, 1e-8)  # as the reference converges it
+        try:
+            conf, u, g, _ = NonlinearNewmarkSimulator._solve_step(self, F)
+        finally:
+            self.tol = tol
+        self.newton_steps += 1
+        self._refactor(conf, u, history)  # the lagged factor from here on: at Newton's answer (reproducibly)
+        self._f_trial = self._forces(conf, history)
+        return self._accepted(conf, u, g, self._factor[0])
+
+    def _accepted(self, conf, u, g, fac):
+        self.system.turned, self.system.inverted = 0.0, 0
+        if self._kernels.ok:
+            self.system.inverted = self._kernels.inverted(conf.u)
+            within = self.system.inverted == 0
+        else:
+            within = self.system.within_limit(conf)
+        if not within:
+            from ..fe.nonlinear import inversion_refused, turn_refused
+
+            why = inversion_refused(self.system.inverted) if self.system.inverted else \
+                f"a {turn_refused(self.system.turned)}"
+            raise SolverError(f"step {self.steps + 1} was refused: {why} (the state is unchanged)")
+        return conf, u, g, fac
+
+    def _commit(self, conf, u, g) -> None:
+        f = getattr(self, "_f_trial", None)
+        super()._commit(conf, u, g)
+        # the forces at the committed state, for the next step's first residual (a Prony history
+        # changed at the commit: its forces are evaluated again)
+        self._f = f if not self._visc.size else None
+
+    def step(self, forces=None) -> None:
+        if self._free is not None and self._free[0] == self.steps:  # the held-load step's forces were its own
+            self._f_trial = self._free_forces
+        super().step(forces)
+
+    def _free_step(self):
+        if self._free is None or self._free[0] != self.steps:
+            self._free = (self.steps, *self._solve_step(self._held), None)
+            self._free_forces = self._f_trial
+        return self._free
+
+    def _state_changed(self) -> None:
+        super()._state_changed()
+        self._f = None
+        self._factor = None
+        if hasattr(self, "_lock"):
+            with self._lock:
+                self._ready = None
+
+
+NonlinearNewmarkSimulator._solvers["lagged"] = LaggedNewmarkSimulator
