@@ -137,8 +137,10 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
         x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
         page.mouse.move(x0, y0)
         page.mouse.down()
+        # ~90 px: the full order's equilibrium (the reference below) under the jaw's four forces of a
+        # 5.5 N pull exists, and is gone at 1.3 times them (elements turned inside out), which 120 px reached
         for i in range(1, 21):
-            page.mouse.move(x0 + 3 * i, y0 - 5 * i)
+            page.mouse.move(x0 + 2.4 * i, y0 - 4 * i)
             time.sleep(0.05)
         _wait(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
         time.sleep(0.8)
@@ -158,7 +160,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     # served state: one drag, a vertex held by a real force, the organ deformed, the plot fed
     assert during["drags"] == 1 and during["error"] is None
     assert during["grabbed"] in set(viewer.session.mesh.used_vertices().tolist())  # a surface node
-    assert during["force"] > 0.05, during  # N; ~100 px of drag stretches the 200 N/m grasp spring
+    assert during["force"] > 0.05, during  # N; ~90 px of drag stretches the 200 N/m grasp spring
     # the jaw holds a patch (default grab radius 10 mm) of vertices the supports leave free, and the
     # organ, settled with the mouse still for 2 s, shows the static response to the forces on them
     model = viewer.session.model
@@ -170,7 +172,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
         # the reduced nonlinear model (40 modes + derivatives of 10) against the full order's nonlinear
         # equilibrium under the same held forces: settled 3 cm pulls of the probe vertex measured 5.9-6.9 %
         # (derivatives of 20 / 10); here after a 2 s hold, so 15 %; and nearer it than the linear model is
-        reference = float(np.linalg.norm(rt.nonlinear.solve_static(model, loads, steps=2).displacements, axis=1).max())
+        reference = float(np.linalg.norm(rt.nonlinear.solve_static(model, loads, steps=8).displacements, axis=1).max())
         assert abs(during["max_displacement"] - reference) < 0.15 * reference, (during, reference, linear)
         assert abs(during["max_displacement"] - reference) < abs(linear - reference), (during, reference, linear)
     else:
@@ -284,8 +286,8 @@ def test_the_example_scene_in_chromium_draws_its_tools_and_plane_and_restarts():
             slider_box = page.locator("input.mantine-NumberInput-input").last  # the time slider's box
             slider_box.fill("0.6")
             slider_box.press("Enter")
-            _wait(lambda: v.transport.seeks >= 1 and not v.state()["seeking"] and abs(v.state()["time"] - 0.6) < 1e-9, 20,
-                  "the slider's seek to 0.6 s")
+            _wait(lambda: not v.state()["seeking"] and abs(v.state()["time"] - 0.6) < 1e-9, 30,
+                  f"the slider's seek to 0.6 s (the page sent {v.transport.seeks} values)")
             sought = v.state()
     finally:
         v.stop()

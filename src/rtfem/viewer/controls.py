@@ -4,6 +4,7 @@ the replay's :class:`~rtfem.viewer.replay.Replay`)."""
 
 from __future__ import annotations
 
+import time
 from typing import Protocol
 
 __all__ = ["Clock", "Transport"]
@@ -40,6 +41,7 @@ class Transport:
         self.slider = gui.add_slider("time (s)", min=0.0, max=max(float(clock.end_time), step), step=step,
                                      initial_value=0.0)
         self.seeks = 0
+        self._touched = 0.0  # when a browser last moved the slider (monotonic s)
 
         @self.buttons.on_click
         def _(event) -> None:
@@ -50,9 +52,15 @@ class Transport:
             if event.client is None:  # set by refresh(): the clock's own time
                 return
             self.seeks += 1
+            self._touched = time.monotonic()
             clock.request_seek(float(self.slider.value))
 
+    #: s after a browser moved the slider during which refresh leaves it where the user put it
+    HOLD = 1.0
+
     def refresh(self) -> None:
+        if time.monotonic() - self._touched < self.HOLD:  # not under the user's hand (or a box being typed in)
+            return
         t = float(self.clock.time)
         if t > self.slider.max:
             self.slider.max = t
