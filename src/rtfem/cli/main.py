@@ -34,7 +34,7 @@ from ..errors import ModelError, RtfemError
 from .cache import report as cache_report
 from .common import (
     MAX_FRAMES, MAX_STEPS, _Parser, _modes, _one_line, _vector, add_model_options, add_scheduler_options, build_model,
-    check_scheduler, count, damping_of, fixed_nodes, fraction, mesh_of_args, model_options, nonnegative, open_fraction,
+    check_scheduler, count, damping_of, fixed_nodes, fraction, mesh_of_args, nonnegative, open_fraction,
     port, positive, progress_bar, scheduler_of, time_list,
 )
 
@@ -331,112 +331,6 @@ def cmd_pictures(args: argparse.Namespace) -> int:
     return 0
 
 
-class _StageBars:
-    """progress(stage, done, total, message) of a multi-stage precompute: one CLI bar per stage."""
-
-    def __init__(self) -> None:
-        self.stage, self.bar = None, None
-
-    def __call__(self, stage: str, done: int, total: int, message: str = "") -> None:
-        if stage != self.stage:
-            self.close()
-            self.stage = stage
-            self.bar = progress_bar(stage, unit="step")
-            self.bar_fn = self.bar.__enter__()
-        self.bar_fn(done, total, message)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.__exit__(None, None, None)
-            self.bar = None
-
-
-def cmd_view(args: argparse.Namespace) -> int:
-    from ..viewer.session import Settings
-    from .scene import is_scene, view_scene
-
-    if is_scene(args):
-        check_address(args.host, args.port)
-        return view_scene(args)
-
-    if args.benchmark is None:
-        check_address(args.host, args.port)
-    if args.local and args.method != "nonlinear":
-        raise RtfemError("--local adds a patch to the reduced nonlinear model's basis at each grab: use it with --method "
-                         "nonlinear")
-    if args.shell and args.solid:
-        raise RtfemError("--shell and --solid contradict each other: give one (a closed surface is a solid by default)")
-    if args.device and args.benchmark is not None:
-        raise RtfemError("--device and --benchmark: the benchmark's hand is scripted; drop one")
-    settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
-                        grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
-                        local=(args.local or 0.0) * 1e-3, max_force=args.max_force).check()  # before any work
-    device = None
-    if args.device:  # opened before the precompute: a missing SDK says so at once
-        from .devices import open_device
-
-        device = open_device(args.device, args.max_force, args.haply_url, args.igtl_port)
-    try:
-        return _view(args, settings, device)
-    finally:
-        if device is not None:
-            device.close()
-
-
-def _view(args: argparse.Namespace, settings, device) -> int:
-    from ..viewer.session import Session
-
-    model = build_model(args)
-    mesh = _drawn(model)  # a solid: the viewer builds the same model of the volume
-    t0 = time.perf_counter()
-    bars = _StageBars()
-    try:
-        session = Session(mesh, getattr(model, "law", None) or model.material, np.flatnonzero(model.held_nodes), settings,
-                          model_options(args, mesh), progress=bars)
-    finally:
-        bars.close()
-    print(f"precomputed {settings.label} in {time.perf_counter() - t0:.1f} s", flush=True)
-    print(cache_report(modes=session.modes, reduced_model=getattr(session.driver, "reduced", None)), flush=True)
-    if args.benchmark is not None:
-        import json
-
-        from ..viewer.benchmark import run
-
-        report = run(session, args.benchmark)
-        report["precompute_s"] = round(time.perf_counter() - t0 - report["seconds"], 1)
-        print(json.dumps(report), flush=True)
-        return 0 if report["error"] is None else 1
-    from ..viewer.app import serve
-
-    if device is not None:
-        session.attach_device(device)
-        print(f"rtfem view: the hand is the {args.device} device's; its first button grabs (rtfem devices checks it)",
-              flush=True)
-    serve(session=session, host=args.host, port=args.port)
-    return 0
-
-
-def check_address(host: str, port: int) -> None:
-    """Refuse, before any precompute, a host that is not an address of this machine."""
-    import errno
-    import socket
-
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as exc:
-        raise RtfemError(f"--host {host}: unknown address ({getattr(exc, 'strerror', None) or exc})") from None
-    family, _, _, _, addr = infos[0]
-    with socket.socket(family, socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind(addr)
-        except OSError as exc:
-            if exc.errno == errno.EADDRINUSE:
-                return  # the viewer moves to the next free port and says so
-            raise RtfemError(f"--host {host}: cannot serve on this address ({exc.strerror or exc}); give an address "
-                             "of this machine, e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (the network)") from None
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import main as demo_main
 
@@ -520,6 +414,8 @@ def _add_bench_and_pictures(sub) -> None:
     p.set_defaults(func=cmd_pictures)
 
 def _add_view_and_demo(sub) -> None:
+    from .view import cmd_view
+
     p = sub.add_parser("view", help="the interactive web viewer: push and pull the organ with the mouse")
     add_model_options(p)
     p.add_argument("--shell", action="store_true",
@@ -552,6 +448,9 @@ def _add_view_and_demo(sub) -> None:
                    "and says so)")
     p.add_argument("--example", choices=("gallbladder",), help="show a scene shipped with rtfem (MESH may also be a "
                    "scene file, .toml): gallbladder, the liver and the gallbladder beneath it, a grasper and a probe")
+    p.epilog = ("MESH may also be a scene file (.toml: its bodies, obstacles and tools, played from when the page "
+                "opens), or a written run to replay: a .pvd collection, or the folder rtfem simulate wrote (-o DIR; "
+                "a scene's run: one .pvd per body in its subfolders)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="static poke, modal push-hold-release and a 1 kHz haptic session on the liver")

@@ -35,41 +35,59 @@ VIEW_SHARE = 0.9
 
 
 def view_scene(args: argparse.Namespace) -> int:
-    """``rtfem view scene.toml`` / ``--example``: the scene viewer. The scene is stepped at the file's dt
-    when a step takes under VIEW_SHARE of it, else at the smallest of VIEW_STEPS that keeps real time (said)."""
-    from ..interaction.scene_file import close_devices, load_scene
+    """``rtfem view scene.toml`` / ``--example``: the scene viewer (:func:`scene_for_viewer`)."""
+    from ..interaction.scene_file import close_devices
     from ..viewer.scene_view import SceneSession, serve_scene
 
     for flag, what in (("device", "--device"), ("benchmark", "--benchmark")):
         if getattr(args, flag, None):
             raise RtfemError(f"{what} is for a single organ; a scene's tools are in its file (device = ... for a "
                              "live hand) and the mouse")
+    scene = scene_for_viewer(args.mesh)
+    try:
+        for tool in scene.tools:
+            if getattr(tool.device, "attach", None) is not None:
+                print(f"scene       tool {tool.name} ({tool.kind}) follows its live device"
+                      + (" (its first button closes it)" if tool.kind == "grasper" else ""), flush=True)
+        print("scene       the scene starts when the first browser connects (play / pause / restart in the panel)",
+              flush=True)
+        serve_scene(SceneSession(scene), host=args.host, port=args.port)
+    finally:
+        close_devices(scene)
+    return 0
+
+
+def scene_for_viewer(path):
+    """The scene file ``path`` loaded for the viewer, at t = 0: stepped at the file's dt when a step
+    (the median of 50, timed here) takes under VIEW_SHARE of it, else at the smallest of VIEW_STEPS that
+    keeps real time (said, with the rate the file's dt would run at)."""
+    from ..interaction.scene_file import close_devices, load_scene
+    from ..viewer.scene_view import rewind, snapshot
 
     def progress(message: str) -> None:
         print(f"scene       {message}", flush=True)
 
-    scene = load_scene(args.mesh, progress=progress)
+    scene = load_scene(path, progress=progress)
     try:
+        start = snapshot(scene)
         steps = []
         for _ in range(60):
             t0 = time.perf_counter()
             scene.step()
             steps.append(time.perf_counter() - t0)
+        rewind(scene, start)  # the scene waits at t = 0 for the first browser
         cost, dt = float(np.median(steps[10:])), scene.dt
         if cost > VIEW_SHARE * dt:
             new = next((d for d in VIEW_STEPS if d > dt and cost <= VIEW_SHARE * d), VIEW_STEPS[-1])
-            print(f"scene       a step takes {cost * 1e3:.1f} ms: the viewer steps the scene at dt = {new * 1e3:g} ms to "
-                  f"keep real time (at the file's {dt * 1e3:g} ms it would run at {dt / cost:.2f}x)", flush=True)
+            print(f"scene       a step takes {cost * 1e3:.1f} ms here now: the viewer steps the scene at dt = "
+                  f"{new * 1e3:g} ms to keep real time (at the file's {dt * 1e3:g} ms it would run at {dt / cost:.2f}x; "
+                  "the step's cost depends on this machine and what else runs on it)", flush=True)
             close_devices(scene)  # the file's live devices are opened again with the scene
-            scene = load_scene(args.mesh, progress=progress, dt=new)
-        for tool in scene.tools:
-            if getattr(tool.device, "attach", None) is not None:
-                print(f"scene       tool {tool.name} ({tool.kind}) follows its live device"
-                      + (" (its first button closes it)" if tool.kind == "grasper" else ""), flush=True)
-        serve_scene(SceneSession(scene), host=args.host, port=args.port)
-    finally:
+            scene = load_scene(path, progress=progress, dt=new)
+    except BaseException:
         close_devices(scene)
-    return 0
+        raise
+    return scene
 
 
 def _body_folder(out: Path, name: str) -> Path:

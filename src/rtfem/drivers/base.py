@@ -386,12 +386,18 @@ class StaticCorrection:
 
     def _add_correction(self, u: np.ndarray) -> None:
         """Add the static correction of the current loads to the field u (n, 3), in place (a
-        float32 field takes each float64 term rounded)."""
+        float32 field takes the float64 sum rounded). Each loaded node's columns are one BLAS
+        matrix-vector product over the (3n, 3) column block: numpy's stacked (n, 3, 3) @ (3,)
+        product ran 5 times slower (36 against 6.7 ms for 114 loads on 15,000 nodes;
+        benchmarks/viewer_step.py)."""
         loads, array = self._current_loads()
         if array is not None:
             u += self._array_correction(array)
-        for node, f in loads.items():
-            u += self._correction_column(node) @ f
+        if loads:
+            total = np.zeros(u.size)
+            for node, f in loads.items():
+                total += self._correction_column(node).reshape(-1, 3) @ f
+            u += total.reshape(u.shape)
 
     def _point_correction(self, i: int):
         """The static correction (3,) of the current loads at node i, or None with no loads."""
@@ -419,7 +425,18 @@ class StaticCorrection:
 
     def _correction_block(self, nodes: np.ndarray, loaded: np.ndarray) -> np.ndarray:
         """D_ab (3k, 3l) for ``nodes`` against ``loaded`` (columns computed the first time, as
-        :meth:`prepare` does)."""
+        :meth:`prepare` does). D does not change: the last block is kept, for a driver whose step
+        compliances are asked again at each tangent refresh about the same grasped patch (a gather
+        of k columns' l rows each time: 1 ms for a 114-node patch)."""
+        key = (nodes.tobytes(), loaded.tobytes())
+        kept = self.__dict__.get("_block_kept")
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        block = self._gather_block(nodes, loaded)
+        self._block_kept = (key, block)
+        return block
+
+    def _gather_block(self, nodes: np.ndarray, loaded: np.ndarray) -> np.ndarray:
         if nodes.size < loaded.size and all(v in self._D for v in nodes.tolist()):
             # D is symmetric (K^-1 minus the basis's part): rows of a few nodes against many loads
             # are the transposed columns of those few (one gather each, not one per load)

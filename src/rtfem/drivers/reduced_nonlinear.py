@@ -116,11 +116,11 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
     refresh : steps between tangent refreshes (default 10; a refresh costs ~13 ms on the default
         liver: element tangents and an r x r projection; the swung cantilever of the tests settles
         to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
-    background : refresh on a low-priority thread instead (the real-time setting): the step asks
+    background : refresh on a thread instead, at the normal priority (the real-time setting): the step asks
         with its predictor every ``refresh`` steps and takes the newest result at a later step,
         never waiting; all such threads hold BLAS to the cores a step leaves, through one shared
         limit. Results then depend on the timing (the equilibrium does not). A worker starved by
-        a busy machine (its thread runs at the lowest priority) is not waited for past
+        a busy machine is not waited for past
         ``MAX_TANGENT_AGE`` steps (200): the step then refreshes the tangent itself (counted in
         ``sync_refreshes``; a starved worker let a swung cantilever diverge at step 2,394).
 
@@ -143,6 +143,10 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
 
     compliance_changes = False
     warping = False
+    #: displacements_at may run on another thread beside step() (the viewer's frames): a step replaces
+    #: its coordinates and its loads, never writes into them, so a reader sees one step's (the field
+    #: and the correction at most one step apart)
+    concurrent_reads = True
 
     def __init__(self, reduced: ReducedNonlinearModel, dt: float, damping: Damping | None = None, *,
                  cubature: bool = True, spread: int = 1, precision: str = "double",

@@ -19,7 +19,7 @@ __all__ = ["Linearization", "TangentWorker"]
 
 
 class TangentWorker:
-    """A simulator's linearizations computed on a low-priority background thread
+    """A simulator's linearizations computed on a background thread at the normal priority
     (``background=True``): the step asks with its predictor and takes the newest result at a
     later step, never waiting. While any worker lives, BLAS is held to one thread by the
     limit every run-time loop shares (:func:`rtfem.threads.runtime`; entered on the stepping
@@ -83,8 +83,16 @@ class TangentWorker:
             threads._RUNTIME.release()
 
     def _work(self) -> None:
-        try:  # the lowest priority (Linux: per thread): it takes only the time the loop leaves
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        # The normal priority (Linux: per thread; the stepping thread's where that is lower): below a
+        # raised stepping thread, which it never keeps from a core, and beside the machine's other
+        # processes, which never starve it. Not nice 19: the worker holds the GIL between its numpy
+        # calls, and starved on a busy machine it held it for up to a second while the stepping
+        # thread waited (the viewer's default scene beside two busy processes: 0.75-0.94 of real
+        # time, its longest step 0.17 s as a median over runs, the step refreshing the tangent itself
+        # 16 times in 4 s; at nice 0: 1.00-1.01, 27 ms; benchmarks/results/viewer_step.txt).
+        try:
+            me = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, me, max(os.getpriority(os.PRIO_PROCESS, me), 0))
         except (AttributeError, OSError):  # pragma: no cover - other systems
             pass
         while True:
@@ -119,7 +127,7 @@ class Linearization:
     ``_tangent_at``, ``_worker``, ``sync_refreshes``, set by the simulator's reset and set_state)."""
 
     # background=True: a linearization older than this many steps (a worker starved by a busy
-    # machine: it runs at the lowest priority) is replaced by one computed on the stepping thread
+    # machine) is replaced by one computed on the stepping thread
     MAX_TANGENT_AGE = 200
 
     def _use_rest(self) -> None:

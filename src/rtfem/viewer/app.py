@@ -18,8 +18,9 @@ import numpy as np
 from ..errors import RtfemError
 from ..fe.material import Material
 from ..threads import background
+from .camera import VIEW, frame_client, light_scene, project
 from .gltf import SurfaceGlb, colormap
-from .session import METHODS, Session, Settings, default_session
+from .session import METHODS, Session, Settings, default_session, describe_material
 
 HELP = (
     "**Drag the organ** with the left mouse button to pull it; **shift+drag** presses along the surface "
@@ -55,21 +56,6 @@ def open_server(viser, host: str, port: int):
     if port and served != port:
         print(f"rtfem viewer: port {port} is in use; serving on port {served} instead", file=sys.stderr, flush=True)
     return server, host, served
-
-
-def light_scene(server, centre: np.ndarray, size: float, view=(0.1, -0.62, 0.5)) -> None:
-    """+z up, cheap lights and the first camera looking at ``centre`` from ``size`` times ``view``."""
-    sc = server.scene
-    sc.set_up_direction("+z")
-    # Lights that cost little per pixel: viser's defaults (an environment map sampled at every
-    # fragment, cascaded shadow maps drawn every frame) are the most of a frame's work in a
-    # browser without a GPU (benchmarks/viewer_browser.py).
-    sc.configure_environment_map(hdri=None)
-    sc.configure_default_lights(enabled=True, cast_shadow=False)
-    sc.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(120, 110, 110), intensity=1.5)
-    server.initial_camera.look_at = tuple(centre)
-    server.initial_camera.position = tuple(centre + size * np.asarray(view, dtype=float))
-    server.initial_camera.up = (0.0, 0.0, 1.0)
 
 
 def _need_viser():
@@ -150,6 +136,7 @@ class Viewer(Served):
         centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
         self.centre, self.size = centre, size
         light_scene(self.server, centre, size)
+        self.server.on_client_connect(lambda client: frame_client(client, centre, 0.5 * size, VIEW))
         self._faces = surface_faces(s)
         self._glb = SurfaceGlb(self._faces, s.drawn.size)
         self.organ = sc.add_glb("/organ", surface_glb(s, self._glb, np.zeros((s.drawn.size, 3)), 1.0))
@@ -410,6 +397,7 @@ class Viewer(Served):
         lines = [
             f"**{s.settings.label}** on a {s.kind}: {s.model.n_nodes:,} nodes, r = {s.settings.n_modes} modes, "
             f"dt = {s.settings.dt * 1e3:g} ms",
+            f"material: {describe_material(s.model)}",
             f"simulation **{st.sim_rate:,.0f} steps/s** ({st.realtime * 100:.0f} % of real time), "
             f"{st.step_us:,.1f} us per step; thread priority {st.priority.split(':')[0] or '-'}",
             f"frames **{self.frame_rate:.0f} /s**; force {f:.3f} N; peak displacement {peak * 1e3:.2f} mm "
@@ -432,6 +420,13 @@ class Viewer(Served):
         self.stats_md.content = "  \n".join(lines)
 
     # ---------------------------------------------------------------- control
+    def project(self, points) -> np.ndarray:
+        """Where ``points`` (k, 3) are drawn on the first connected browser's canvas (pixels)."""
+        clients = list(self.server.get_clients().values())
+        if not clients:
+            raise RtfemError("no browser is connected to the viewer")
+        return project(clients[0], points)
+
     def state(self) -> dict:
         """What the browser is being served, for tests and scripts."""
         s = self.session

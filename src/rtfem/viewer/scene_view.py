@@ -1,13 +1,16 @@
 """The scene viewer: ``rtfem view scene.toml`` and ``rtfem view --example gallbladder``.
 
-Each body is drawn in its own colour, lighter where it has moved further; the scene file's
-scripted tools run their paths, and the mouse is two more tools of the scene: a left-drag on a body
-closes a grasper on it (the surface nodes within its radius of the picked point, held by springs
-to the cursor in the plane facing the camera), a shift-drag presses a probe into it along the
-surface's inward normal by the drag distance. Both act through the scene's one contact problem,
-with the organs, the obstacles and the attachments. The physics runs on its own thread against
-the wall clock (:class:`SceneSession`); a frame thread sends the bodies at up to 30 frames a second
-and the panel says how close to real time the scene steps.
+Each body is drawn in its own colour, lighter where it has moved further; the obstacles, the
+supports and attachments and every tool of the scene are drawn as what they are
+(:mod:`rtfem.viewer.scene_glyphs`). The scene file's scripted tools run their paths from the moment
+the first browser connects (before, the scene waits at its start), and the panel's transport plays,
+pauses and restarts the scene and moves it to any time (:mod:`rtfem.viewer.controls`). The mouse is
+two more tools of the scene: a left-drag on a body closes a grasper on it (the surface nodes within
+its radius of the picked point, held by springs to the cursor in the plane facing the camera), a
+shift-drag presses a probe into it along the surface's inward normal by the drag distance. Both act
+through the scene's one contact problem, with the organs, the obstacles and the attachments. The
+physics runs on its own thread against the wall clock (:class:`SceneSession`); a frame thread sends
+the bodies at up to 30 frames a second and the panel says how close to real time the scene steps.
 """
 
 from __future__ import annotations
@@ -18,131 +21,40 @@ import time
 
 import numpy as np
 
-from ..drivers.base import displacements_at
-from ..interaction.devices.base import SharedDevice
-from ..threads import background, raise_priority, runtime
+from ..threads import background
 from .app import Served, serve_until_interrupted
+from .controls import Transport
 from .gltf import SurfaceGlb
-from .session import PhysicsThread
+from .scene_glyphs import Glyphs
+from .scene_session import SceneSession, rewind, snapshot
+from .session import describe_material
 
-__all__ = ["SceneSession", "SceneViewer", "serve_scene", "COLOURS"]
+__all__ = ["SceneSession", "SceneViewer", "serve_scene", "COLOURS", "snapshot", "rewind", "describe_body"]
 
 #: the bodies' colours (sRGB), in the file's order: liver, gallbladder, then others
 COLOURS = ((168, 74, 62), (92, 150, 70), (214, 170, 96), (110, 120, 200), (180, 120, 170), (90, 170, 170))
 
 HELP = ("**Drag a body** with the left mouse button to grasp and pull it; **shift+drag** presses a probe "
-        "into it. The scene's own tools follow their paths. Drag empty space to orbit, scroll to zoom.")
+        "into it. The scene's own tools follow their paths from when this page opened: **play / pause / "
+        "restart** and the time slider below. Drag empty space to orbit, scroll to zoom.")
 
 
-class SceneSession(PhysicsThread):
-    """A :class:`~rtfem.Scene` stepped in real time on its own thread, with the mouse as a grasper
-    and a probe (tools "mouse" and "mouse probe", parked far above the scene while unused).
+def describe_body(body) -> str:
+    """A body in words: its model (shell or solid, the element, the nodes), its material law and its
+    driver (the modes in use, the static correction)."""
+    d = body.driver
+    r = getattr(getattr(d, "modes", None), "n_modes", None) or getattr(getattr(d, "reduced", None), "size", None)
+    driver = type(d).__name__ + (f", r = {r}" if r else "") + (
+        ", static correction" if getattr(d, "static_correction", False) else "")
+    model = getattr(body, "model", None)
+    if model is None:
+        return f"**{body.name}**: {driver}"
+    kind = f"solid ({model.element})" if getattr(model, "element", None) else "shell"
+    return f"**{body.name}**: {kind}, {model.n_nodes:,} nodes; {describe_material(model)}; {driver}"
 
-    Parameters
-    ----------
-    scene : the scene (its bodies, obstacles, attachments and tools).
-    grasp_radius, grasp_stiffness : the mouse grasper's reach (m) and hold (N/m).
-    probe_radius, probe_stiffness : the mouse probe's sphere (m) and coupling (N/m).
 
-    Raises
-    ------
-    ModelError
-        A scene without bodies, or one that already has tools named "mouse" or "mouse probe".
-    """
-
-    def __init__(self, scene, *, grasp_radius: float = 0.008, grasp_stiffness: float = 300.0,
-                 probe_radius: float = 0.004, probe_stiffness: float = 300.0) -> None:
-        from ..errors import ModelError
-
-        if not scene.bodies:
-            raise ModelError("the scene has no body to show")
-        self.scene = scene
-        X = np.concatenate([b.X[b.surface] for b in scene.bodies])
-        lo, hi = X.min(axis=0), X.max(axis=0)
-        self.centre, self.size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
-        self.park = self.centre + np.array([0.0, 0.0, 20.0 * self.size])
-        self.hand, self.pointer = SharedDevice(self.park), SharedDevice(self.park)
-        self.grasper = scene.add_tool("mouse", self.hand, kind="grasper", radius=grasp_radius, stiffness=grasp_stiffness)
-        self.probe = scene.add_tool("mouse probe", self.pointer, kind="probe", radius=probe_radius,
-                                    stiffness=probe_stiffness)
-        self._thread_name = "rtfem-scene-physics"
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.error: str | None = None
-        self.sim_rate = self.realtime = self.step_us = 0.0
-        self.priority = ""  # the stepping thread's scheduling priority (rtfem.threads.raise_priority)
-
-    # ---------------------------------------------------------------- the mouse
-    def grab(self, point) -> None:
-        """Close the mouse grasper at ``point`` (it takes the nearest body's surface within its radius)."""
-        self.hand.move_to(point)
-        self.hand.mailbox[7] = 1.0
-
-    def drag(self, target) -> None:
-        self.hand.move_to(target)
-
-    def release(self) -> None:
-        self.hand.mailbox[7] = 0.0
-        self.hand.move_to(self.park)
-
-    def press(self, centre) -> None:
-        """Put the mouse probe's centre at ``centre``."""
-        self.pointer.move_to(centre)
-
-    def unpress(self) -> None:
-        self.pointer.move_to(self.park)
-
-    @property
-    def held(self) -> str | None:
-        """The body the mouse grasper holds, or None."""
-        held = self.grasper.held
-        return None if held is None else held.a.name
-
-    def tool_forces(self) -> dict[str, float]:
-        """|force| (N) of each tool on the bodies in the last step."""
-        return {t.name: float(np.linalg.norm(t.force)) for t in self.scene.tools}
-
-    def surface_displacements(self) -> list[np.ndarray]:
-        """Each body's surface displacements (k, 3), read between steps."""
-        with self._lock:
-            return [displacements_at(b.driver, b.surface) for b in self.scene.bodies]
-
-    # ---------------------------------------------------------------- the clock
-    def step(self) -> None:
-        with self._lock:
-            self.scene.step()
-
-    def _run(self) -> None:
-        self.priority = raise_priority()
-        with runtime():  # one BLAS thread while the scene is stepped (see rtfem.threads)
-            self._clock()
-
-    def _clock(self) -> None:
-        dt = self.scene.dt
-        wall0, steps0 = time.perf_counter(), self.scene.steps
-        window_start, window_steps, computes = wall0, 0, []
-        try:
-            while not self._stop.is_set():
-                target = wall0 + (self.scene.steps - steps0) * dt
-                now = time.perf_counter()
-                if target - now > 3e-4:
-                    time.sleep(target - now - 3e-4)
-                    continue
-                if now - target > 0.1:  # cannot keep up: stop owing steps (the panel says the rate)
-                    wall0, steps0 = now, self.scene.steps
-                c0 = time.perf_counter()
-                self.step()
-                c1 = time.perf_counter()
-                computes.append(c1 - c0)
-                window_steps += 1
-                if c1 - window_start >= 1.0:
-                    self.sim_rate = window_steps / (c1 - window_start)
-                    self.realtime, self.step_us = self.sim_rate * dt, float(np.median(computes)) * 1e6
-                    window_start, window_steps, computes = c1, 0, []
-        except Exception as exc:  # shown in the panel; the viewer keeps serving
-            self.error = f"{type(exc).__name__}: {exc}"
-
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
 
 
 def tint(base, amount: np.ndarray) -> np.ndarray:
@@ -154,9 +66,14 @@ def tint(base, amount: np.ndarray) -> np.ndarray:
 
 
 class SceneViewer(Served):
-    """A viser server showing a :class:`SceneSession`: one mesh per body, the mouse's tools, a panel."""
+    """A viser server showing a :class:`SceneSession`: one mesh per body, the obstacles, attachments
+    and tools, the mouse's tools, a panel with the transport.
 
-    def __init__(self, session: SceneSession, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0) -> None:
+    ``wait_for_client``: hold the scene at its start until the first browser connects (the
+    scripted paths then play from t = 0 in front of the user); False: as the session is."""
+
+    def __init__(self, session: SceneSession, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0,
+                 wait_for_client: bool = True) -> None:
         from .app import _is_loopback, _need_viser, open_server
 
         viser = _need_viser()
@@ -167,20 +84,36 @@ class SceneViewer(Served):
                   "from other machines on the network, and the viewer has no authentication.", file=sys.stderr,
                   flush=True)
         self.url = f"http://{host}:{self.port}"
-        self.frames, self.frame_rate, self.drags = 0, 0.0, 0
+        self.frames, self.frame_rate, self.drags, self.connections = 0, 0.0, 0, 0
         self.vmax = 1e-3
         self._drag: dict | None = None
         self._stop = threading.Event()
+        self._wait = bool(wait_for_client)
+        if self._wait:
+            session.pause()
         self._build()
+        self.server.on_client_connect(self._on_connect)
         self._thread = background(threading.Thread(target=self._frames, name="rtfem-scene-frames", daemon=True),
                                   self._stop.set)
 
+    def _on_connect(self, client) -> None:
+        """Frame the browser's camera on the bodies beside the panel; the first one starts the scene."""
+        from .camera import frame_client
+
+        s = self.session
+        self.connections += 1
+        first = self.connections == 1
+        frame_client(client, s.centre, 0.5 * s.size, self._view)
+        if first and self._wait:
+            s.play()
+
     def _build(self) -> None:
-        from .app import light_scene
+        from .camera import VIEW, light_scene
 
         s, sc = self.session, self.server.scene
         view = getattr(s.scene, "view", None)
-        light_scene(self.server, s.centre, s.size, *(() if view is None else (0.8 * view / np.linalg.norm(view),)))
+        self._view = np.asarray(VIEW if view is None else view, dtype=float)
+        light_scene(self.server, s.centre, s.size, 0.8 * self._view / np.linalg.norm(self._view))
         self._glbs, self.meshes, self.picks = [], [], []
         for k, body in enumerate(s.scene.bodies):
             faces = body.local[np.asarray(body.mesh.triangles)]
@@ -198,17 +131,20 @@ class SceneViewer(Served):
         # (see Viewer._build_scene: without it every frame compiled the shaders again)
         speck = s.centre + 1e-6 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
         self._speck = sc.add_glb("/speck", SurfaceGlb(np.array([[0, 1, 2]]), 3)(speck, tint(COLOURS[0], np.zeros(3))))
+        self.glyphs = Glyphs(self.server, s.scene, s.centre, s.size, skip=(s.grasper, s.probe))
         self.hand = sc.add_icosphere("/hand", radius=0.006 * s.size, color=(255, 255, 255), visible=False)
         self.probe = sc.add_icosphere("/probe", radius=s.probe.radius, color=(230, 230, 240), visible=False)
-        self.tools = [(t, sc.add_icosphere(f"/tools/{i}", radius=t.radius if t.kind == "probe" else 0.004 * s.size,
-                                           color=(200, 200, 215) if t.kind == "probe" else (240, 200, 60), visible=False))
-                      for i, t in enumerate(s.scene.tools) if t not in (s.grasper, s.probe)]  # the file's tools
         self._u = [np.zeros((b.surface.size, 3)) for b in s.scene.bodies]
+        self.glyphs.update(self._u)
         gui = self.server.gui
         gui.configure_theme(control_width="large")
-        names = ", ".join(f"{b.name} ({'#%02x%02x%02x' % COLOURS[k % len(COLOURS)]})" for k, b in enumerate(s.scene.bodies))
-        gui.add_markdown(f"### rtfem scene\n{HELP}\n\nBodies: {names}")
-        self.stats_md = gui.add_markdown("starting ...")
+        sc_ = s.scene
+        bodies = "  \n".join(f"{describe_body(b)} ({'#%02x%02x%02x' % COLOURS[k % len(COLOURS)]})"
+                             for k, b in enumerate(sc_.bodies))
+        gui.add_markdown(f"### rtfem scene\n{HELP}\n\n{bodies}  \nstep dt = {sc_.dt * 1e3:g} ms; "
+                         f"{_count(len(sc_.obstacles), 'obstacle')}, {_count(len(sc_.attachments), 'attachment')}")
+        self.transport = Transport(gui, s, step=sc_.dt)
+        self.stats_md = gui.add_markdown("waiting for the first browser ..." if self._wait else "starting ...")
 
     # ---------------------------------------------------------------- the mouse
     def _on_drag(self, event, k: int, *, press: bool) -> None:
@@ -254,7 +190,7 @@ class SceneViewer(Served):
                 if self._drag is None:  # the grabbable copies follow the bodies between drags
                     for pick, (_, _, X), u in zip(self.picks, self._glbs, us):
                         pick.vertices = (X + u).astype(np.float32)
-                self._draw_tools()
+                self._draw_tools(us)
                 self.frames += 1
                 count += 1
                 now = time.perf_counter()
@@ -267,7 +203,7 @@ class SceneViewer(Served):
                 s.error = f"{type(exc).__name__}: {exc}"
             time.sleep(max(0.0, 1.0 / self.fps - (time.perf_counter() - t0)))
 
-    def _draw_tools(self) -> None:
+    def _draw_tools(self, us) -> None:
         s = self.session
         self.hand.visible = s.hand.buttons == 1
         if self.hand.visible:
@@ -275,37 +211,53 @@ class SceneViewer(Served):
         self.probe.visible = self._drag is not None and self._drag["press"]
         if self.probe.visible and s.probe.proxy is not None:
             self.probe.position = tuple(s.probe.proxy)
-        for tool, sphere in self.tools:  # a probe where it is, a grasper's tip while it is closed
-            shown = tool.proxy is not None and (tool.kind == "probe" or tool.closed)
-            if shown:
-                sphere.position = tuple(tool.proxy)
-            sphere.visible = shown
+        self.glyphs.update(us)
 
     def _panel(self, peak: float) -> None:
         s = self.session
-        sc = s.scene
         forces = ", ".join(f"{name} {f:.2f} N" for name, f in s.tool_forces().items())
-        lines = [f"{len(sc.bodies)} bodies, {len(sc.obstacles)} obstacles, {len(sc.attachments)} attachments; "
-                 f"dt = {sc.dt * 1e3:g} ms",
-                 f"simulation **{s.sim_rate:,.0f} steps/s** ({s.realtime * 100:.0f} % of real time), "
-                 f"{s.step_us / 1e3:.2f} ms per step",
+        if s.seeking:
+            clock = "moving to the chosen time ..."
+        elif not s.playing:
+            clock = "paused" if self.connections or not self._wait else "waiting for the first browser"
+        else:
+            clock = (f"simulation **{s.sim_rate:,.0f} steps/s** ({s.realtime * 100:.0f} % of real time), "
+                     f"{s.step_us / 1e3:.2f} ms per step")
+        lines = [f"t = **{s.time:.3f} s** (the scripted paths end at {s.path_end:.2f} s); {clock}",
                  f"frames **{self.frame_rate:.0f} /s**; peak displacement {peak * 1e3:.1f} mm",
                  f"tools: {forces}" + (f"; the mouse holds **{s.held}**" if s.held else "")]
         if s.error:
             lines.append(f"**error:** {s.error}")
         self.stats_md.content = "  \n".join(lines)
+        self.transport.refresh()
+
+    def project(self, points) -> np.ndarray:
+        """Where ``points`` (k, 3) are drawn on the first connected browser's canvas (pixels)."""
+        from .camera import project
+
+        clients = list(self.server.get_clients().values())
+        if not clients:
+            from ..errors import RtfemError
+
+            raise RtfemError("no browser is connected to the viewer")
+        return project(clients[0], points)
 
     def state(self) -> dict:
-        """What the browser is being served, for tests and scripts."""
+        """What the browser is being served, for tests and scripts: the clock, the rates, the tools'
+        forces, and what is drawn (``drawn``: the planes, obstacles, supports, attachments, and each
+        scripted tool's shape, position and state as the last frame drew it)."""
         s = self.session
         return {"url": self.url, "frames": self.frames, "frame_rate": self.frame_rate, "sim_rate": s.sim_rate,
-                "realtime": s.realtime, "steps": s.scene.steps, "drags": self.drags, "held": s.held,
-                "tool_forces": s.tool_forces(), "error": s.error}
+                "realtime": s.realtime, "steps": s.scene.steps, "time": s.time, "playing": s.playing,
+                "seeking": s.seeking, "drags": self.drags, "held": s.held, "tool_forces": s.tool_forces(),
+                "clients": len(self.server.get_clients()), "drawn": self.glyphs.drawn, "error": s.error}
 
 
-def serve_scene(session: SceneSession, *, host: str = "127.0.0.1", port: int = 8080, block: bool = True) -> SceneViewer:
-    """Serve the scene viewer and (``block``) run until Ctrl-C (the command then exits 130)."""
-    viewer = SceneViewer(session, host=host, port=port).start()
+def serve_scene(session: SceneSession, *, host: str = "127.0.0.1", port: int = 8080, block: bool = True,
+                wait_for_client: bool = True) -> SceneViewer:
+    """Serve the scene viewer and (``block``) run until Ctrl-C (the command then exits 130);
+    ``wait_for_client``: the scene starts when the first browser connects."""
+    viewer = SceneViewer(session, host=host, port=port, wait_for_client=wait_for_client).start()
     if block:
         serve_until_interrupted(viewer)
     return viewer
