@@ -3,6 +3,10 @@ against closed forms: a linear field's strain energy (the patch test), rigid-bod
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -45,7 +49,7 @@ def test_node_pattern_is_the_pairs_sharing_an_element():
 @pytest.mark.parametrize("element", ["tet4", "tet10", "tet4-anp"])
 def test_compiled_and_numpy_assembly_agree(block, monkeypatch, element):
     a = _model(block, monkeypatch, "numpy", element=element)
-    b = _model(block, monkeypatch, "", element=element)
+    b = _model(block, monkeypatch, "compiled", element=element)
     assert abs(b.K - b.K.T).max() == 0.0  # exactly symmetric
     assert abs(a.K - b.K).max() <= 1e-14 * abs(a.K).max()
     assert np.abs(a.mass_diagonal - b.mass_diagonal).max() <= 1e-14 * a.mass_diagonal.max()
@@ -62,11 +66,12 @@ def test_the_compiled_shell_is_the_numpy_shell(monkeypatch, surface):
         mesh = rt.TriMesh(X + np.random.default_rng(2).uniform(-0.02, 0.02, X.shape) * np.ptp(X, axis=0).max() / 10,
                           np.asarray(mesh.triangles))
     T, X = np.asarray(mesh.triangles), np.asarray(mesh.vertices)
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
     assert assembly.assemble_shell(X, T, rt.Material(), mesh.n_vertices) is not None  # the compiled path runs
     monkeypatch.setenv("RTFEM_ASSEMBLY", "numpy")
     a = rt.ShellModel(mesh, rt.Material(E=5e4, nu=0.3, thickness=2e-3), rotary_inertia=True)
     Ka = a.K
-    monkeypatch.setenv("RTFEM_ASSEMBLY", "")
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
     b = rt.ShellModel(mesh, rt.Material(E=5e4, nu=0.3, thickness=2e-3), rotary_inertia=True)
     assert abs(b.K - b.K.T).max() == 0.0
     assert abs(Ka - b.K).max() <= 1e-14 * abs(Ka).max()
@@ -135,6 +140,27 @@ def test_bad_input_is_refused_before_the_kernels_see_it(block, monkeypatch):
     assert model._K is None and model._M is None  # nothing half-built
     monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
     assert abs(model.K - model.K.T).max() == 0.0  # and it assembles once the setting is right
+
+
+def test_a_cold_process_assembles_a_small_organ_without_starting_numba():
+    """Issue 54: numba's start (0.35-0.4 s of CPU) costs a fresh `rtfem modes` of a small organ more than the
+    compiled kernels save; where numba is loaded already, or the mesh is large, the compiled path runs."""
+    code = ("import sys, rtfem as rt; m = rt.ShellModel(rt.meshes.liver(3), rt.Material()); m.K; "
+            "print('numba' in sys.modules)")
+    env = {k: v for k, v in os.environ.items() if k != "RTFEM_ASSEMBLY"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True, timeout=120)
+    assert out.stdout.strip() == "False"
+
+
+def test_the_compiled_assembly_runs_where_it_saves_more_than_numbas_start(monkeypatch):
+    monkeypatch.delenv("RTFEM_ASSEMBLY", raising=False)
+    assert assembly.compiled_assembly(np.zeros((10, 4), int))  # numba is loaded in this process: always
+    monkeypatch.delitem(sys.modules, "numba")  # as in a process that has not loaded it
+    assert not assembly.compiled_assembly(np.zeros((20_000, 4), int))  # 0.09 s saved < its start
+    assert assembly.compiled_assembly(np.zeros((100_000, 4), int))
+    assert assembly.compiled_assembly(np.zeros((5_000, 10), int))  # tet10: 0.7 s saved
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
+    assert assembly.compiled_assembly(np.zeros((10, 3), int))
 
 
 def test_the_basis_products_refuse_mismatched_shapes():

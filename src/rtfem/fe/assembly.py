@@ -3,11 +3,19 @@ nodes sharing an element: a tenth of the entries of the dof-level pattern of a t
 is installed (:mod:`rtfem.fe.assembly_kernels`) the pattern is built and the element blocks are added
 straight into the dof-level CSR arrays in compiled loops, and the linear tets' stiffness is computed
 in the same pass; otherwise the blocks are summed into the node pattern by ``np.bincount`` and the
-block matrix becomes CSR with sorted indices. ``benchmarks/assembly_compiled.py`` measures both."""
+block matrix becomes CSR with sorted indices. ``benchmarks/assembly_compiled.py`` measures both.
+
+A process that has not loaded numba yet takes the numpy path for a mesh whose assembly the
+compiled kernels would shorten by less than numba's start costs (importing it, its CPU target and
+the cached kernels: 0.35-0.4 s of CPU on 2 cores, more than the liver shell's whole modal
+analysis): a cold `rtfem modes` of a small or mid-size organ (issue 54, ``benchmarks/precompute_cold.py``).
+Once numba is loaded (a warm process, the drivers' compiled steps) the compiled path is taken
+at any size; ``RTFEM_ASSEMBLY=compiled`` or ``numpy`` chooses one always."""
 
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import scipy.sparse as sp
@@ -20,13 +28,30 @@ from .shell import _OPT_ALPHA_B, _OPT_BETA
 __all__ = ["assemble_blocks", "assemble_solid", "assemble_shell", "compiled_assembly"]
 
 
-def compiled_assembly() -> bool:
-    """Whether the compiled assembly runs here: numba installed and ``RTFEM_ASSEMBLY`` unset, empty
-    or "compiled" ("numpy" turns it off; another value is refused with a ModelError)."""
+#: CPU seconds that numba's start costs a process which has not loaded it (its import, its CPU target,
+#: the cached kernels; measured 0.35-0.4 s on 2 cores): the compiled assembly must save more
+JIT_START = 0.3
+#: seconds the compiled assembly saves per element, by nodes per element (benchmarks/assembly_compiled.py,
+#: numpy minus compiled: the liver shell 65.1 - 13.3 ms for 5,120 triangles, tet4 127.1 - 24.0 ms for
+#: 23,067 tets, tet10 2,099 - 336 ms for 12,412 tets)
+_SAVES_PER_ELEMENT = {3: 10e-6, 4: 4.5e-6, 10: 140e-6}
+
+
+def compiled_assembly(cells: np.ndarray | None = None) -> bool:
+    """Whether the compiled assembly runs here (for ``cells``): numba installed and ``RTFEM_ASSEMBLY``
+    "compiled", or unset or empty where numba is already loaded in this process or the compiled
+    kernels would save more than its start (:data:`JIT_START`) on ``cells`` (E, k) ("numpy" turns it
+    off; another value is refused with a ModelError)."""
     how = os.environ.get("RTFEM_ASSEMBLY", "").strip().lower()
     if how not in ("", "compiled", "numpy"):
         raise ModelError(f"RTFEM_ASSEMBLY={how!r} names no assembly; choose 'compiled' or 'numpy' (or leave it unset)")
-    return how != "numpy" and kernels.available()
+    if how == "numpy":
+        return False
+    if how == "" and cells is not None and "numba" not in sys.modules:
+        E, k = np.shape(cells)[0], np.shape(cells)[-1]
+        if _SAVES_PER_ELEMENT.get(k, 0.0) * E < JIT_START:
+            return False  # a cold process: numba's start would cost more than it saves here
+    return kernels.available()
 
 
 def _checked(X, cells, n_nodes: int, k: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -57,9 +82,9 @@ def assemble_solid(X: np.ndarray, cells: np.ndarray, dN: np.ndarray, w: np.ndarr
     weights w (q,)) and their volumes computed and assembled in one compiled pass, or None where
     the compiled assembly does not run (the caller takes the numpy path). Raises MeshError for a
     tet with a non-positive Jacobian at a point."""
-    if not compiled_assembly():
-        return None
     X, cells = _checked(X, cells, n_nodes, (4, 10))
+    if not compiled_assembly(cells):
+        return None
     pattern = kernels.node_pattern(cells, n_nodes)
     data, vol, bad = kernels.solid_stiffness(X, cells, dN, w, lam, mu, pattern)
     if bad >= 0:
@@ -72,9 +97,9 @@ def assemble_shell(X: np.ndarray, cells: np.ndarray, material, n_nodes: int):
     """The flat shell's global stiffness (OPT membrane, DKT bending; 6 dof per node) and the
     triangles' areas computed and assembled in one compiled pass, or None where the compiled
     assembly does not run. Raises MeshError for a triangle of zero area."""
-    if not compiled_assembly():
-        return None
     X, cells = _checked(X, cells, n_nodes, (3,))
+    if not compiled_assembly(cells):
+        return None
     pattern = kernels.node_pattern(cells, n_nodes)
     done = shell_kernels.shell_stiffness(X, cells, material, pattern, _OPT_ALPHA_B, _OPT_BETA)
     if done is None:
@@ -107,7 +132,7 @@ def assemble_blocks(cells: np.ndarray, Ke: np.ndarray, n_nodes: int, d: int) -> 
     if np.shape(Ke) != (cells.shape[0], cells.shape[1] * d, cells.shape[1] * d):
         raise ModelError(f"element matrices must be ({cells.shape[0]}, {cells.shape[1] * d}, {cells.shape[1] * d}) for these "
                          f"cells and {d} dofs per node, got {np.shape(Ke)}")
-    if compiled_assembly():
+    if compiled_assembly(cells):
         pattern = kernels.node_pattern(cells, n_nodes)
         return _csr(kernels.scatter_blocks(cells, Ke, pattern, d), pattern, n_nodes, d)
     E, k = cells.shape
