@@ -224,9 +224,8 @@ def block_eigs(
     are below 1e-12 of the block's norm), a second time only for a block whose norm that pass cut
     below half (the Daniel-Gragg-Kaufman-Stewart test): on a large mesh the reads of the basis
     (column-major), not the arithmetic, are the cost. T = Q^T C Q is built block column by block
-    column. Every ``check_every`` blocks the Ritz pairs of T are formed (None: after each block while
-    forming them costs under a quarter of a block solve, as on a small basis, else every second one:
-    the 3,300-vertex shells of issue 54 stop a block sooner); the iteration stops when
+    column. Every ``check_every`` blocks the Ritz pairs of T are formed (None: after each block while that
+    costs under a quarter of a block solve, else every second one); the iteration stops when
     each of the k largest has |C y - theta y| <= tol * theta, read off the last block row as
     |R_{j+1} S_j| (Golub & Underwood 1977; Golub & Van Loan sec. 10.3.6).
 
@@ -249,14 +248,12 @@ def block_eigs(
     Q = np.empty((n, max_dim), order="F")
     T = np.zeros((max_dim, max_dim))
     Q[:, :b] = np.linalg.qr(np.random.default_rng(seed).standard_normal((n, b)))[0]
-    j, blocks, second, skipped = 0, 0, 0, 0
+    j, blocks, second, skipped, ritz_cost = 0, 0, 0, 0, 0.0  # ritz_cost: seconds the last Ritz check took
     R_prev = None
-    ritz_cost = 0.0  # seconds the last Ritz check took
     while True:
         t0 = time.perf_counter()
         Z = np.array(apply(Q[:, j:j + b]), dtype=float, order="F")
-        block_cost = time.perf_counter() - t0
-        solve_seconds += block_cost
+        solve_seconds += (block_cost := time.perf_counter() - t0)
         blocks += 1
         if Z.shape != (n, b) or not np.all(np.isfinite(Z)):
             raise SolverError("the operator returned NaN/inf or a wrong shape during block Lanczos")
@@ -270,22 +267,26 @@ def block_eigs(
             report(dim, max(dim + b, int(3.4 * k)))
         due = blocks % (check_every or 2) == 0 or (check_every is None and ritz_cost < 0.25 * block_cost)
         if dim >= k + b and (due or dim + b > max_dim):
-            t0 = time.perf_counter()
-            ritz = _ritz_pairs(T, R, j, dim, k, tol)
-            ritz_cost = time.perf_counter() - t0
+            ritz, ritz_cost = _timed(_ritz_pairs, T, R, j, dim, k, tol)
             if ritz is not None:
                 info = {"solve_seconds": solve_seconds, "block_solves": blocks, "krylov_dim": dim, "block": b,
                         "reorthogonalized": second, "skipped": skipped}
                 return _result(P, V, ritz, vectors, info, t_start)
         if dim + b > max_dim:
             raise BlockLanczosFailed(f"{k} eigenpairs did not converge within a basis of {max_dim} vectors")
-        scale = np.abs(T[:dim, :dim]).max()
-        if np.abs(np.diag(R)).min() <= 1e-10 * scale:
+        if np.abs(np.diag(R)).min() <= 1e-10 * np.abs(T[:dim, :dim]).max():
             raise BlockLanczosFailed("the Krylov block lost rank (an invariant subspace was found)")
         Q[:, dim:dim + b] = V
         T[dim:dim + b, j:dim] = R
         R_prev = R
         j = dim
+
+
+def _timed(fn, *args):
+    """(fn(*args), the seconds it took)."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
 
 
 def _result(P: np.ndarray, V: np.ndarray, ritz, vectors: bool, info: dict, t_start: float):
