@@ -110,7 +110,8 @@ def time_eigsh(mesh, solid: bool, r: int) -> tuple[float, float]:
     return time.perf_counter() - t0, float(np.sqrt(np.sort(lam)[0]) / (2 * np.pi))
 
 
-def _deck(mesh, solid: bool, r: int) -> str:
+def _deck(mesh, solid: bool, r: int, fixed: np.ndarray | None = None) -> str:
+    """The ccx input deck of the case; ``fixed``: the held nodes (default :func:`_fixed`)."""
     m, X = _material(mesh), np.asarray(mesh.vertices)
     cells = np.array(mesh.tets if solid else mesh.triangles)
     if solid:  # ccx wants (x2 - x1) x (x3 - x1) . (x4 - x1) > 0: two nodes swapped where rtfem's order is the other
@@ -122,7 +123,8 @@ def _deck(mesh, solid: bool, r: int) -> str:
     lines += [f"{i + 1},{x:.12e},{y:.12e},{z:.12e}" for i, (x, y, z) in enumerate(X.tolist())]  # ccx: 20 chars a field
     lines += [f"*ELEMENT,TYPE={kind},ELSET=EALL"] + [f"{e + 1}," + ",".join(str(v + 1) for v in c)
                                                     for e, c in enumerate(cells.tolist())]
-    lines += ["*NSET,NSET=FIX"] + [f"{i + 1}," for i in _fixed(mesh).tolist()]
+    held = _fixed(mesh) if fixed is None else np.asarray(fixed, int)
+    lines += ["*NSET,NSET=FIX"] + [f"{i + 1}," for i in held.tolist()]
     lines += ["*BOUNDARY", "FIX,1,3" if solid else "FIX,1,6", "*MATERIAL,NAME=M", "*ELASTIC",
               f"{m.E!r},{m.nu!r}", "*DENSITY", f"{m.density!r}"]
     lines += ["*SOLID SECTION,ELSET=EALL,MATERIAL=M"] if solid else \
@@ -130,9 +132,9 @@ def _deck(mesh, solid: bool, r: int) -> str:
     return "\n".join(lines + ["*STEP", "*FREQUENCY", f"{r}", "*END STEP"]) + "\n"
 
 
-def time_ccx(mesh, solid: bool, r: int, threads: int) -> tuple[float, float]:
+def time_ccx(mesh, solid: bool, r: int, threads: int, fixed: np.ndarray | None = None) -> tuple[float, float]:
     with tempfile.TemporaryDirectory() as tmp:
-        Path(tmp, "job.inp").write_text(_deck(mesh, solid, r))
+        Path(tmp, "job.inp").write_text(_deck(mesh, solid, r, fixed))
         t0 = time.perf_counter()
         run = subprocess.run([CCX, "-i", "job"], cwd=tmp, capture_output=True, text=True, timeout=1800,
                              env=dict(os.environ, OMP_NUM_THREADS=str(threads)))
