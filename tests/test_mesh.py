@@ -120,3 +120,18 @@ def test_topology_queries():
     assert s.nearest_vertex([0, 0, 2.0]) == int(np.argmax(np.asarray(s.vertices)[:, 2]))
     assert np.allclose(np.linalg.norm(s.vertex_normals(), axis=1), 1.0)
     assert s.vertex_areas().sum() == pytest.approx(s.areas().sum())
+
+
+def test_unique_rows_is_numpys_unique_of_rows():
+    """The packed-key unique of integer rows (issue 54: a mesh's checks on loading) gives np.unique(axis=0)'s
+    answer, row order, first indices, inverse and counts, and falls back to it where rows cannot be packed."""
+    from rtfem.mesh.repair import unique_rows
+
+    rng = np.random.default_rng(0)
+    cases = [rng.integers(0, n, (m, k)) for n, m, k in [(1, 5, 2), (7, 200, 2), (40, 300, 3), (1000, 50, 4), (5, 0, 3)]]
+    cases += [np.array([[2**40, 1], [0, 2**40]]), np.array([[-1, 2], [-1, 2]]), rng.random((20, 2))]
+    for a in cases:
+        for flags in ({}, {"return_index": True, "return_inverse": True, "return_counts": True}, {"return_inverse": True}):
+            got, want = unique_rows(a, **flags), np.unique(a, axis=0, **flags)
+            got, want = (got, want) if flags else ((got,), (want,))
+            assert all(np.array_equal(g.ravel(), w.ravel()) and g.dtype == w.dtype for g, w in zip(got, want))

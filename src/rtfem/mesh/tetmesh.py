@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .. import validate
 from ..errors import MeshError
-from .repair import _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes
+from .repair import _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes, unique_rows
 from .surface import TriMesh
 
 __all__ = ["TetMesh", "TetReport", "TetQuality", "TET10_EDGES", "TET_FACES"]
@@ -195,7 +195,7 @@ class TetMesh:
         """All (4m, 3) outward corner faces, the unique sorted faces' index per face, and the counts."""
         if "faces" not in self._cache:
             F = self.corner_tets[:, TET_FACES].reshape(-1, 3)
-            _, inverse, count = np.unique(np.sort(F, axis=1), axis=0, return_inverse=True, return_counts=True)
+            _, inverse, count = unique_rows(np.sort(F, axis=1), return_inverse=True, return_counts=True)
             self._cache["faces"] = (F, inverse.ravel(), count)
         return self._cache["faces"]  # type: ignore[return-value]
 
@@ -288,7 +288,7 @@ class TetMesh:
         if "edges" not in self._cache:
             c = self.corner_tets
             e = np.sort(c[:, TET10_EDGES].reshape(-1, 2), axis=1)
-            self._cache["edges"] = np.unique(e, axis=0)
+            self._cache["edges"] = unique_rows(e)
         return self._cache["edges"]  # type: ignore[return-value]
 
     def adjacency(self) -> sp.csr_matrix:
@@ -296,7 +296,7 @@ class TetMesh:
         if "adjacency" not in self._cache:
             k = self._tets.shape[1]
             i, j = np.triu_indices(k, 1)
-            e = np.unique(np.sort(np.stack([self._tets[:, i].ravel(), self._tets[:, j].ravel()], axis=1), axis=1), axis=0)
+            e = unique_rows(np.sort(np.stack([self._tets[:, i].ravel(), self._tets[:, j].ravel()], axis=1), axis=1))
             w = np.linalg.norm(self._vertices[e[:, 0]] - self._vertices[e[:, 1]], axis=1)
             n = self.n_vertices
             A = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
@@ -321,7 +321,7 @@ class TetMesh:
             return self
         c = self.corner_tets
         e = np.sort(c[:, TET10_EDGES].reshape(-1, 2), axis=1)
-        edges, inverse = np.unique(e, axis=0, return_inverse=True)
+        edges, inverse = unique_rows(e, return_inverse=True)
         mid = 0.5 * (self._vertices[edges[:, 0]] + self._vertices[edges[:, 1]])
         T = np.column_stack([c, self.n_vertices + inverse.reshape(-1, 6)])
         groups = {}
@@ -420,7 +420,7 @@ def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: TetReport, r
         T = T[~deg]
         if T.shape[0] == 0:
             raise MeshError("every tet is degenerate (zero volume): the mesh has no usable volume")
-    _, first = np.unique(np.sort(T[:, :4], axis=1), axis=0, return_index=True)
+    _, first = unique_rows(np.sort(T[:, :4], axis=1), return_index=True)
     if first.size < T.shape[0]:
         if not repair:
             dup = np.setdiff1d(np.arange(T.shape[0]), first)
