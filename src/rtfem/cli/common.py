@@ -276,6 +276,9 @@ def locking_warning(element: str | None, nu: float) -> str | None:
 
 
 def build_model(args, *, quiet: bool = False):
+    from ..fe.linalg import preload
+
+    preload()  # MKL loads on the other core while the mesh is read and the model assembled (issue 54)
     from ..fe.material import Material
     from ..fe.build import make_model
     from ..fe.viscoelastic import material_from_text
