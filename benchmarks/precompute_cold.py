@@ -144,7 +144,8 @@ def main() -> None:
         raise SystemExit("ccx (CalculiX) is not installed: nothing to compare with (--no-ccx: rtfem's rows only)")
     load = os.getloadavg()[0]
     print(f"# rtfem {rt.__version__}, python {platform.python_version()}, {os.cpu_count()} cores, load average "
-          f"{load:.2f} at the start{', one core busy' if args.busy else ''}; ccx: {CCX} ({args.ccx_threads} threads); "
+          f"{load:.2f} at the start{', one core busy' if args.busy else ''}; ccx: "
+          f"{'not run' if args.no_ccx else f'{CCX} ({args.ccx_threads} threads)'}; "
           f"cold fresh-process runs, medians of {args.repeat}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmpdir:
@@ -174,9 +175,11 @@ def main() -> None:
                     t_cx.append(t)
                     c_cx.append(_children_cpu() - c)
             rt_med, cx_med = statistics.median(t_rt), statistics.median(t_cx)
-            rows.append([case.name, f"{mesh.n_vertices:,}", case.r, f"{rt_med:.2f}", f"{cx_med:.2f}",
-                         f"{cx_med / rt_med:.2f}", f"{statistics.median(c_rt):.2f} / {statistics.median(c_cx):.2f}",
-                         f"{f_rt:.4g} / {f_cx:.4g}"])
+            cx = (lambda text: "-") if args.no_ccx else (lambda text: text)  # noqa: E731
+            rows.append([case.name, f"{mesh.n_vertices:,}", case.r, f"{rt_med:.2f}", cx(f"{cx_med:.2f}"),
+                         cx(f"{cx_med / rt_med:.2f}"),
+                         f"{statistics.median(c_rt):.2f} / {cx(f'{statistics.median(c_cx):.2f}')}",
+                         f"{f_rt:.4g} / {cx(f'{f_cx:.4g}')}"])
             print(rows[-1], f"rtfem {np.round(t_rt, 2).tolist()} ccx {np.round(t_cx, 2).tolist()}", flush=True)
     print_table(["organ", "nodes", "r", "rtfem cold (s)", "ccx cold (s)", "ccx / rtfem", "CPU rtfem / ccx (s)",
                  "f1 rtfem / ccx (Hz)"], rows)
