@@ -135,3 +135,29 @@ def test_unique_rows_is_numpys_unique_of_rows():
             got, want = unique_rows(a, **flags), np.unique(a, axis=0, **flags)
             got, want = (got, want) if flags else ((got,), (want,))
             assert all(np.array_equal(g.ravel(), w.ravel()) and g.dtype == w.dtype for g, w in zip(got, want))
+
+
+def test_components_and_close_pairs_are_scipys():
+    """The numpy graph helpers that spare loading a mesh scipy.sparse.csgraph and scipy.spatial (issue 54)
+    give csgraph's component labels and cKDTree's pairs within a distance."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from rtfem.mesh.repair import close_pairs, components
+
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        n, e = int(rng.integers(1, 60)), int(rng.integers(0, 80))
+        i, j = rng.integers(0, n, e), rng.integers(0, n, e)
+        k, label = connected_components(coo_matrix((np.ones(e), (i, j)), shape=(n, n)), directed=False)
+        got = components(n, i, j)
+        assert got[0] == k and np.array_equal(got[1], label)
+    for _ in range(50):
+        n = int(rng.integers(2, 300))
+        P = rng.random((n, 3)) * rng.choice([1e-3, 1.0, 100.0])
+        P[rng.integers(0, n, n // 5)] = P[rng.integers(0, n, n // 5)] + rng.normal(0, 1e-4, (n // 5, 3))
+        tol = float(rng.choice([1e-5, 1e-3, 0.05, 0.2]))
+        want = {tuple(p) for p in np.sort(cKDTree(P).query_pairs(tol, output_type="ndarray"), axis=1).tolist()}
+        got = close_pairs(P, tol)
+        assert {tuple(p) for p in got.tolist()} == want and len(got) == len(want)

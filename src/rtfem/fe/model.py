@@ -17,7 +17,6 @@ from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .. import validate
 from ..errors import ModelError, RtfemWarning, SolverError
@@ -488,12 +487,14 @@ class FEModel:
             return Ktt
         return Ktt - c.Ktr @ c.Krr.solve(c.Krt.toarray())
 
-    def condensed_operator(self) -> spla.LinearOperator:
+    def condensed_operator(self) -> "scipy.sparse.linalg.LinearOperator":  # noqa: F821
         """The condensed stiffness of Eq. 5 as a sparse operator (never formed densely).
 
         x -> K_tt x - K_tr (K_rr^-1 (K_rt x)), with K_rr factorized once.
         """
         c = self.condensation()
+        import scipy.sparse.linalg as spla  # here: a model's other uses need not import it
+
         return spla.LinearOperator((c.t.size, c.t.size), matvec=c.apply, matmat=c.apply, dtype=float)
 
     def surface_compliance(self, nodes=None, *, method: str = "solves", memory: float = 256 * 2**20,

@@ -22,7 +22,6 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import roots_jacobi
 
 from ..errors import MeshError
 from .material import Material
@@ -39,6 +38,8 @@ def tet_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Points (q, 3) in the reference tet {x, y, z >= 0, x + y + z <= 1} and weights (q,)
     summing to 1/6: Stroud's conical product rule with n points per direction, exact for
     polynomials of degree 2n - 1."""
+    from scipy.special import roots_jacobi  # here: importing scipy.special is 30-45 ms of a fresh process
+
     ta, wa = roots_jacobi(n, 2.0, 0.0)
     tb, wb = roots_jacobi(n, 1.0, 0.0)
     tc, wc = roots_jacobi(n, 0.0, 0.0)

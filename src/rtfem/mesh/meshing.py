@@ -21,7 +21,6 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import MeshError, RtfemError
@@ -166,6 +165,8 @@ def _carry_groups(surface: TriMesh, mesh: TetMesh) -> TetMesh:
         return mesh
     new = mesh.surface_nodes()
     old = np.asarray(surface.vertices)
+    from scipy.spatial import cKDTree  # here: loading a mesh need not import scipy.spatial
+
     _, nearest = cKDTree(old).query(np.asarray(mesh.vertices)[new])
     groups = {}
     for name, idx in surface.groups.items():

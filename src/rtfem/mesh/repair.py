@@ -8,9 +8,6 @@ from dataclasses import dataclass, field
 from typing import Mapping
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, connected_components
-from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import MeshError
@@ -241,13 +238,12 @@ def _merge_classes(V: np.ndarray, tol: float) -> np.ndarray:
     cell = cell.ravel()
     reps = V[first]
     if tol > 0 and first.size > 1:
-        pairs = cKDTree(reps).query_pairs(tol, output_type="ndarray")
+        pairs = close_pairs(reps, tol)
     else:
         pairs = np.zeros((0, 2), dtype=np.int64)
     k = first.size
     if pairs.shape[0]:
-        G = sp.coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
-        _, label = connected_components(G, directed=False)
+        _, label = components(k, pairs[:, 0], pairs[:, 1])
     else:
         label = np.arange(k)
     label = label[cell]
@@ -255,6 +251,73 @@ def _merge_classes(V: np.ndarray, tol: float) -> np.ndarray:
     rep = np.full(int(label.max()) + 1, n, dtype=np.int64)
     np.minimum.at(rep, label, np.arange(n))
     return rep[label]
+
+
+# ------------------------------------------------------------ graphs in numpy
+# (issue 54: scipy.sparse.csgraph and scipy.spatial, with scipy.sparse.linalg, scipy.linalg and scipy.special
+# that they import, were 0.07-0.14 s of CPU of every fresh process that loads a mesh)
+def components(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the undirected graph on ``n`` nodes with edges (i[e], j[e]): their number
+    and each node's label, numbered in the order of each component's lowest node (as
+    ``scipy.sparse.csgraph.connected_components`` numbers them). Each round hooks every root to the
+    smallest root an edge joins it to, then halves the paths to the roots until each points at one."""
+    parent, _ = _hook(n, np.asarray(i, np.int64).ravel(), np.asarray(j, np.int64).ravel(), None)
+    roots, label = np.unique(parent, return_inverse=True)
+    return int(roots.size), label.ravel()
+
+
+def _hook(n: int, i: np.ndarray, j: np.ndarray, odd: np.ndarray | None):
+    """Union by smallest root over the edges (i, j): the root of each node (its component's lowest
+    node) and, with ``odd`` (a bool per edge: whether its ends differ), each node's parity to its root."""
+    parent = np.arange(n)
+    par = np.zeros(n, bool)
+    while True:
+        ri, rj = parent[i], parent[j]
+        cross = ri != rj
+        if not cross.any():
+            return parent, par
+        lo, hi = np.minimum(ri, rj)[cross], np.maximum(ri, rj)[cross]
+        rel = (par[i] ^ par[j] ^ odd)[cross] if odd is not None else np.zeros(lo.size, bool)
+        order = np.lexsort((lo, hi))  # for each root, the smallest root it is joined to
+        hi, lo, rel = hi[order], lo[order], rel[order]
+        keep = np.r_[True, hi[1:] != hi[:-1]]
+        parent[hi[keep]], par[hi[keep]] = lo[keep], rel[keep]
+        while True:  # pointer jumping: every node to its root, the parities composed on the way
+            up = parent[parent]
+            if np.array_equal(up, parent):
+                break
+            par ^= par[parent]
+            parent = up
+
+
+def close_pairs(P: np.ndarray, tol: float) -> np.ndarray:
+    """(k, 2) index pairs (i < j) of the points P (n, 3) within ``tol`` of each other, as
+    ``scipy.spatial.cKDTree(P).query_pairs(tol)`` finds them: the points binned into cells at least
+    ``tol`` wide whose numbers pack in one int64, each cell paired with itself and its 13 forward
+    neighbours (a pair within ``tol`` lies in one cell or two adjacent ones)."""
+    P = np.asarray(P, dtype=float)
+    lo = P.min(axis=0)
+    size = max(float(tol), float((P.max(axis=0) - lo).max()) / (2**20 - 4))
+    g = np.floor((P - lo) / size).astype(np.int64) + 1  # 1 .. 2**20 - 3 on each axis: no carry below
+    B = np.int64(2**21)
+    key = (g[:, 0] * B + g[:, 1]) * B + g[:, 2]
+    order = np.argsort(key, kind="stable")
+    cells, start, count = np.unique(key[order], return_index=True, return_counts=True)
+    found = [np.zeros((0, 2), np.int64)]
+    for c in np.flatnonzero(count > 1):  # a cell with several points: every pair in it
+        idx = order[start[c]:start[c] + count[c]]
+        a, b = np.triu_indices(idx.size, 1)
+        found.append(np.column_stack([idx[a], idx[b]]))
+    for dx, dy, dz in [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) > (0, 0, 0)]:
+        target = cells + (dx * B + dy) * B + dz
+        pos = np.minimum(np.searchsorted(cells, target), cells.size - 1)
+        hit = np.flatnonzero(cells[pos] == target)
+        for a, b in zip(hit.tolist(), pos[hit].tolist()):  # neighbouring occupied cells: few
+            ia, ib = order[start[a]:start[a] + count[a]], order[start[b]:start[b] + count[b]]
+            found.append(np.column_stack([np.repeat(ia, ib.size), np.tile(ib, ia.size)]))
+    pairs = np.concatenate(found)
+    pairs = pairs[np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) <= tol]
+    return np.sort(pairs, axis=1)
 
 
 def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: MeshReport):
@@ -335,30 +398,15 @@ class _HalfEdges:
 
 def _orientation_flips(m: int, he: _HalfEdges) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Which triangles to flip for one orientation per component: (flip, component label,
-    number of components, orientable). One breadth-first walk over every component at once."""
+    number of components, orientable). Each component's lowest triangle keeps its orientation; the
+    others' flips follow from the relation flip[t2] = flip[t1] xor same across each shared edge,
+    composed by the union of :func:`_hook` (parities to the root)."""
     t1, t2 = he.t1, he.t2
     same = he.e_dir[he.h1, 0] == he.e_dir[he.h2, 0]  # same direction -> inconsistent orientation
-    G = sp.coo_matrix((np.ones(t1.size), (t1, t2)), shape=(m, m)).tocsr()
-    G = G + G.T
-    n_comp, label = connected_components(G, directed=False)
-    # sign relation between adjacent triangles: flip[t2] = flip[t1] xor same
-    rel = sp.coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[t1, t2], np.r_[t2, t1])), shape=(m, m)).tocsr()
-    # a virtual root (index m) joined to one triangle of each component: O(m) however many pieces
-    _, roots = np.unique(label, return_index=True)
-    Gc = G.tocoo()
-    Gr = sp.coo_matrix((np.ones(Gc.nnz + roots.size), (np.r_[Gc.row, np.full(roots.size, m)], np.r_[Gc.col, roots])),
-                       shape=(m + 1, m + 1)).tocsr()
-    bfs, pred = breadth_first_order(Gr, m, directed=False, return_predecessors=True)
-    child = bfs[1:]
-    parent = pred[child]
-    inner = parent != m
-    child, parent = child[inner], parent[inner]
-    s_rel = (np.asarray(rel[parent, child]).ravel() == 2) if child.size else np.zeros(0, bool)
-    flip = np.zeros(m, bool)
-    for c_, p_, si in zip(child.tolist(), parent.tolist(), s_rel.tolist()):  # in BFS order: parents first
-        flip[c_] = flip[p_] ^ si
+    parent, flip = _hook(m, t1.astype(np.int64), t2.astype(np.int64), same)
+    roots, label = np.unique(parent, return_inverse=True)
     orientable = bool(((flip[t1] ^ flip[t2]) == same).all())
-    return flip, label, int(n_comp), orientable
+    return flip, label.ravel(), int(roots.size), orientable
 
 
 def _outward_turns(V: np.ndarray, T: np.ndarray, label: np.ndarray, n_comp: int, he: _HalfEdges) -> np.ndarray:
@@ -381,7 +429,7 @@ def _nonmanifold_vertices(T: np.ndarray, he: _HalfEdges, n_vertices: int) -> np.
     a, b = he.edges[he.inv[he.h1]][:, 0], he.edges[he.inv[he.h1]][:, 1]
     ca = np.r_[corner_of(t1, a), corner_of(t1, b)]
     cb = np.r_[corner_of(t2, a), corner_of(t2, b)]
-    _, fan = connected_components(sp.coo_matrix((np.ones(ca.size), (ca, cb)), shape=(3 * m, 3 * m)), directed=False)
+    _, fan = components(3 * m, ca, cb)
     pairs = unique_rows(np.stack([T.ravel(), fan], axis=1))
     return np.flatnonzero(np.bincount(pairs[:, 0], minlength=n_vertices) > 1)
 

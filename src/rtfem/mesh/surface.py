@@ -10,13 +10,11 @@ from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from .. import validate
 from ..errors import MeshError
 from .repair import (MeshReport, _check_arrays, _check_groups, _check_manifold_edges, _edge_index, _orient,
-                     _refuse_unrepaired, _repair, _unique_edges)
+                     _refuse_unrepaired, _repair, _unique_edges, components)
 
 __all__ = ["TriMesh"]
 
@@ -211,11 +209,14 @@ class TriMesh:
 
     def components(self) -> tuple[int, np.ndarray]:
         """Number of connected components and the component label of each vertex."""
-        return connected_components(self.adjacency(), directed=False)
+        A = self.adjacency().tocoo()
+        return components(self.n_vertices, A.row, A.col)
 
     def nearest_vertex(self, point: np.ndarray) -> int:
         """Index of the vertex closest to ``point`` among those a triangle uses (:meth:`used_vertices`)."""
         if "kdtree" not in self._cache:
+            from scipy.spatial import cKDTree  # here: importing scipy.spatial is 40 ms that loading a mesh need not pay
+
             self._cache["kdtree"] = cKDTree(self._vertices[self.used_vertices()])
         local = int(self._cache["kdtree"].query(np.asarray(point, dtype=float))[1])  # type: ignore[union-attr]
         return int(self.used_vertices()[local])

@@ -14,11 +14,10 @@ from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from .. import validate
 from ..errors import MeshError
-from .repair import _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes, unique_rows
+from .repair import _check_finite_and_in_range, _check_groups, _integer_cells, _listing, _merge_classes, components, unique_rows
 from .surface import TriMesh
 
 __all__ = ["TetMesh", "TetReport", "TetQuality", "TET10_EDGES", "TET_FACES"]
@@ -305,7 +304,8 @@ class TetMesh:
 
     def components(self) -> tuple[int, np.ndarray]:
         """Number of connected pieces and the piece label of each node."""
-        return connected_components(self.adjacency(), directed=False)
+        A = self.adjacency().tocoo()
+        return components(self.n_vertices, A.row, A.col)
 
     # ------------------------------------------------------------------ derived
     def scaled(self, factor: float) -> "TetMesh":

@@ -21,8 +21,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse.linalg as spla
 
 from .. import validate
 from ..errors import ModelError, SolverError
@@ -396,6 +394,8 @@ def _block_modes(model, K, M, dofs, fac, n_modes: int, sigma: float, tol: float,
 
 def _arpack_modes(K, M, fac, n_modes: int, sigma: float, tol: float, report, timing: dict):
     """ARPACK's shift-invert Lanczos (scipy eigsh) through the factorization."""
+    import scipy.sparse.linalg as spla  # here: the block method's runs need not import it (issue 54)
+
     solve = fac.solve
     solve_time = [0.0]
     massed = int(np.count_nonzero(M.diagonal()))
@@ -480,6 +480,8 @@ def _nodal_shapes(model, phi: np.ndarray, dofs: np.ndarray) -> np.ndarray:
 
 def _dense_modes(model, K, M, dofs, n_modes):
     """All or many modes of a small model through the dense condensed problem (Eq. 5)."""
+    import scipy.linalg as sla
+
     m = M.diagonal()
     massed = m > 0
     Kd = K.toarray()
