@@ -81,9 +81,10 @@ def preload() -> threading.Thread | None:
     """Load MKL in a background thread, now: its runtime library, and the libraries and the OpenMP
     threads that its first PARDISO call loads and starts (a 3 x 3 factorization), so that a command
     that builds a model and then factorizes it finds them loaded. The thread runs in MKL, without
-    the GIL, beside the imports, the file reading and the assembly of the main thread: a fresh
-    `rtfem modes` of the HRA kidney shell 40-80 ms sooner on 2 cores (issue 54). None where another
-    backend is chosen (RTFEM_BACKEND); errors are left to the real factorization to report."""
+    the GIL, beside the imports, the file reading and the assembly of the main thread (issue 54: the
+    first factorization of a fresh `rtfem modes` of the HRA kidney shell came 0.04-0.09 s sooner in
+    A/B runs). None where another backend is chosen (RTFEM_BACKEND); errors are left to the real
+    factorization to report."""
     if os.environ.get("RTFEM_BACKEND", "").strip().lower() not in ("", "pardiso"):
         return None
 
@@ -465,16 +466,7 @@ def factorize(
         if order.shape != (A.shape[0],):
             raise SolverError(f"ordering has {order.size} entries, the matrix {A.shape[0]} rows")
         A = A[order][:, order].tocsc()
-    import scipy.sparse.linalg as spla  # here: importing it is 0.1 s that the PARDISO path need not pay
-
-    try:
-        if spd:
-            spec = "NATURAL" if order is not None else "MMD_AT_PLUS_A"
-            lu = spla.splu(A, permc_spec=spec, diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        else:
-            lu = spla.splu(A)
-    except RuntimeError as exc:  # "Factor is exactly singular"
-        raise SolverError(f"{what} is singular: {exc}") from None
+    lu = _splu(A, spd, order is not None, what)
     _check_not_singular(A, lu.solve, what, norm)
     if order is None:
         return Factorization(A, "superlu", lu.solve)
@@ -485,6 +477,20 @@ def factorize(
         return x
 
     return Factorization(A, "superlu", solve)
+
+
+def _splu(A: sp.csc_matrix, spd: bool, ordered: bool, what: str):
+    """SuperLU's factors of A (symmetric mode for an SPD matrix, in the given order when ``ordered``);
+    scipy.sparse.linalg is imported here: 0.1 s of a fresh process that the PARDISO path need not pay."""
+    import scipy.sparse.linalg as spla
+
+    try:
+        if spd:
+            return spla.splu(A, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                             options={"SymmetricMode": True})
+        return spla.splu(A)
+    except RuntimeError as exc:  # "Factor is exactly singular"
+        raise SolverError(f"{what} is singular: {exc}") from None
 
 
 def _check_not_singular(A: sp.csc_matrix, solve, what: str, norm: float | None = None) -> None:
