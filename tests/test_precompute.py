@@ -125,3 +125,26 @@ def test_simulate_twice_loads_the_precompute_and_writes_the_same_run(fresh_cache
         outs.append((r.stdout, (out / "response.csv").read_bytes()))
     assert "kept in" in outs[0][0] and "loaded modes and reduced model from" in outs[1][0]
     assert outs[0][1] == outs[1][1]
+
+
+def test_the_cache_is_found_whichever_assembly_made_the_model(fresh_cache, monkeypatch):
+    """The numpy and the compiled assembly give K to the last bits differently (a process that has loaded
+    numba assembles the other way): the cache's key is the model's inputs, so either finds the other's."""
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "compiled")
+    first = cached_modes(_block(), 6)
+    monkeypatch.setenv("RTFEM_ASSEMBLY", "numpy")
+    model = _block()
+    assert abs(model.K - _block().K).max() < 1e-9 * abs(model.K).max()  # the same matrix, near enough
+    again = cached_modes(model, 6)
+    assert again.info["cache_hit"] is True and np.array_equal(again.omega, first.omega)
+
+
+def test_a_law_parameter_changed_in_its_last_digits_is_another_model(fresh_cache):
+    """The law's parameters enter the key at full precision (its repr rounds to 6 digits)."""
+    law = rt.NeoHookean(mu=1.0e4, kappa=5.0e4, density=1000.0)
+    nearby = rt.NeoHookean(mu=1.0e4 * (1 + 1e-9), kappa=5.0e4, density=1000.0)
+    assert repr(law) == repr(nearby)
+    models = [rt.SolidModel(rt.meshes.box(0.1, 0.04, 0.04, nx=4, ny=2, nz=2), m, element="tet4").fix("x0")
+              for m in (law, nearby)]
+    cached_modes(models[0], 4)
+    assert cached_modes(models[1], 4).info["cache_hit"] is False

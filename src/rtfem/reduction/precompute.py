@@ -3,9 +3,9 @@ reduced nonlinear model (modes + modal derivatives) with the trained cubature, e
 per machine and loaded on every later launch (issue 54: ``rtfem view`` recomputed 29-93 s of modes,
 derivatives and cubature on each launch of the same organ).
 
-Each artefact is filed under a digest of everything it is computed from: the model's assembled
-stiffness and mass on the constrained dofs (so every material, element, mass, shell or support
-setting counts, named or not), its mesh arrays, supports, law and kind, the settings of the stage
+Each artefact is filed under a digest of everything it is computed from: the model's recipe (its
+mesh arrays, material or law, every constructor option and the supports: :func:`model_digest`),
+its kind, the settings of the stage
 (modes asked, eigensolver options; derivatives and the cubature's poses, tolerance and seed; the
 modes it was built on) and the file format's version. A file that does not load as it was saved
 (the checksums, the mesh fingerprint, the model key, the recorded digest) is computed again and
@@ -34,16 +34,42 @@ FORMAT = 1  # this module's keys: a change in what they cover bumps it (old file
 
 
 def model_digest(model) -> str:
-    """A digest of everything a model's precompute depends on: its constrained stiffness and mass
-    (assembled: the material, element, mass, shell and support settings, whatever their names), the
-    mesh's points and cells, the fixed dofs, the model key and the law."""
+    """A digest of everything a model's precompute depends on. A ShellModel or SolidModel: its recipe
+    (:class:`rtfem.fe.recipe.ModelRecipe`: the mesh's arrays, the material or law, every constructor
+    option and the fixed dofs, what rebuilds the same model on a cluster's workers) and the model key:
+    the inputs, not the assembled matrices, whose last bits differ between the compiled and the numpy
+    assembly (a process that has loaded numba assembles the other way: a K digest missed the cache
+    between `rtfem modes` and `rtfem view`). Another model class: its assembled constrained K and M
+    (whatever determines them), the mesh's arrays, the fixed dofs, the model key and the law."""
     check_model(model)
-    K, dofs = model.constrained_stiffness()
-    M, _ = model.constrained_mass()
-    tetmesh = getattr(model, "tetmesh", None)
-    cells = np.asarray(tetmesh.tets if tetmesh is not None else model.mesh.triangles)
-    return digest("model", FORMAT, np.asarray(model.mesh.vertices, dtype=float), cells, np.asarray(model.fixed),
-                  K, M, np.asarray(dofs), model_key(model), repr(getattr(model, "law", None)))
+    from ..fe.recipe import ModelRecipe
+
+    try:
+        recipe = ModelRecipe.of(model)
+    except ModelError:  # a user's own model class: what it assembles
+        K, dofs = model.constrained_stiffness()
+        M, _ = model.constrained_mass()
+        tetmesh = getattr(model, "tetmesh", None)
+        cells = np.asarray(tetmesh.tets if tetmesh is not None else model.mesh.triangles)
+        return digest("model", FORMAT, np.asarray(model.mesh.vertices, dtype=float), cells, np.asarray(model.fixed),
+                      K, M, np.asarray(dofs), model_key(model), repr(getattr(model, "law", None)))
+    # the material's or law's every parameter at full precision (its repr, in the recipe's key, rounds)
+    return digest("recipe", FORMAT, recipe.key, type(model).__name__, model_key(model), _parameters(recipe.material))
+
+
+def _parameters(obj, depth: int = 0):
+    """``obj``'s attributes as JSON-able values (floats exact), recursively: a material's or a law's."""
+    if depth > 8 or obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    if isinstance(obj, np.ndarray):
+        return [str(obj.dtype), obj.shape, obj.ravel().tolist()]
+    if isinstance(obj, (list, tuple)):
+        return [_parameters(o, depth + 1) for o in obj]
+    if isinstance(obj, dict):
+        return {str(k): _parameters(v, depth + 1) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if hasattr(obj, "__dict__"):
+        return [type(obj).__name__, _parameters(vars(obj), depth + 1)]
+    return repr(obj)
 
 
 def _report(progress, stage: str, message: str) -> None:
