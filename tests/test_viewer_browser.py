@@ -79,9 +79,20 @@ def _open_page(viewer):
             _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
             page.wait_for_selector("canvas", timeout=60_000)
             _dismiss_notices(page)
+            # the viewer frames each browser's camera once the browser has said its canvas size, which
+            # a loaded machine's browser said late (CI: the first camera, centred, was still in place)
+            _wait(lambda: _framed(viewer), 40, "the viewer to frame the browser's camera")
+            time.sleep(1.0)  # the browser's transition to the framed camera
             yield page
         finally:
             browser.close()
+
+
+def _framed(viewer) -> bool:
+    """Whether the first browser's camera looks elsewhere than the first camera every browser gets
+    (frame_client shifts its look-at point to put the organ left of the panel)."""
+    clients = list(viewer.server.get_clients().values())
+    return bool(clients) and not np.allclose(clients[0].camera.look_at, viewer.server.initial_camera.look_at)
 
 
 def _pixels(png: bytes) -> np.ndarray:

@@ -55,9 +55,10 @@ def framing(centre, radius: float, view, fov: float, width: int, height: int,
     return look_at + d * v, look_at
 
 
-def frame_client(client, centre, radius: float, view, timeout: float = 5.0) -> bool:
+def frame_client(client, centre, radius: float, view, timeout: float = 30.0) -> bool:
     """Frame a newly connected browser's camera (:func:`framing`) once it has said its canvas size
-    and field of view; False when it did not within ``timeout`` s (it keeps the initial camera)."""
+    and field of view; False when it did not within ``timeout`` s (it keeps the initial camera; a
+    browser on a loaded machine took over 5 s to say it)."""
     cam = client.camera
     t0 = time.perf_counter()
     while cam.update_timestamp == 0.0 or cam.image_width == 0:
