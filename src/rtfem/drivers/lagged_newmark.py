@@ -311,6 +311,17 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             self._f_trial = self._free_forces
         super().step(forces)
 
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """As :meth:`NonlinearNewmarkSimulator.step_compliances`, with the lagged factor's: the same
+        between two refreshes, so the last set's is kept (a tool asking every step for its contact
+        set's pays its 3 k solves once per refresh)."""
+        fac = self._free_step()[4]
+        key = (self.refreshes, id(fac), np.asarray(nodes).tobytes(), None if loaded is None else np.asarray(loaded).tobytes())
+        kept = getattr(self, "_kept_W", None)
+        if kept is None or kept[0] != key:
+            self._kept_W = kept = (key, super().step_compliances(nodes, loaded))
+        return kept[1].copy()
+
     def _free_step(self):
         if self._free is None or self._free[0] != self.steps:
             self._free = (self.steps, *self._solve_step(self._held), None)

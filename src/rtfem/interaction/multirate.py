@@ -32,11 +32,11 @@ import time
 import numpy as np
 
 from .. import validate
-from ..drivers.base import as_driver, displacements_at, predictions
+from ..drivers.base import as_driver, displacements_at, predictions, step_compliances
 from ..errors import ModelError
-from .haptics import Probe
+from .haptics import Grasp, Probe
 
-__all__ = ["MultiRateProbe"]
+__all__ = ["MultiRateProbe", "MultiRateGrasp"]
 
 #: the physics thread waits once no haptic tick has come for this long (s): the loop was stopped
 IDLE_AFTER = 0.25
@@ -59,11 +59,14 @@ class _Snapshot:
         self.W: dict[int, np.ndarray] = {}
         self.W_any = None  # the last compliance computed: for a vertex touched before its own is published
         self.wanted: set[int] = set()
+        self.block = (np.zeros(0, dtype=np.int64), np.zeros((0, 0)))  # a held patch's nodes and cross compliances
         self.force = np.zeros(3)
 
-    def publish(self, U, free: dict, W: dict) -> None:
+    def publish(self, U, free: dict, W: dict, block=None) -> None:
         """Swap in a new state (one assignment each: a tick reads either the old or the new arrays)."""
         self.U, self.free = U, free
+        if block is not None:
+            self.block = block
         if W:
             self.W = {**self.W, **W} if len(self.W) < 64 else dict(W)
             self.W_any = next(iter(W.values()))
@@ -80,6 +83,25 @@ class _Snapshot:
             W = self.W_any if self.W_any is not None else np.zeros((3, 3))
         return W
 
+    def predict_at(self, nodes) -> np.ndarray:
+        free, U = self.free, self.U
+        return np.array([free[i] if i in free else U[i] for i in np.asarray(nodes).tolist()]).reshape(-1, 3)
+
+    def step_compliances(self, nodes, loaded=None) -> np.ndarray:
+        """The published patch's block where ``nodes`` are its nodes; else the published 3x3 blocks on
+        the diagonal (the cross terms of a set nobody published are not known here)."""
+        nodes = np.asarray(nodes)
+        held, W = self.block
+        if (loaded is None or np.array_equal(loaded, nodes)) and np.array_equal(nodes, held):
+            return W
+        loaded = nodes if loaded is None else np.asarray(loaded)
+        out = np.zeros((3 * nodes.size, 3 * loaded.size))
+        for a, i in enumerate(nodes.tolist()):
+            for b, j in enumerate(loaded.tolist()):
+                if i == j:
+                    out[3 * a:3 * a + 3, 3 * b:3 * b + 3] = self.step_compliance(i)
+        return out
+
     def prepare(self, nodes) -> None:
         self.wanted.update(int(i) for i in np.atleast_1d(nodes).tolist())
 
@@ -94,7 +116,7 @@ class _Snapshot:
 
     def step(self, forces=None) -> None:
         if forces:
-            self.force = np.asarray(next(iter(forces.values())), dtype=float)
+            self.force = np.sum([np.asarray(f, dtype=float) for f in forces.values()], axis=0)
         else:
             self.force = np.zeros(3)
         self.steps += 1
@@ -111,40 +133,17 @@ class _Snapshot:
         self.time = self.steps * self.dt
 
 
-class MultiRateProbe:
-    """A probe whose force loop runs at the haptic rate while the organ steps on its own thread at
-    the rate its driver manages (a full-order nonlinear :class:`~rtfem.DirectSimulator` at 50-200
-    steps/s): see the module. Use it where a :class:`~rtfem.Probe` goes, in a
-    :class:`~rtfem.HapticLoop` (Python ticks) or calling :meth:`update` yourself at the haptic rate.
+class _MultiRate:
+    """The physics thread, its pacing, the snapshot and the record, shared by the multi-rate tools:
+    a subclass builds ``physics`` (the tool on the driver) and ``haptic`` (the same tool on the
+    snapshot) and says what a step publishes (:meth:`_published`)."""
 
-    Parameters
-    ----------
-    mesh, driver, radius, coupling, stiffness, candidates : as for :class:`~rtfem.Probe` (the
-        driver is stepped by the physics thread only).
-    rate : the haptic ticks per second the caller runs (Hz): the snapshot driver's dt.
-    pace : the physics never runs ahead of the wall clock (simulated time <= wall time since the
-        first tick); False steps as fast as it can.
-    thread : False: no physics thread; the caller advances the organ with :meth:`physics_step`
-        (a deterministic run: tests, offline replays, a scheduler of one's own).
-
-    Raises
-    ------
-    ModelError
-        What :class:`~rtfem.Probe` refuses; a rate that is not positive; in :meth:`update`, what the
-        physics thread raised (the probe is stopped; the force is zero from then on).
-    """
-
-    def __init__(self, mesh, driver, *, radius: float = 0.0, coupling: str = "spring", stiffness: float = 200.0,
-                 candidates: int = 8, rate: float = 1000.0, pace: bool = True, thread: bool = True) -> None:
-        driver = as_driver(driver, "probe")
+    def _setup(self, driver, rate, pace, thread) -> None:
         rate = validate.positive(rate, "rate", "haptic ticks per second, in Hz")
         self.pace = validate.flag(pace, "pace")
         self.threaded = validate.flag(thread, "thread")
-        self.physics = Probe(mesh, driver, radius=radius, coupling=coupling, stiffness=stiffness, candidates=candidates)
         self.snapshot = _Snapshot(driver.n_nodes, 1.0 / rate, getattr(driver, "fingerprint", None))
-        self.haptic = Probe(mesh, self.snapshot, radius=radius, coupling=coupling, stiffness=stiffness,
-                            candidates=candidates)
-        self.mesh, self.driver = mesh, driver
+        self.driver = driver
         self.force = np.zeros(3)
         self.error: BaseException | None = None
         self.stop_reason: str | None = None  # why the physics stopped (the force is zero from then on)
@@ -152,6 +151,7 @@ class MultiRateProbe:
         self._last_tick = 0.0
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._lock = threading.RLock()  # held by a physics step; a grab or release waits for it
         self._thread: threading.Thread | None = None
         self._t0 = None  # wall clock of the first tick (pace)
         self._sim0 = 0.0
@@ -159,57 +159,30 @@ class MultiRateProbe:
         self.physics_seconds = 0.0  # wall time spent in physics steps
         self.step_times: list[float] = []
         self._switch = None
-        self._publish(np.asarray(driver.displacements(), dtype=float).copy())
-        # a compliance before the first physics step: a vertex touched before its own is published
-        # uses the last one computed (a constraint coupling would divide by a zero W)
-        self.prepare(nodes=[int(self.physics._touchable[0])])
 
-    # ------------------------------------------------------------------ the haptic side
-    @property
-    def contact_node(self):
-        return self.haptic.contact_node
-
-    @property
-    def penetration(self) -> float:
-        return self.haptic.penetration
-
-    def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
-        """Compute the step compliances of the vertices the probe may touch (on the caller's
-        thread, before the loop: see :meth:`Probe.prepare`)."""
-        from .contact import nodes_to_prepare
-
-        p = self.physics
-        nodes = nodes_to_prepare(p._touchable, p._tree, p.mesh.n_vertices, nodes, around, radius)
-        W = {int(v): np.asarray(self.driver.step_compliance(int(v)), dtype=float) for v in nodes.tolist()}
-        self.snapshot.publish(self.snapshot.U, self.snapshot.free, W)
-        return int(nodes.size)
-
-    def update(self, position) -> np.ndarray:
-        """One haptic tick with the hand at ``position``: the force on the hand (N), from the latest
-        snapshot; the physics thread takes the position for its next step (started at the first
-        tick)."""
+    def _tick(self, position, allow_none: bool = False):
+        """The checks of every tick: a stopped physics raises (zero force), the hand kept for the
+        physics, the thread started at the first tick."""
         if self.error is not None or self.stop_reason is not None:
             self.force = np.zeros(3)
             err, self.error = self.error, None
             if err is not None:
                 self.close()
-                self.stop_reason = f"the probe's physics step failed, so its force is zero: {err}"
+                self.stop_reason = f"the {self.WHAT}'s physics step failed, so its force is zero: {err}"
             raise ModelError(self.stop_reason) from err
-        c = validate.point(position, "probe position")
+        c = None if (position is None and allow_none) else validate.point(position, f"{self.WHAT} position")
         self._hand, self._last_tick = c, time.perf_counter()
         if self.threaded:
             if self._thread is None:
                 self.start()
             self._wake.set()
-        self.force = self.haptic.update(c)
-        return self.force
+        return c
 
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step (for drawing)."""
         return self.snapshot.U.copy()
 
-    # ------------------------------------------------------------------ the physics side
-    def start(self) -> "MultiRateProbe":
+    def start(self):
         """Start the physics thread (the first :meth:`update` does)."""
         if self._thread is not None and self._thread.is_alive():
             return self
@@ -236,7 +209,7 @@ class MultiRateProbe:
             sys.setswitchinterval(self._switch)
             self._switch = None
 
-    def __enter__(self) -> "MultiRateProbe":
+    def __enter__(self):
         return self
 
     def __exit__(self, *exc) -> None:
@@ -259,45 +232,30 @@ class MultiRateProbe:
             self.error = exc
 
     def physics_step(self) -> None:
-        """One step of the organ with the contact at the hand's latest position (the physics
-        thread's work; call it yourself with ``thread=False``), then a new snapshot."""
-        if self._hand is None:
-            raise ModelError("no hand position yet: call update(position) first")
+        """One step of the organ with the tool at the hand's latest position (the physics thread's
+        work; call it yourself with ``thread=False``), then a new snapshot."""
         t = time.perf_counter()
-        self.physics.update(self._hand)
-        self._publish(None)
+        with self._lock:
+            self.physics.update(self._hand)
+            self._publish()
         dt = time.perf_counter() - t
         self.physics_steps += 1
         self.physics_seconds += dt
         if len(self.step_times) < 100_000:
             self.step_times.append(dt)
 
-    def _publish(self, U) -> None:
-        """After a physics step: the displacements, the free step of the vertices near the hand and
-        the contact vertex's compliance (and of any vertex a tick touched without one)."""
-        d, p = self.driver, self.physics
-        if U is None:
-            U = np.asarray(displacements_at(d, np.arange(d.n_nodes)), dtype=float)
-        near = np.zeros(0, dtype=np.int64)
-        if self._hand is not None:
-            _, cand = p._tree.query(self._hand, k=p._k)
-            near = p._touchable[np.atleast_1d(cand)]
-        contact = p.contact_node
-        if contact is not None:
-            near = np.union1d(near, [contact])
+    def _publish(self) -> None:
+        d = self.driver
+        U = np.asarray(displacements_at(d, np.arange(d.n_nodes)), dtype=float)
+        near, want, block = self._published(U)
         free = {}
         if near.size:
             u_free = predictions(d, near)
             free = {int(i): u_free[j].copy() for j, i in enumerate(near.tolist())}
-        want = set(self.snapshot.wanted)
-        self.snapshot.wanted.clear()
-        if contact is not None:
-            want.add(int(contact))
-        elif near.size:
-            X = p.X[near] + U[near]
-            want.add(int(near[np.argmin(np.linalg.norm(X - self._hand, axis=1))]))
+        want = set(want) | self.snapshot.wanted
+        self.snapshot.wanted = set()
         W = {i: np.asarray(d.step_compliance(i), dtype=float) for i in sorted(want)[:4]}
-        self.snapshot.publish(U, free, W)
+        self.snapshot.publish(U, free, W, block)
 
     def stats(self) -> dict:
         """The physics thread's record: steps, steps per wall second (while stepping), the median
@@ -309,3 +267,173 @@ class MultiRateProbe:
                 "steps_per_second": self.physics_steps / self.physics_seconds if self.physics_seconds else 0.0,
                 "step_median": float(np.median(st)), "step_p99": float(np.percentile(st, 99)),
                 "time_ratio": (float(self.driver.time) - self._sim0) / wall if wall > 0 else 0.0}
+
+
+_PARAMETERS = """    rate : the haptic ticks per second the caller runs (Hz): the snapshot driver's dt.
+    pace : the physics never runs ahead of the wall clock (simulated time <= wall time since the
+        first tick); False steps as fast as it can.
+    thread : False: no physics thread; the caller advances the organ with :meth:`physics_step`
+        (a deterministic run: tests, offline replays, a scheduler of one's own)."""
+
+
+class MultiRateProbe(_MultiRate):
+    __doc__ = f"""A probe whose force loop runs at the haptic rate while the organ steps on its own thread at
+    the rate its driver manages (a full-order nonlinear :class:`~rtfem.DirectSimulator` at 40-200
+    steps/s): see the module. Use it where a :class:`~rtfem.Probe` goes, in a
+    :class:`~rtfem.HapticLoop` (Python ticks) or calling :meth:`update` yourself at the haptic rate.
+
+    Parameters
+    ----------
+    mesh, driver, radius, coupling, stiffness, candidates : as for :class:`~rtfem.Probe` (the
+        driver is stepped by the physics thread only).
+{_PARAMETERS}
+
+    Raises
+    ------
+    ModelError
+        What :class:`~rtfem.Probe` refuses; a rate that is not positive; in :meth:`update`, what the
+        physics thread raised (the probe is stopped; the force is zero from then on).
+    """
+
+    WHAT = "probe"
+
+    def __init__(self, mesh, driver, *, radius: float = 0.0, coupling: str = "spring", stiffness: float = 200.0,
+                 candidates: int = 8, rate: float = 1000.0, pace: bool = True, thread: bool = True) -> None:
+        driver = as_driver(driver, "probe")
+        self.physics = Probe(mesh, driver, radius=radius, coupling=coupling, stiffness=stiffness, candidates=candidates)
+        self._setup(driver, rate, pace, thread)
+        self.haptic = Probe(mesh, self.snapshot, radius=radius, coupling=coupling, stiffness=stiffness,
+                            candidates=candidates)
+        self.mesh = mesh
+        self._publish()
+        # a compliance before the first physics step: a vertex touched before its own is published
+        # uses the last one computed (a constraint coupling would divide by a zero W)
+        self.prepare(nodes=[int(self.physics._touchable[0])])
+
+    @property
+    def contact_node(self):
+        return self.haptic.contact_node
+
+    @property
+    def penetration(self) -> float:
+        return self.haptic.penetration
+
+    def prepare(self, nodes=None, *, around=None, radius: float = 0.01) -> int:
+        """Compute the step compliances of the vertices the probe may touch (on the caller's
+        thread, before the loop: see :meth:`Probe.prepare`)."""
+        from .contact import nodes_to_prepare
+
+        p = self.physics
+        nodes = nodes_to_prepare(p._touchable, p._tree, p.mesh.n_vertices, nodes, around, radius)
+        with self._lock:
+            W = {int(v): np.asarray(self.driver.step_compliance(int(v)), dtype=float) for v in nodes.tolist()}
+        self.snapshot.publish(self.snapshot.U, self.snapshot.free, W)
+        return int(nodes.size)
+
+    def update(self, position) -> np.ndarray:
+        """One haptic tick with the hand at ``position``: the force on the hand (N), from the latest
+        snapshot; the physics thread takes the position for its next step (started at the first
+        tick)."""
+        c = self._tick(position)
+        self.force = self.haptic.update(c)
+        return self.force
+
+    def physics_step(self) -> None:
+        if self._hand is None:
+            raise ModelError("no hand position yet: call update(position) first")
+        super().physics_step()
+
+    def _published(self, U):
+        """The free step of the vertices near the hand and of the contact vertex; the compliance of
+        the contact vertex, or of the nearest vertex to the hand."""
+        p = self.physics
+        near = np.zeros(0, dtype=np.int64)
+        if self._hand is not None:
+            _, cand = p._tree.query(self._hand, k=p._k)
+            near = p._touchable[np.atleast_1d(cand)]
+        contact = p.contact_node
+        if contact is not None:
+            near = np.union1d(near, [contact])
+        want = set()
+        if contact is not None:
+            want.add(int(contact))
+        elif near.size:
+            X = p.X[near] + U[near]
+            want.add(int(near[np.argmin(np.linalg.norm(X - self._hand, axis=1))]))
+        return near, want, None
+
+
+class MultiRateGrasp(_MultiRate):
+    __doc__ = f"""A grasp whose force loop runs at the haptic rate while the organ steps on its own thread
+    (see the module): the jaw's implicit formula of :class:`~rtfem.Grasp` each tick against the held
+    vertices' free step and cross compliances of the last physics step. :meth:`grab` and
+    :meth:`release` wait for the physics step in progress (one step), then both sides hold the same
+    grip.
+
+    Parameters
+    ----------
+    mesh, driver, stiffness, max_force, radius, grip : as for :class:`~rtfem.Grasp`.
+{_PARAMETERS}
+
+    Raises
+    ------
+    ModelError
+        What :class:`~rtfem.Grasp` refuses; in :meth:`update`, what the physics thread raised (zero
+        force from then on).
+    """
+
+    WHAT = "grasp"
+
+    def __init__(self, mesh, driver, *, stiffness: float = 200.0, max_force: float | None = None,
+                 radius: float = 0.0, grip: float | None = None, rate: float = 1000.0, pace: bool = True,
+                 thread: bool = True) -> None:
+        driver = as_driver(driver, "grasp")
+        options = dict(stiffness=stiffness, max_force=max_force, radius=radius, grip=grip)
+        self.physics = Grasp(mesh, driver, **options)
+        self._setup(driver, rate, pace, thread)
+        self.haptic = Grasp(mesh, self.snapshot, **options)
+        self.mesh = mesh
+        self._publish()
+
+    @property
+    def node(self):
+        return self.haptic.node
+
+    @property
+    def nodes(self) -> np.ndarray:
+        return self.haptic.nodes
+
+    def grab(self, node: int, radius: float | None = None) -> np.ndarray:
+        """Close the jaw (:meth:`Grasp.grab`) on both sides, between two physics steps."""
+        with self._lock:
+            nodes = self.physics.grab(node, radius)
+            h, p = self.haptic, self.physics
+            self._publish()
+            h.node, h.nodes, h._hold, h._jaw = p.node, p.nodes.copy(), p._hold.copy(), p._jaw.copy()
+            h._block, h._patch_inv = None, None
+        return nodes
+
+    def release(self) -> None:
+        """Open the jaw on both sides."""
+        with self._lock:
+            self.physics.release()
+            self.haptic.release()
+
+    def update(self, target=None) -> np.ndarray:
+        """One haptic tick with the hand at ``target`` (None: no hand): the total force on the organ
+        (N; the hand feels its opposite), from the latest snapshot."""
+        c = self._tick(target, allow_none=True)
+        self.force = self.haptic.update(c)
+        return self.force
+
+    def _published(self, U):
+        """The held vertices' free step and their cross compliances (the block the physics grasp
+        iterates with: the lagged factor's, which changes at its refreshes)."""
+        g = self.physics
+        if g.node is None:
+            return np.zeros(0, dtype=np.int64), set(), None
+        nodes = np.asarray(g.nodes, dtype=np.int64)
+        if nodes.size == 1:
+            return nodes, {int(nodes[0])}, None
+        W = np.asarray(step_compliances(self.driver, nodes), dtype=float)
+        return nodes, set(), (nodes.copy(), W)
