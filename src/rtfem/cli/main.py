@@ -131,7 +131,7 @@ def _drawn(model):
     return getattr(model, "tetmesh", model.mesh)
 
 
-def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tuple[RunWriter, str]:
+def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar, record) -> tuple[RunWriter, str]:
     """A scripted point probe presses the organ: one CSV row per step, frames at --fps."""
     from ..interaction.haptics import Probe
     from ..interaction.devices import ScriptedDevice
@@ -151,13 +151,14 @@ def _simulate_probe(args, model, sim, n_steps: int, frame_every: int, bar) -> tu
         contact = probe.contact_node if probe.contact_node is not None else -1
         out.row([t + args.dt, *pos, *f, float(np.linalg.norm(f)), contact, *sim.displacement(node)])
         out.frame(k + 1, t + args.dt, sim.displacements)
+        record(t + args.dt, {probe.contact_node: tuple(-f)} if probe.contact_node is not None else None)
         bar(k + 1, n_steps, f"t = {t:.3f} s")
     what = (f"point probe at vertex {node}, {args.depth * 1e3:g} mm deep along its inward normal, stiffness "
             f"{args.stiffness:g} N/m")
     return out, what
 
 
-def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: int, bar) -> RunWriter:
+def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: int, bar, record) -> RunWriter:
     """Given loads: stepped by a driver, or answered whole by SLDM (Duhamel superposition)."""
     from ..io.scenario import RunWriter
 
@@ -182,6 +183,8 @@ def _simulate_schedule(args, model, sim, schedule, n_steps: int, frame_every: in
             U = sim.displacements()
         out.row([t] + [v for n in nodes for v in (*f.get(n, zero), *U[n])])
         out.frame(k + 1, t, U)
+        if sim is not None:
+            record(t, {n: tuple(v) for n, v in f.items()})
         bar(k + 1, n_steps, f"t = {t:.3f} s")
     return out
 
@@ -236,17 +239,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sim = None
     from ..threads import runtime
 
+    from .indicator import ErrorRecord
+
+    errors = ErrorRecord(model, args.out, args.error_every, args.method == "nonlinear", sim)
+    record = errors.maybe
     t0 = time.perf_counter()
     # the steps on one BLAS thread (rtfem.threads); SLDM's Krylov build (no stepping) keeps BLAS's threads
     stepping = runtime() if sim is not None else contextlib.nullcontext()
     with stepping, progress_bar(f"simulate ({args.method})", unit="steps") as bar:
         if schedule is None:
-            out, what = _simulate_probe(args, model, sim, n_steps, frame_every, bar)
+            out, what = _simulate_probe(args, model, sim, n_steps, frame_every, bar, record)
         else:
-            out = _simulate_schedule(args, model, sim, schedule, n_steps, frame_every, bar)
+            out = _simulate_schedule(args, model, sim, schedule, n_steps, frame_every, bar, record)
             what = f"{len(schedule)} load rows from {args.load} on {len(schedule.nodes)} node(s)"
     elapsed = time.perf_counter() - t0
     csv_path, pvd = out.close()
+    error_line = errors.close(n_steps * args.dt)
     print(f"load        {what}")
     label = {"modal": "modal, warped", "direct": "direct, corotational"}.get(args.method) if large else args.method
     label = "reduced nonlinear" if args.method == "nonlinear" else label
@@ -256,6 +264,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         forces = np.array([r[7] for r in out.rows])
         print(f"force       peak {forces.max():.4f} N, final {forces[-1]:.4f} N")
     print(f"wrote       {csv_path} ({len(out.rows)} rows), {pvd} ({len(out.frames)} frames; open in ParaView)")
+    if error_line:
+        print(error_line)
     return 0
 
 
@@ -374,6 +384,9 @@ def _add_simulate(sub) -> None:
     p.add_argument("--stiffness", type=positive, default=200.0, help="probe coupling spring in N/m (default 200)")
     p.add_argument("--tol", type=open_fraction, default=1e-6, help="SLDM tolerance (default 1e-6)")
     p.add_argument("--fps", type=positive, default=60.0, help="frames per simulated second written to the .pvd (default 60)")
+    p.add_argument("--error-every", type=nonnegative, default=0.1, metavar="S", help="--method nonlinear: the reduced "
+                   "model's error estimate (the full order's residual) every S s of simulated time and at the end, in "
+                   "error_estimate.csv (default 0.1; 0: none)")
     p.add_argument("-o", "--out", default="out/simulate", help="output folder (default out/simulate)")
     p.set_defaults(func=cmd_simulate)
 

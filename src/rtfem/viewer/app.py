@@ -407,6 +407,13 @@ class Viewer(Served):
         if s.node is not None and getattr(g, "clipped", False):
             lines.append(f"**force clipped at {g.max_force:g} N**: the hand asks {g.demand:.1f} N; raise the force "
                          "limit to follow it")
+        mon = getattr(s, "monitor", None)
+        if mon is not None and mon.latest is not None:
+            est = mon.latest
+            lines.append(f"error estimate **{est.max_error * 1e3:.2f} mm** at node {est.worst_node} (the full order's "
+                         f"residual of this state, every {mon.period:g} s, {mon.cost[-1]:.2f} s each)")
+        elif mon is not None and mon.error:
+            lines.append(f"error estimate: {mon.error}")
         if s.building:
             lines.append(f"precomputing: {s.building}")
         if s.local_status:

@@ -250,6 +250,7 @@ class Session(PhysicsThread):
             self.model, self.modes, self.damping, self.settings = model, basis, damping, s
             self.reduced = modes
             self.driver = driver
+            self._monitor_for(s)
             self.local_status = ""  # a patch of the driver replaced, or one still training (discarded)
             self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
                                radius=s.grab_radius)
@@ -258,6 +259,34 @@ class Session(PhysicsThread):
             self._t0_sim = 0.0
             self.stats.steps, self.stats.sim_time = 0, 0.0
             self.stats.forces.clear()
+
+    #: seconds between two error estimates of a reduced nonlinear model (0: none)
+    indicator_period = 2.0
+
+    def _monitor_for(self, s: Settings) -> None:
+        """The error indicator of a reduced nonlinear model (rt.error_estimate on a low-priority
+        thread, every :attr:`indicator_period` s): the full-order residual of the state shown."""
+        old = getattr(self, "monitor", None)
+        if old is not None:
+            old.stop(timeout=0.0)
+        self.monitor = None
+        if s.method == "nonlinear" and self.indicator_period > 0:
+            from ..reduction.indicator import ErrorMonitor
+
+            self.monitor = ErrorMonitor(self.model, self._error_state, period=self.indicator_period)
+            if self._thread is not None and self._thread.is_alive():
+                self.monitor.start()
+
+    def _error_state(self):
+        """(displacements, the grasp's forces on the organ, the inertial forces) now, under the lock."""
+        from ..reduction.indicator import driver_inertia
+
+        with self._lock:
+            U = np.array(self.driver.displacements(), dtype=float)
+            g = self.grasp
+            loads = {int(v): tuple(map(float, f)) for v, f in zip(np.asarray(g.nodes).tolist(), g.forces)}
+            inertia = driver_inertia(self.driver, self.model)
+        return U, (loads or None), inertia
 
     def use_driver(self, driver) -> None:
         """Drive the organ with any Driver of this mesh (a user's own class) until the next
@@ -483,6 +512,17 @@ class Session(PhysicsThread):
             self.stats.forces.append((self.stats.sim_time, float(np.linalg.norm(self.force))))
 
     # ---------------------------------------------------------------- the clock
+    def start(self):
+        super().start()
+        if getattr(self, "monitor", None) is not None:
+            self.monitor.start()
+        return self
+
+    def stop(self) -> None:
+        if getattr(self, "monitor", None) is not None:
+            self.monitor.stop()
+        super().stop()
+
     def _run(self) -> None:
         self.stats.priority = raise_priority()
         with runtime():  # one BLAS thread while the organ is stepped (see rtfem.threads)
