@@ -180,6 +180,7 @@ class ErrorMonitor:
         :func:`driver_inertia`; called on the monitor's thread, so it should copy).
     period : seconds between two estimates (the estimate itself takes 0.01-0.5 s).
     iterations, held : as :func:`error_estimate` (``held`` may be a callable returning the nodes).
+    on_estimate : called with each estimate on the monitor's thread (the viewer adapts its model).
 
     Raises
     ------
@@ -187,12 +188,12 @@ class ErrorMonitor:
         A period that is not positive, a state that is not callable.
     """
 
-    def __init__(self, model, state, *, period: float = 0.5, iterations: int = 3, held=None) -> None:
+    def __init__(self, model, state, *, period: float = 0.5, iterations: int = 3, held=None, on_estimate=None) -> None:
         import threading
 
         if not callable(state):
             raise ModelError(f"state={validate.show(state)} must be a callable returning (displacements, forces)")
-        self.model, self.state, self.held = model, state, held
+        self.model, self.state, self.held, self.on_estimate = model, state, held, on_estimate
         self.period = validate.positive(period, "period", "seconds between two estimates")
         self.iterations = validate.count(iterations, "iterations", 1, 50)
         self.latest: ErrorEstimate | None = None
@@ -252,6 +253,8 @@ class ErrorMonitor:
                     est = self.estimate()
                     self.history.append((time.perf_counter() - t0, est.max_error))
                     self.error = None
+                    if self.on_estimate is not None:
+                        self.on_estimate(est)
                 except Exception as exc:  # noqa: BLE001 - an inverted state, a singular tangent: said, not fatal
                     self.error = f"{type(exc).__name__}: {exc}"
                 self._stop.wait(self.period)
