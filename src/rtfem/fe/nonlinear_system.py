@@ -159,11 +159,13 @@ class NonlinearSystem:
             return False
         return True
 
-    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False, refactorable: bool = False):
+    def solver(self, K: sp.csr_matrix, what: str, spd_only: bool = False, refactorable: bool = False, dofs=None):
         """A factorization of a tangent: Cholesky when it is symmetric (solids, and shells at
         rest), LU otherwise (a shell's spin tangent off equilibrium). ``spd_only``: Cholesky or a
-        SolverError (a symmetric matrix that must be positive definite)."""
-        order = lambda: self.model.dof_order(self.free)  # noqa: E731
+        SolverError (a symmetric matrix that must be positive definite). ``dofs``: the model dofs K
+        is over, when fewer than the free ones (for the fill-reducing order)."""
+        on = self.free if dofs is None else dofs
+        order = lambda: self.model.dof_order(on)  # noqa: E731
         if spd_only:
             return factorize(K, spd=True, what=what, order=order, refactorable=refactorable)
         sym = abs(K - K.T).max() <= 1e-12 * abs(K).max()

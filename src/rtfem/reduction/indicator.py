@@ -149,7 +149,7 @@ def _correction(system, conf, F, r, K, idx, iterations: int) -> np.ndarray:
     e = np.zeros(system.free.size)
     if not idx.size:
         return e
-    fac = system.solver(K, "the full-order tangent at the reduced state")
+    fac = system.solver(K, "the full-order tangent at the reduced state", dofs=system.free[idx])
     e[idx] = fac.solve(r[idx])
     rn = float(np.linalg.norm(r[idx]))
     for _ in range(iterations - 1):  # chord steps with the same factor: toward the error itself

@@ -1,0 +1,82 @@
+"""Which model when, measured (issue 56): on the issue's three cases, through the viewer's own session
+and settings, the settled worst-node error of the linear modal model and of the reduced nonlinear
+model (the viewer's default: 40 modes + derivatives of 10, cubature, 1 ms steps) against the full
+order's equilibrium under the same grasp forces (rt.nonlinear.solve_static), the error estimate the
+session's monitor reports (rt.error_estimate) and each model's step time (median of the last 500
+steps, stepped synchronously on this thread).
+
+Cases: the tet10 block 0.1 x 0.04 x 0.04 m (E 40 kPa, clamped at x = 0) with a 15 mm jaw on its free
+end dragged 22.5 mm up; the default organ (the solid tet10 liver) grabbed at its top vertex (10 mm
+jaw) and dragged 20 mm up; the tet10 cantilever 1 x 0.1 x 0.1 m (E 100 kPa) grabbed at its tip and
+dragged 30 cm up (30 % of its length).
+
+    python benchmarks/model_errors.py [--steps 2500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import print_table  # noqa: E402
+
+import rtfem as rt  # noqa: E402
+from rtfem.viewer.session import Session, Settings, default_session  # noqa: E402
+
+
+def cases():
+    block = dict(mesh=rt.meshes.box(0.1, 0.04, 0.04, nx=10, ny=4, nz=4),
+                 material=rt.Material(E=4e4, nu=0.45, density=1000.0), fixed="x0", model_options={"element": "tet10"})
+    beam = dict(mesh=rt.meshes.box(1.0, 0.1, 0.1, nx=10, ny=1, nz=1), material=rt.Material(E=1e5, nu=0.3, density=10.0),
+                fixed="x0", model_options={"element": "tet10"})
+    return [("block, 15 mm jaw, 22.5 mm", block, 0.0075, 30.0, lambda X: np.array([0.1, 0.02, 0.02]), 0.0225),
+            ("liver (default organ), 20 mm", None, None, None, None, 0.02),
+            ("cantilever, tip, 30 % of L", beam, 0.0, 20.0, lambda X: np.array([1.0, 0.05, 0.05]), 0.3)]
+
+
+def settle(s, point, lift, steps):
+    node = s.grab(point)
+    s.drag(s.X[node] + s.driver.displacement(node) + [0.0, 0.0, lift])
+    times = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        s.step()
+        times.append(time.perf_counter() - t)
+    U, loads, _ = s._error_state()
+    return node, U, loads, float(np.median(times[-500:]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=2500)
+    args = ap.parse_args()
+    rows = []
+    for name, kw, radius, alpha, where, lift in cases():
+        for method in ("modal", "nonlinear"):
+            if kw is None:
+                s = default_session(settings=Settings(method=method) if method != "nonlinear" else None)
+                X = s.X
+                point = X[s.drawn[np.argmax(X[s.drawn, 2])]]
+            else:
+                s = Session(kw["mesh"], kw["material"], fixed=kw["fixed"], model_options=kw["model_options"],
+                            settings=Settings(method=method, alpha=alpha, grab_radius=radius))
+                point = where(s.X)
+            node, U, loads, step = settle(s, point, lift, args.steps)
+            model = s.model
+            full = rt.nonlinear.solve_static(model, loads, steps=8).displacements
+            linear = np.linalg.norm(model.solve_static(loads) - full, axis=1).max()
+            err = np.linalg.norm(U - full, axis=1).max()
+            est = rt.error_estimate(model, U, loads).max_error
+            rows.append([name, s.settings.label, f"{np.linalg.norm(U[node]) * 1e3:.1f}", f"{err * 1e3:.3f}",
+                         f"{err / linear:.2f}", f"{est * 1e3:.3f}", f"{step * 1e6:.0f} us"])
+            print(rows[-1], flush=True)
+    print_table(["case", "model", "jaw moved (mm)", "worst-node error (mm)", "/ linear static", "estimate (mm)",
+                 "step (median)"], rows)
+
+
+if __name__ == "__main__":
+    main()
