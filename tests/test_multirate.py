@@ -157,3 +157,29 @@ def test_a_grasp_ticks_the_jaws_force_of_the_next_physics_step_and_settles_on_th
     assert np.allclose(K * (c - jaw - delta.mean(axis=0)), f, rtol=1e-6, atol=1e-9)
     grasp.release()
     assert grasp.node is None and np.all(grasp.update(c) == 0.0)
+
+
+def test_bad_arguments_are_refused_in_words_and_change_nothing():
+    """The multi-rate tools and the error estimate refuse nonsense with an RtfemError that names it; the
+    driver is not stepped by a refused call."""
+    model, sim, X, p = _block()
+    for bad in (dict(rate=0.0), dict(rate=float("nan")), dict(stiffness=-1.0), dict(pace="yes"), dict(thread=2)):
+        with pytest.raises(rt.ModelError):
+            rt.MultiRateProbe(model.mesh, sim, **bad)
+    with pytest.raises(rt.ModelError, match="radius"):
+        rt.MultiRateGrasp(model.mesh, sim, radius=-0.01)
+    with pytest.raises(rt.ModelError):
+        rt.MultiRateProbe(model.mesh, object())
+    probe = rt.MultiRateProbe(model.mesh, sim, thread=False)
+    with pytest.raises(rt.ModelError, match="no hand position"):
+        probe.physics_step()
+    with pytest.raises(rt.ModelError):
+        probe.update([np.nan, 0.0, 0.0])
+    assert sim.steps == 0 and np.all(probe.force == 0.0)
+    U = np.zeros((model.n_nodes, 3))
+    for args, kw in (((U[:-1],), {}), ((U, np.full((model.n_nodes, 3), np.inf)), {}), ((U,), dict(iterations=0)),
+                     ((U,), dict(held=[model.n_nodes])), ((U,), dict(inertia=np.zeros(3)))):
+        with pytest.raises(rt.ModelError):
+            rt.error_estimate(model, *args, **kw)
+    with pytest.raises(rt.ModelError, match="nonlinear"):
+        rt.error_estimate(object(), U)
