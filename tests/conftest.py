@@ -88,6 +88,28 @@ def wait_for_viewer_address(p, timeout: float = 120.0) -> str:
     return line
 
 
+def serves_and_stops_on_ctrl_c(*view_args) -> None:
+    """`rtfem view ARGS --port P` in a subprocess: it says its address, serves the page, and Ctrl-C
+    stops it (exit 130, "stopped", no traceback)."""
+    import socket
+    import subprocess
+    import sys
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "view", *map(str, view_args), "--port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = wait_for_viewer_address(p)
+        assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
+        assert b"<html" in urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().lower()
+    finally:
+        out, err = interrupt(p, 30)
+    assert p.returncode == 130 and "stopped" in out and "Traceback" not in err, (out, err)
+
+
 def interrupt(p, timeout: float = 30.0) -> tuple[str, str]:
     """Ctrl-C a subprocess and collect its output. One that has not stopped within ``timeout`` s
     is killed (a test that fails must not leave a viewer running, holding a port and a core for

@@ -4,16 +4,13 @@ browser, pause, restart, the time slider's seek), what is drawn, the command's s
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 import types
-import urllib.request
 from importlib import resources
 
 import numpy as np
 import pytest
-from conftest import interrupt, wait_for_viewer_address
+from conftest import serves_and_stops_on_ctrl_c
 
 from rtfem.interaction.scene_file import load_scene
 from rtfem.viewer.scene_view import SceneSession
@@ -104,16 +101,7 @@ def _free_port() -> int:
 
 def test_rtfem_view_example_serves_and_stops_on_ctrl_c():
     pytest.importorskip("viser")
-    port = _free_port()
-    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "view", "--example", "gallbladder", "--port", str(port)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = wait_for_viewer_address(p)
-        assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
-        assert b"<html" in urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().lower()
-    finally:
-        out, err = interrupt(p, 30)
-    assert p.returncode == 130 and "stopped" in out and "Traceback" not in err, (out, err)
+    serves_and_stops_on_ctrl_c("--example", "gallbladder")
 
 
 def _positions(scene) -> list[np.ndarray]:

@@ -4,15 +4,12 @@ points), a scene's folder of bodies on one clock, the clock's transport, and wha
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import interrupt, wait_for_viewer_address
+from conftest import serves_and_stops_on_ctrl_c
 
 import rtfem as rt
 from rtfem.viewer.replay import Replay, boundary, read_run
@@ -152,16 +149,7 @@ def test_rtfem_simulate_output_replays_and_rtfem_view_serves_it(tmp_path):
     assert track.magnitudes[-1].max() > 1e-4  # the probe's press is in the frames
 
     pytest.importorskip("viser")
-    port = _free_port()
-    p = subprocess.Popen([sys.executable, "-m", "rtfem.cli.main", "view", str(out), "--port", str(port)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = wait_for_viewer_address(p)
-        assert f"http://127.0.0.1:{port}" in line, (line, p.stderr.read() if p.poll() is not None else "")
-        assert b"<html" in urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().lower()
-    finally:
-        out_text, err = interrupt(p, 30)
-    assert p.returncode == 130 and "stopped" in out_text and "Traceback" not in err, (out_text, err)
+    serves_and_stops_on_ctrl_c(out)
 
 
 def test_the_replay_viewer_shows_the_frame_of_the_clock(tmp_path):
