@@ -268,3 +268,132 @@ def test_every_scheduler_entry_point_refuses_a_bad_address_and_changes_nothing(t
                  "--scheduler", "nowhere", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "tcp://HOST:PORT" in err and "Traceback" not in err and not (tmp_path / "out" / "response.csv").exists()
+
+
+def _within(seconds: float, fn):
+    """fn() on a thread; its result, or a failure naming the hang when it took longer than ``seconds``."""
+    import threading
+
+    out: list = []
+    thread = threading.Thread(target=lambda: out.append(fn()), daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"the cluster run had not ended after {seconds:g} s"
+    assert out, "the cluster run raised (see the thread's traceback above)"
+    return out[0]
+
+
+@pytest.mark.parametrize("moment", ["sending", "last"])
+def test_a_worker_killed_while_the_modes_are_sent_or_before_the_last_result_still_gives_the_serial_map(
+        serial, real_cluster, moment):
+    """Issue 59: worker "a" killed (SIGKILL) while the modes go to the workers (the hang of a broadcast's
+    replication waiting on the dead worker), or when all but the last node have come back: the run ends
+    within 120 s with the serial map (to 1e-12). Killed while tasks run: the test above."""
+    import threading
+
+    address, client, procs = real_cluster
+    killed, stages = [], []
+
+    def kill() -> None:
+        if not killed:
+            procs[1].send_signal(signal.SIGKILL)
+            killed.append(time.monotonic())
+
+    def progress(done, total, message):
+        stages.append(message)
+        if moment == "sending" and message.startswith("copying"):
+            threading.Timer(0.05, kill).start()  # while the submit of the modes is under way
+        if moment == "last" and done == total - 1:
+            kill()
+
+    imap = _within(120, lambda: rt.ImpedanceMap.build(_model(), scheduler=client, progress=progress, **KW))
+    assert killed and procs[1].wait(10) != 0
+    assert stages[0].startswith("copying") and "MiB to the workers" in stages[0]  # the bar moves from the start
+    _same(serial, imap)
+
+
+def test_every_worker_killed_ends_with_one_line_and_the_partial_file(real_cluster, tmp_path, capsys, monkeypatch):
+    """Issue 59: both workers killed (SIGKILL) after the third node came back: ``rtfem impedance
+    --stall-timeout 4`` ends within 60 s with exit 1, one line saying no worker is left, and the nodes
+    that came back in the .partial.npz (each equal to the serial map's); the output is not written."""
+    import contextlib
+
+    import rtfem.cli.main as cli
+
+    address, _, procs = real_cluster
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+    assert cli.main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
+    killed = []
+
+    @contextlib.contextmanager
+    def bar(*args, **kwargs):
+        def tick(done, total, message=""):
+            if done >= 3 and not killed:
+                for p in procs[1:]:
+                    p.send_signal(signal.SIGKILL)
+                killed.append(done)
+        yield tick
+
+    monkeypatch.setattr(cli, "progress_bar", bar)
+    capsys.readouterr()
+    t0 = time.monotonic()
+    rc = cli.main(["impedance", *common, "--scheduler", address, "--stall-timeout", "4",
+                   "-o", str(tmp_path / "cluster.npz")])
+    took = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert rc == 1 and killed and took < 60, (rc, took, err)
+    said = [line for line in err.splitlines() if line.startswith("rtfem:")]
+    assert len(said) == 1 and "no live Dask worker for 4 s" in said[0] and "cluster.partial.npz" in said[0], err
+    assert "Traceback" not in err and not (tmp_path / "cluster.npz").exists()
+    a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.partial.npz")
+    assert 3 <= b.loaded.size < a.loaded.size
+    for k, j in enumerate(b.loaded):
+        s = int(np.searchsorted(a.loaded, j))
+        x, y = a.responses[a.offsets[s]:a.offsets[s + 1]], b.responses[b.offsets[k]:b.offsets[k + 1]]
+        assert x.shape == y.shape and np.abs(x - y).max() <= 1e-12 * np.abs(a.responses).max()
+
+
+def test_stall_timeout_is_refused_when_nonsense_or_without_a_scheduler(tmp_path, capsys):
+    import rtfem.cli.main as cli
+    from rtfem.cluster import stall_timeout
+
+    for bad in (0, -1, float("nan"), "soon"):
+        with pytest.raises(ModelError, match="stall timeout"):
+            with stall_timeout(bad):
+                pass
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    assert cli.main(["impedance", str(mesh), "--fix", "z<0.0001", "--stall-timeout", "5", "-o",
+                     str(tmp_path / "m.npz")]) == 2
+    assert "--stall-timeout is for a run on a cluster: give --scheduler too" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_the_scheduler_killed_mid_run_ends_the_run_with_why_and_keeps_what_came_back(serial, real_cluster):
+    """Issue 59: the ``dask scheduler`` killed (SIGKILL) after the third node came back: the build
+    ends within 90 s, incomplete, saying the scheduler is gone; the nodes kept are the serial map's."""
+    from rtfem.cluster import stall_timeout
+
+    address, client, procs = real_cluster
+    killed = []
+
+    def progress(done, total, message):
+        if done >= 3 and not killed:
+            procs[0].send_signal(signal.SIGKILL)
+            killed.append(done)
+
+    def build():
+        with stall_timeout(4):
+            return rt.ImpedanceMap.build(_model(), scheduler=address, progress=progress, **KW)
+
+    imap = _within(90, build)
+    assert killed and not imap.info["complete"], imap.info
+    assert "scheduler" in imap.info["error"] and "\n" not in imap.info["error"], imap.info["error"]
+    assert 3 <= imap.loaded.size < serial.loaded.size
+    for k, j in enumerate(imap.loaded):
+        s = int(np.searchsorted(serial.loaded, j))
+        a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
+        b = imap.responses[imap.offsets[k]:imap.offsets[k + 1]]
+        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()

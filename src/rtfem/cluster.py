@@ -17,19 +17,27 @@ cluster you run, across a network over ``tls://`` (both sides' certificates chec
 
 from __future__ import annotations
 
+import contextvars
 import threading
+import time
+import warnings
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator
 
 from . import validate
 from .errors import ModelError, SolverError
 
-__all__ = ["connect", "check_address", "is_loopback", "security", "run_tasks", "worker_cached", "CONNECT_TIMEOUT"]
+__all__ = ["connect", "check_address", "is_loopback", "security", "run_tasks", "worker_cached", "stall_timeout",
+           "CONNECT_TIMEOUT", "STALL_TIMEOUT"]
 
 CONNECT_TIMEOUT = 10.0  # s to reach a scheduler before the one-line error
 _CACHE: dict = {}  # per process (a worker's): key -> what it built
 _CACHE_SIZE = 4  # models kept per worker process (a batch's organs come one after the other)
 _LOCK = threading.Lock()
+STALL_TIMEOUT = 600.0  # s without a result before a run stops and says so (:func:`stall_timeout` changes it)
+_STALL = contextvars.ContextVar("rtfem_stall_timeout", default=None)
+_POLL = 0.1  # s between looks at the cluster while waiting
+_FETCH = 10.0  # s to fetch a finished result before looking at the cluster again (doubled on each try)
 
 
 def _distributed():
@@ -175,37 +183,187 @@ def worker_cached(key: str, build: Callable[[], object]):
     return value
 
 
-def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Callable[[object], None]) -> str:
+@contextmanager
+def stall_timeout(seconds: float) -> Iterator[float]:
+    """Within the block, a cluster run (:func:`run_tasks`: impedance maps, derivatives, cubature,
+    compliance, ``rtfem batch``) stops when no result has come back for ``seconds`` (default
+    :data:`STALL_TIMEOUT`), and when no worker is left for ``min(seconds, 30)`` s; it keeps what came
+    back and says why. The command line's ``--stall-timeout``.
+
+    Parameters
+    ----------
+    seconds : a number > 0.
+
+    Returns
+    -------
+    a context manager yielding ``seconds``.
+
+    Raises
+    ------
+    ModelError
+        ``seconds`` not a number > 0.
+    """
+    value = validate.positive(seconds, "stall timeout", "a number of seconds > 0")
+    token = _STALL.set(value)
+    try:
+        yield value
+    finally:
+        _STALL.reset(token)
+
+
+def _given(value):
+    """A task that returns what it was given: data a worker lost is made again from the graph."""
+    return value
+
+
+def _send_shared(client, shared: tuple) -> list:
+    """``shared`` on the cluster, one future each. Not scattered: a scattered value exists only on
+    the workers it reached, and a broadcast's replication waits on a worker that died (issue 59);
+    as a task's argument the scheduler holds it, and a worker lost before, during or after the copy
+    has it made again on a live one."""
+    with warnings.catch_warnings():  # the modes are meant to travel once, in the graph
+        warnings.filterwarnings("ignore", message="Sending large graph")
+        warnings.filterwarnings("ignore", message="Large object")
+        return [client.submit(_given, value, pure=False) for value in shared]
+
+
+class _Watch:
+    """Why a cluster run should stop while it waits, or None: no result for the stall timeout, no
+    live worker, the scheduler unreachable."""
+
+    def __init__(self, client, stall: float) -> None:
+        self.client, self.stall = client, stall
+        self.last = self.looked = self.alive = self.reached = time.monotonic()
+        self.workers = 0
+
+    def progress(self) -> None:
+        self.last = time.monotonic()
+
+    def why(self) -> str | None:
+        now = time.monotonic()
+        grace = min(self.stall, 30.0)
+        if now - self.looked >= 1.0:  # the scheduler's view, once a second
+            self.looked = now
+            try:
+                if self.client.status != "running":
+                    raise OSError(f"the client is {self.client.status}")
+                self.workers = len(self.client.scheduler_info()["workers"])
+                self.alive = now if self.workers else self.alive
+                self.reached = now
+            except Exception as exc:  # noqa: BLE001 - a lost scheduler raises what its comm raises
+                if now - self.reached > grace:
+                    return f"the scheduler stopped answering ({type(exc).__name__}: {validate.one_line(str(exc), 80)})"
+                return None
+        if now - self.alive > grace:
+            return f"no live Dask worker for {grace:g} s: start workers with 'dask worker ADDRESS' and run it again"
+        if now - self.last > self.stall:
+            return (f"no result for {self.stall:g} s from {self.workers} worker(s) (--stall-timeout; "
+                    "rtfem.cluster.stall_timeout)")
+        return None
+
+
+def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Callable[[object], None], *,
+              stage: Callable[[str], None] | None = None) -> str:
     """``fn(*shared, chunk)`` on the cluster for every chunk; ``collect(result)`` for each result as it
-    arrives, here. ``shared`` is sent to every worker once (scattered, broadcast), not per task.
-    Returns "" when every chunk came back, else why not: a KeyboardInterrupt (Ctrl-C) or a task that
-    failed (a worker killed more often than Dask retries it) cancels the rest, and what came back
-    stays collected.
+    arrives, here. ``shared`` is sent once (one task holding it: :func:`_send_shared`), fetched by
+    each worker that needs it, and made again from the graph if the worker holding it is lost; Dask
+    reruns the tasks of a lost worker on the others.
+
+    Returns "" when every chunk came back, else why not, in one line: a KeyboardInterrupt (Ctrl-C),
+    a task that failed (a worker killed more often than Dask retries it), no result for the stall
+    timeout (:func:`stall_timeout`), no live worker, the scheduler gone. The rest is cancelled and
+    what came back stays collected. ``stage(message)`` hears each stage from the start: the copy of
+    ``shared``, then the tasks running (a caller's progress line before the first result).
 
     Raises
     ------
     KeyboardInterrupt
         An interruption before any result (nothing to keep).
     SolverError
-        A failure before any result (the first task's error).
+        A failure before any result (the first task's error, or why the run stopped).
     """
     distributed = _distributed()
-    futures = []
-    got = 0
+    chunks = list(chunks)
+    stall = _STALL.get() or STALL_TIMEOUT
+    futures: list = []
+    got = [0]  # results collected, also when the wait is left by an exception
+
+    def take(result) -> None:
+        collect(result)
+        got[0] += 1
+
+    say = stage or (lambda message: None)
     try:
-        shared_f = client.scatter(list(shared), broadcast=True, hash=False) if shared else []
+        from dask.sizeof import sizeof
+
+        say(f"copying {sizeof(list(shared)) / 2**20:.1f} MiB to the workers")
+        shared_f = _send_shared(client, shared)
         futures = [client.submit(fn, *shared_f, chunk, pure=False) for chunk in chunks]
-        for future in distributed.as_completed(futures):
-            collect(future.result())
-            got += 1
-        return ""
+        why = _collect(distributed, client, shared_f, futures, take, say, stall)
     except KeyboardInterrupt:
-        client.cancel(futures)
-        if not got:
+        _cancel(client, futures)
+        if not got[0]:
             raise
         return "interrupted"
     except Exception as exc:  # noqa: BLE001 - a task's error, a lost connection: keep what came back
-        client.cancel(futures)
-        if not got:
-            raise SolverError(f"the cluster's first tasks failed: {type(exc).__name__}: {exc}") from exc
-        return f"{type(exc).__name__}: {exc}"
+        _cancel(client, futures)
+        why = _reason(distributed, client, exc)
+        if not got[0]:
+            raise SolverError(f"the cluster's first tasks failed: {why}") from exc
+        return why
+    if why:
+        _cancel(client, futures)
+        if not got[0]:
+            raise SolverError(f"the cluster run stopped before any result: {why}")
+    return why
+
+
+def _collect(distributed, client, shared_f, futures, collect, say, stall: float) -> str:
+    """Wait for ``futures``, ``collect`` each result as it comes; why it stopped, or "" when all came."""
+    watch = _Watch(client, stall)
+    pending = distributed.as_completed(futures, loop=client.loop)  # not the default client's loop
+    copied, got = not shared_f, 0
+    wait = {}  # s to wait for a finished task's result before looking at the cluster again
+    while got < len(futures):
+        batch = pending.next_batch(block=False)
+        for future in sorted(batch, key=lambda f: f.status != "finished"):  # results first, then a failure
+            if future.status != "finished":
+                future.result()  # raises the task's error (or says it was cancelled)
+            try:
+                result = future.result(timeout=wait.get(future.key, _FETCH))
+            except TimeoutError:
+                # its worker died after it finished: Dask runs it again (on a live worker, if any), and
+                # a slow copy of a large result gets longer next time
+                wait[future.key] = 2 * wait.get(future.key, _FETCH)
+                pending.add(future)
+                continue
+            collect(result)
+            got += 1
+            watch.progress()
+        if not copied and all(f.status == "finished" for f in shared_f):
+            copied = True
+            watch.progress()
+            say(f"copied; {len(futures)} task(s) running")
+        why = watch.why()
+        if why:
+            return why
+        if not batch:
+            time.sleep(_POLL)
+    return ""
+
+
+def _reason(distributed, client, exc: BaseException) -> str:
+    """One line for what ended a run: a lost scheduler said as such, else the task's error."""
+    text = f"{type(exc).__name__}: {validate.one_line(str(exc), 200)}"
+    if isinstance(exc, distributed.comm.CommClosedError) or client.status != "running":
+        return f"lost the connection to the Dask scheduler ({text})"
+    return text
+
+
+def _cancel(client, futures) -> None:
+    """Cancel what is left, unless the scheduler is gone (the call would wait on it)."""
+    try:
+        if futures and client.status == "running":
+            client.cancel(futures)
+    except Exception:  # noqa: BLE001 - nothing left to cancel on
+        pass

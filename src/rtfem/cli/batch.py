@@ -400,7 +400,8 @@ def _run(out: Path, specs: list, scheduler) -> int:
           flush=True)
     if scheduler is not None:
         with connect(scheduler) as client:
-            why = run_tasks(client, _organ_task, (str(out),), [[s] for s in specs], collect)
+            why = run_tasks(client, _organ_task, (str(out),), [[s] for s in specs], collect,
+                            stage=lambda message: print(f"cluster     {message}", flush=True))
     else:
         try:
             for spec in specs:

@@ -343,6 +343,9 @@ def add_scheduler_options(p: argparse.ArgumentParser, what: str) -> None:
                    "and this client's")
     g.add_argument("--tls-cert", metavar="PEM", help="this client's certificate, signed by that CA")
     g.add_argument("--tls-key", metavar="PEM", help="this client's private key (when the --tls-cert file does not hold it)")
+    p.add_argument("--stall-timeout", metavar="S", type=positive, default=None,
+                   help="with --scheduler: stop when no result has come back for S seconds (default 600; and when no "
+                        "worker is left for min(S, 30) s), keeping what came back")
 
 
 def check_scheduler(args) -> str | None:
@@ -358,6 +361,8 @@ def check_scheduler(args) -> str | None:
     if given and not (address or "").startswith("tls://"):
         raise RtfemError(f"{', '.join(given)}: the certificates are for --scheduler tls://HOST:PORT")
     if address is None:
+        if getattr(args, "stall_timeout", None) is not None:
+            raise RtfemError("--stall-timeout is for a run on a cluster: give --scheduler too")
         return None
     if address.startswith("tls://"):
         missing = [flag for flag in ("--tls-ca-file", "--tls-cert") if tls[flag] is None]
@@ -380,10 +385,11 @@ def scheduler_of(args, address: str | None):
     """What the library's ``scheduler=`` takes for the checked ``address`` (:func:`check_scheduler`):
     None (here), the address (tcp://, local:N), or a Client connected over TLS with the --tls-*
     certificates (closed on exit)."""
-    if address is None or not address.startswith("tls://"):
-        yield address
-        return
-    from ..cluster import connect, security
+    from ..cluster import STALL_TIMEOUT, connect, security, stall_timeout
 
-    with connect(address, security=security(args.tls_ca_file, args.tls_cert, args.tls_key)) as client:
-        yield client
+    with stall_timeout(getattr(args, "stall_timeout", None) or STALL_TIMEOUT):
+        if address is None or not address.startswith("tls://"):
+            yield address
+            return
+        with connect(address, security=security(args.tls_ca_file, args.tls_cert, args.tls_key)) as client:
+            yield client

@@ -203,7 +203,8 @@ def _cluster_nodes(client, model, settings, modes, loaded, progress, chunk) -> t
     workers = max(1, sum(client.nthreads().values()))
     size = chunk or int(np.clip(np.ceil(loaded.size / (4 * workers)), 1, 32))
     chunks = [loaded[i:i + size] for i in range(0, loaded.size, size)]
-    why = run_tasks(client, _cluster_columns, (recipe, light, settings), chunks, collect)
+    stage = None if progress is None else (lambda message: progress(len(results), loaded.size, message))
+    why = run_tasks(client, _cluster_columns, (recipe, light, settings), chunks, collect, stage=stage)
     slot = np.full(model.n_nodes, -1)
     slot[loaded] = np.arange(loaded.size)
     results.sort(key=lambda r: slot[r[0]])

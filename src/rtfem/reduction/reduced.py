@@ -574,7 +574,9 @@ def _cluster_differences(model, Phi: np.ndarray, scheduler, progress) -> list:
             progress(done, m, f"tangent derivative {done} of {m} (cluster)")
 
     with connect(scheduler) as client:
-        why = run_tasks(client, _difference_task, (ModelRecipe.of(model), Phi), [[j] for j in range(m)], collect)
+        stage = None if progress is None else (lambda message: progress(sum(y is not None for y in Y), m, message))
+        why = run_tasks(client, _difference_task, (ModelRecipe.of(model), Phi), [[j] for j in range(m)], collect,
+                        stage=stage)
     if why:
         if why == "interrupted":
             raise KeyboardInterrupt
