@@ -397,3 +397,27 @@ def test_the_scheduler_killed_mid_run_ends_the_run_with_why_and_keeps_what_came_
         a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
         b = imap.responses[imap.offsets[k]:imap.offsets[k + 1]]
         assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()
+
+
+def _sleeps(seconds, chunk):
+    time.sleep(seconds)
+    return list(chunk)
+
+
+def test_a_long_task_is_not_a_stall_and_tasks_that_never_run_are(local2):
+    """The stall timeout (issue 59) counts time with no result and none of the run's tasks running on
+    a live worker: tasks of 4 s under a 1.5 s timeout finish; tasks no worker can take (they ask for a
+    resource none has) stop after the 3 s timeout with one line."""
+    import dask
+
+    from rtfem.cluster import run_tasks, stall_timeout
+
+    got: list = []
+    with stall_timeout(1.5):
+        assert run_tasks(local2, _sleeps, (4.0,), [[1], [2]], got.extend) == ""
+    assert sorted(got) == [1, 2]
+    t0 = time.monotonic()
+    with stall_timeout(3), dask.annotate(resources={"rtfem-test-nowhere": 1}):
+        with pytest.raises(SolverError, match=r"no result came back and no task ran for 3 s on 2 worker"):
+            run_tasks(local2, _sleeps, (0.0,), [[3], [4]], got.extend)
+    assert 3 <= time.monotonic() - t0 < 12 and sorted(got) == [1, 2]

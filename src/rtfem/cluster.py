@@ -34,7 +34,7 @@ CONNECT_TIMEOUT = 10.0  # s to reach a scheduler before the one-line error
 _CACHE: dict = {}  # per process (a worker's): key -> what it built
 _CACHE_SIZE = 4  # models kept per worker process (a batch's organs come one after the other)
 _LOCK = threading.Lock()
-STALL_TIMEOUT = 600.0  # s without a result before a run stops and says so (:func:`stall_timeout` changes it)
+STALL_TIMEOUT = 600.0  # s with no result and no task running before a run stops and says so (:func:`stall_timeout`)
 _STALL = contextvars.ContextVar("rtfem_stall_timeout", default=None)
 _POLL = 0.1  # s between looks at the cluster while waiting
 _FETCH = 10.0  # s to fetch a finished result before looking at the cluster again (doubled on each try)
@@ -186,9 +186,10 @@ def worker_cached(key: str, build: Callable[[], object]):
 @contextmanager
 def stall_timeout(seconds: float) -> Iterator[float]:
     """Within the block, a cluster run (:func:`run_tasks`: impedance maps, derivatives, cubature,
-    compliance, ``rtfem batch``) stops when no result has come back for ``seconds`` (default
-    :data:`STALL_TIMEOUT`), and when no worker is left for ``min(seconds, 30)`` s; it keeps what came
-    back and says why. The command line's ``--stall-timeout``.
+    compliance, ``rtfem batch``) stops when for ``seconds`` (default :data:`STALL_TIMEOUT`) no result
+    has come back and none of its tasks has run on a live worker (a long task that runs is not a
+    stall), and when no worker is left for ``min(seconds, 30)`` s; it keeps what came back and says
+    why. The command line's ``--stall-timeout``.
 
     Parameters
     ----------
@@ -228,11 +229,12 @@ def _send_shared(client, shared: tuple) -> list:
 
 
 class _Watch:
-    """Why a cluster run should stop while it waits, or None: no result for the stall timeout, no
-    live worker, the scheduler unreachable."""
+    """Why a cluster run should stop while it waits, or None: nothing done for the stall timeout (no
+    result came back, and none of the run's ``keys`` ran on a live worker), no live worker, the
+    scheduler unreachable."""
 
-    def __init__(self, client, stall: float) -> None:
-        self.client, self.stall = client, stall
+    def __init__(self, client, stall: float, keys) -> None:
+        self.client, self.stall, self.keys = client, stall, set(keys)
         self.last = self.looked = self.alive = self.reached = time.monotonic()
         self.workers = 0
 
@@ -248,7 +250,11 @@ class _Watch:
                 if self.client.status != "running":
                     raise OSError(f"the client is {self.client.status}")
                 self.workers = len(self.client.scheduler_info()["workers"])
-                self.alive = now if self.workers else self.alive
+                if self.workers:
+                    self.alive = now
+                    running = self.client.processing()  # worker -> the keys it runs
+                    if any(key in self.keys for keys in running.values() for key in keys):
+                        self.last = now  # a task of this run is running on a live worker: not stalled
                 self.reached = now
             except Exception as exc:  # noqa: BLE001 - a lost scheduler raises what its comm raises
                 if now - self.reached > grace:
@@ -257,8 +263,8 @@ class _Watch:
         if now - self.alive > grace:
             return f"no live Dask worker for {grace:g} s: start workers with 'dask worker ADDRESS' and run it again"
         if now - self.last > self.stall:
-            return (f"no result for {self.stall:g} s from {self.workers} worker(s) (--stall-timeout; "
-                    "rtfem.cluster.stall_timeout)")
+            return (f"no result came back and no task ran for {self.stall:g} s on {self.workers} worker(s) "
+                    "(--stall-timeout; rtfem.cluster.stall_timeout)")
         return None
 
 
@@ -320,7 +326,7 @@ def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Ca
 
 def _collect(distributed, client, shared_f, futures, collect, say, stall: float) -> str:
     """Wait for ``futures``, ``collect`` each result as it comes; why it stopped, or "" when all came."""
-    watch = _Watch(client, stall)
+    watch = _Watch(client, stall, [f.key for f in (*shared_f, *futures)])
     pending = distributed.as_completed(futures, loop=client.loop)  # not the default client's loop
     copied, got = not shared_f, 0
     wait = {}  # s to wait for a finished task's result before looking at the cluster again

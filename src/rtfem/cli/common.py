@@ -344,8 +344,8 @@ def add_scheduler_options(p: argparse.ArgumentParser, what: str) -> None:
     g.add_argument("--tls-cert", metavar="PEM", help="this client's certificate, signed by that CA")
     g.add_argument("--tls-key", metavar="PEM", help="this client's private key (when the --tls-cert file does not hold it)")
     p.add_argument("--stall-timeout", metavar="S", type=positive, default=None,
-                   help="with --scheduler: stop when no result has come back for S seconds (default 600; and when no "
-                        "worker is left for min(S, 30) s), keeping what came back")
+                   help="with --scheduler: stop when for S seconds no result has come back and no task has run "
+                        "(default 600; and when no worker is left for min(S, 30) s), keeping what came back")
 
 
 def check_scheduler(args) -> str | None:
