@@ -3,6 +3,7 @@ on the organ beside the panel once it has said its canvas size, and where a poin
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -55,23 +56,55 @@ def framing(centre, radius: float, view, fov: float, width: int, height: int,
     return look_at + d * v, look_at
 
 
-def frame_client(client, centre, radius: float, view, timeout: float = 30.0) -> bool:
+def frame_client(client, centre, radius: float, view, timeout: float = 30.0, watch: float = 20.0) -> bool:
     """Frame a newly connected browser's camera (:func:`framing`) once it has said its canvas size
     and field of view; False when it did not within ``timeout`` s (it keeps the initial camera; a
-    browser on a loaded machine took over 5 s to say it)."""
+    browser on a loaded machine took over 5 s to say it).
+
+    A camera message the browser sent before the framing reached it puts the first camera back in
+    the server's copy, and a browser still setting up its canvas may drop the framing: for
+    ``watch`` s a thread sends the framing again whenever the browser reports the first camera
+    (a browser on a loaded machine applied the first camera after the framing, and kept it)."""
     cam = client.camera
     t0 = time.perf_counter()
     while cam.update_timestamp == 0.0 or cam.image_width == 0:
         if time.perf_counter() - t0 > timeout:
             return False
         time.sleep(0.05)
+    first = np.array(cam.look_at, dtype=float)
     position, look_at = framing(centre, radius, view, cam.fov, cam.image_width, cam.image_height)
+    _send_framing(cam, position, look_at)
+    if watch > 0:
+        old = (np.asarray(centre, dtype=float), first)  # the first camera's look-at, and what the browser first said
+        threading.Thread(target=_keep_framed, args=(cam, old, position, look_at, radius, watch),
+                         name="rtfem-frame-camera", daemon=True).start()
+    return True
+
+
+def _send_framing(cam, position, look_at) -> float:
+    """Set the framed camera on the client; the time it was sent."""
     cam.up_direction = (0.0, 0.0, 1.0)
     # the position first: the client moves it with a transition about its present target, and a
     # target set before it ended up elsewhere (the look-at set last is taken as it is)
     cam.position = tuple(position)
     cam.look_at = tuple(look_at)
-    return True
+    return time.time()
+
+
+def _keep_framed(cam, old, position, look_at, radius: float, watch: float) -> None:
+    """For ``watch`` s, send the framing again whenever the browser reports one of the ``old``
+    look-at points after it was sent (see :func:`frame_client`); a look-at of the user's own is left
+    alone (it is never one of them to within a thousandth of the organ's radius)."""
+    tol = 1e-3 * max(float(radius), 1e-12)  # float32 round-off of the browser's echo is far below this
+    sent, t0 = time.time(), time.perf_counter()
+    while time.perf_counter() - t0 < watch:
+        time.sleep(0.2)
+        try:
+            stamp, at = cam.update_timestamp, np.asarray(cam.look_at, dtype=float)
+            if stamp > sent and min(np.linalg.norm(at - o) for o in old) < tol:
+                sent = _send_framing(cam, position, look_at)  # an old message, or the framing dropped
+        except Exception:  # the browser went away
+            return
 
 
 def project(client, points) -> np.ndarray:
