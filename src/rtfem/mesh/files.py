@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import validate
-from ..errors import MeshError, ModelError
+from ..errors import MeshError, ModelError, RtfemWarning
 from ..userfiles import regular_file
 from .surface import TriMesh
 from .tetmesh import TetMesh
@@ -37,7 +37,8 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
     path : mesh file (OBJ, STL, PLY, OFF, VTK legacy or XML, VTU, Gmsh MSH, ...).
     scale : factor applied to the coordinates; organ meshes are usually in millimetres and
         the model works in SI units, so ``scale=1e-3`` turns mm into m.
-    repair, merge_tol : see :class:`TriMesh`; the repairs are listed in ``mesh.report``.
+    repair, merge_tol : see :class:`TriMesh`; the repairs are listed in ``mesh.report``. A cut
+        mesh (``rt.cut``) has twin nodes on its cut faces: load it with ``merge_tol=0``.
 
     Returns
     -------
@@ -49,6 +50,11 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
         A missing or unreadable file (named), an unknown format, no triangles or tets in it, a
         bad scale, a mesh its checks refuse (non-manifold, degenerate, tangled: the message says
         what to repair).
+
+    Warns
+    -----
+    RtfemWarning
+        Coincident nodes of a tet mesh merged (a cut or a crack closed).
     """
     p = Path(validate.path_like(path, "path", error=MeshError))
     s = validate.positive(scale, "scale", "a factor on the coordinates (1e-3 turns mm into m)", error=MeshError)
@@ -58,6 +64,10 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
     points, triangles, tets, groups = _read(p)
     if tets is not None:
         mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups)
+        if mesh.report.merged_nodes:  # a volume mesh's twin nodes are a cut or a crack (rt.cut writes them)
+            warnings.warn(f"{p.name}: {mesh.report.merged_nodes} node(s) coincide with others and were merged, which "
+                          "closes any cut or crack the mesh has; pass merge_tol=0 to keep them apart", RtfemWarning,
+                          stacklevel=2)
     else:
         mesh = TriMesh(points * s, triangles, repair=repair, merge_tol=merge_tol, groups=groups)
     if s != 1.0:

@@ -330,7 +330,8 @@ class TetMesh:
             inside[idx] = True
             both = np.flatnonzero(inside[edges[:, 0]] & inside[edges[:, 1]])
             groups[name] = np.concatenate([np.asarray(idx, dtype=np.int64), self.n_vertices + both])
-        return TetMesh(np.vstack([self._vertices, mid]), T, repair=False, groups=groups)
+        # merge_tol 0: a cut mesh's twin nodes stay apart
+        return TetMesh(np.vstack([self._vertices, mid]), T, repair=False, merge_tol=0.0, groups=groups)
 
     def linear(self) -> "TetMesh":
         """The 4-node mesh of the corners (mid-edge nodes dropped and the nodes renumbered;

@@ -1,0 +1,220 @@
+"""Cutting a solid along a triangulated surface (issue 57): the tets on the two sides of every element
+face that lies in the surface are separated there, by giving each node as many copies as there are
+groups of its tets still joined through uncut faces around it (the cut's front, where the surface
+ends inside the solid, keeps its nodes shared, so the slit closes there as a crack's does).
+
+This first step cuts along element faces: the surface must cover whole faces (a mesh made to follow
+it: a slit's plane through a box's nodes, a segmentation's boundary), and a surface that passes
+through an element's inside is refused with the elements named. Nothing is removed: the mass and the
+volume stay, and the new faces are surface (contact, drawing and export see them). Splitting the
+elements a surface crosses (Molino, Bao and Fedkiw 2004's virtual nodes) is the next step.
+
+A model is cut by :func:`rtfem.fe.cut.cut` (``rt.cut``). The test: a slit cantilever's frequencies
+against CalculiX's on a mesh built slit (tests/verification/test_cut.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .. import validate
+from ..errors import ModelError
+
+__all__ = ["cut_mesh", "CutInfo"]
+
+# each tet face, opposite corner i: its corners and (a tet10's, VTK order) its mid-edge nodes
+_FACE_CORNERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+_FACE_MIDS = np.array([[5, 9, 8], [6, 9, 7], [4, 8, 7], [4, 5, 6]])
+_TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surface is on it
+
+
+class CutInfo(dict):
+    """What :func:`cut_mesh` did: ``faces`` (element faces cut), ``nodes_added`` (copies made),
+    ``parent`` (for each node of the cut mesh, the node it copies), ``pieces`` (separate parts
+    of the cut mesh) and ``piece`` (each node's part)."""
+
+    __getattr__ = dict.__getitem__
+
+
+def _surface(vertices, triangles) -> np.ndarray:
+    """The cut surface's triangles (m, 3, 3), checked."""
+    P = validate.real_array(vertices, "vertices", ndim=2, error=ModelError)
+    if P.shape[1] != 3 or P.shape[0] < 3:
+        raise ModelError(f"vertices of shape {P.shape}: give the cut surface's vertices as (k, 3) coordinates in metres")
+    try:
+        T = np.asarray(triangles)
+    except Exception:
+        raise ModelError(f"triangles={validate.show(triangles)}: give (m, 3) vertex indices") from None
+    if T.ndim != 2 or T.shape[1] != 3 or T.shape[0] == 0 or not np.issubdtype(T.dtype, np.integer):
+        raise ModelError(f"triangles of shape {T.shape} and type {T.dtype}: give the cut surface's triangles as (m, 3) "
+                         "integer vertex indices")
+    if T.min() < 0 or T.max() >= P.shape[0]:
+        raise ModelError(f"triangles index vertices {int(T.min())}..{int(T.max())}, but there are {P.shape[0]}")
+    tri = P[T]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area > 0).all():
+        raise ModelError(f"cut triangle {int(np.flatnonzero(~(area > 0))[0])} has no area: remove degenerate triangles")
+    return tri
+
+
+def _on_surface(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
+    """(p,) whether each point lies on one of the triangles (within ``tol``)."""
+    on = np.zeros(points.shape[0], dtype=bool)
+    a, ab, ac = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    n = np.cross(ab, ac)
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    den = d00 * d11 - d01 * d01
+    size = np.sqrt(np.maximum(d00, d11))
+    for s in range(0, points.shape[0], 512):  # (chunk, m) at a time
+        p = points[s:s + 512, None, :] - a[None]
+        near = np.abs((p * n[None]).sum(-1)) <= tol
+        d20, d21 = (p * ab[None]).sum(-1), (p * ac[None]).sum(-1)
+        v = (d11 * d20 - d01 * d21) / den
+        w = (d00 * d21 - d01 * d20) / den
+        slack = tol / size
+        inside = (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
+        on[s:s + 512] = (near & inside).any(axis=1)
+    return on
+
+
+def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
+    """(s,) whether each segment P-Q passes through a triangle's inside, its ends off the triangle's
+    plane on opposite sides (by more than ``tol``)."""
+    out = np.zeros(P.shape[0], dtype=bool)
+    a = tri[:, 0]
+    n = np.cross(tri[:, 1] - a, tri[:, 2] - a)
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    for s in range(0, P.shape[0], 512):
+        p, q = P[s:s + 512, None, :], Q[s:s + 512, None, :]
+        dp, dq = ((p - a[None]) * n[None]).sum(-1), ((q - a[None]) * n[None]).sum(-1)
+        cross = ((dp > tol) & (dq < -tol)) | ((dp < -tol) & (dq > tol))
+        t = np.where(cross, dp / np.where(cross, dp - dq, 1.0), 0.0)
+        x = p + t[..., None] * (q - p)
+        e = x - a[None]
+        ab, ac = tri[:, 1] - a, tri[:, 2] - a
+        d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+        d20, d21 = (e * ab[None]).sum(-1), (e * ac[None]).sum(-1)
+        den = d00 * d11 - d01 * d01
+        v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+        out[s:s + 512] = (cross & (v > 1e-9) & (w > 1e-9) & (v + w < 1 - 1e-9)).any(axis=1)
+    return out
+
+
+def _faces(T: np.ndarray):
+    """Every element face: (4E, 3) sorted corners, (4E, j) its node slots in its element (3 corners,
+    and a tet10's 3 mid-edge nodes), and the unique faces' index and count."""
+    E = T.shape[0]
+    corners = T[:, _FACE_CORNERS].reshape(-1, 3)
+    slots = _FACE_CORNERS if T.shape[1] == 4 else np.concatenate([_FACE_CORNERS, _FACE_MIDS], axis=1)
+    keys = np.sort(corners, axis=1)
+    _, index, count = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return keys, np.tile(slots, (E, 1)), index.ravel(), count
+
+
+def cut_mesh(mesh, vertices, triangles):
+    """The tet mesh ``mesh`` separated along the element faces that lie in the triangulated surface
+    (``vertices`` (k, 3) in metres, ``triangles`` (m, 3)): each node of those faces gets one copy per
+    group of its tets still joined through uncut faces (see the module).
+
+    Parameters
+    ----------
+    mesh : an rt.TetMesh (tet4 or tet10).
+    vertices, triangles : the cut surface.
+
+    Returns
+    -------
+    (TetMesh, CutInfo): the cut mesh (the old nodes first, in their order, then the copies; the
+    tets in their order; the groups with the copies of their nodes) and what was done.
+
+    Raises
+    ------
+    ModelError
+        A malformed surface; a surface that passes through the inside of elements (they are named:
+        cut along element faces, or mesh the solid to follow the surface); one that lies along no
+        element face inside the solid.
+    """
+    from .tetmesh import TetMesh
+
+    V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
+    tri = _surface(vertices, triangles)
+    tol = _TOL * max(float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), 1e-300)
+    _refuse_crossed(V, T, tri, tol)
+    keys, slots, index, count = _faces(T)
+    elem = np.repeat(np.arange(T.shape[0]), 4)
+    inner = np.flatnonzero(count[index] == 2)
+    order = inner[np.argsort(index[inner], kind="stable")]
+    f1, f2 = order[0::2], order[1::2]  # the two sides of each interior face
+    C = V[keys[f1]]
+    probes = np.concatenate([C[:, 0], C[:, 1], C[:, 2], (C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2,
+                             (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
+    cut = _on_surface(probes, tri, tol).reshape(7, -1).all(axis=0)
+    if not cut.any():
+        raise ModelError("the cut surface lies along no element face inside the solid: it misses the solid, runs "
+                         "along its outside, or crosses elements without following their faces")
+    parent, T_new = _split_nodes(T, elem, slots, f1, f2, cut, V.shape[0])
+    groups = {name: np.flatnonzero(np.isin(parent, nodes)) for name, nodes in mesh.groups.items()}
+    new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups)
+    pieces, piece = _pieces(T_new, parent.size)
+    info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - V.shape[0]), parent=parent,
+                   pieces=pieces, piece=piece)
+    return new, info
+
+
+def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> None:
+    """A surface through an element's inside (an element edge through a triangle, or a triangle's
+    edge through an element face) is refused, the elements named."""
+    lo, hi = tri.reshape(-1, 3).min(axis=0) - tol, tri.reshape(-1, 3).max(axis=0) + tol
+    pairs = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+    E = np.unique(np.sort(T[:, pairs].reshape(-1, 2), axis=1), axis=0)
+    near = ((np.minimum(V[E[:, 0]], V[E[:, 1]]) <= hi) & (np.maximum(V[E[:, 0]], V[E[:, 1]]) >= lo)).all(axis=1)
+    E = E[near]
+    bad = E[_crossings(V[E[:, 0]], V[E[:, 1]], tri, tol)] if E.size else E
+    if bad.size:
+        has = np.isin(np.sort(T[:, pairs].reshape(-1, 2), axis=1).view([("a", T.dtype), ("b", T.dtype)]).ravel(),
+                      bad.astype(T.dtype).view([("a", T.dtype), ("b", T.dtype)]).ravel()).reshape(-1, 6).any(axis=1)
+        which = np.flatnonzero(has)
+        raise ModelError(f"the cut surface passes through the inside of {which.size} element(s) (first: tets "
+                         f"{which[:5].tolist()}): cuts follow element faces so far; mesh the solid so that its "
+                         "faces lie in the surface (a slit's plane through nodes), or move the surface onto faces")
+
+
+def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
+    """(parent, new tets): each node of a cut face copied once per group of its tets joined through
+    uncut faces that hold it; the other nodes untouched."""
+    E, K = T.shape
+    keep = ~cut
+    a, b = f1[keep], f2[keep]
+    na, nb = T[elem[a][:, None], slots[a]], T[elem[b][:, None], slots[b]]
+    ia = elem[a][:, None] * K + np.take_along_axis(slots[a], np.argsort(na, axis=1), axis=1)
+    ib = elem[b][:, None] * K + np.take_along_axis(slots[b], np.argsort(nb, axis=1), axis=1)
+    graph = sp.coo_matrix((np.ones(ia.size), (ia.ravel(), ib.ravel())), shape=(E * K, E * K))
+    _, label = connected_components(graph, directed=False)
+    node = T.ravel()
+    comp_node = np.empty(label.max() + 1, dtype=np.int64)
+    comp_node[label] = node
+    on_cut = np.zeros(n, dtype=bool)
+    on_cut[T[elem[f1[cut]][:, None], slots[f1[cut]]].ravel()] = True
+    comps = np.flatnonzero(on_cut[comp_node])
+    comps = comps[np.lexsort((comps, comp_node[comps]))]  # by node, then label
+    first = np.r_[True, comp_node[comps][1:] != comp_node[comps][:-1]]
+    extra = comps[~first]
+    new_id = comp_node.copy()
+    new_id[extra] = n + np.arange(extra.size)
+    parent = np.concatenate([np.arange(n), comp_node[extra]])
+    return parent, new_id[label].reshape(E, K)
+
+
+def _pieces(T: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """How many separate parts the tets make (joined through shared nodes), and each node's."""
+    E, K = T.shape
+    g = sp.coo_matrix((np.ones(E * K), (np.repeat(np.arange(E), K), T.ravel())), shape=(E, n)).tocsr()
+    count, label = connected_components(sp.bmat([[None, g], [g.T, None]]), directed=False)
+    node_label = label[E:]
+    used = np.unique(node_label[np.unique(T)])
+    remap = np.full(count, -1)
+    remap[used] = np.arange(used.size)
+    return int(used.size), remap[node_label]
+
