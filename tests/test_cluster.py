@@ -345,7 +345,7 @@ def test_every_worker_killed_ends_with_one_line_and_the_partial_file(real_cluste
     err = capsys.readouterr().err
     assert rc == 1 and killed and took < 60, (rc, took, err)
     said = [line for line in err.splitlines() if line.startswith("rtfem:")]
-    assert len(said) == 1 and "no live Dask worker for 4 s" in said[0] and "cluster.partial.npz" in said[0], err
+    assert len(said) == 1 and "no live Dask worker answering for 4 s" in said[0] and "cluster.partial.npz" in said[0], err
     assert "Traceback" not in err and not (tmp_path / "cluster.npz").exists()
     a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.partial.npz")
     assert 3 <= b.loaded.size < a.loaded.size
@@ -418,6 +418,61 @@ def test_a_long_task_is_not_a_stall_and_tasks_that_never_run_are(local2):
     assert sorted(got) == [1, 2]
     t0 = time.monotonic()
     with stall_timeout(3), dask.annotate(resources={"rtfem-test-nowhere": 1}):
-        with pytest.raises(SolverError, match=r"no result came back and no task ran for 3 s on 2 worker"):
+        with pytest.raises(SolverError, match=r"no result came back and no task ran for 3 s on 2 answering worker"):
             run_tasks(local2, _sleeps, (0.0,), [[3], [4]], got.extend)
     assert 3 <= time.monotonic() - t0 < 12 and sorted(got) == [1, 2]
+
+
+def test_a_frozen_worker_is_not_progress_and_a_lost_scheduler_is_one_line(real_cluster, tmp_path, capsys, monkeypatch):
+    """Found by a hostile probe (issue 59): a worker frozen with SIGSTOP stays listed by the scheduler
+    (Dask drops it after 5 min) with the run's tasks on it, which had counted as running, and the run
+    hung: it now stops after the stall timeout, saying that a worker stopped answering, with exit 1
+    and the nodes that came back. Then the scheduler killed: Dask's reconnect tracebacks stay off stderr."""
+    import contextlib
+
+    import rtfem.cli.main as cli
+
+    address, _, procs = real_cluster
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+    events = []
+
+    @contextlib.contextmanager
+    def bar(*args, **kwargs):
+        def tick(done, total, message=""):
+            if done >= 3 and not events:
+                procs[1].send_signal(signal.SIGSTOP)  # worker "a" frozen, "b" healthy
+                events.append(done)
+        yield tick
+
+    monkeypatch.setattr(cli, "progress_bar", bar)
+    capsys.readouterr()
+    t0 = time.monotonic()
+    try:
+        rc = cli.main(["impedance", *common, "--scheduler", address, "--stall-timeout", "4",
+                       "-o", str(tmp_path / "frozen.npz")])
+    finally:
+        for p in procs[1:]:
+            p.send_signal(signal.SIGCONT)
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if line.startswith("rtfem:")]
+    assert rc == 1 and time.monotonic() - t0 < 150, (rc, err)  # a bound on a hang: the healthy worker first finishes its share
+    assert len(said) == 1 and "on 1 answering worker(s), and 1 worker(s) have not answered for 4 s" in said[0], err
+    assert rt.ImpedanceMap.load(tmp_path / "frozen.partial.npz").loaded.size >= 3
+    events.clear()
+
+    @contextlib.contextmanager
+    def bar2(*args, **kwargs):
+        def tick(done, total, message=""):
+            if done >= 3 and not events:
+                procs[0].send_signal(signal.SIGKILL)
+                events.append(done)
+        yield tick
+
+    monkeypatch.setattr(cli, "progress_bar", bar2)
+    rc = cli.main(["impedance", *common, "--scheduler", address, "--stall-timeout", "4", "-o", str(tmp_path / "s.npz")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "Traceback" not in err and "lost the connection to the Dask scheduler" in err, err
+    assert [line for line in err.splitlines() if line.strip()] == [line for line in err.splitlines()
+                                                                   if line.startswith("rtfem:")], err

@@ -236,7 +236,22 @@ class _Watch:
     def __init__(self, client, stall: float, keys) -> None:
         self.client, self.stall, self.keys = client, stall, set(keys)
         self.last = self.looked = self.alive = self.reached = time.monotonic()
-        self.workers = 0
+        self.workers = self.frozen = 0
+        self.heard: dict = {}  # worker -> (its last heartbeat as the scheduler stamped it, when that changed here)
+
+    def _answering(self, workers: dict, now: float, grace: float) -> set:
+        """The workers whose heartbeat the scheduler saw change within ``grace`` s (a frozen worker,
+        SIGSTOP or a machine gone quiet, stays listed until Dask's worker-ttl, 5 min)."""
+        live = set()
+        for address, info in workers.items():
+            stamp = info.get("last_seen")
+            seen, since = self.heard.get(address, (None, now))
+            if stamp != seen:
+                self.heard[address] = (stamp, now)
+                since = now
+            if now - since <= grace:
+                live.add(address)
+        return live
 
     def progress(self) -> None:
         self.last = time.monotonic()
@@ -249,22 +264,27 @@ class _Watch:
             try:
                 if self.client.status != "running":
                     raise OSError(f"the client is {self.client.status}")
-                self.workers = len(self.client.scheduler_info()["workers"])
-                if self.workers:
+                workers = self.client.scheduler_info()["workers"]
+                live = self._answering(workers, now, grace)
+                self.workers, self.frozen = len(live), len(workers) - len(live)
+                if live:
                     self.alive = now
-                    running = self.client.processing()  # worker -> the keys it runs
+                    running = self.client.processing(list(live))  # worker -> the keys it runs
                     if any(key in self.keys for keys in running.values() for key in keys):
-                        self.last = now  # a task of this run is running on a live worker: not stalled
+                        self.last = now  # a task of this run runs on a worker that answers: not stalled
                 self.reached = now
             except Exception as exc:  # noqa: BLE001 - a lost scheduler raises what its comm raises
                 if now - self.reached > grace:
                     return f"the scheduler stopped answering ({type(exc).__name__}: {validate.one_line(str(exc), 80)})"
                 return None
         if now - self.alive > grace:
-            return f"no live Dask worker for {grace:g} s: start workers with 'dask worker ADDRESS' and run it again"
+            silent = f" ({self.frozen} listed but silent: frozen or cut off?)" if self.frozen else ""
+            return (f"no live Dask worker answering for {grace:g} s{silent}: start workers with 'dask worker ADDRESS' "
+                    "and run it again")
         if now - self.last > self.stall:
-            return (f"no result came back and no task ran for {self.stall:g} s on {self.workers} worker(s) "
-                    "(--stall-timeout; rtfem.cluster.stall_timeout)")
+            frozen = f", and {self.frozen} worker(s) have not answered for {grace:g} s" if self.frozen else ""
+            return (f"no result came back and no task ran for {self.stall:g} s on {self.workers} answering worker(s)"
+                    f"{frozen} (--stall-timeout; rtfem.cluster.stall_timeout)")
         return None
 
 
@@ -313,9 +333,10 @@ def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Ca
         return "interrupted"
     except Exception as exc:  # noqa: BLE001 - a task's error, a lost connection: keep what came back
         _cancel(client, futures)
-        why = _reason(distributed, client, exc)
+        why, lost = _reason(distributed, client, exc)
         if not got[0]:
-            raise SolverError(f"the cluster's first tasks failed: {why}") from exc
+            raise SolverError(f"the cluster run stopped before any result: {why}" if lost else
+                              f"the cluster's first tasks failed: {why}") from exc
         return why
     if why:
         _cancel(client, futures)
@@ -333,8 +354,11 @@ def _collect(distributed, client, shared_f, futures, collect, say, stall: float)
     while got < len(futures):
         batch = pending.next_batch(block=False)
         for future in sorted(batch, key=lambda f: f.status != "finished"):  # results first, then a failure
-            if future.status != "finished":
+            if future.status in ("error", "cancelled"):
                 future.result()  # raises the task's error (or says it was cancelled)
+            if future.status != "finished":  # its result was lost with its worker and is being made again
+                pending.add(future)
+                continue
             try:
                 result = future.result(timeout=wait.get(future.key, _FETCH))
             except TimeoutError:
@@ -358,12 +382,13 @@ def _collect(distributed, client, shared_f, futures, collect, say, stall: float)
     return ""
 
 
-def _reason(distributed, client, exc: BaseException) -> str:
-    """One line for what ended a run: a lost scheduler said as such, else the task's error."""
-    text = f"{type(exc).__name__}: {validate.one_line(str(exc), 200)}"
-    if isinstance(exc, distributed.comm.CommClosedError) or client.status != "running":
-        return f"lost the connection to the Dask scheduler ({text})"
-    return text
+def _reason(distributed, client, exc: BaseException) -> tuple[str, bool]:
+    """One line for what ended a run, and whether it was the scheduler lost (said as such, without
+    Dask's own text about the keys it cancelled) rather than a task's error."""
+    if isinstance(exc, distributed.comm.CommClosedError) or client.status != "running" \
+            or "scheduler-connection-lost" in str(exc):
+        return f"lost the connection to the Dask scheduler ({type(exc).__name__})", True
+    return f"{type(exc).__name__}: {validate.one_line(str(exc), 200)}", False
 
 
 def _cancel(client, futures) -> None:

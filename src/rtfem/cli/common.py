@@ -381,13 +381,33 @@ def check_scheduler(args) -> str | None:
 
 
 @contextlib.contextmanager
+def _quiet_dask(address: str | None):
+    """With a scheduler, Dask's own log records (a lost scheduler's reconnect tracebacks, ~35 lines)
+    are kept off stderr: the command says in one line why a run stopped."""
+    import logging
+
+    if address is None:
+        yield
+        return
+    loggers = [logging.getLogger(name) for name in ("distributed", "distributed.client", "distributed.comm")]
+    levels = [log.level for log in loggers]
+    for log in loggers:
+        log.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for log, level in zip(loggers, levels):
+            log.setLevel(level)
+
+
+@contextlib.contextmanager
 def scheduler_of(args, address: str | None):
     """What the library's ``scheduler=`` takes for the checked ``address`` (:func:`check_scheduler`):
     None (here), the address (tcp://, local:N), or a Client connected over TLS with the --tls-*
     certificates (closed on exit)."""
     from ..cluster import STALL_TIMEOUT, connect, security, stall_timeout
 
-    with stall_timeout(getattr(args, "stall_timeout", None) or STALL_TIMEOUT):
+    with stall_timeout(getattr(args, "stall_timeout", None) or STALL_TIMEOUT), _quiet_dask(address):
         if address is None or not address.startswith("tls://"):
             yield address
             return
