@@ -15,7 +15,7 @@ from ..mesh.cut import cut_mesh
 __all__ = ["cut"]
 
 
-def cut(model, vertices, triangles):
+def cut(model, vertices, triangles, *, snap: bool = True):
     """A new model of the same kind, element, material and fixes as ``model`` (an rt.SolidModel),
     its mesh separated along the element faces that lie in the triangulated surface (``vertices``
     (k, 3) in metres, ``triangles`` (m, 3)): :func:`cut_mesh`. A copy of a fixed node is fixed. The
@@ -25,6 +25,8 @@ def cut(model, vertices, triangles):
     ----------
     model : an rt.SolidModel (tet4, tet4-anp or tet10; any material or law, mass and constraints option).
     vertices, triangles : the cut surface.
+    snap : where the surface passes through elements, move their nodes onto it first (see
+        :func:`rtfem.mesh.cut.cut_mesh`); False refuses such a surface.
 
     Returns
     -------
@@ -46,7 +48,7 @@ def cut(model, vertices, triangles):
         raise ModelError(f"model={validate.show(model)}: cutting needs a solid (rt.SolidModel); a shell cannot be "
                          "cut yet")
     recipe = ModelRecipe.of(model)
-    mesh, info = cut_mesh(model.tetmesh, vertices, triangles)
+    mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=validate.flag(snap, "snap"))
     fixed = np.asarray(recipe.fixed)[info.parent]
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info

@@ -3,11 +3,12 @@ face that lies in the surface are separated there, by giving each node as many c
 groups of its tets still joined through uncut faces around it (the cut's front, where the surface
 ends inside the solid, keeps its nodes shared, so the slit closes there as a crack's does).
 
-This first step cuts along element faces: the surface must cover whole faces (a mesh made to follow
-it: a slit's plane through a box's nodes, a segmentation's boundary), and a surface that passes
-through an element's inside is refused with the elements named. Nothing is removed: the mass and the
-volume stay, and the new faces are surface (contact, drawing and export see them). Splitting the
-elements a surface crosses (Molino, Bao and Fedkiw 2004's virtual nodes) is the next step.
+The cut follows element faces. Where the surface passes through elements, the nearer end of each
+edge it crosses is first moved onto it (node snapping, :func:`_snap`; no tet keeps under
+:data:`MIN_VOLUME` of its volume, else the surface is refused with the elements named). Nothing is
+removed: the mass and the volume stay, and the new faces are surface (contact, drawing and export see
+them). Splitting the crossed elements instead (Molino, Bao and Fedkiw 2004's virtual nodes) is a later
+step.
 
 A model is cut by :func:`rtfem.fe.cut.cut` (``rt.cut``). The test: a slit cantilever's frequencies
 against CalculiX's on a mesh built slit (tests/verification/test_cut.py).
@@ -33,7 +34,8 @@ _TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surfac
 class CutInfo(dict):
     """What :func:`cut_mesh` did: ``faces`` (element faces cut), ``nodes_added`` (copies made),
     ``parent`` (for each node of the cut mesh, the node it copies), ``pieces`` (separate parts
-    of the cut mesh) and ``piece`` (each node's part)."""
+    of the cut mesh), ``piece`` (each node's part), ``moved`` (nodes moved onto the surface) and
+    ``max_move`` (the longest move, m)."""
 
     __getattr__ = dict.__getitem__
 
@@ -80,10 +82,12 @@ def _on_surface(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
     return on
 
 
-def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
-    """(s,) whether each segment P-Q passes through a triangle's inside, its ends off the triangle's
-    plane on opposite sides (by more than ``tol``)."""
+def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float, which: bool = False):
+    """(s,) whether each segment P-Q passes through a triangle (its inside or its edges, within
+    ``tol``), its ends off the triangle's plane on opposite sides (by more than ``tol``); with
+    ``which``, also (s,) the first triangle it passes through (-1: none)."""
     out = np.zeros(P.shape[0], dtype=bool)
+    first = np.full(P.shape[0], -1)
     a = tri[:, 0]
     n = np.cross(tri[:, 1] - a, tri[:, 2] - a)
     n /= np.linalg.norm(n, axis=1)[:, None]
@@ -99,8 +103,11 @@ def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float) -> np.
         d20, d21 = (e * ab[None]).sum(-1), (e * ac[None]).sum(-1)
         den = d00 * d11 - d01 * d01
         v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-        out[s:s + 512] = (cross & (v > 1e-9) & (w > 1e-9) & (v + w < 1 - 1e-9)).any(axis=1)
-    return out
+        slack = tol / np.sqrt(np.maximum(d00, d11))  # on a triangle's edge counts: the cut's front
+        hit = cross & (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
+        out[s:s + 512] = hit.any(axis=1)
+        first[s:s + 512] = np.where(out[s:s + 512], hit.argmax(axis=1), -1)
+    return (out, first) if which else out
 
 
 def _faces(T: np.ndarray):
@@ -114,7 +121,7 @@ def _faces(T: np.ndarray):
     return keys, np.tile(slots, (E, 1)), index.ravel(), count
 
 
-def cut_mesh(mesh, vertices, triangles):
+def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     """The tet mesh ``mesh`` separated along the element faces that lie in the triangulated surface
     (``vertices`` (k, 3) in metres, ``triangles`` (m, 3)): each node of those faces gets one copy per
     group of its tets still joined through uncut faces (see the module).
@@ -123,6 +130,10 @@ def cut_mesh(mesh, vertices, triangles):
     ----------
     mesh : an rt.TetMesh (tet4 or tet10).
     vertices, triangles : the cut surface.
+    snap : where the surface passes through elements, move nodes onto it first (:func:`_snap`: the
+        nearer end of each crossing edge, straight onto the crossed triangle's plane, no tet left
+        with under :data:`MIN_VOLUME` of its volume), so that the cut follows their faces; False:
+        refuse such a surface.
 
     Returns
     -------
@@ -141,7 +152,10 @@ def cut_mesh(mesh, vertices, triangles):
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
     tri = _surface(vertices, triangles)
     tol = _TOL * max(float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), 1e-300)
-    _refuse_crossed(V, T, tri, tol)
+    moved = 0
+    if snap:
+        V, moved = _snap(V, T, tri, tol)
+    _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
     inner = np.flatnonzero(count[index] == 2)
@@ -159,26 +173,85 @@ def cut_mesh(mesh, vertices, triangles):
     new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups)
     pieces, piece = _pieces(T_new, parent.size)
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - V.shape[0]), parent=parent,
-                   pieces=pieces, piece=piece)
+                   pieces=pieces, piece=piece, moved=moved,
+                   max_move=float(np.linalg.norm(V - np.asarray(mesh.vertices), axis=1).max()))
     return new, info
 
 
-def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> None:
-    """A surface through an element's inside (an element edge through a triangle, or a triangle's
-    edge through an element face) is refused, the elements named."""
+_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])  # a tet10's mid-edge nodes 4..9, in VTK order
+MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
+
+
+def _crossing_edges(V: np.ndarray, C: np.ndarray, tri: np.ndarray, tol: float):
+    """The corner edges (e, 2) that pass through a triangle's inside, and the triangle each crosses."""
     lo, hi = tri.reshape(-1, 3).min(axis=0) - tol, tri.reshape(-1, 3).max(axis=0) + tol
-    pairs = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
-    E = np.unique(np.sort(T[:, pairs].reshape(-1, 2), axis=1), axis=0)
-    near = ((np.minimum(V[E[:, 0]], V[E[:, 1]]) <= hi) & (np.maximum(V[E[:, 0]], V[E[:, 1]]) >= lo)).all(axis=1)
-    E = E[near]
-    bad = E[_crossings(V[E[:, 0]], V[E[:, 1]], tri, tol)] if E.size else E
+    E = np.unique(np.sort(C[:, _EDGES].reshape(-1, 2), axis=1), axis=0)
+    E = E[((np.minimum(V[E[:, 0]], V[E[:, 1]]) <= hi) & (np.maximum(V[E[:, 0]], V[E[:, 1]]) >= lo)).all(axis=1)]
+    if not E.size:
+        return E, np.zeros(0, dtype=int)
+    hit, first = _crossings(V[E[:, 0]], V[E[:, 1]], tri, tol, which=True)
+    return E[hit], first[hit]
+
+
+def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+    """Move nodes onto the surface where it passes through elements, so that it follows their faces
+    (node snapping): of each crossing edge, its end nearer the crossed triangle's plane moves
+    straight onto that plane, unless one of its tets would keep less than :data:`MIN_VOLUME` of its
+    volume (then its other end is tried). A tet10's mid-edge nodes follow their corners. Returns the
+    moved nodes' coordinates and how many moved."""
+    C = T[:, :4]
+    vol0 = _volumes(V, C)
+    n = V.shape[0]
+    tets_of = sp.csr_matrix((np.ones(C.size), (C.ravel(), np.repeat(np.arange(C.shape[0]), 4))), shape=(n, C.shape[0]))
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    V = V.copy()
+    moved = np.zeros(n, dtype=bool)
+    for _ in range(8):
+        E, first = _crossing_edges(V, C, tri, tol)
+        if not E.size:
+            break
+        d = ((V[E] - a[first][:, None]) * normal[first][:, None]).sum(-1)  # (e, 2) signed distances
+        order = np.argsort(np.abs(d), axis=1)
+        done = set()
+        for k in range(E.shape[0]):
+            for m in (0, 1):
+                v, f, dist = E[k, order[k, m]], first[k], d[k, order[k, m]]
+                if moved[v]:  # a node on the surface already stays: its edge's other end, if any
+                    continue
+                old = V[v].copy()
+                V[v] = old - dist * normal[f]
+                tets = tets_of[v].indices
+                if (_volumes(V, C[tets]) >= MIN_VOLUME * vol0[tets]).all():
+                    done.add(v)
+                    moved[v] = True
+                    break
+                V[v] = old
+        if not done:
+            break
+    if T.shape[1] == 10:
+        V[T[:, 4:]] = 0.5 * (V[C[:, _EDGES[:, 0]]] + V[C[:, _EDGES[:, 1]]])
+    return V, int(moved.sum())
+
+
+def _volumes(V: np.ndarray, C: np.ndarray) -> np.ndarray:
+    P = V[C]
+    return np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) / 6.0
+
+
+def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool) -> None:
+    """A surface still through an element's inside (an element edge through a triangle) is refused,
+    the elements named."""
+    bad, _ = _crossing_edges(V, T[:, :4], tri, tol)
     if bad.size:
-        has = np.isin(np.sort(T[:, pairs].reshape(-1, 2), axis=1).view([("a", T.dtype), ("b", T.dtype)]).ravel(),
-                      bad.astype(T.dtype).view([("a", T.dtype), ("b", T.dtype)]).ravel()).reshape(-1, 6).any(axis=1)
+        key = np.sort(T[:, :4][:, _EDGES].reshape(-1, 2), axis=1)
+        has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
         which = np.flatnonzero(has)
+        why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume: refine the "
+               "mesh there, or move the surface") if snapped else "(snap=False): let rt.cut move nodes onto it"
         raise ModelError(f"the cut surface passes through the inside of {which.size} element(s) (first: tets "
-                         f"{which[:5].tolist()}): cuts follow element faces so far; mesh the solid so that its "
-                         "faces lie in the surface (a slit's plane through nodes), or move the surface onto faces")
+                         f"{which[:5].tolist()}) {why}")
 
 
 def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
