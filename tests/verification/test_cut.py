@@ -283,3 +283,52 @@ def test_a_cut_through_the_middle_of_elements_is_within_2_percent_of_a_mesh_conf
     assert np.abs(ours / ccx - 1).max() < 0.02, (ours, ccx)
     print(f"{element}: through elements, cut vs conforming {np.abs(ours / theirs - 1).max():.2e}, vs ccx "
           f"{np.abs(ours / ccx - 1).max():.2e}; moved {info.moved} nodes, at most {info.max_move * 1e3:.2f} mm")
+
+
+def _section_area(mesh: rt.TetMesh, x: float) -> float:
+    """The area of the plane x = const through the solid: each tet's section polygon (its edges'
+    crossings of the plane, a triangle or a quadrilateral), summed. Independent of the cut's code."""
+    X, C = np.asarray(mesh.vertices), np.asarray(mesh.tets)[:, :4]
+    total = 0.0
+    for tet in C:
+        P, d = X[tet], X[tet, 0] - x
+        pts = [P[i] + d[i] / (d[i] - d[j]) * (P[j] - P[i]) for i in range(4) for j in range(i + 1, 4)
+               if d[i] * d[j] < 0]
+        if len(pts) >= 3:
+            Q = np.array(pts)[:, 1:]  # (y, z) on the plane
+            c = Q.mean(axis=0)
+            Q = Q[np.argsort(np.arctan2(Q[:, 1] - c[1], Q[:, 0] - c[0]))]
+            total += 0.5 * abs(np.dot(Q[:, 0], np.roll(Q[:, 1], -1)) - np.dot(Q[:, 1], np.roll(Q[:, 0], -1)))
+    return total
+
+
+def test_a_cut_across_the_unstructured_liver_separates_it_along_its_section():
+    """The embedded liver (fTetWild's tet4, not made to follow the cut): a plane through its middle,
+    beyond its outline on every side. rt.cut moves nodes onto it and, where a tet has two nodes on it
+    and two on either side (moving either would flatten it), splits the tets on the crossing edge;
+    the liver comes apart in two (the unfixed half warned about), its volume kept to 0.1 % (outside
+    nodes moved along x; measured 0.04 %), and the cut faces' area is the liver's section there
+    (computed tet by tet on the uncut mesh) within 3 % (measured 1.0 %; 98 nodes moved, 5 edges split)."""
+    mesh = rt.meshes.liver(solid=True)
+    X = np.asarray(mesh.vertices)
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    x = 0.5 * (lo[0] + hi[0])
+    model = rt.SolidModel(mesh, MAT, element="tet4").fix(np.flatnonzero(X[:, 0] < lo[0] + 0.1 * (hi[0] - lo[0])))
+    plane = np.array([[x, lo[1] - 0.01, lo[2] - 0.01], [x, hi[1] + 0.01, lo[2] - 0.01], [x, hi[1] + 0.01, hi[2] + 0.01],
+                      [x, lo[1] - 0.01, hi[2] + 0.01]])
+    with pytest.warns(RtfemWarning, match="frees 1 of 2 parts"):
+        cut = rt.cut(model, plane, QUAD)
+    info = cut.cut_info
+    assert info.pieces == 2 and info.moved > 0 and info.split.shape[0] > 0
+    assert cut.tetmesh.volume() == pytest.approx(mesh.volume(), rel=1e-3)
+    Y, T = np.asarray(cut.tetmesh.vertices), np.asarray(cut.tetmesh.tets)
+    keys, _, index, count = __import__("rtfem.mesh.cut", fromlist=["_faces"])._faces(T)
+    on = np.abs(Y[keys[:, 0], 0] - x) + np.abs(Y[keys[:, 1], 0] - x) + np.abs(Y[keys[:, 2], 0] - x) < 1e-9
+    faces = keys[on & (count[index] == 1)]  # boundary faces in the plane: both lips of the cut
+    P = Y[faces]
+    area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum() / 2
+    section = _section_area(mesh, x)
+    assert area == pytest.approx(section, rel=0.03), (area, section)
+    # each side is a solid of its own: every tet lies on one side of the plane
+    side = np.sign(Y[T, 0].mean(axis=1) - x)
+    assert np.all((Y[T, 0] - x) * side[:, None] >= -1e-9)

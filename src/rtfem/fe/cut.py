@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import ModelError, RtfemWarning
-from ..mesh.cut import cut_mesh
+from ..mesh.cut import cut_mesh, extend
 
 __all__ = ["cut"]
 
@@ -49,7 +49,7 @@ def cut(model, vertices, triangles, *, snap: bool = True):
                          "cut yet")
     recipe = ModelRecipe.of(model)
     mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=validate.flag(snap, "snap"))
-    fixed = np.asarray(recipe.fixed)[info.parent]
+    fixed = extend(np.asarray(recipe.fixed, dtype=bool), info.split)[info.parent]
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info
     if fixed.any():

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from .. import validate
 from ..errors import ModelError
 
-__all__ = ["cut_mesh", "CutInfo"]
+__all__ = ["cut_mesh", "CutInfo", "extend"]
 
 # each tet face, opposite corner i: its corners and (a tet10's, VTK order) its mid-edge nodes
 _FACE_CORNERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
@@ -34,8 +34,9 @@ _TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surfac
 class CutInfo(dict):
     """What :func:`cut_mesh` did: ``faces`` (element faces cut), ``nodes_added`` (copies made),
     ``parent`` (for each node of the cut mesh, the node it copies), ``pieces`` (separate parts
-    of the cut mesh), ``piece`` (each node's part), ``moved`` (nodes moved onto the surface) and
-    ``max_move`` (the longest move, m)."""
+    of the cut mesh), ``piece`` (each node's part), ``moved`` (nodes moved onto the surface),
+    ``max_move`` (the longest move, m) and ``split`` (the edges (s, 2) split by a node added on the
+    surface, in order: node n + k of the mesh before the copies is on edge k)."""
 
     __getattr__ = dict.__getitem__
 
@@ -152,9 +153,11 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
     tri = _surface(vertices, triangles)
     tol = _TOL * max(float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), 1e-300)
-    moved = 0
+    moved, born = 0, np.zeros((0, 2), dtype=np.int64)
     if snap:
         V, moved = _snap(V, T, tri, tol)
+        if T.shape[1] == 4:
+            V, T, born = _split_edges(V, T, tri, tol)
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
@@ -169,13 +172,55 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
         raise ModelError("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
     parent, T_new = _split_nodes(T, elem, slots, f1, f2, cut, V.shape[0])
-    groups = {name: np.flatnonzero(np.isin(parent, nodes)) for name, nodes in mesh.groups.items()}
+    groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, mesh.n_vertices), born))))
+              for name, nodes in mesh.groups.items()}
     new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups)
     pieces, piece = _pieces(T_new, parent.size)
-    info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - V.shape[0]), parent=parent,
-                   pieces=pieces, piece=piece, moved=moved,
-                   max_move=float(np.linalg.norm(V - np.asarray(mesh.vertices), axis=1).max()))
+    n0 = mesh.n_vertices
+    info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
+                   piece=piece, moved=moved, max_move=float(np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1).max()),
+                   split=born)
     return new, info
+
+
+def _mask(nodes, n: int) -> np.ndarray:
+    m = np.zeros(n, dtype=bool)
+    m[np.asarray(nodes, dtype=np.int64)] = True
+    return m
+
+
+def extend(values: np.ndarray, born: np.ndarray) -> np.ndarray:
+    """Per-node ``values`` (n, ...) of booleans extended to the nodes :func:`_split_edges` added, in
+    order: a node on the edge (a, b) takes values[a] & values[b] (a fixed edge's node is fixed)."""
+    out = np.concatenate([values, np.zeros((born.shape[0],) + values.shape[1:], dtype=values.dtype)])
+    n = values.shape[0]
+    for k, (a, b) in enumerate(born):
+        out[n + k] = out[a] & out[b]
+    return out
+
+
+def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
+    """Where node snapping left an edge through the surface (a tet with two nodes on it and the
+    other two on either side: moving either flattens it), a node is added where the edge crosses
+    the surface and every tet on that edge is split in two there (conforming: all of them are;
+    the geometry, mass and volume unchanged; tet4 only). Returns V, T and the edges split (s, 2)."""
+    born: list = []
+    limit = 100 + 4 * T.shape[0] // 100
+    while len(born) < limit:
+        E, first = _crossing_edges(V, T, tri, tol)
+        if not E.size:
+            break
+        (a, b), f = E[0], first[0]
+        normal = np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0])
+        da, db = (V[a] - tri[f, 0]) @ normal, (V[b] - tri[f, 0]) @ normal
+        p = V.shape[0]
+        V = np.vstack([V, V[a] + da / (da - db) * (V[b] - V[a])])
+        on = (T == a).any(axis=1) & (T == b).any(axis=1)
+        t1, t2 = T[on].copy(), T[on].copy()
+        t1[t1 == b], t2[t2 == a] = p, p
+        T = np.concatenate([T[~on], t1, t2])
+        born.append((a, b))
+    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2)
 
 
 _EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])  # a tet10's mid-edge nodes 4..9, in VTK order
@@ -215,11 +260,11 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
         d = ((V[E] - a[first][:, None]) * normal[first][:, None]).sum(-1)  # (e, 2) signed distances
         order = np.argsort(np.abs(d), axis=1)
         done = set()
-        for k in range(E.shape[0]):
+        for k in np.argsort(np.abs(d).min(axis=1), kind="stable"):  # the smallest moves first
+            if moved[E[k]].any():  # an end moved onto the surface already (this sweep): it no longer crosses
+                continue
             for m in (0, 1):
                 v, f, dist = E[k, order[k, m]], first[k], d[k, order[k, m]]
-                if moved[v]:  # a node on the surface already stays: its edge's other end, if any
-                    continue
                 old = V[v].copy()
                 V[v] = old - dist * normal[f]
                 tets = tets_of[v].indices
@@ -248,8 +293,9 @@ def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, s
         key = np.sort(T[:, :4][:, _EDGES].reshape(-1, 2), axis=1)
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
         which = np.flatnonzero(has)
-        why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume: refine the "
-               "mesh there, or move the surface") if snapped else "(snap=False): let rt.cut move nodes onto it"
+        why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume, and a tet10 "
+               "mesh's elements are not split yet: cut the tet4 model, refine the mesh there, or move the surface"
+               ) if snapped else "(snap=False): let rt.cut move nodes onto it"
         raise ModelError(f"the cut surface passes through the inside of {which.size} element(s) (first: tets "
                          f"{which[:5].tolist()}) {why}")
 
