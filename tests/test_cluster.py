@@ -476,3 +476,41 @@ def test_a_frozen_worker_is_not_progress_and_a_lost_scheduler_is_one_line(real_c
     assert rc == 1 and "Traceback" not in err and "lost the connection to the Dask scheduler" in err, err
     assert [line for line in err.splitlines() if line.strip()] == [line for line in err.splitlines()
                                                                    if line.startswith("rtfem:")], err
+
+
+def test_a_batch_on_real_workers_finishes_when_one_is_killed(real_cluster, tmp_path, capsys, monkeypatch):
+    """Issue 59, ``rtfem batch``: three organs (a dome at three Young's moduli, their modes) on a real
+    scheduler and two workers, worker "a" killed (SIGKILL) as the copy to the workers starts: every
+    organ is written, its frequencies those of the library's modal
+    analysis here (1e-10)."""
+    import rtfem.cluster as cluster
+    from rtfem.cli.main import main
+
+    address, _, procs = real_cluster
+    rt.save_mesh(rt.meshes.hemisphere(), tmp_path / "dome.obj")
+    organs = {"soft": 2e4, "mid": 4e4, "stiff": 6e4}
+    plan = 'out = "out"\n[defaults]\nbuild = ["modes"]\nmodes = 10\nfix = "z<0.0001"\nmesh = "dome.obj"\n'
+    plan += "".join(f'[[organ]]\nname = "{n}"\nE = {E}\n' for n, E in organs.items())
+    (tmp_path / "plan.toml").write_text(plan)
+    original, killed = cluster.run_tasks, []
+
+    def run_tasks(*args, stage=None, **kwargs):
+        def hook(message):
+            if message.startswith("copying") and not killed:  # as the plan's settings go to the workers
+                procs[1].send_signal(signal.SIGKILL)
+                killed.append(message)
+            if stage is not None:
+                stage(message)
+        return original(*args, stage=hook, **kwargs)
+
+    monkeypatch.setattr(cluster, "run_tasks", run_tasks)
+    rc = _within(180, lambda: main(["batch", str(tmp_path / "plan.toml"), "--scheduler", address]))
+    out = capsys.readouterr().out
+    assert rc == 0 and killed and procs[1].wait(10) != 0, out
+    assert "cluster     copying" in out
+    for name, E in organs.items():
+        model = rt.ShellModel(rt.meshes.hemisphere(), rt.Material(E=E))
+        X = np.asarray(model.mesh.vertices)
+        model.fix(np.flatnonzero(X[:, 2] < 0.0001))
+        got = rt.ModalBasis.load(tmp_path / "out" / f"{name}.modes.npz", model=model).omega
+        np.testing.assert_allclose(got, rt.modal_analysis(model, 10).omega, rtol=1e-10)
