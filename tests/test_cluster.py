@@ -458,7 +458,10 @@ def test_a_frozen_worker_is_not_progress_and_a_lost_scheduler_is_one_line(real_c
     err = capsys.readouterr().err
     said = [line for line in err.splitlines() if line.startswith("rtfem:")]
     assert rc == 1 and time.monotonic() - t0 < 150, (rc, err)  # a bound on a hang: the healthy worker first finishes its share
-    assert len(said) == 1 and "on 1 answering worker(s), and 1 worker(s) have not answered for 4 s" in said[0], err
+    # the frozen worker is named as not answering (a loaded machine's healthy worker may miss its own
+    # heartbeats for 4 s too: then no worker answers, and the line says that one is listed but silent)
+    assert len(said) == 1 and ("1 worker(s) have not answered for 4 s" in said[0]
+                               or "listed but silent" in said[0]), err
     assert rt.ImpedanceMap.load(tmp_path / "frozen.partial.npz").loaded.size >= 3
     events.clear()
 
