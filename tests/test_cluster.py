@@ -46,6 +46,50 @@ def _same(a, b) -> None:
         assert np.abs(x - y).max() <= 1e-12 * np.abs(x).max(), key
 
 
+def _kept_are_serial(serial, part) -> None:
+    """Each node an incomplete map kept has the serial map's responses (to 1e-12)."""
+    for k, j in enumerate(part.loaded):
+        s = int(np.searchsorted(serial.loaded, j))
+        a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
+        b = part.responses[part.offsets[k]:part.offsets[k + 1]]
+        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()
+
+
+def _once(at: int, act):
+    """A progress callback that calls ``act()`` once, when ``at`` results have come back, and the list
+    it then holds that count in."""
+    fired: list = []
+
+    def progress(done, total, message=""):
+        if done >= at and not fired:
+            act()
+            fired.append(done)
+    return progress, fired
+
+
+def _bar_once(monkeypatch, at: int, act) -> list:
+    """The command line's progress bar replaced by :func:`_once`'s callback; its list."""
+    import contextlib
+
+    import rtfem.cli.main as cli
+
+    tick, fired = _once(at, act)
+
+    @contextlib.contextmanager
+    def bar(*args, **kwargs):
+        yield tick
+
+    monkeypatch.setattr(cli, "progress_bar", bar)
+    return fired
+
+
+def _dome_args(tmp_path) -> list:
+    """``rtfem impedance``'s arguments for the dome (written into ``tmp_path``) with the map settings of KW."""
+    mesh = tmp_path / "dome.obj"
+    rt.save_mesh(rt.meshes.hemisphere(), mesh)
+    return [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+
+
 def test_a_local_cluster_of_two_processes_builds_the_same_map(serial):
     _same(serial, rt.ImpedanceMap.build(_model(), scheduler="local:2", **KW))
 
@@ -93,12 +137,7 @@ def real_cluster():
 
 def test_real_workers_build_the_same_map_also_when_one_is_killed(serial, real_cluster):
     address, client, procs = real_cluster
-    killed = []
-
-    def progress(done, total, message):
-        if done >= 3 and not killed:  # mid-run: worker "a" dies with its tasks
-            procs[1].send_signal(signal.SIGKILL)
-            killed.append(done)
+    progress, killed = _once(3, lambda: procs[1].send_signal(signal.SIGKILL))  # mid-run: "a" dies with its tasks
 
     imap = rt.ImpedanceMap.build(_model(), scheduler=client, progress=progress, **KW)
     assert killed and killed[0] < serial.loaded.size and procs[1].wait(10) != 0
@@ -109,26 +148,12 @@ def test_real_workers_build_the_same_map_also_when_one_is_killed(serial, real_cl
 def test_the_command_line_against_real_workers_writes_the_serial_map(real_cluster, tmp_path, capsys, monkeypatch):
     """rtfem impedance --scheduler tcp://... against a scheduler and two workers (issue 42's done-when),
     worker "a" killed after the third node came back (through the command's progress bar)."""
-    import contextlib
-
     import rtfem.cli.main as cli
 
     address, _, procs = real_cluster
-    mesh = tmp_path / "dome.obj"
-    rt.save_mesh(rt.meshes.hemisphere(), mesh)
-    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+    common = _dome_args(tmp_path)
     assert cli.main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
-    killed = []
-
-    @contextlib.contextmanager
-    def bar(*args, **kwargs):
-        def tick(done, total, message=""):
-            if done >= 3 and not killed:
-                procs[1].send_signal(signal.SIGKILL)
-                killed.append(done)
-        yield tick
-
-    monkeypatch.setattr(cli, "progress_bar", bar)
+    killed = _bar_once(monkeypatch, 3, lambda: procs[1].send_signal(signal.SIGKILL))
     assert cli.main(["impedance", *common, "--scheduler", address, "-o", str(tmp_path / "cluster.npz")]) == 0
     assert killed and procs[1].wait(10) != 0
     a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.npz")
@@ -154,12 +179,7 @@ def test_modal_derivatives_on_real_workers_equal_the_serial_ones_also_when_one_i
     model = _model()
     modes = rt.modal_analysis(model, 10)
     serial = ReducedNonlinearModel(model, modes, derivatives=6)
-    killed = []
-
-    def progress(done, total, message):
-        if done >= 1 and not killed:
-            procs[1].send_signal(signal.SIGKILL)
-            killed.append(done)
+    progress, killed = _once(1, lambda: procs[1].send_signal(signal.SIGKILL))
 
     cluster = ReducedNonlinearModel(_model(), modes, derivatives=6, progress=progress, scheduler=address)
     assert killed and killed[0] < 6
@@ -225,11 +245,7 @@ def test_ctrl_c_on_a_cluster_keeps_the_nodes_that_came_back(serial, local2):
     imap = rt.ImpedanceMap.build(_model(), scheduler=local2, progress=progress, **KW)
     assert not imap.info["complete"] and imap.info["error"] == "interrupted"
     assert 40 <= imap.loaded.size < serial.loaded.size
-    for k, j in enumerate(imap.loaded):  # each node kept is the serial map's
-        s = int(np.searchsorted(serial.loaded, j))
-        a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
-        b = imap.responses[imap.offsets[k]:imap.offsets[k + 1]]
-        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()
+    _kept_are_serial(serial, imap)  # each node kept is the serial map's
 
 
 def test_bad_scheduler_texts_are_refused():
@@ -316,27 +332,12 @@ def test_every_worker_killed_ends_with_one_line_and_the_partial_file(real_cluste
     """Issue 59: both workers killed (SIGKILL) after the third node came back: ``rtfem impedance
     --stall-timeout 4`` ends within 60 s with exit 1, one line saying no worker is left, and the nodes
     that came back in the .partial.npz (each equal to the serial map's); the output is not written."""
-    import contextlib
-
     import rtfem.cli.main as cli
 
     address, _, procs = real_cluster
-    mesh = tmp_path / "dome.obj"
-    rt.save_mesh(rt.meshes.hemisphere(), mesh)
-    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
+    common = _dome_args(tmp_path)
     assert cli.main(["impedance", *common, "-o", str(tmp_path / "serial.npz")]) == 0
-    killed = []
-
-    @contextlib.contextmanager
-    def bar(*args, **kwargs):
-        def tick(done, total, message=""):
-            if done >= 3 and not killed:
-                for p in procs[1:]:
-                    p.send_signal(signal.SIGKILL)
-                killed.append(done)
-        yield tick
-
-    monkeypatch.setattr(cli, "progress_bar", bar)
+    killed = _bar_once(monkeypatch, 3, lambda: [p.send_signal(signal.SIGKILL) for p in procs[1:]])
     capsys.readouterr()
     t0 = time.monotonic()
     rc = cli.main(["impedance", *common, "--scheduler", address, "--stall-timeout", "4",
@@ -349,10 +350,7 @@ def test_every_worker_killed_ends_with_one_line_and_the_partial_file(real_cluste
     assert "Traceback" not in err and not (tmp_path / "cluster.npz").exists()
     a, b = rt.ImpedanceMap.load(tmp_path / "serial.npz"), rt.ImpedanceMap.load(tmp_path / "cluster.partial.npz")
     assert 3 <= b.loaded.size < a.loaded.size
-    for k, j in enumerate(b.loaded):
-        s = int(np.searchsorted(a.loaded, j))
-        x, y = a.responses[a.offsets[s]:a.offsets[s + 1]], b.responses[b.offsets[k]:b.offsets[k + 1]]
-        assert x.shape == y.shape and np.abs(x - y).max() <= 1e-12 * np.abs(a.responses).max()
+    _kept_are_serial(a, b)
 
 
 def test_stall_timeout_is_refused_when_nonsense_or_without_a_scheduler(tmp_path, capsys):
@@ -363,10 +361,7 @@ def test_stall_timeout_is_refused_when_nonsense_or_without_a_scheduler(tmp_path,
         with pytest.raises(ModelError, match="stall timeout"):
             with stall_timeout(bad):
                 pass
-    mesh = tmp_path / "dome.obj"
-    rt.save_mesh(rt.meshes.hemisphere(), mesh)
-    assert cli.main(["impedance", str(mesh), "--fix", "z<0.0001", "--stall-timeout", "5", "-o",
-                     str(tmp_path / "m.npz")]) == 2
+    assert cli.main(["impedance", *_dome_args(tmp_path), "--stall-timeout", "5", "-o", str(tmp_path / "m.npz")]) == 2
     assert "--stall-timeout is for a run on a cluster: give --scheduler too" in capsys.readouterr().err
     assert not (tmp_path / "m.npz").exists()
 
@@ -377,12 +372,7 @@ def test_the_scheduler_killed_mid_run_ends_the_run_with_why_and_keeps_what_came_
     from rtfem.cluster import stall_timeout
 
     address, client, procs = real_cluster
-    killed = []
-
-    def progress(done, total, message):
-        if done >= 3 and not killed:
-            procs[0].send_signal(signal.SIGKILL)
-            killed.append(done)
+    progress, killed = _once(3, lambda: procs[0].send_signal(signal.SIGKILL))
 
     def build():
         with stall_timeout(4):
@@ -392,11 +382,7 @@ def test_the_scheduler_killed_mid_run_ends_the_run_with_why_and_keeps_what_came_
     assert killed and not imap.info["complete"], imap.info
     assert "scheduler" in imap.info["error"] and "\n" not in imap.info["error"], imap.info["error"]
     assert 3 <= imap.loaded.size < serial.loaded.size
-    for k, j in enumerate(imap.loaded):
-        s = int(np.searchsorted(serial.loaded, j))
-        a = serial.responses[serial.offsets[s]:serial.offsets[s + 1]]
-        b = imap.responses[imap.offsets[k]:imap.offsets[k + 1]]
-        assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * np.abs(serial.responses).max()
+    _kept_are_serial(serial, imap)
 
 
 def _sleeps(seconds, chunk):
@@ -428,25 +414,11 @@ def test_a_frozen_worker_is_not_progress_and_a_lost_scheduler_is_one_line(real_c
     (Dask drops it after 5 min) with the run's tasks on it, which had counted as running, and the run
     hung: it now stops after the stall timeout, saying that a worker stopped answering, with exit 1
     and the nodes that came back. Then the scheduler killed: Dask's reconnect tracebacks stay off stderr."""
-    import contextlib
-
     import rtfem.cli.main as cli
 
     address, _, procs = real_cluster
-    mesh = tmp_path / "dome.obj"
-    rt.save_mesh(rt.meshes.hemisphere(), mesh)
-    common = [str(mesh), "--fix", "z<0.0001", "-n", "20", "--radius", "0.02", "--times", "0.01,0.05"]
-    events = []
-
-    @contextlib.contextmanager
-    def bar(*args, **kwargs):
-        def tick(done, total, message=""):
-            if done >= 3 and not events:
-                procs[1].send_signal(signal.SIGSTOP)  # worker "a" frozen, "b" healthy
-                events.append(done)
-        yield tick
-
-    monkeypatch.setattr(cli, "progress_bar", bar)
+    common = _dome_args(tmp_path)
+    _bar_once(monkeypatch, 3, lambda: procs[1].send_signal(signal.SIGSTOP))  # worker "a" frozen, "b" healthy
     capsys.readouterr()
     t0 = time.monotonic()
     try:
@@ -463,17 +435,7 @@ def test_a_frozen_worker_is_not_progress_and_a_lost_scheduler_is_one_line(real_c
     assert len(said) == 1 and ("1 worker(s) have not answered for 4 s" in said[0]
                                or "listed but silent" in said[0]), err
     assert rt.ImpedanceMap.load(tmp_path / "frozen.partial.npz").loaded.size >= 3
-    events.clear()
-
-    @contextlib.contextmanager
-    def bar2(*args, **kwargs):
-        def tick(done, total, message=""):
-            if done >= 3 and not events:
-                procs[0].send_signal(signal.SIGKILL)
-                events.append(done)
-        yield tick
-
-    monkeypatch.setattr(cli, "progress_bar", bar2)
+    _bar_once(monkeypatch, 3, lambda: procs[0].send_signal(signal.SIGKILL))
     rc = cli.main(["impedance", *common, "--scheduler", address, "--stall-timeout", "4", "-o", str(tmp_path / "s.npz")])
     err = capsys.readouterr().err
     assert rc == 1 and "Traceback" not in err and "lost the connection to the Dask scheduler" in err, err
