@@ -312,12 +312,7 @@ def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Ca
     chunks = list(chunks)
     stall = _STALL.get() or STALL_TIMEOUT
     futures: list = []
-    got = [0]  # results collected, also when the wait is left by an exception
-
-    def take(result) -> None:
-        collect(result)
-        got[0] += 1
-
+    got = [0]  # results collected (by _collect), also when the wait is left by an exception
     say = stage or (lambda message: None)
     try:
         from dask.sizeof import sizeof
@@ -325,7 +320,7 @@ def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Ca
         say(f"copying {sizeof(list(shared)) / 2**20:.1f} MiB to the workers")
         shared_f = _send_shared(client, shared)
         futures = [client.submit(fn, *shared_f, chunk, pure=False) for chunk in chunks]
-        why = _collect(distributed, client, shared_f, futures, take, say, stall)
+        why = _collect(distributed, client, shared_f, futures, collect, got, say, stall)
     except KeyboardInterrupt:
         _cancel(client, futures)
         if not got[0]:
@@ -345,13 +340,14 @@ def run_tasks(client, fn: Callable, shared: tuple, chunks: Iterable, collect: Ca
     return why
 
 
-def _collect(distributed, client, shared_f, futures, collect, say, stall: float) -> str:
-    """Wait for ``futures``, ``collect`` each result as it comes; why it stopped, or "" when all came."""
+def _collect(distributed, client, shared_f, futures, collect, got: list, say, stall: float) -> str:
+    """Wait for ``futures``, ``collect`` each result as it comes (counted in ``got[0]``); why it
+    stopped, or "" when all came."""
     watch = _Watch(client, stall, [f.key for f in (*shared_f, *futures)])
     pending = distributed.as_completed(futures, loop=client.loop)  # not the default client's loop
-    copied, got = not shared_f, 0
+    copied = not shared_f
     wait = {}  # s to wait for a finished task's result before looking at the cluster again
-    while got < len(futures):
+    while got[0] < len(futures):
         batch = pending.next_batch(block=False)
         for future in sorted(batch, key=lambda f: f.status != "finished"):  # results first, then a failure
             if future.status in ("error", "cancelled"):
@@ -368,7 +364,7 @@ def _collect(distributed, client, shared_f, futures, collect, say, stall: float)
                 pending.add(future)
                 continue
             collect(result)
-            got += 1
+            got[0] += 1
             watch.progress()
         if not copied and all(f.status == "finished" for f in shared_f):
             copied = True
