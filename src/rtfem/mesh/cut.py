@@ -18,15 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from .. import validate
 from ..errors import ModelError
+from .repair import components, unique_rows
+from .tetmesh import TET10_EDGES, TET_FACES, TetMesh, _signed_volumes
 
 __all__ = ["cut_mesh", "CutInfo", "extend"]
 
-# each tet face, opposite corner i: its corners and (a tet10's, VTK order) its mid-edge nodes
-_FACE_CORNERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+# a tet10's mid-edge nodes (VTK order) on each face of TET_FACES (the face opposite corner i)
 _FACE_MIDS = np.array([[5, 9, 8], [6, 9, 7], [4, 8, 7], [4, 5, 6]])
 _TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surface is on it
 
@@ -62,63 +62,64 @@ def _surface(vertices, triangles) -> np.ndarray:
     return tri
 
 
-def _on_surface(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
-    """(p,) whether each point lies on one of the triangles (within ``tol``)."""
-    on = np.zeros(points.shape[0], dtype=bool)
+def _frames(tri: np.ndarray) -> tuple:
+    """Each triangle's corner a, edges ab and ac, unit normal and the Gram entries of (ab, ac)."""
     a, ab, ac = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     n = np.cross(ab, ac)
     n /= np.linalg.norm(n, axis=1)[:, None]
-    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    return a, ab, ac, n, (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+
+
+def _inside(e: np.ndarray, frames: tuple, tol: float) -> np.ndarray:
+    """(p, m) whether the points e (p, m, 3) (taken from each triangle's corner a) project inside
+    each triangle or onto its edges (within ``tol``)."""
+    _, ab, ac, _, d00, d01, d11 = frames
+    d20, d21 = (e * ab[None]).sum(-1), (e * ac[None]).sum(-1)
     den = d00 * d11 - d01 * d01
-    size = np.sqrt(np.maximum(d00, d11))
+    v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    slack = tol / np.sqrt(np.maximum(d00, d11))  # on a triangle's edge counts: the cut's front
+    return (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
+
+
+def _on_surface(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
+    """(p,) whether each point lies on one of the triangles (within ``tol``)."""
+    on = np.zeros(points.shape[0], dtype=bool)
+    frames = _frames(tri)
+    a, n = frames[0], frames[3]
     for s in range(0, points.shape[0], 512):  # (chunk, m) at a time
         p = points[s:s + 512, None, :] - a[None]
         near = np.abs((p * n[None]).sum(-1)) <= tol
-        d20, d21 = (p * ab[None]).sum(-1), (p * ac[None]).sum(-1)
-        v = (d11 * d20 - d01 * d21) / den
-        w = (d00 * d21 - d01 * d20) / den
-        slack = tol / size
-        inside = (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
-        on[s:s + 512] = (near & inside).any(axis=1)
+        on[s:s + 512] = (near & _inside(p, frames, tol)).any(axis=1)
     return on
 
 
-def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float, which: bool = False):
+def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(s,) whether each segment P-Q passes through a triangle (its inside or its edges, within
-    ``tol``), its ends off the triangle's plane on opposite sides (by more than ``tol``); with
-    ``which``, also (s,) the first triangle it passes through (-1: none)."""
+    ``tol``), its ends off the triangle's plane on opposite sides (by more than ``tol``), and (s,)
+    the first triangle it passes through (-1: none)."""
     out = np.zeros(P.shape[0], dtype=bool)
     first = np.full(P.shape[0], -1)
-    a = tri[:, 0]
-    n = np.cross(tri[:, 1] - a, tri[:, 2] - a)
-    n /= np.linalg.norm(n, axis=1)[:, None]
+    frames = _frames(tri)
+    a, n = frames[0], frames[3]
     for s in range(0, P.shape[0], 512):
         p, q = P[s:s + 512, None, :], Q[s:s + 512, None, :]
         dp, dq = ((p - a[None]) * n[None]).sum(-1), ((q - a[None]) * n[None]).sum(-1)
         cross = ((dp > tol) & (dq < -tol)) | ((dp < -tol) & (dq > tol))
         t = np.where(cross, dp / np.where(cross, dp - dq, 1.0), 0.0)
-        x = p + t[..., None] * (q - p)
-        e = x - a[None]
-        ab, ac = tri[:, 1] - a, tri[:, 2] - a
-        d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
-        d20, d21 = (e * ab[None]).sum(-1), (e * ac[None]).sum(-1)
-        den = d00 * d11 - d01 * d01
-        v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-        slack = tol / np.sqrt(np.maximum(d00, d11))  # on a triangle's edge counts: the cut's front
-        hit = cross & (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
+        hit = cross & _inside(p + t[..., None] * (q - p) - a[None], frames, tol)
         out[s:s + 512] = hit.any(axis=1)
         first[s:s + 512] = np.where(out[s:s + 512], hit.argmax(axis=1), -1)
-    return (out, first) if which else out
+    return out, first
 
 
 def _faces(T: np.ndarray):
     """Every element face: (4E, 3) sorted corners, (4E, j) its node slots in its element (3 corners,
     and a tet10's 3 mid-edge nodes), and the unique faces' index and count."""
     E = T.shape[0]
-    corners = T[:, _FACE_CORNERS].reshape(-1, 3)
-    slots = _FACE_CORNERS if T.shape[1] == 4 else np.concatenate([_FACE_CORNERS, _FACE_MIDS], axis=1)
+    corners = T[:, TET_FACES].reshape(-1, 3)
+    slots = TET_FACES if T.shape[1] == 4 else np.concatenate([TET_FACES, _FACE_MIDS], axis=1)
     keys = np.sort(corners, axis=1)
-    _, index, count = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    _, index, count = unique_rows(keys, return_inverse=True, return_counts=True)
     return keys, np.tile(slots, (E, 1)), index.ravel(), count
 
 
@@ -144,12 +145,11 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     Raises
     ------
     ModelError
-        A malformed surface; a surface that passes through the inside of elements (they are named:
-        cut along element faces, or mesh the solid to follow the surface); one that lies along no
-        element face inside the solid.
+        A malformed surface; a surface still through the inside of elements after snapping (they are
+        named: a tet10 mesh is not split, and no node moves where a tet would keep under
+        :data:`MIN_VOLUME` of its volume), or with ``snap=False``; one that lies along no element
+        face inside the solid.
     """
-    from .tetmesh import TetMesh
-
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
     tri = _surface(vertices, triangles)
     tol = _TOL * max(float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), 1e-300)
@@ -223,18 +223,17 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     return V, T, np.array(born, dtype=np.int64).reshape(-1, 2)
 
 
-_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])  # a tet10's mid-edge nodes 4..9, in VTK order
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
 
 
 def _crossing_edges(V: np.ndarray, C: np.ndarray, tri: np.ndarray, tol: float):
     """The corner edges (e, 2) that pass through a triangle's inside, and the triangle each crosses."""
     lo, hi = tri.reshape(-1, 3).min(axis=0) - tol, tri.reshape(-1, 3).max(axis=0) + tol
-    E = np.unique(np.sort(C[:, _EDGES].reshape(-1, 2), axis=1), axis=0)
+    E = unique_rows(np.sort(C[:, TET10_EDGES].reshape(-1, 2), axis=1))
     E = E[((np.minimum(V[E[:, 0]], V[E[:, 1]]) <= hi) & (np.maximum(V[E[:, 0]], V[E[:, 1]]) >= lo)).all(axis=1)]
     if not E.size:
         return E, np.zeros(0, dtype=int)
-    hit, first = _crossings(V[E[:, 0]], V[E[:, 1]], tri, tol, which=True)
+    hit, first = _crossings(V[E[:, 0]], V[E[:, 1]], tri, tol)
     return E[hit], first[hit]
 
 
@@ -245,7 +244,7 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
     volume (then its other end is tried). A tet10's mid-edge nodes follow their corners. Returns the
     moved nodes' coordinates and how many moved."""
     C = T[:, :4]
-    vol0 = _volumes(V, C)
+    vol0 = _signed_volumes(V, C)
     n = V.shape[0]
     tets_of = sp.csr_matrix((np.ones(C.size), (C.ravel(), np.repeat(np.arange(C.shape[0]), 4))), shape=(n, C.shape[0]))
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
@@ -259,7 +258,7 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
             break
         d = ((V[E] - a[first][:, None]) * normal[first][:, None]).sum(-1)  # (e, 2) signed distances
         order = np.argsort(np.abs(d), axis=1)
-        done = set()
+        any_moved = False
         for k in np.argsort(np.abs(d).min(axis=1), kind="stable"):  # the smallest moves first
             if moved[E[k]].any():  # an end moved onto the surface already (this sweep): it no longer crosses
                 continue
@@ -268,21 +267,16 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
                 old = V[v].copy()
                 V[v] = old - dist * normal[f]
                 tets = tets_of[v].indices
-                if (_volumes(V, C[tets]) >= MIN_VOLUME * vol0[tets]).all():
-                    done.add(v)
+                if (_signed_volumes(V, C[tets]) >= MIN_VOLUME * vol0[tets]).all():
+                    any_moved = True
                     moved[v] = True
                     break
                 V[v] = old
-        if not done:
+        if not any_moved:
             break
     if T.shape[1] == 10:
-        V[T[:, 4:]] = 0.5 * (V[C[:, _EDGES[:, 0]]] + V[C[:, _EDGES[:, 1]]])
+        V[T[:, 4:]] = 0.5 * (V[C[:, TET10_EDGES[:, 0]]] + V[C[:, TET10_EDGES[:, 1]]])
     return V, int(moved.sum())
-
-
-def _volumes(V: np.ndarray, C: np.ndarray) -> np.ndarray:
-    P = V[C]
-    return np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) / 6.0
 
 
 def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool) -> None:
@@ -290,7 +284,7 @@ def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, s
     the elements named."""
     bad, _ = _crossing_edges(V, T[:, :4], tri, tol)
     if bad.size:
-        key = np.sort(T[:, :4][:, _EDGES].reshape(-1, 2), axis=1)
+        key = np.sort(T[:, :4][:, TET10_EDGES].reshape(-1, 2), axis=1)
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
         which = np.flatnonzero(has)
         why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume, and a tet10 "
@@ -309,8 +303,7 @@ def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
     na, nb = T[elem[a][:, None], slots[a]], T[elem[b][:, None], slots[b]]
     ia = elem[a][:, None] * K + np.take_along_axis(slots[a], np.argsort(na, axis=1), axis=1)
     ib = elem[b][:, None] * K + np.take_along_axis(slots[b], np.argsort(nb, axis=1), axis=1)
-    graph = sp.coo_matrix((np.ones(ia.size), (ia.ravel(), ib.ravel())), shape=(E * K, E * K))
-    _, label = connected_components(graph, directed=False)
+    _, label = components(E * K, ia.ravel(), ib.ravel())
     node = T.ravel()
     comp_node = np.empty(label.max() + 1, dtype=np.int64)
     comp_node[label] = node
@@ -328,12 +321,9 @@ def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
 
 def _pieces(T: np.ndarray, n: int) -> tuple[int, np.ndarray]:
     """How many separate parts the tets make (joined through shared nodes), and each node's."""
-    E, K = T.shape
-    g = sp.coo_matrix((np.ones(E * K), (np.repeat(np.arange(E), K), T.ravel())), shape=(E, n)).tocsr()
-    count, label = connected_components(sp.bmat([[None, g], [g.T, None]]), directed=False)
-    node_label = label[E:]
-    used = np.unique(node_label[np.unique(T)])
-    remap = np.full(count, -1)
+    K = T.shape[1]
+    _, label = components(n, np.repeat(T[:, 0], K - 1), T[:, 1:].ravel())
+    used = np.unique(label[np.unique(T)])
+    remap = np.full(label.max() + 1, -1)
     remap[used] = np.arange(used.size)
-    return int(used.size), remap[node_label]
-
+    return int(used.size), remap[label]
