@@ -364,6 +364,11 @@ def test_stall_timeout_is_refused_when_nonsense_or_without_a_scheduler(tmp_path,
     assert cli.main(["impedance", *_dome_args(tmp_path), "--stall-timeout", "5", "-o", str(tmp_path / "m.npz")]) == 2
     assert "--stall-timeout is for a run on a cluster: give --scheduler too" in capsys.readouterr().err
     assert not (tmp_path / "m.npz").exists()
+    for bad in ("0", "-3", "nan", "soon"):
+        assert cli.main(["impedance", *_dome_args(tmp_path), "--scheduler", "local:1", "--stall-timeout", bad, "-o",
+                         str(tmp_path / "m.npz")]) == 2
+        assert "argument --stall-timeout" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
 
 
 def test_the_scheduler_killed_mid_run_ends_the_run_with_why_and_keeps_what_came_back(serial, real_cluster):

@@ -148,12 +148,19 @@ def test_a_surface_through_elements_or_beside_the_solid_is_refused_and_a_freed_p
         rt.cut(model, SLIT, QUAD.astype(float))
     with pytest.raises(ModelError, match="index vertices"):
         rt.cut(model, SLIT, QUAD + 2)
+    with pytest.raises(ModelError, match="snap"):
+        rt.cut(model, SLIT, QUAD, snap="yes")
+    before = (np.asarray(model.tetmesh.vertices).copy(), np.asarray(model.tetmesh.tets).copy(), model.fixed.copy())
     through = SLIT.copy()
     through[:2, 2] = -0.001  # the whole section: the right half is freed
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         two = rt.cut(model, through, QUAD)
     assert two.cut_info.pieces == 2
+    rt.cut(model, SLIT + [0.0025, 0, 0], QUAD)  # one that moves nodes: on the new model's mesh only
+    after = (np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets), model.fixed)
+    for x, y in zip(before, after):  # the model given, refused or cut, is as it was
+        np.testing.assert_array_equal(x, y)
     assert any(issubclass(w.category, RtfemWarning) and "1 of 2 parts" in str(w.message) for w in caught)
     with pytest.raises(ModelError, match="needs a solid"):
         rt.cut(rt.ShellModel(rt.meshes.hemisphere(), rt.Material()), SLIT, QUAD)
