@@ -15,7 +15,7 @@ from ..mesh.cut import cut_mesh, extend
 __all__ = ["cut"]
 
 
-def cut(model, vertices, triangles, *, snap: bool = True):
+def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "warn"):
     """A new model of the same kind, element, material and fixes as ``model`` (an rt.SolidModel),
     its mesh separated along the element faces that lie in the triangulated surface (``vertices``
     (k, 3) in metres, ``triangles`` (m, 3)): :func:`cut_mesh`. A copy of a fixed node is fixed. The
@@ -25,8 +25,12 @@ def cut(model, vertices, triangles, *, snap: bool = True):
     ----------
     model : an rt.SolidModel (tet4, tet4-anp or tet10; any material or law, mass and constraints option).
     vertices, triangles : the cut surface.
-    snap : where the surface passes through elements, move their nodes onto it first (see
-        :func:`rtfem.mesh.cut.cut_mesh`); False refuses such a surface.
+    snap : where the surface passes through elements, move their nodes onto it first (True; see
+        :func:`rtfem.mesh.cut.cut_mesh`), split those elements instead ("split", tet4: the geometry
+        unchanged, for a solid cut while it runs), or refuse such a surface (False).
+    free : what becomes of a part the cut frees with nothing fixed: "warn" (kept, with a warning: it
+        would float) or "remove" (dropped, as a scalpel's cut-away piece falls away:
+        ``cut_info.removed`` counts its nodes and ``cut_info.removed_mass`` its kg).
 
     Returns
     -------
@@ -35,27 +39,55 @@ def cut(model, vertices, triangles, *, snap: bool = True):
     Raises
     ------
     ModelError
-        A shell (not cut yet); any refusal of :func:`cut_mesh`.
+        A shell (not cut yet); any refusal of :func:`cut_mesh`; free="remove" with nothing fixed at
+        all (every part would go).
 
     Warns
     -----
     RtfemWarning
-        When the cut frees a part of the solid that nothing holds (it would float: fix it, or cut less).
+        free="warn": when the cut frees a part of the solid that nothing holds (fix it, or cut less).
     """
     from .recipe import ModelRecipe
 
     if not (hasattr(model, "tetmesh") and hasattr(model, "element")):
         raise ModelError(f"model={validate.show(model)}: cutting needs a solid (rt.SolidModel); a shell cannot be "
                          "cut yet")
+    free = validate.choice(free, "free", ("warn", "remove"))
     recipe = ModelRecipe.of(model)
-    mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=validate.flag(snap, "snap"))
+    snap = snap if isinstance(snap, str) and snap == "split" else validate.flag(snap, "snap")
+    mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=snap)
     fixed = extend(np.asarray(recipe.fixed, dtype=bool), info.split)[info.parent]
+    held = np.zeros(info.pieces, dtype=bool)
+    held[info.piece[fixed.any(axis=1)]] = True
+    info["removed"], info["removed_mass"] = 0, 0.0
+    if not held.all() and free == "remove":
+        if not held.any():
+            raise ModelError("free='remove' with nothing fixed: every part of the solid would be removed; fix the "
+                             "model first")
+        mesh, info, fixed = _drop_free(mesh, info, fixed, held, recipe.material.density)
+    elif not held.all() and fixed.any():
+        warnings.warn(f"the cut frees {int((~held).sum())} of {info.pieces} parts of the solid with nothing fixed: "
+                      "they would float; fix a node of each, or cut less (or free='remove')", RtfemWarning, stacklevel=2)
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info
-    if fixed.any():
-        held = np.zeros(info.pieces, dtype=bool)
-        held[info.piece[fixed.any(axis=1)]] = True
-        if not held.all():
-            warnings.warn(f"the cut frees {int((~held).sum())} of {info.pieces} parts of the solid with nothing fixed: "
-                          "they would float; fix a node of each, or cut less", RtfemWarning, stacklevel=2)
     return new
+
+
+def _drop_free(mesh, info, fixed, held, density):
+    """The cut mesh without its parts that nothing holds, ``info`` told (``kept``, ``removed``,
+    ``removed_mass``; ``parent``, ``piece`` of the nodes kept) and the fixes of the nodes kept."""
+    from ..mesh.tetmesh import TetMesh
+
+    keep = np.flatnonzero(held[info.piece])
+    new_index = np.full(mesh.n_vertices, -1)
+    new_index[keep] = np.arange(keep.size)
+    T = np.asarray(mesh.tets)
+    inside = (new_index[T] >= 0).all(axis=1)
+    lost = float(np.asarray(mesh.volumes())[~inside].sum()) * float(density)
+    groups = {k: new_index[v][new_index[v] >= 0] for k, v in mesh.groups.items()}
+    out = TetMesh(np.asarray(mesh.vertices)[keep], new_index[T[inside]], repair=False, merge_tol=0.0, groups=groups)
+    info = type(info)(info)
+    pieces = np.unique(info.piece[keep], return_inverse=True)[1]
+    info.update(parent=info.parent[keep], piece=pieces.ravel(), pieces=int(held.sum()), kept=keep,
+                removed=int(mesh.n_vertices - keep.size), removed_mass=lost)
+    return out, info, fixed[keep]

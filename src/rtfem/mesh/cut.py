@@ -24,21 +24,44 @@ from ..errors import ModelError
 from .repair import components, unique_rows
 from .tetmesh import TET10_EDGES, TET_FACES, TetMesh, _signed_volumes
 
-__all__ = ["cut_mesh", "CutInfo", "extend"]
+__all__ = ["cut_mesh", "CutInfo", "NothingToCut", "extend", "on_surface"]
 
 # a tet10's mid-edge nodes (VTK order) on each face of TET_FACES (the face opposite corner i)
 _FACE_MIDS = np.array([[5, 9, 8], [6, 9, 7], [4, 8, 7], [4, 5, 6]])
-_TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surface is on it
+_TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surface is on it ...
+#: ... or this share of the median element edge, if more: the cut surface's thickness (a surface
+#: drawn in pieces, a scalpel's strips, is not exactly flat where they meet)
+ON_SURFACE = 0.02
+#: an edge is split no nearer its end than this share of it: nearer, that end moves onto the surface
+MIN_SPLIT = 0.2
+
+
+class NothingToCut(ModelError):
+    """The surface cuts no element face inside the solid (a scalpel's strips not yet whole faces)."""
 
 
 class CutInfo(dict):
     """What :func:`cut_mesh` did: ``faces`` (element faces cut), ``nodes_added`` (copies made),
     ``parent`` (for each node of the cut mesh, the node it copies), ``pieces`` (separate parts
     of the cut mesh), ``piece`` (each node's part), ``moved`` (nodes moved onto the surface),
-    ``max_move`` (the longest move, m) and ``split`` (the edges (s, 2) split by a node added on the
-    surface, in order: node n + k of the mesh before the copies is on edge k)."""
+    ``max_move`` (the longest move, m), ``uncut`` (n, the node count before) and ``split`` (the
+    edges (s, 2) split by a node added on the surface, in order: node n + k of the mesh before the
+    copies is on edge k) with ``split_at`` (where along each edge: 0 at its first end, 1 at its
+    second); :meth:`transfer` is the interpolation from the old nodes to the new."""
 
     __getattr__ = dict.__getitem__
+
+    def transfer(self) -> sp.csr_matrix:
+        """The interpolation (n_cut, n) from the uncut mesh's nodes to the cut mesh's: a copy's row
+        picks its node; a node added on a split edge (a, b) at s is (1 - s) a + s b (a linear field
+        stays itself). What a running driver's state goes through (DirectSimulator.carry_over)."""
+        born, at, parent, n = self["split"], self["split_at"], self["parent"], self["uncut"]
+        I = sp.identity(n, format="csr")
+        rows: list = []  # the added nodes' rows, each from earlier ones
+        for (a, b), s in zip(born.tolist(), at.tolist()):
+            ra, rb = (I[a] if a < n else rows[a - n]), (I[b] if b < n else rows[b - n])
+            rows.append((1.0 - s) * ra + s * rb)
+        return sp.vstack([I, *rows], format="csr")[parent]
 
 
 def _surface(vertices, triangles) -> np.ndarray:
@@ -81,15 +104,20 @@ def _inside(e: np.ndarray, frames: tuple, tol: float) -> np.ndarray:
     return (v >= -slack) & (w >= -slack) & (v + w <= 1 + slack)
 
 
-def _on_surface(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
-    """(p,) whether each point lies on one of the triangles (within ``tol``)."""
+def on_surface(points: np.ndarray, tri: np.ndarray, tol: float, along: float | None = None) -> np.ndarray:
+    """(p,) whether each point (p, 3) lies on one of the triangles (m, 3, 3): within ``tol`` (m) of its
+    plane and projecting inside it or within ``along`` (m; default ``tol``) of its edges."""
     on = np.zeros(points.shape[0], dtype=bool)
+    reach = max(tol, tol if along is None else along)
+    lo, hi = tri.reshape(-1, 3).min(axis=0) - reach, tri.reshape(-1, 3).max(axis=0) + reach
+    near_box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1))  # the rest cannot be on it
     frames = _frames(tri)
     a, n = frames[0], frames[3]
-    for s in range(0, points.shape[0], 512):  # (chunk, m) at a time
-        p = points[s:s + 512, None, :] - a[None]
+    for s in range(0, near_box.size, 512):  # (chunk, m) at a time
+        rows = near_box[s:s + 512]
+        p = points[rows, None, :] - a[None]
         near = np.abs((p * n[None]).sum(-1)) <= tol
-        on[s:s + 512] = (near & _inside(p, frames, tol)).any(axis=1)
+        on[rows] = (near & _inside(p, frames, tol if along is None else along)).any(axis=1)
     return on
 
 
@@ -123,7 +151,7 @@ def _faces(T: np.ndarray):
     return keys, np.tile(slots, (E, 1)), index.ravel(), count
 
 
-def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
+def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     """The tet mesh ``mesh`` separated along the element faces that lie in the triangulated surface
     (``vertices`` (k, 3) in metres, ``triangles`` (m, 3)): each node of those faces gets one copy per
     group of its tets still joined through uncut faces (see the module).
@@ -134,8 +162,10 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     vertices, triangles : the cut surface.
     snap : where the surface passes through elements, move nodes onto it first (:func:`_snap`: the
         nearer end of each crossing edge, straight onto the crossed triangle's plane, no tet left
-        with under :data:`MIN_VOLUME` of its volume), so that the cut follows their faces; False:
-        refuse such a surface.
+        with under :data:`MIN_VOLUME` of its volume), so that the cut follows their faces; "split"
+        (tet4): move no node by more than :data:`MIN_SPLIT` of an edge, split the crossed elements
+        instead (:func:`_split_edges`: the geometry unchanged, what a running simulation needs: a moved
+        node of a deformed solid can turn its elements inside out); False: refuse such a surface.
 
     Returns
     -------
@@ -152,12 +182,19 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     """
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
     tri = _surface(vertices, triangles)
-    tol = _TOL * max(float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), 1e-300)
-    moved, born = 0, np.zeros((0, 2), dtype=np.int64)
+    C = V[T[:, TET10_EDGES]]
+    edge = float(np.median(np.linalg.norm(C[:, :, 1] - C[:, :, 0], axis=2)))
+    tol = max(_TOL * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), ON_SURFACE * edge, 1e-300)
+    moved, born, at = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0)
+    if snap == "split" and T.shape[1] != 4:
+        raise ModelError("snap='split' splits tet4 elements; a tet10 mesh is cut with snap=True (nodes moved)")
     if snap:
-        V, moved = _snap(V, T, tri, tol)
+        V, moved = _onto(V, T, tri, tol)
+        if snap != "split":
+            V, snapped = _snap(V, T, tri, tol)
+            moved += snapped
         if T.shape[1] == 4:
-            V, T, born = _split_edges(V, T, tri, tol)
+            V, T, born, at = _split_edges(V, T, tri, tol)
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
@@ -167,11 +204,11 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     C = V[keys[f1]]
     probes = np.concatenate([C[:, 0], C[:, 1], C[:, 2], (C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2,
                              (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
-    cut = _on_surface(probes, tri, tol).reshape(7, -1).all(axis=0)
+    cut = on_surface(probes, tri, tol).reshape(7, -1).all(axis=0)
     if not cut.any():
-        raise ModelError("the cut surface lies along no element face inside the solid: it misses the solid, runs "
+        raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
-    parent, T_new = _split_nodes(T, elem, slots, f1, f2, cut, V.shape[0])
+    parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0])
     groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, mesh.n_vertices), born))))
               for name, nodes in mesh.groups.items()}
     new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups)
@@ -179,7 +216,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool = True):
     n0 = mesh.n_vertices
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
                    piece=piece, moved=moved, max_move=float(np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1).max()),
-                   split=born)
+                   split=born, split_at=at, uncut=n0)
     return new, info
 
 
@@ -203,8 +240,10 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     """Where node snapping left an edge through the surface (a tet with two nodes on it and the
     other two on either side: moving either flattens it), a node is added where the edge crosses
     the surface and every tet on that edge is split in two there (conforming: all of them are;
-    the geometry, mass and volume unchanged; tet4 only). Returns V, T and the edges split (s, 2)."""
+    the geometry, mass and volume unchanged; tet4 only). Returns V, T, the edges split (s, 2) and
+    where along each the node is (s,: 0 at its first end, 1 at its second)."""
     born: list = []
+    at: list = []
     limit = 100 + 4 * T.shape[0] // 100
     while len(born) < limit:
         E, first = _crossing_edges(V, T, tri, tol)
@@ -213,17 +252,56 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
         (a, b), f = E[0], first[0]
         normal = np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0])
         da, db = (V[a] - tri[f, 0]) @ normal, (V[b] - tri[f, 0]) @ normal
+        s = da / (da - db)
+        if min(s, 1 - s) < MIN_SPLIT and _nudge(V, T, a if s < 0.5 else b, V[a] + s * (V[b] - V[a])):
+            continue  # the crossing is at an end: that end moved onto the surface instead (no sliver)
         p = V.shape[0]
-        V = np.vstack([V, V[a] + da / (da - db) * (V[b] - V[a])])
+        V = np.vstack([V, V[a] + s * (V[b] - V[a])])
         on = (T == a).any(axis=1) & (T == b).any(axis=1)
         t1, t2 = T[on].copy(), T[on].copy()
         t1[t1 == b], t2[t2 == a] = p, p
         T = np.concatenate([T[~on], t1, t2])
         born.append((a, b))
-    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2)
+        at.append(s)
+    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float)
 
 
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
+
+
+def _onto(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+    """Corner nodes within ``tol`` of the surface but not on it moved onto it (onto the plane of the
+    first triangle they lie on), so that the faces cut lie in the surface; where a tet would keep less
+    than :data:`MIN_VOLUME` of its volume the node stays (within ``tol``). Returns V and the count."""
+    lo, hi = tri.reshape(-1, 3).min(axis=0) - tol, tri.reshape(-1, 3).max(axis=0) + tol
+    corner = np.unique(T[:, :4])
+    cand = corner[((V[corner] >= lo) & (V[corner] <= hi)).all(axis=1)]
+    frames = _frames(tri)
+    a, n = frames[0], frames[3]
+    V = V.copy()
+    count = 0
+    for s in range(0, cand.size, 512):
+        nodes = cand[s:s + 512]
+        p = V[nodes][:, None, :] - a[None]
+        dist = (p * n[None]).sum(-1)
+        near = (np.abs(dist) <= tol) & _inside(p, frames, tol)
+        first = np.argmax(near, axis=1)
+        d = dist[np.arange(nodes.size), first]
+        for k in np.flatnonzero(near.any(axis=1) & (np.abs(d) > 1e-6 * tol)).tolist():
+            count += _nudge(V, T, int(nodes[k]), V[nodes[k]] - d[k] * n[first[k]])
+    return V, count
+
+
+def _nudge(V: np.ndarray, T: np.ndarray, v: int, to: np.ndarray) -> bool:
+    """Move node ``v`` to ``to`` in place if each of its tets keeps :data:`MIN_VOLUME` of its volume."""
+    tets = np.flatnonzero((T[:, :4] == v).any(axis=1))
+    before = _signed_volumes(V, T[tets])
+    old = V[v].copy()
+    V[v] = to
+    if (_signed_volumes(V, T[tets]) >= MIN_VOLUME * before).all():
+        return True
+    V[v] = old
+    return False
 
 
 def _crossing_edges(V: np.ndarray, C: np.ndarray, tri: np.ndarray, tol: float):
@@ -317,6 +395,32 @@ def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
     new_id[extra] = n + np.arange(extra.size)
     parent = np.concatenate([np.arange(n), comp_node[extra]])
     return parent, new_id[label].reshape(E, K)
+
+
+def _manifold_split(T, elem, slots, f1, f2, cut, n: int):
+    """:func:`_split_nodes`, with the cut faces that would leave the boundary non-manifold left joined:
+    where the cut's edge meets the outside or another cut along an edge alone (its nodes still joined
+    through other faces), that edge would hold four boundary faces; the cut faces on it stay uncut
+    until the cut goes on past them (a pinch is not a surface the solid can be drawn and touched by).
+    Returns parent, the new tets and the faces cut."""
+    cut = cut.copy()
+    for _ in range(16):
+        parent, T_new = _split_nodes(T, elem, slots, f1, f2, cut, n)
+        keys, _, index, count = _faces(T_new[:, :4])
+        outer = keys[count[index] == 1]
+        edges = np.sort(outer[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
+        pairs, times = unique_rows(edges, return_counts=True)
+        bad = pairs[times > 2]
+        if not bad.size:
+            return parent, T_new, cut
+        k = np.flatnonzero(cut)
+        code = bad[:, 0] * (parent.size + 1) + bad[:, 1]
+        for f in (f1[k], f2[k]):  # each lip's face, in the new numbering
+            side = np.sort(T_new[elem[f][:, None], slots[f][:, :3]][:, [[0, 1], [1, 2], [0, 2]]], axis=2)
+            hit = np.isin(side[..., 0] * (parent.size + 1) + side[..., 1], code).any(axis=1)
+            cut[k[hit]] = False
+    raise ModelError("the cut leaves the solid's outside non-manifold however many of its faces are left joined: "
+                     "cut along a smoother surface")
 
 
 def _pieces(T: np.ndarray, n: int) -> tuple[int, np.ndarray]:
