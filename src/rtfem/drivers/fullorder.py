@@ -75,7 +75,9 @@ class DirectSimulator(ForceInput):
                     raise ModelError("large_deformation=True runs Newton inside implicit Newmark: use method='newmark' "
                                      "(a shell's massless rotations have no explicit update)")
                 cls = _large_deformation_class(model, options.get("solver"))
-        return super().__new__(cls)
+        obj = super().__new__(cls)
+        obj._settings = dict(options)  # what carry_over builds its copy with
+        return obj
 
     _nonlinear: type | None = None  # the Newton step's class (rtfem.drivers.nonlinear_newmark registers it)
 
@@ -200,6 +202,35 @@ class DirectSimulator(ForceInput):
         self._state_changed()
         self.steps = steps
         self.time = steps * self.dt
+
+    def carry_over(self, model, transfer, *, into=None) -> "DirectSimulator":
+        """This driver carried over to ``model``, a remeshed copy of its model (``rt.cut``'s): a driver
+        of the same class and settings holding this one's state, node by node through the remesh's
+        interpolation (displacements, velocities, accelerations interpolated; remembered loads shared
+        among a node's copies by lumped mass: see :mod:`rtfem.drivers.carry`). This driver is left as
+        it was.
+
+        Parameters
+        ----------
+        model : the remeshed model (same kind, element and material).
+        transfer : ``cut_info.transfer()``, the sparse (model.n_nodes, n_nodes) interpolation from this
+            model's nodes; or (model.n_nodes,) integers, the node each new node copies.
+        into : a driver this call returned before on the same ``model``: it only takes the state
+            now (the expensive build done ahead, on another thread; the state mapped at the swap).
+
+        Returns
+        -------
+        the new driver.
+
+        Raises
+        ------
+        ModelError
+            A transfer of the wrong shape or range; a model of another kind; a viscoelastic law's
+            history (not carried yet); ``into`` built on another model.
+        """
+        from .carry import carry_over
+
+        return carry_over(self, model, transfer, into)
 
     @property
     def fingerprint(self) -> str:

@@ -1,0 +1,115 @@
+"""A running full-order driver carried over to a remeshed copy of its model (issue 57: a cut).
+
+The state goes through the remesh's interpolation P (n_new, n_old) (``cut_info.transfer()``; an
+integer array ``parent`` stands for the rows that pick node ``parent[i]``): a cut gives each node on a
+cut face one copy per side (a row picking it), a node added on a split edge is the interpolation of
+the edge's ends. Displacements, velocities and accelerations go through P (the fields are the same
+piecewise polynomials, so where the cut follows element faces the kinetic and strain energies are
+exactly the old ones); the loads a step remembers (HHT's last forces) go through P scaled by each new
+node's lumped mass over that of what it interpolates (a node's load shared among its copies by mass:
+the total kept where only copies are made). A node the cut moved onto its surface keeps its place in
+the world (its displacement takes the move back): the solid is where it was at the swap, so no element
+turns inside out there; its elements' strains change by the move over their size (``cut_info.max_move``;
+a running scalpel cuts tet4 with ``snap="split"``: moves under a fifth of an edge).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import ModelError
+
+#: the state vectors that are loads (extensive: shared among a node's copies); the rest are fields
+EXTENSIVE = frozenset({"_g", "_held", "_f"})
+
+
+def lumped_nodal_masses(model) -> np.ndarray:
+    """Each node's share of the mass (n,): the rows of the mass matrix summed (its x rows)."""
+    rows = np.asarray(model.M.sum(axis=1)).ravel()
+    return rows.reshape(model.n_nodes, model.dofs_per_node)[:, 0]
+
+
+def transfer_matrix(old, new, transfer) -> sp.csr_matrix:
+    """``transfer`` checked, as a sparse (new.n_nodes, old.n_nodes) interpolation."""
+    if old.dofs_per_node != new.dofs_per_node:
+        raise ModelError(f"the new model has {new.dofs_per_node} dofs a node and the old one {old.dofs_per_node}: "
+                         "carry a state only to a remeshed copy of the same kind of model")
+    if sp.issparse(transfer):
+        P = sp.csr_matrix(transfer, dtype=float)
+        if P.shape != (new.n_nodes, old.n_nodes) or not np.isfinite(P.data).all():
+            raise ModelError(f"transfer of shape {P.shape}: give the interpolation ({new.n_nodes}, {old.n_nodes}) from "
+                             "the old model's nodes to the new's (cut_info.transfer()), finite")
+        return P
+    p = np.asarray(transfer)
+    if p.shape != (new.n_nodes,) or not np.issubdtype(p.dtype, np.integer):
+        raise ModelError(f"transfer of shape {p.shape} and type {p.dtype}: give one old node index for each of the new "
+                         f"model's {new.n_nodes} nodes, or the sparse interpolation cut_info.transfer()")
+    if p.size and (p.min() < 0 or p.max() >= old.n_nodes):
+        raise ModelError(f"transfer indexes nodes {int(p.min())}..{int(p.max())}, but the old model has {old.n_nodes}: "
+                         "a cut that split edges needs cut_info.transfer(), not cut_info.parent")
+    return sp.csr_matrix((np.ones(p.size), (np.arange(p.size), p)), shape=(new.n_nodes, old.n_nodes))
+
+
+def carried_state(old, new, P: sp.csr_matrix) -> dict:
+    """``old``'s state (a DirectSimulator) as ``new``'s (the same class on the remeshed model): see the
+    module."""
+    state = old.get_state()
+    if "visc" in state:
+        raise ModelError("a viscoelastic law's history lives at the elements' quadrature points and is not carried "
+                         "to a cut mesh yet: cut the model before running it, or use an elastic law")
+    target = new.get_state()
+    n_old, n_new, dpn = old.model.n_dofs, new.model.n_dofs, old.model.dofs_per_node
+    share = None
+    out = {}
+    for key, value in state.items():
+        value, like = np.asarray(value), np.asarray(target[key])
+        if value.shape == (old._solved.size,) and like.shape == (new._solved.size,):
+            full, pick = np.zeros(n_old), new._solved
+            full[old._solved] = value
+        elif value.shape == (n_old,) and like.shape == (n_new,):
+            full, pick = value, slice(None)
+        elif value.shape == like.shape:
+            out[key] = value.copy()  # a step count: not nodal
+            continue
+        else:
+            raise ModelError(f"state[{key!r}] has shape {value.shape}, not a nodal vector of the old model; carry over "
+                             "only between drivers of one class")
+        nodal = P @ full.reshape(-1, dpn)
+        if f"_{key}" in EXTENSIVE:
+            if share is None:
+                m_from = P @ lumped_nodal_masses(old.model)
+                share = lumped_nodal_masses(new.model) / np.maximum(m_from, np.finfo(float).tiny)
+            nodal = nodal * share[:, None]
+        out[key] = np.asarray(nodal).ravel()[pick].copy()
+    return out
+
+
+def carry_over(old, model, transfer, into=None):
+    """A driver of ``old``'s class and settings on ``model`` (``into``: one built before by this call on
+    the same model, which then only takes the state), holding ``old``'s state carried through
+    ``transfer``; ``old`` is left as it was."""
+    P = transfer_matrix(old.model, model, transfer)
+    if into is None:
+        into = type(old)(model, old.dt, old.damping, **getattr(old, "_settings", {}))
+    elif into.model is not model:
+        raise ModelError("into= must be a driver carry_over built on this same model")
+    state = carried_state(old, into, P)
+    _keep_in_place(old.model, model, P, state, into._solved)
+    into.set_state(state)
+    return into
+
+
+def _keep_in_place(old, new, P, state: dict, solved: np.ndarray) -> None:
+    """A node whose reference point the remesh moved (a cut's snap) keeps its place in the world: its
+    displacement takes the move back (u' = P(X + u) - X'), so the solid is where it was at the swap and
+    no element can turn inside out there; its elements' strains change by the move over their size."""
+    if not (hasattr(old, "tetmesh") and hasattr(new, "tetmesh")) or "u" not in state:
+        return
+    shift = P @ np.asarray(old.tetmesh.vertices, dtype=float) - np.asarray(new.tetmesh.vertices, dtype=float)
+    if not np.abs(shift).max(initial=0.0) > 0:
+        return
+    full = shift.ravel()[solved]
+    for key in ("u", "ref_u"):
+        if key in state:
+            state[key] = state[key] + full

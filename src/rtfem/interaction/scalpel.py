@@ -1,0 +1,360 @@
+"""The scalpel (issue 57): a blade that cuts the full-order solid it sweeps through, its force loop at the
+haptic rate.
+
+The blade is a segment from its heel to its tip, placed by a device or a path each haptic tick
+(:meth:`Scalpel.update`). Its organ steps on a physics thread (the multi-rate scheme of
+:mod:`rtfem.interaction.multirate`) under gravity. At each physics step the blade's samples are taken
+to the reference configuration (each point less the displacement about it) and, once the blade has
+advanced by ``advance`` there, the strip between where it was and where it is is added to the cut
+surface, cell by cell, where a cell reaches inside the solid and has not been swept before. A cutter
+thread then cuts the model along the whole surface swept so far (:func:`rtfem.cut`: along element
+faces, nodes snapped onto it, tet4 edges split where snapping cannot; see docs/guide/cutting.md),
+builds the driver on the cut model, and the physics thread swaps it in between two steps, the state
+carried over node by node (:meth:`DirectSimulator.carry_over`). Ticks never wait for any of this.
+
+The cutting resistance, a stated model: the energy a cut takes is the tissue's fracture toughness J
+times the area it opens (Gokgol, Basdogan and Canadinc 2012 measured J = 164 +- 6 J/m^2 for liver;
+blade cutting of porcine liver, 187-225 J/m^2). A blade advancing by ds that opens dA = L ds (L the
+length of its edge in tissue not cut before) is held back by F = J dA / ds = J L, against its motion
+across the blade: on the hand -F v / max(|v|, ``V_REG``) (v the blade's velocity across itself,
+smoothed over ~10 ms; below ``V_REG`` = 1 mm/s the force fades with the speed, as a regularized
+Coulomb force does, so that a blade held still feels nothing). The tissue takes the opposite force at
+the nodes about the blade's edge. A blade drawn back along its own slit opens nothing and feels
+nothing. The cut is undone only by rebuilding the model.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .. import validate
+from ..errors import ModelError, RtfemError
+from ..mesh.cut import on_surface
+from .multirate import _PARAMETERS, _MultiRate
+
+__all__ = ["Scalpel", "TOUGHNESS"]
+
+#: J/m^2: liver's fracture toughness (Gokgol, Basdogan, Canadinc 2012, needle insertion, bovine liver)
+TOUGHNESS = 164.0
+#: m/s: below this speed across the blade the cutting force fades with the speed
+V_REG = 1e-3
+#: points along the blade (the strip's cells are between neighbours)
+SAMPLES = 9
+_SMOOTH = 0.01  # s: the blade velocity's smoothing time
+_SUB = (np.arange(8) + 0.5) / 8  # a cell's share inside the solid: its 8 x 8 sub-cells' centres
+
+
+def _bilinear(corners: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points (c, len(s)^2, 3) of each quad (c, 4, 3) at the parameters s x s."""
+    u, v = (a.ravel()[None, :, None] for a in np.meshgrid(s, s))
+    q = corners[:, None]
+    return (1 - u) * (1 - v) * q[:, :, 0] + u * (1 - v) * q[:, :, 1] + u * v * q[:, :, 2] + (1 - u) * v * q[:, :, 3]
+
+
+class _Solid:
+    """What a physics step reads of the model: its reference nodes and corner tets, the weight, and a
+    search for the tet holding a point (in the reference or a deformed configuration)."""
+
+    def __init__(self, model, gravity: np.ndarray) -> None:
+        from ..drivers.carry import lumped_nodal_masses
+
+        self.model = model
+        self.X = np.asarray(model.tetmesh.vertices, dtype=float)
+        self.C = np.asarray(model.tetmesh.tets)[:, :4]
+        self.tree = cKDTree(self.X[self.C].mean(axis=1))
+        self.weights = lumped_nodal_masses(model)[:, None] * gravity[None, :]
+        P = self.X[self.C]
+        edges = np.linalg.norm(P[:, [1, 2, 3, 2, 3, 3]] - P[:, [0, 0, 0, 1, 1, 2]], axis=2)
+        self.edge = float(np.mean(edges))
+
+    def locate(self, points: np.ndarray, X=None, tree=None):
+        """For each point (k, 3), a corner tet holding it (faces included; -1: none) and its
+        barycentric coordinates (k, 4), with the nodes at ``X`` (default: the reference): among the
+        tets of the 12 nearest centres, then of the 64 nearest for a point none of those holds."""
+        X, tree = (self.X, self.tree) if X is None else (X, tree)
+        tet, bary = self._among(points, X, tree, 12)
+        lost = np.flatnonzero(tet < 0)
+        if lost.size and self.C.shape[0] > 12:
+            tet[lost], bary[lost] = self._among(points[lost], X, tree, 64)
+        return tet, bary
+
+    def _among(self, points: np.ndarray, X: np.ndarray, tree, k: int):
+        k = min(k, self.C.shape[0])
+        _, cand = tree.query(points, k=k)
+        cand = cand.reshape(points.shape[0], k)
+        P = X[self.C[cand]]  # (p, k, 4, 3)
+        J = np.transpose(P[:, :, 1:] - P[:, :, :1], (0, 1, 3, 2))
+        ok = np.abs(np.linalg.det(J)) > 0
+        J[~ok] = np.eye(3)
+        lam = np.linalg.solve(J, (points[:, None, :] - P[:, :, 0])[..., None])[..., 0]
+        bary = np.concatenate([1.0 - lam.sum(axis=2, keepdims=True), lam], axis=2)
+        inside = ok & (bary.min(axis=2) >= -1e-9)
+        first = np.argmax(inside, axis=1)
+        rows = np.arange(points.shape[0])
+        return np.where(inside[rows, first], cand[rows, first], -1), bary[rows, first]
+
+    def inside(self, points: np.ndarray) -> np.ndarray:
+        """(k,) True where a reference point lies in a tet (its faces included)."""
+        return self.locate(points)[0] >= 0
+
+
+class Scalpel(_MultiRate):
+    __doc__ = f"""A blade that cuts the full-order solid it sweeps through (see the module): each haptic
+    tick, :meth:`update` places it and returns the cutting resistance on the hand, from the last
+    physics step; the organ steps on a physics thread under gravity, and the cut follows the blade
+    one swept strip at a time, applied between two steps by a cutter thread.
+
+    Parameters
+    ----------
+    driver : a full-order :class:`~rtfem.DirectSimulator` on an rt.SolidModel (tet4 or tet10; an
+        elastic law), at rest or running.
+    blade : (3,) m, from the blade's tip to its heel, where :meth:`update` is given the tip alone (a
+        device's point; default (0, 0, 0.03): a 3 cm blade held upright).
+    gravity : (3,) m/s^2 on the organ (default (0, 0, -9.81)).
+    toughness : J/m^2, the energy a cut takes per unit area opened (default :data:`TOUGHNESS`, liver);
+        0 cuts without resistance.
+    advance : m, how far (in the reference configuration) the blade moves before its strip is added
+        to the cut (default half the mean element edge).
+{_PARAMETERS}
+
+    Raises
+    ------
+    ModelError
+        A driver that is not a full-order one on a solid; a gravity, toughness or advance out of
+        range; in :meth:`update`, a blade of no length or a position that is not a point, and what
+        the physics thread raised (the scalpel is stopped; the force is zero from then on).
+    """
+
+    WHAT = "scalpel"
+
+    def __init__(self, driver, *, blade=(0.0, 0.0, 0.03), gravity=(0.0, 0.0, -9.81), toughness: float = TOUGHNESS,
+                 advance=None, rate: float = 1000.0, pace: bool = True, thread: bool = True) -> None:
+        if not (hasattr(driver, "carry_over") and hasattr(getattr(driver, "model", None), "tetmesh")):
+            raise ModelError(f"driver={validate.show(driver)}: a scalpel cuts a full-order solid: give "
+                             "rt.DirectSimulator(solid_model, dt, ...) (a reduced or shell driver cannot be cut yet)")
+        self.blade = np.array(validate.vector(blade, "blade", 3), dtype=float)
+        if not np.linalg.norm(self.blade) > 0:
+            raise ModelError("blade=(0, 0, 0): give the vector from the blade's tip to its heel (m), e.g. (0, 0, 0.03)")
+        self.gravity = np.array(validate.vector(gravity, "gravity", 3), dtype=float)
+        self.toughness = validate.nonnegative(toughness, "toughness", "J/m^2, a number >= 0 (liver: 164)")
+        self._setup(driver, rate, pace, thread)
+        self.solid = _Solid(driver.model, self.gravity)
+        self.advance = (0.5 * self.solid.edge if advance is None
+                        else validate.positive(advance, "advance", "a distance in metres > 0"))
+        self.vertices = np.zeros((0, 3))  # the cut surface swept so far (reference coordinates) ...
+        self.triangles = np.zeros((0, 3), dtype=np.int64)  # ... and its triangles
+        none = np.zeros(SAMPLES - 1, dtype=bool)
+        self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
+        self._blade = None  # (tip, heel) in the world, the last tick's
+        self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
+        self._velocity, self._mid, self._t_tick = np.zeros(3), None, None
+        self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
+        self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))  # the tissue's nodes at the edge, the force on them
+        self.shown = (driver.model, np.zeros((driver.n_nodes, 3)))  # (model, (n, 3) displacements): for drawing
+        self.cuts, self.latencies, self.refused = 0, [], None
+        self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
+        self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
+        self._added: list = []  # (triangles after, perf_counter) of each strip not yet in the model
+        self._tried = 0  # triangles the last cut job had
+        self._job: threading.Thread | None = None
+        self._ready = None
+
+    # ------------------------------------------------------------------ the haptic side
+    def update(self, tip, heel=None) -> np.ndarray:
+        """One haptic tick with the blade from ``heel`` (default: ``tip`` + ``blade``, a device's
+        point being the tip) to ``tip`` (m, world): the force on the hand (N), the cutting resistance
+        against the blade's motion across itself (see the module)."""
+        c = validate.point(tip, "scalpel tip")
+        h = c + self.blade if heel is None else validate.point(heel, "scalpel heel")
+        along = c - h
+        length = float(np.linalg.norm(along))
+        if not length > 0:
+            self.force = np.zeros(3)
+            raise ModelError(f"the blade's tip {c.tolist()} and heel {h.tolist()} coincide: give a blade of some length")
+        self._blade = (c, h)
+        self._tick(c)
+        now, mid = time.perf_counter(), 0.5 * (c + h)
+        if self._mid is not None and now > self._t_tick:
+            w = min(1.0, (now - self._t_tick) / _SMOOTH)
+            self._velocity = (1 - w) * self._velocity + w * (mid - self._mid) / (now - self._t_tick)
+        self._mid, self._t_tick = mid, now
+        b = along / length
+        v = self._velocity - (self._velocity @ b) * b
+        self.force = -self.resistance * v / max(float(np.linalg.norm(v)), V_REG)
+        return self.force
+
+    def displacements(self) -> np.ndarray:
+        """The organ's (n, 3) displacements at the last physics step, on the mesh of ``shown[0]``."""
+        return self.shown[1].copy()
+
+    # ------------------------------------------------------------------ the physics thread
+    def physics_step(self) -> None:
+        """Swap in a cut model if one is ready, step the organ (gravity and the tissue's share of the
+        cutting force), add the blade's strip to the cut surface and start a cut job when it grew."""
+        if self._blade is None:
+            raise ModelError("no blade position yet: call update(tip, heel) first")
+        t = time.perf_counter()
+        with self._lock:
+            self._swap()
+            F = self.solid.weights.copy()
+            nodes, f = self._push
+            if nodes.size:
+                np.add.at(F, nodes, f / nodes.size)
+            self.driver.step(F)
+            U = np.asarray(self.driver.displacements(), dtype=float)
+            self._sweep(U)
+            self._start_cut()
+            self.shown = (self.solid.model, U)
+        dt = time.perf_counter() - t
+        self.physics_steps += 1
+        self.physics_seconds += dt
+        if len(self.step_times) < 100_000:
+            self.step_times.append(dt)
+
+    def _reference(self, points: np.ndarray, U: np.ndarray):
+        """World points in the reference configuration: inside the deformed solid, the reference point
+        of the same barycentric coordinates in the same tet (the exact inverse of the tet4 map);
+        outside it, the point less the displacements of the four nearest nodes weighted by inverse
+        distance. Returns them and a search over the deformed nodes."""
+        x = self.solid.X + U
+        nodes = cKDTree(x)
+        dist, near = nodes.query(points, k=4)
+        w = 1.0 / np.maximum(dist, 1e-12)
+        w /= w.sum(axis=1, keepdims=True)
+        ref = points - np.einsum("pk,pkj->pj", w, U[near])
+        tet, bary = self.solid.locate(points, x, cKDTree(x[self.solid.C].mean(axis=1)))
+        held = tet >= 0
+        ref[held] = np.einsum("pk,pkj->pj", bary[held], self.solid.X[self.solid.C[tet[held]]])
+        return ref, nodes
+
+    def _sweep(self, U: np.ndarray) -> None:
+        """The blade's strip since its last one (reference configuration): the resistance from its edge
+        in the uncut tissue the strip reaches, the tissue's share of the force, and, once it advanced by
+        ``advance``, its cells added to the cut surface (see :meth:`_cells`)."""
+        tip, heel = self._blade
+        world = heel + np.linspace(0.0, 1.0, SAMPLES)[:, None] * (tip - heel)
+        ref, tree = self._reference(world, U)
+        if self._anchor is None:
+            self._anchor = ref
+            return
+        a = self._anchor
+        move = (ref - a).mean(axis=0)
+        step = float(np.linalg.norm(move))
+        if step < 0.1 * self.advance:  # too short a strip to tell the opening rate by: the last one holds
+            return
+        corners = np.stack([a[:-1], a[1:], ref[1:], ref[:-1]], axis=1)  # (S - 1, 4, 3) cells
+        share = self.solid.inside(_bilinear(corners, _SUB).reshape(-1, 3)).reshape(corners.shape[0], -1).mean(axis=1)
+        # J times the blade's edge in uncut tissue: its points inside the solid and not in the slit already
+        front = (ref[:-1, None] + _SUB[None, :, None] * (ref[1:] - ref[:-1])[:, None]).reshape(-1, 3)
+        edge = (self.solid.inside(front) & self._fresh(front)).reshape(ref.shape[0] - 1, -1)
+        self.resistance = self.toughness * float((np.linalg.norm(ref[1:] - ref[:-1], axis=1) * edge.mean(axis=1)).sum())
+        fresh = self._fresh(0.5 * (ref[1:] + ref[:-1]))
+        cut = edge.any(axis=1)
+        if cut.any():  # the tissue's share: on the nodes within an element edge of the blade where it cuts
+            at = np.unique(np.concatenate([np.flatnonzero(cut), np.flatnonzero(cut) + 1]))
+            near = tree.query_ball_point(world[at], r=self.solid.edge)
+            self._push = (np.unique(np.concatenate([np.asarray(k, dtype=np.int64) for k in near])),
+                          self.resistance * move / step)
+        else:
+            self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))
+        if step >= self.advance:
+            self._anchor = ref
+            self._cells(corners, share > 0, fresh)
+
+    def _fresh(self, front: np.ndarray) -> np.ndarray:
+        """(c,) True for cells whose front (the blade's edge now) is not in the slit swept before: within
+        half an element edge of its surface (the tissue moved since: the blade slides into its slit)
+        and not past its edges by a twentieth of an advance. A blade drawn back along its slit opens
+        nothing."""
+        if not self.triangles.shape[0]:
+            return np.ones(front.shape[0], dtype=bool)
+        return ~on_surface(front, self.vertices[self.triangles], 0.5 * self.solid.edge, 0.05 * self.advance)
+
+    def _cells(self, corners: np.ndarray, inside: np.ndarray, fresh: np.ndarray) -> None:
+        """Add to the cut surface the strip's cells that reach into the solid and the cells beside them,
+        along the blade and in the strips before and after (so that the surface passes the solid's
+        outside: a face on it is cut only if the surface covers it whole); never a cell swept before."""
+        near = inside | np.r_[inside[1:], False] | np.r_[False, inside[:-1]]
+        last_corners, last_near, last_taken, last_fresh = self._last
+        take = (near | last_near) & fresh
+        back = near & ~last_taken & last_fresh if last_corners is not None else np.zeros_like(near)
+        cells = [c for c in (last_corners[back] if back.any() else None, corners[take]) if c is not None]
+        self._last = (corners, near, take, fresh)
+        if cells and sum(c.shape[0] for c in cells):
+            add = np.concatenate(cells)
+            self._add_cells(add)
+
+    def _add_cells(self, corners: np.ndarray) -> None:
+        base = self.vertices.shape[0] + 4 * np.arange(corners.shape[0])[:, None]
+        tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
+        self.vertices = np.concatenate([self.vertices, corners.reshape(-1, 3)])
+        self.triangles = np.concatenate([self.triangles, tris])
+        self._added.append((self.triangles.shape[0], time.perf_counter()))
+
+    def _start_cut(self) -> None:
+        n = self.triangles.shape[0]
+        if n == self._tried or self._ready is not None or (self._job is not None and self._job.is_alive()):
+            return
+        from ..fe.cut import cut
+        from ..mesh.cut import NothingToCut
+
+        V, T, driver = self.vertices.copy(), self.triangles.copy(), self.driver
+        self._tried = n
+
+        def work() -> None:
+            try:
+                split = "split" if driver.model.tetmesh.order == 1 else True  # tet4: no node of the running solid moves
+                new = cut(driver.model, V, T, snap=split, free="remove")  # a piece cut free falls away
+                P = new.cut_info.transfer()
+                self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
+            except NothingToCut:  # no new face swept whole yet: the next strip retries
+                pass
+            except RtfemError as exc:  # refused (rt.cut says why): the next strip retries with more surface
+                self.refused = str(exc)
+            except BaseException as exc:  # noqa: BLE001 - surfaced by the next tick, as a physics error
+                self.error = exc
+
+        self._job = threading.Thread(target=work, name="rtfem-scalpel-cut", daemon=True)
+        self._job.start()
+
+    def _swap(self) -> None:
+        ready, self._ready = self._ready, None
+        if ready is None:
+            return
+        model, new, P, prepared, n = ready
+        if model is not self.solid.model:
+            return
+        self.driver = self.driver.carry_over(new, P, into=prepared)
+        self.transfer = (P @ self.transfer).tocsr()
+        self.solid = _Solid(new, self.gravity)
+        self.shown = (new, np.asarray(self.driver.displacements(), dtype=float))
+        self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))
+        self.cuts += 1
+        self.removed_mass += new.cut_info.removed_mass
+        self.refused = None
+        now = time.perf_counter()
+        self.latencies += [now - t for k, t in self._added if k <= n]  # each strip: swept -> in the model
+        self._added = [(k, t) for k, t in self._added if k > n]
+
+    def finish(self, timeout: float = 60.0) -> "Scalpel":
+        """Wait for the cut job in progress, start one for the strips it did not have, and swap the cut
+        model in (between physics steps): the model then holds every strip swept so far (an offline
+        stroke's end, a test's check). Returns the scalpel."""
+        for _ in range(2):
+            job = self._job
+            if job is not None:
+                job.join(timeout)
+            with self._lock:
+                self._swap()
+                self._start_cut()
+        return self
+
+    @property
+    def model(self):
+        """The model as cut so far (``model.cut_info``: the last cut)."""
+        return self.solid.model
