@@ -46,7 +46,8 @@ V_REG = 1e-3
 #: points along the blade (the strip's cells are between neighbours)
 SAMPLES = 9
 _SMOOTH = 0.01  # s: the blade velocity's smoothing time
-_SUB = (np.arange(8) + 0.5) / 8  # a cell's share inside the solid: its 8 x 8 sub-cells' centres
+_SUB = (np.arange(4) + 0.5) / 4  # a cell's share inside the solid: its 4 x 4 sub-cells' centres
+_EDGE = (np.arange(8) + 0.5) / 8  # the blade's edge in tissue: 8 points along each cell's front
 
 
 def _bilinear(corners: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -72,20 +73,22 @@ class _Solid:
         edges = np.linalg.norm(P[:, [1, 2, 3, 2, 3, 3]] - P[:, [0, 0, 0, 1, 1, 2]], axis=2)
         self.edge = float(np.mean(edges))
 
-    def locate(self, points: np.ndarray, X=None, tree=None):
+    def locate(self, points: np.ndarray, X=None, around=None):
         """For each point (k, 3), a corner tet holding it (faces included; -1: none) and its
         barycentric coordinates (k, 4), with the nodes at ``X`` (default: the reference): among the
-        tets of the 12 nearest centres, then of the 64 nearest for a point none of those holds."""
-        X, tree = (self.X, self.tree) if X is None else (X, tree)
-        tet, bary = self._among(points, X, tree, 12)
-        lost = np.flatnonzero(tet < 0)
+        tets whose reference centres are the 12 nearest ``around`` (default: the points; for a
+        deformed ``X``, a guess of the points' reference places), then the 64 nearest."""
+        X = self.X if X is None else X
+        around = points if around is None else around
+        tet, bary, gap = self._among(points, X, around, 12)
+        lost = np.flatnonzero((tet < 0) & (gap < self.edge))  # far from every centre: outside, no second look
         if lost.size and self.C.shape[0] > 12:
-            tet[lost], bary[lost] = self._among(points[lost], X, tree, 64)
+            tet[lost], bary[lost], _ = self._among(points[lost], X, around[lost], 64)
         return tet, bary
 
-    def _among(self, points: np.ndarray, X: np.ndarray, tree, k: int):
+    def _among(self, points: np.ndarray, X: np.ndarray, around: np.ndarray, k: int):
         k = min(k, self.C.shape[0])
-        _, cand = tree.query(points, k=k)
+        gap, cand = self.tree.query(around, k=k)
         cand = cand.reshape(points.shape[0], k)
         P = X[self.C[cand]]  # (p, k, 4, 3)
         J = np.transpose(P[:, :, 1:] - P[:, :, :1], (0, 1, 3, 2))
@@ -96,7 +99,7 @@ class _Solid:
         inside = ok & (bary.min(axis=2) >= -1e-9)
         first = np.argmax(inside, axis=1)
         rows = np.arange(points.shape[0])
-        return np.where(inside[rows, first], cand[rows, first], -1), bary[rows, first]
+        return np.where(inside[rows, first], cand[rows, first], -1), bary[rows, first], gap.reshape(points.shape[0], k)[:, 0]
 
     def inside(self, points: np.ndarray) -> np.ndarray:
         """(k,) True where a reference point lies in a tet (its faces included)."""
@@ -161,6 +164,7 @@ class Scalpel(_MultiRate):
         self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
         self._added: list = []  # (triangles after, perf_counter) of each strip not yet in the model
         self._tried = 0  # triangles the last cut job had
+        self._applied = 0  # triangles the model holds (the first ones of ``triangles``)
         self._job: threading.Thread | None = None
         self._ready = None
 
@@ -218,16 +222,16 @@ class Scalpel(_MultiRate):
 
     def _reference(self, points: np.ndarray, U: np.ndarray):
         """World points in the reference configuration: inside the deformed solid, the reference point
-        of the same barycentric coordinates in the same tet (the exact inverse of the tet4 map);
-        outside it, the point less the displacements of the four nearest nodes weighted by inverse
-        distance. Returns them and a search over the deformed nodes."""
+        of the same barycentric coordinates in the same tet (the exact inverse of the tet4 map; the
+        tet sought about the guess below); outside it, the point less the displacements of the four
+        nearest nodes weighted by inverse distance. Returns them and a search over the deformed nodes."""
         x = self.solid.X + U
         nodes = cKDTree(x)
         dist, near = nodes.query(points, k=4)
         w = 1.0 / np.maximum(dist, 1e-12)
         w /= w.sum(axis=1, keepdims=True)
         ref = points - np.einsum("pk,pkj->pj", w, U[near])
-        tet, bary = self.solid.locate(points, x, cKDTree(x[self.solid.C].mean(axis=1)))
+        tet, bary = self.solid.locate(points, x, around=ref)  # candidates about the guess
         held = tet >= 0
         ref[held] = np.einsum("pk,pkj->pj", bary[held], self.solid.X[self.solid.C[tet[held]]])
         return ref, nodes
@@ -250,7 +254,7 @@ class Scalpel(_MultiRate):
         corners = np.stack([a[:-1], a[1:], ref[1:], ref[:-1]], axis=1)  # (S - 1, 4, 3) cells
         share = self.solid.inside(_bilinear(corners, _SUB).reshape(-1, 3)).reshape(corners.shape[0], -1).mean(axis=1)
         # J times the blade's edge in uncut tissue: its points inside the solid and not in the slit already
-        front = (ref[:-1, None] + _SUB[None, :, None] * (ref[1:] - ref[:-1])[:, None]).reshape(-1, 3)
+        front = (ref[:-1, None] + _EDGE[None, :, None] * (ref[1:] - ref[:-1])[:, None]).reshape(-1, 3)
         edge = (self.solid.inside(front) & self._fresh(front)).reshape(ref.shape[0] - 1, -1)
         self.resistance = self.toughness * float((np.linalg.norm(ref[1:] - ref[:-1], axis=1) * edge.mean(axis=1)).sum())
         fresh = self._fresh(0.5 * (ref[1:] + ref[:-1]))
@@ -303,7 +307,7 @@ class Scalpel(_MultiRate):
         from ..fe.cut import cut
         from ..mesh.cut import NothingToCut
 
-        V, T, driver = self.vertices.copy(), self.triangles.copy(), self.driver
+        V, T, driver = self.vertices, self._to_cut(), self.driver
         self._tried = n
 
         def work() -> None:
@@ -322,6 +326,22 @@ class Scalpel(_MultiRate):
         self._job = threading.Thread(target=work, name="rtfem-scalpel-cut", daemon=True)
         self._job.start()
 
+    def _to_cut(self) -> np.ndarray:
+        """The triangles a cut job takes: those the model does not hold yet, and the older ones within
+        two element edges of them (a face half on an old strip and half on a new one is covered whole
+        only by both); the faces cut before are the solid's outside now. A job's cost so stays that of
+        the new strips, not of the whole stroke."""
+        T = self.triangles
+        new = T[self._applied:]
+        old = T[:self._applied]
+        if not old.size:
+            return new.copy()
+        pts = self.vertices[new].reshape(-1, 3)
+        reach = 2.0 * self.solid.edge
+        lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
+        near = ((self.vertices[old] >= lo) & (self.vertices[old] <= hi)).all(axis=2).any(axis=1)
+        return np.concatenate([old[near], new])
+
     def _swap(self) -> None:
         ready, self._ready = self._ready, None
         if ready is None:
@@ -335,6 +355,7 @@ class Scalpel(_MultiRate):
         self.shown = (new, np.asarray(self.driver.displacements(), dtype=float))
         self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))
         self.cuts += 1
+        self._applied = max(self._applied, n)
         self.removed_mass += new.cut_info.removed_mass
         self.refused = None
         now = time.perf_counter()
