@@ -125,6 +125,12 @@ class Scalpel(_MultiRate):
         to the cut (default half the mean element edge).
 {_PARAMETERS}
 
+    What it keeps: ``model`` (the model as cut so far), ``driver``, ``transfer`` (the interpolation
+    from the first model's nodes to the cut model's), ``cuts`` (cuts applied), ``latencies`` (s, each
+    strip's from its sweep to the model holding it), ``refused`` (why the last cut job was refused, or
+    None), ``removed_mass`` (kg of pieces cut free), ``resistance`` (N, the last physics step's J L),
+    ``vertices`` and ``triangles`` (the surface swept, reference coordinates), :meth:`stats`.
+
     Raises
     ------
     ModelError
