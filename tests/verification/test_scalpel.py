@@ -107,6 +107,17 @@ def test_carry_over_refuses_what_it_cannot_carry():
         d.carry_over(cut, np.full(cut.n_nodes, model.n_nodes))
     with pytest.raises(ModelError, match="same model"):
         d.carry_over(cut, cut.cut_info.transfer(), into=d)
+    other = rt.cut(model, np.array([[0.03, -0.001, W / 2], [0.03, W + 0.001, W / 2], [0.03, W + 0.001, W + 0.001],
+                                    [0.03, -0.001, W + 0.001]]), QUAD)  # another slit: as many nodes, others
+    assert other.n_nodes == cut.n_nodes
+    with pytest.raises(ModelError, match="does not map the old model's nodes"):
+        d.carry_over(other, cut.cut_info.transfer())
+    with pytest.raises(ModelError, match="same class and dt"):
+        d.carry_over(cut, cut.cut_info.transfer(), into=rt.DirectSimulator(cut, 2e-3, large_deformation=True))
+    stiff = rt.SolidModel(model.tetmesh, rt.Material(E=3e6, nu=0.3, density=2000.0), element="tet4")
+    stiff.fix(model.tetmesh.groups["x0"])
+    with pytest.raises(ModelError, match="material"):
+        d.carry_over(stiff, np.arange(model.n_nodes))
     law = rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5, density=1060.0), g=[0.3], tau=[0.1])
     prony = rt.SolidModel(model.tetmesh, law, element="tet4")
     prony.fix(model.tetmesh.groups["x0"])

@@ -90,14 +90,37 @@ def carry_over(old, model, transfer, into=None):
     the same model, which then only takes the state), holding ``old``'s state carried through
     ``transfer``; ``old`` is left as it was."""
     P = transfer_matrix(old.model, model, transfer)
+    _check_remesh(old.model, model, P)
     if into is None:
         into = type(old)(model, old.dt, old.damping, **getattr(old, "_settings", {}))
-    elif into.model is not model:
-        raise ModelError("into= must be a driver carry_over built on this same model")
+    elif into.model is not model or type(into) is not type(old) or into.dt != old.dt:
+        raise ModelError("into= must be a driver carry_over built before from this driver on this same model (the "
+                         f"same class and dt): got a {type(into).__name__} at dt {into.dt:g} on "
+                         f"{'this' if into.model is model else 'another'} model")
     state = carried_state(old, into, P)
     _keep_in_place(old.model, model, P, state, into._solved)
     into.set_state(state)
     return into
+
+
+def _check_remesh(old, new, P) -> None:
+    """``new`` must be a remesh of ``old`` (rt.cut's) through ``P``: the same material, and the old
+    nodes interpolated land on the new ones (within half the median element edge: a cut moves nodes
+    by at most that); else the state would be carried onto the wrong nodes."""
+    if type(old.material) is not type(new.material) or old.material != new.material:
+        raise ModelError(f"the new model's material {new.material} is not the old one's {old.material}: carry a state "
+                         "only to a remesh of the same model (rt.cut's)")
+    if getattr(old, "law", None) is not None and type(old.law) is not type(getattr(new, "law", None)):
+        raise ModelError("the new model's law is not the old one's: carry a state only to a remesh of the same model")
+    if not (hasattr(old, "tetmesh") and hasattr(new, "tetmesh")):
+        return
+    X_old, X_new = np.asarray(old.tetmesh.vertices, dtype=float), np.asarray(new.tetmesh.vertices, dtype=float)
+    E = X_new[np.asarray(new.tetmesh.tets)[:, :2]]
+    half = 0.5 * float(np.median(np.linalg.norm(E[:, 1] - E[:, 0], axis=1)))
+    off = float(np.abs(P @ X_old - X_new).max(initial=0.0))
+    if off > half:
+        raise ModelError(f"the transfer does not map the old model's nodes onto the new model's (off by {off:.3g} m, more "
+                         "than half an element edge): pass the new model's own cut_info.transfer()")
 
 
 def _keep_in_place(old, new, P, state: dict, solved: np.ndarray) -> None:

@@ -112,6 +112,12 @@ class Scalpel(_MultiRate):
     physics step; the organ steps on a physics thread under gravity, and the cut follows the blade
     one swept strip at a time, applied between two steps by a cutter thread.
 
+    What it keeps: ``model`` (the model as cut so far), ``driver``, ``transfer`` (the interpolation
+    from the first model's nodes to the cut model's), ``cuts`` (cuts applied), ``latencies`` (s, each
+    strip's from its sweep to the model holding it), ``refused`` (why the last cut job was refused, or
+    None), ``removed_mass`` (kg of pieces cut free), ``resistance`` (N, the last physics step's J L),
+    ``vertices`` and ``triangles`` (the surface swept, reference coordinates), :meth:`stats`.
+
     Parameters
     ----------
     driver : a full-order :class:`~rtfem.DirectSimulator` on an rt.SolidModel (tet4 or tet10; an
@@ -124,12 +130,6 @@ class Scalpel(_MultiRate):
     advance : m, how far (in the reference configuration) the blade moves before its strip is added
         to the cut (default half the mean element edge).
 {_PARAMETERS}
-
-    What it keeps: ``model`` (the model as cut so far), ``driver``, ``transfer`` (the interpolation
-    from the first model's nodes to the cut model's), ``cuts`` (cuts applied), ``latencies`` (s, each
-    strip's from its sweep to the model holding it), ``refused`` (why the last cut job was refused, or
-    None), ``removed_mass`` (kg of pieces cut free), ``resistance`` (N, the last physics step's J L),
-    ``vertices`` and ``triangles`` (the surface swept, reference coordinates), :meth:`stats`.
 
     Raises
     ------
@@ -163,7 +163,7 @@ class Scalpel(_MultiRate):
         self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
         self._velocity, self._mid, self._t_tick = np.zeros(3), None, None
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
-        self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))  # the tissue's nodes at the edge, the force on them
+        self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
         self.shown = (driver.model, np.zeros((driver.n_nodes, 3)))  # (model, (n, 3) displacements): for drawing
         self.cuts, self.latencies, self.refused = 0, [], None
         self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
@@ -212,9 +212,9 @@ class Scalpel(_MultiRate):
         with self._lock:
             self._swap()
             F = self.solid.weights.copy()
-            nodes, f = self._push
-            if nodes.size:
-                np.add.at(F, nodes, f / nodes.size)
+            nodes = self._push
+            if nodes.size:  # the tissue takes the opposite of the hand's force (the last tick's)
+                np.add.at(F, nodes, -self.force / nodes.size)
             self.driver.step(F)
             U = np.asarray(self.driver.displacements(), dtype=float)
             self._sweep(U)
@@ -268,10 +268,9 @@ class Scalpel(_MultiRate):
         if cut.any():  # the tissue's share: on the nodes within an element edge of the blade where it cuts
             at = np.unique(np.concatenate([np.flatnonzero(cut), np.flatnonzero(cut) + 1]))
             near = tree.query_ball_point(world[at], r=self.solid.edge)
-            self._push = (np.unique(np.concatenate([np.asarray(k, dtype=np.int64) for k in near])),
-                          self.resistance * move / step)
+            self._push = np.unique(np.concatenate([np.asarray(k, dtype=np.int64) for k in near]))
         else:
-            self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))
+            self._push = np.zeros(0, dtype=np.int64)
         if step >= self.advance:
             self._anchor = ref
             self._cells(corners, share > 0, fresh)
@@ -359,7 +358,7 @@ class Scalpel(_MultiRate):
         self.transfer = (P @ self.transfer).tocsr()
         self.solid = _Solid(new, self.gravity)
         self.shown = (new, np.asarray(self.driver.displacements(), dtype=float))
-        self._push = (np.zeros(0, dtype=np.int64), np.zeros(3))
+        self._push = np.zeros(0, dtype=np.int64)
         self.cuts += 1
         self._applied = max(self._applied, n)
         self.removed_mass += new.cut_info.removed_mass

@@ -194,7 +194,8 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
             V, snapped = _snap(V, T, tri, tol)
             moved += snapped
         if T.shape[1] == 4:
-            V, T, born, at = _split_edges(V, T, tri, tol)
+            V, T, born, at, nudged = _split_edges(V, T, tri, tol)
+            moved += nudged
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
@@ -240,30 +241,41 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     """Where node snapping left an edge through the surface (a tet with two nodes on it and the
     other two on either side: moving either flattens it), a node is added where the edge crosses
     the surface and every tet on that edge is split in two there (conforming: all of them are;
-    the geometry, mass and volume unchanged; tet4 only). Returns V, T, the edges split (s, 2) and
-    where along each the node is (s,: 0 at its first end, 1 at its second)."""
+    the geometry, mass and volume unchanged; tet4 only); a crossing nearer an end than
+    :data:`MIN_SPLIT` of the edge moves that end instead, where its tets keep :data:`MIN_VOLUME`.
+    The crossing edges are found once a round and split in turn (a round's splits make new edges
+    only from nodes on the surface; a curved surface may need a few rounds). Returns V, T, the edges
+    split (s, 2), where along each the node is (s,: 0 at its first end, 1 at its second) and how
+    many ends moved."""
     born: list = []
     at: list = []
-    limit = 100 + 4 * T.shape[0] // 100
-    while len(born) < limit:
+    nudged = 0
+    for _ in range(8):
         E, first = _crossing_edges(V, T, tri, tol)
         if not E.size:
             break
-        (a, b), f = E[0], first[0]
-        normal = np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0])
-        da, db = (V[a] - tri[f, 0]) @ normal, (V[b] - tri[f, 0]) @ normal
-        s = da / (da - db)
-        if min(s, 1 - s) < MIN_SPLIT and _nudge(V, T, a if s < 0.5 else b, V[a] + s * (V[b] - V[a])):
-            continue  # the crossing is at an end: that end moved onto the surface instead (no sliver)
-        p = V.shape[0]
-        V = np.vstack([V, V[a] + s * (V[b] - V[a])])
-        on = (T == a).any(axis=1) & (T == b).any(axis=1)
-        t1, t2 = T[on].copy(), T[on].copy()
-        t1[t1 == b], t2[t2 == a] = p, p
-        T = np.concatenate([T[~on], t1, t2])
-        born.append((a, b))
-        at.append(s)
-    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float)
+        for (a, b), f in zip(E.tolist(), first.tolist()):
+            n = np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0])
+            n /= np.linalg.norm(n)
+            pa, pb = V[a].copy(), V[b].copy()
+            da, db = (pa - tri[f, 0]) @ n, (pb - tri[f, 0]) @ n
+            if not (da * db < 0 and min(abs(da), abs(db)) > tol):
+                continue  # an end moved onto the surface since the round began
+            on = (T[:, :4] == a).any(axis=1) & (T[:, :4] == b).any(axis=1)
+            if not on.any():
+                continue
+            s = da / (da - db)
+            if min(s, 1 - s) < MIN_SPLIT and _nudge(V, T, a if s < 0.5 else b, pa + s * (pb - pa)):
+                nudged += 1  # the crossing is at an end: that end moved onto the surface (no sliver)
+                continue
+            p = V.shape[0]
+            V = np.vstack([V, pa + s * (pb - pa)])
+            t1, t2 = T[on].copy(), T[on].copy()
+            t1[t1 == b], t2[t2 == a] = p, p
+            T = np.concatenate([T[~on], t1, t2])
+            born.append((a, b))
+            at.append(s)
+    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged
 
 
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
@@ -365,9 +377,15 @@ def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, s
         key = np.sort(T[:, :4][:, TET10_EDGES].reshape(-1, 2), axis=1)
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
         which = np.flatnonzero(has)
-        why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume, and a tet10 "
-               "mesh's elements are not split yet: cut the tet4 model, refine the mesh there, or move the surface"
-               ) if snapped else "(snap=False): let rt.cut move nodes onto it"
+        if not snapped:
+            why = "(snap=False): let rt.cut move nodes onto it, or split the elements (snap='split', tet4)"
+        elif T.shape[1] == 4:
+            why = ("that splitting could not follow in 8 rounds (the surface folds back within elements): smooth the "
+                   "surface there, or refine the mesh")
+        else:
+            why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume, and a "
+                   "tet10 mesh's elements are not split yet: cut the tet4 model, refine the mesh there, or move the "
+                   "surface")
         raise ModelError(f"the cut surface passes through the inside of {which.size} element(s) (first: tets "
                          f"{which[:5].tolist()}) {why}")
 
