@@ -81,7 +81,7 @@ def run(model, sim, seconds: float) -> dict:
             "steps": ps["steps_per_second"], "ratio": ps["time_ratio"], "strips": len(scalpel.latencies) + len(
                 scalpel._added), "cuts": scalpel.cuts, "lat50": np.median(lat), "latmax": lat.max(),
             "added": scalpel.model.n_nodes - model.n_nodes, "removed": scalpel.removed_mass,
-            "peak": float(np.linalg.norm(F, axis=1).max()), "failed": failed or scalpel.refused or "",
+            "peak": float(np.linalg.norm(F, axis=1).max()), "failed": failed or scalpel.refused or scalpel.worker_note or "",
             "surface": (scalpel.vertices, scalpel.triangles)}
 
 

@@ -282,3 +282,27 @@ def test_what_a_scalpel_refuses_is_said_and_a_failed_step_leaves_no_force():
     assert sc._thread is None and "force is zero" in sc.stop_reason
     with pytest.raises(ModelError, match="force is zero"):
         sc.update([0.05, 0.005, 0.015])
+
+
+def test_the_cut_worker_process_cuts_as_this_process_does_and_a_dead_one_is_replaced_by_this_process():
+    """worker=True: the cut and the cut model's assembly run in a process of its own (so that they do
+    not hold the ticks' Python lock); the model it returns is the one this process makes. A worker
+    killed mid-stroke is said in worker_note and the cuts go on here."""
+    model = _block()
+    runs = {}
+    for worker in (True, False):
+        sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
+                        thread=False, worker=worker)
+        _stroke(sc, W / 2, W + 0.01, np.linspace(-0.005, W + 0.005, 61))
+        sc.finish()
+        assert sc.worker_note is None and sc.cuts >= 1
+        runs[worker] = sc.model.tetmesh
+        sc.close()
+    assert _same_mesh(runs[True], runs[False])
+    sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
+                    thread=False, worker=True)
+    sc._worker._proc.kill()
+    _stroke(sc, W / 2, W + 0.01, np.linspace(-0.005, W + 0.005, 61))
+    sc.finish()
+    assert "worker process stopped" in sc.worker_note and sc._worker is None
+    assert _same_mesh(sc.model.tetmesh, runs[False])

@@ -7,10 +7,11 @@ The blade is a segment from its heel to its tip, placed by a device or a path ea
 to the reference configuration (each point less the displacement about it) and, once the blade has
 advanced by ``advance`` there, the strip between where it was and where it is is added to the cut
 surface, cell by cell, where a cell reaches inside the solid and has not been swept before. A cutter
-thread then cuts the model along the whole surface swept so far (:func:`rtfem.cut`: along element
-faces, nodes snapped onto it, tet4 edges split where snapping cannot; see docs/guide/cutting.md),
-builds the driver on the cut model, and the physics thread swaps it in between two steps, the state
-carried over node by node (:meth:`DirectSimulator.carry_over`). Ticks never wait for any of this.
+thread then has the model cut along the new strips and their neighbours (:func:`rtfem.cut`: tet4
+elements split, see docs/guide/cutting.md) and the cut model assembled, in a worker process
+(:mod:`rtfem.interaction.cut_worker`) where the scalpel runs threaded; it builds the driver on the cut
+model, and the physics thread swaps it in between two steps, the state carried over node by node
+(:meth:`DirectSimulator.carry_over`). Ticks never wait for any of this.
 
 The cutting resistance, a stated model: the energy a cut takes is the tissue's fracture toughness J
 times the area it opens (Gokgol, Basdogan and Canadinc 2012 measured J = 164 +- 6 J/m^2 for liver;
@@ -129,6 +130,8 @@ class Scalpel(_MultiRate):
         0 cuts without resistance.
     advance : m, how far (in the reference configuration) the blade moves before its strip is added
         to the cut (default half the mean element edge).
+    worker : cut and assemble in a worker process (default: with ``thread``, the real-time setting:
+        there that work would hold Python's lock while the ticks wait); False: in the cutter thread.
 {_PARAMETERS}
 
     Raises
@@ -142,7 +145,8 @@ class Scalpel(_MultiRate):
     WHAT = "scalpel"
 
     def __init__(self, driver, *, blade=(0.0, 0.0, 0.03), gravity=(0.0, 0.0, -9.81), toughness: float = TOUGHNESS,
-                 advance=None, rate: float = 1000.0, pace: bool = True, thread: bool = True) -> None:
+                 advance=None, rate: float = 1000.0, pace: bool = True, thread: bool = True,
+                 worker: bool | None = None) -> None:
         if not (hasattr(driver, "carry_over") and hasattr(getattr(driver, "model", None), "tetmesh")):
             raise ModelError(f"driver={validate.show(driver)}: a scalpel cuts a full-order solid: give "
                              "rt.DirectSimulator(solid_model, dt, ...) (a reduced or shell driver cannot be cut yet)")
@@ -173,6 +177,12 @@ class Scalpel(_MultiRate):
         self._applied = 0  # triangles the model holds (the first ones of ``triangles``)
         self._job: threading.Thread | None = None
         self._ready = None
+        self.worker_note = None  # why the cut worker process stopped, if it did
+        self._worker = None
+        if self.threaded if worker is None else validate.flag(worker, "worker"):
+            from .cut_worker import CutWorker
+
+            self._worker = CutWorker()
 
     # ------------------------------------------------------------------ the haptic side
     def update(self, tip, heel=None) -> np.ndarray:
@@ -309,7 +319,6 @@ class Scalpel(_MultiRate):
         n = self.triangles.shape[0]
         if n == self._tried or self._ready is not None or (self._job is not None and self._job.is_alive()):
             return
-        from ..fe.cut import cut
         from ..mesh.cut import NothingToCut
 
         V, T, driver = self.vertices, self._to_cut(), self.driver
@@ -317,8 +326,7 @@ class Scalpel(_MultiRate):
 
         def work() -> None:
             try:
-                split = "split" if driver.model.tetmesh.order == 1 else True  # tet4: no node of the running solid moves
-                new = cut(driver.model, V, T, snap=split, free="remove")  # a piece cut free falls away
+                new = self._cut(driver.model, V, T)
                 P = new.cut_info.transfer()
                 self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
             except NothingToCut:  # no new face swept whole yet: the next strip retries
@@ -330,6 +338,29 @@ class Scalpel(_MultiRate):
 
         self._job = threading.Thread(target=work, name="rtfem-scalpel-cut", daemon=True)
         self._job.start()
+
+    def _cut(self, model, V: np.ndarray, T: np.ndarray):
+        """The model cut along the triangles and assembled: in the worker process where there is one (see
+        :mod:`rtfem.interaction.cut_worker`), else here. Tet4 elements are split (no node of the running
+        solid moves); a piece cut free falls away."""
+        from .cut_worker import WorkerGone, cut_and_assemble
+
+        split = "split" if model.tetmesh.order == 1 else True
+        worker = self._worker
+        if worker is not None:
+            try:
+                return worker.cut(model, V, T, split)
+            except WorkerGone as exc:
+                self.worker_note, self._worker = str(exc), None
+        return cut_and_assemble(model, V, T, split)
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the physics thread (after the step it is in) and the cut worker process; :meth:`finish`
+        still cuts, in this process."""
+        super().close(timeout)
+        worker, self._worker = self._worker, None
+        if worker is not None:  # never waits: a tick that failed closes the scalpel on its way to zero force
+            worker.close(wait=False)
 
     def _to_cut(self) -> np.ndarray:
         """The triangles a cut job takes: those the model does not hold yet, and the older ones within
