@@ -164,7 +164,6 @@ def test_a_blade_drawn_across_a_still_block_cuts_what_rt_cut_cuts_along_its_plan
     assert np.abs(sc.displacements()).max() < 1e-12
 
 
-@pytest.mark.skipif(CCX is None, reason="CalculiX is not installed (apt-get install calculix-ccx; .ci/run installs it)")
 def test_a_beam_cut_from_below_as_it_sags_settles_to_calculixs_slit_beam(tmp_path):
     """The block clamped at both ends sags under gravity (3.6 mm at mid-span); the blade, upright at
     mid-length from below it to half its height, is drawn across it (no resistance: its force would
@@ -197,21 +196,23 @@ def test_a_beam_cut_from_below_as_it_sags_settles_to_calculixs_slit_beam(tmp_pat
     slit.fix(fixed)
     weights = lumped_nodal_masses(slit)[:, None] * np.array([0.0, 0.0, -9.81])
     weights[fixed] = 0.0
-    U_ccx = ccx_static(slit, weights, fixed, tmp_path, nlgeom=True)
     U = sc.displacements()[mine]
     U_own = slit.solve_static(weights, large_deformation=True)  # the same law on the slit beam: the scalpel's part
-    scale = np.abs(U_ccx).max()
+    scale = np.abs(U_own).max()
     assert 3e-3 < scale < 4e-3
     assert np.abs(U - U_own).max() < 0.005 * scale, np.abs(U - U_own).max() / scale
-    assert np.abs(U - U_ccx).max() < 0.01 * scale, np.abs(U - U_ccx).max() / scale
     # the slit's bottom edge: the left lip's nodes (grid index (10, j, 0)) and the right lip's copies
     lips = [(250 + 5 * j, model.n_nodes + 2 * j) for j in range(5)]
     assert all(np.array_equal(Xr[a], Xr[b]) and Xr[a, 2] == 0 for a, b in lips)
     gap = np.array([U[b, 0] - U[a, 0] for a, b in lips])
-    gap_ccx = np.array([U_ccx[b, 0] - U_ccx[a, 0] for a, b in lips])
-    assert (gap_ccx > 1e-3).all()
+    assert (gap > 1e-3).all()
     np.testing.assert_allclose(gap, [U_own[b, 0] - U_own[a, 0] for a, b in lips], rtol=0.01)
-    np.testing.assert_allclose(gap, gap_ccx, rtol=0.03)
+    if CCX is None:
+        pytest.skip("CalculiX is not installed (apt-get install calculix-ccx; .ci/run installs it): rtfem's own "
+                    "static reference held")
+    U_ccx = ccx_static(slit, weights, fixed, tmp_path, nlgeom=True)
+    assert np.abs(U - U_ccx).max() < 0.01 * scale, np.abs(U - U_ccx).max() / scale
+    np.testing.assert_allclose(gap, [U_ccx[b, 0] - U_ccx[a, 0] for a, b in lips], rtol=0.03)
 
 
 def test_the_cutting_force_is_the_toughness_times_the_edge_in_uncut_tissue_and_the_work_its_area():
