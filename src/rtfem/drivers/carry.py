@@ -25,9 +25,8 @@ EXTENSIVE = frozenset({"_g", "_held", "_f"})
 
 
 def lumped_nodal_masses(model) -> np.ndarray:
-    """Each node's share of the mass (n,): the rows of the mass matrix summed (its x rows)."""
-    rows = np.asarray(model.M.sum(axis=1)).ravel()
-    return rows.reshape(model.n_nodes, model.dofs_per_node)[:, 0]
+    """Each node's lumped mass (n,): ``model.mass_diagonal`` at its x dof."""
+    return np.asarray(model.mass_diagonal, dtype=float).reshape(model.n_nodes, model.dofs_per_node)[:, 0]
 
 
 def transfer_matrix(old, new, transfer) -> sp.csr_matrix:

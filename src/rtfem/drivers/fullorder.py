@@ -225,8 +225,10 @@ class DirectSimulator(ForceInput):
         Raises
         ------
         ModelError
-            A transfer of the wrong shape or range; a model of another kind; a viscoelastic law's
-            history (not carried yet); ``into`` built on another model.
+            A transfer of the wrong shape or range, or one that does not land this model's nodes on
+            the new model's (another cut's); a model of another kind or material; a viscoelastic
+            law's history (not carried yet); ``into`` built on another model, or of another class or
+            dt.
         """
         from .carry import carry_over
 

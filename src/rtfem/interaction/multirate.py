@@ -236,13 +236,17 @@ class _MultiRate:
         work; call it yourself with ``thread=False``), then a new snapshot."""
         t = time.perf_counter()
         with self._lock:
-            self.physics.update(self._hand)
-            self._publish()
+            self._advance()
         dt = time.perf_counter() - t
         self.physics_steps += 1
         self.physics_seconds += dt
         if len(self.step_times) < 100_000:
             self.step_times.append(dt)
+
+    def _advance(self) -> None:
+        """The physics step's work, under the lock: the tool on the driver, then a new snapshot."""
+        self.physics.update(self._hand)
+        self._publish()
 
     def _publish(self) -> None:
         d = self.driver

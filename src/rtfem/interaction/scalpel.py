@@ -68,9 +68,9 @@ class _Solid:
         self.model = model
         self.X = np.asarray(model.tetmesh.vertices, dtype=float)
         self.C = np.asarray(model.tetmesh.tets)[:, :4]
-        self.tree = cKDTree(self.X[self.C].mean(axis=1))
-        self.weights = lumped_nodal_masses(model)[:, None] * gravity[None, :]
         P = self.X[self.C]
+        self.tree = cKDTree(P.mean(axis=1))
+        self.weights = lumped_nodal_masses(model)[:, None] * gravity[None, :]
         edges = np.linalg.norm(P[:, [1, 2, 3, 2, 3, 3]] - P[:, [0, 0, 0, 1, 1, 2]], axis=2)
         self.edge = float(np.mean(edges))
 
@@ -218,23 +218,19 @@ class Scalpel(_MultiRate):
         cutting force), add the blade's strip to the cut surface and start a cut job when it grew."""
         if self._blade is None:
             raise ModelError("no blade position yet: call update(tip, heel) first")
-        t = time.perf_counter()
-        with self._lock:
-            self._swap()
-            F = self.solid.weights.copy()
-            nodes = self._push
-            if nodes.size:  # the tissue takes the opposite of the hand's force (the last tick's)
-                np.add.at(F, nodes, -self.force / nodes.size)
-            self.driver.step(F)
-            U = np.asarray(self.driver.displacements(), dtype=float)
-            self._sweep(U)
-            self._start_cut()
-            self.shown = (self.solid.model, U)
-        dt = time.perf_counter() - t
-        self.physics_steps += 1
-        self.physics_seconds += dt
-        if len(self.step_times) < 100_000:
-            self.step_times.append(dt)
+        super().physics_step()
+
+    def _advance(self) -> None:
+        self._swap()
+        F = self.solid.weights.copy()
+        nodes = self._push
+        if nodes.size:  # the tissue takes the opposite of the hand's force (the last tick's)
+            np.add.at(F, nodes, -self.force / nodes.size)
+        self.driver.step(F)
+        U = np.asarray(self.driver.displacements(), dtype=float)
+        self._sweep(U)
+        self._start_cut()
+        self.shown = (self.solid.model, U)
 
     def _reference(self, points: np.ndarray, U: np.ndarray):
         """World points in the reference configuration: inside the deformed solid, the reference point
@@ -267,13 +263,10 @@ class Scalpel(_MultiRate):
         step = float(np.linalg.norm(move))
         if step < 0.1 * self.advance:  # too short a strip to tell the opening rate by: the last one holds
             return
-        corners = np.stack([a[:-1], a[1:], ref[1:], ref[:-1]], axis=1)  # (S - 1, 4, 3) cells
-        share = self.solid.inside(_bilinear(corners, _SUB).reshape(-1, 3)).reshape(corners.shape[0], -1).mean(axis=1)
         # J times the blade's edge in uncut tissue: its points inside the solid and not in the slit already
         front = (ref[:-1, None] + _EDGE[None, :, None] * (ref[1:] - ref[:-1])[:, None]).reshape(-1, 3)
         edge = (self.solid.inside(front) & self._fresh(front)).reshape(ref.shape[0] - 1, -1)
         self.resistance = self.toughness * float((np.linalg.norm(ref[1:] - ref[:-1], axis=1) * edge.mean(axis=1)).sum())
-        fresh = self._fresh(0.5 * (ref[1:] + ref[:-1]))
         cut = edge.any(axis=1)
         if cut.any():  # the tissue's share: on the nodes within an element edge of the blade where it cuts
             at = np.unique(np.concatenate([np.flatnonzero(cut), np.flatnonzero(cut) + 1]))
@@ -281,9 +274,11 @@ class Scalpel(_MultiRate):
             self._push = np.unique(np.concatenate([np.asarray(k, dtype=np.int64) for k in near]))
         else:
             self._push = np.zeros(0, dtype=np.int64)
-        if step >= self.advance:
+        if step >= self.advance:  # the strip joins the cut surface
+            corners = np.stack([a[:-1], a[1:], ref[1:], ref[:-1]], axis=1)  # (S - 1, 4, 3) cells
+            share = self.solid.inside(_bilinear(corners, _SUB).reshape(-1, 3)).reshape(corners.shape[0], -1).mean(axis=1)
             self._anchor = ref
-            self._cells(corners, share > 0, fresh)
+            self._cells(corners, share > 0, self._fresh(0.5 * (ref[1:] + ref[:-1])))
 
     def _fresh(self, front: np.ndarray) -> np.ndarray:
         """(c,) True for cells whose front (the blade's edge now) is not in the slit swept before: within
@@ -301,11 +296,11 @@ class Scalpel(_MultiRate):
         near = inside | np.r_[inside[1:], False] | np.r_[False, inside[:-1]]
         last_corners, last_near, last_taken, last_fresh = self._last
         take = (near | last_near) & fresh
-        back = near & ~last_taken & last_fresh if last_corners is not None else np.zeros_like(near)
-        cells = [c for c in (last_corners[back] if back.any() else None, corners[take]) if c is not None]
+        add = corners[take]
+        if last_corners is not None:  # the strip before, where it now has tissue beside it
+            add = np.concatenate([last_corners[near & ~last_taken & last_fresh], add])
         self._last = (corners, near, take, fresh)
-        if cells and sum(c.shape[0] for c in cells):
-            add = np.concatenate(cells)
+        if add.shape[0]:
             self._add_cells(add)
 
     def _add_cells(self, corners: np.ndarray) -> None:

@@ -7,8 +7,9 @@ The cut follows element faces. Where the surface passes through elements, the ne
 edge it crosses is first moved onto it (node snapping, :func:`_snap`; no tet keeps under
 :data:`MIN_VOLUME` of its volume, else the surface is refused with the elements named). Nothing is
 removed: the mass and the volume stay, and the new faces are surface (contact, drawing and export see
-them). Splitting the crossed elements instead (Molino, Bao and Fedkiw 2004's virtual nodes) is a later
-step.
+them). With ``snap="split"`` (tet4) the crossed elements are split instead and no node moves by more
+than :data:`MIN_SPLIT` of an edge (what a solid cut while it runs needs). Splitting by virtual nodes
+(Molino, Bao and Fedkiw 2004), which leaves no slivers, is a later step.
 
 A model is cut by :func:`rtfem.fe.cut.cut` (``rt.cut``). The test: a slit cantilever's frequencies
 against CalculiX's on a mesh built slit (tests/verification/test_cut.py).
@@ -238,9 +239,10 @@ def extend(values: np.ndarray, born: np.ndarray) -> np.ndarray:
 
 
 def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
-    """Where node snapping left an edge through the surface (a tet with two nodes on it and the
-    other two on either side: moving either flattens it), a node is added where the edge crosses
-    the surface and every tet on that edge is split in two there (conforming: all of them are;
+    """Where an edge passes through the surface (snap="split": every one; after node snapping: those
+    left, a tet with two nodes on the surface and the other two on either side, where moving either
+    flattens it), a node is added where the edge crosses the surface and every tet on that edge is
+    split in two there (conforming: all of them are;
     the geometry, mass and volume unchanged; tet4 only); a crossing nearer an end than
     :data:`MIN_SPLIT` of the edge moves that end instead, where its tets keep :data:`MIN_VOLUME`.
     The crossing edges are found once a round and split in turn (a round's splits make new edges
@@ -250,15 +252,15 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     born: list = []
     at: list = []
     nudged = 0
+    frames = _frames(tri)
+    corner, normal = frames[0], frames[3]
     for _ in range(8):
         E, first = _crossing_edges(V, T, tri, tol)
         if not E.size:
             break
         for (a, b), f in zip(E.tolist(), first.tolist()):
-            n = np.cross(tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0])
-            n /= np.linalg.norm(n)
             pa, pb = V[a].copy(), V[b].copy()
-            da, db = (pa - tri[f, 0]) @ n, (pb - tri[f, 0]) @ n
+            da, db = (pa - corner[f]) @ normal[f], (pb - corner[f]) @ normal[f]
             if not (da * db < 0 and min(abs(da), abs(db)) > tol):
                 continue  # an end moved onto the surface since the round began
             on = (T[:, :4] == a).any(axis=1) & (T[:, :4] == b).any(axis=1)
