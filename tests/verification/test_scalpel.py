@@ -100,6 +100,9 @@ def test_a_driver_carried_over_to_its_own_model_steps_on_bit_for_bit():
 def test_carry_over_refuses_what_it_cannot_carry():
     model = _block()
     d = rt.DirectSimulator(model, 1e-3, large_deformation=True)
+    for _ in range(3):
+        d.step({int(i): (0.0, 0.0, -0.01) for i in model.tetmesh.groups["x1"]})
+    before = d.get_state()
     cut = rt.cut(model, _slit(W / 2, W + 0.001), QUAD)
     with pytest.raises(ModelError, match="one old node index for each"):
         d.carry_over(cut, np.arange(model.n_nodes))
@@ -118,6 +121,11 @@ def test_carry_over_refuses_what_it_cannot_carry():
     stiff.fix(model.tetmesh.groups["x0"])
     with pytest.raises(ModelError, match="material"):
         d.carry_over(stiff, np.arange(model.n_nodes))
+    after = d.get_state()  # every refusal left the running driver as it was
+    assert set(after) == set(before) and all(np.array_equal(after[k], before[k]) for k in before)
+    # a scalpel taking that running driver shows its state before any step of its own
+    sc = rt.Scalpel(d, thread=False)
+    assert np.abs(sc.displacements()).max() > 0 and np.array_equal(sc.displacements(), d.displacements())
     law = rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5, density=1060.0), g=[0.3], tau=[0.1])
     prony = rt.SolidModel(model.tetmesh, law, element="tet4")
     prony.fix(model.tetmesh.groups["x0"])

@@ -168,7 +168,8 @@ class Scalpel(_MultiRate):
         self._velocity, self._mid, self._t_tick = np.zeros(3), None, None
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
         self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
-        self.shown = (driver.model, np.zeros((driver.n_nodes, 3)))  # (model, (n, 3) displacements): for drawing
+        # (model, (n, 3) displacements) for drawing: a running driver's state until the first physics step
+        self.shown = (driver.model, np.asarray(driver.displacements(), dtype=float))
         self.cuts, self.latencies, self.refused = 0, [], None
         self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
         self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
