@@ -296,7 +296,8 @@ def test_what_a_scalpel_refuses_is_said_and_a_failed_step_leaves_no_force():
 def test_the_cut_worker_process_cuts_as_this_process_does_and_a_dead_one_is_replaced_by_this_process():
     """worker=True: the cut and the cut model's assembly run in a process of its own (so that they do
     not hold the ticks' Python lock); the model it returns is the one this process makes. A worker
-    killed mid-stroke is said in worker_note and the cuts go on here."""
+    killed before the stroke, during a job or after a cut is said in worker_note, the cuts go on here,
+    and the stroke ends with the same model."""
     model = _block()
     runs = {}
     for worker in (True, False):
@@ -308,10 +309,18 @@ def test_the_cut_worker_process_cuts_as_this_process_does_and_a_dead_one_is_repl
         runs[worker] = sc.model.tetmesh
         sc.close()
     assert _same_mesh(runs[True], runs[False])
-    sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
-                    thread=False, worker=True)
-    sc._worker._proc.kill()
-    _stroke(sc, W / 2, W + 0.01, np.linspace(-0.005, W + 0.005, 61))
-    sc.finish()
-    assert "worker process stopped" in sc.worker_note and sc._worker is None
-    assert _same_mesh(sc.model.tetmesh, runs[False])
+    # the worker killed before the stroke, while a job of its is in flight, and after a cut it made
+    when = {"before": lambda sc: True, "during": lambda sc: sc._job is not None and sc._job.is_alive(),
+            "after": lambda sc: sc.cuts >= 1}
+    for phase, now in when.items():
+        sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
+                        thread=False, worker=True)
+        proc = sc._worker._proc
+        for y in np.linspace(-0.005, W + 0.005, 61):
+            _stroke(sc, W / 2, W + 0.01, [y])
+            if proc.poll() is None and now(sc):
+                proc.kill()
+        sc.finish()
+        assert proc.poll() is not None, phase
+        assert "worker process stopped" in sc.worker_note and sc._worker is None, phase
+        assert _same_mesh(sc.model.tetmesh, runs[False]), phase
