@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import glob
 import os
 import subprocess
 import sys
@@ -279,12 +280,33 @@ def test_simulate_reduced_nonlinear_method(tmp_path, capsys):
     assert rc == 2 and "--method nonlinear" in err and "Traceback" not in err
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in glob.glob("/proc/[0-9]*/stat"):
+        try:
+            fields = open(stat).read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.split("/")[2]))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` is a process that has not ended (a zombie counts as ended)."""
+    try:
+        state = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
 @needs_mesher
 def test_ctrl_c_while_meshing_exits_130_and_leaves_no_scratch(tmp_path):
     """fTetWild's own SIGINT handler ended the process (-2) and left its scratch folder (issue 53): the
     mesher runs in a child now, and Ctrl-C is the CLI's interrupt (exit 130, one line), with no scratch
     folder, no cache entry and no mesher process left."""
-    import glob
     import signal
     import tempfile
 
@@ -295,11 +317,17 @@ def test_ctrl_c_while_meshing_exits_130_and_leaves_no_scratch(tmp_path):
         assert "meshing" in p.stdout.readline()
         time.sleep(1.5)  # fTetWild at work (this edge length takes 5-10 s)
         assert glob.glob(f"{tempfile.gettempdir()}/rtfem-tetwild-{p.pid}-*"), "the mesher was not running"
+        children = _children(p.pid)
+        assert children, "the mesher runs in no child process"
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=60)
     finally:
         if p.poll() is None:
             p.kill()
     assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, (p.returncode, err)
+    deadline = time.monotonic() + 10.0
+    while any(_alive(c) for c in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(c) for c in children), f"mesher processes {children} outlived the interrupted command"
     assert not glob.glob(f"{tempfile.gettempdir()}/rtfem-tetwild-{p.pid}-*")
     assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").iterdir())

@@ -6,6 +6,8 @@ linear element, and the energy against rotation invariance. The solver's refusal
 to name what to do and to change nothing.
 """
 
+import time
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -319,6 +321,25 @@ def test_no_solve_converges_onto_inverted_elements(push, side):
     assert res.converged and _inverted_count(model, res.displacements) == 0
 
 
+@pytest.mark.parametrize("push, side", [(1.5, 0.003), (1.2, 0.01), (3.0, 0.0)])
+def test_no_tet10_solve_converges_onto_inverted_elements(push, side):
+    """The crushed block in 10-node tets, where a curved element can fold at a corner while its
+    quadrature points do not: each push is refused (Newton and method="auto" alike, at 19-39 % of it),
+    and the equilibrium the error holds has no element inverted at a quadrature point or a corner."""
+    model, top = _crushed_block("tet10")
+    P = np.zeros((model.n_nodes, 3))
+    P[top, 2] = -push * 0.02
+    P[top, 0] = side
+    kernel, cells = model._corotational()
+    x0 = np.asarray(model.tetmesh.vertices)
+    for method in ("newton", "auto"):
+        with pytest.raises(rt.SolverError, match="turned inside out") as info:
+            rt.nonlinear.solve_static(model, None, prescribed=P, method=method)
+        last = info.value.result
+        assert not last.converged and 0 < last.load_factors[-1] < 1.0
+        assert not kernel.inverted((x0 + last.displacements)[cells]).any()
+
+
 def test_the_dynamic_newton_refuses_inverted_elements():
     """A 50 N point load on a small soft block's top: the step that would turn elements inside out is
     refused with the reason and the simulator keeps the last accepted state."""
@@ -380,6 +401,28 @@ def test_a_long_solve_reports_progress_and_stops_at_its_time_limit():
     with pytest.raises(rt.SolverError, match="time limit of 1e-06 s") as info:
         rt.nonlinear.solve_static(model, F, time_limit=1e-6)
     assert not info.value.result.converged and info.value.result.load_factors == []
+
+
+def test_a_solve_stopped_partway_by_its_time_limit_keeps_an_equilibrium():
+    """method='auto' stopped by time_limit after its first load step (the callback holds it 2.5 s
+    there): the error's result is the equilibrium at the load factor it reached, the same as a solve
+    of that fraction of the load (1e-8; measured 8e-12)."""
+    model = _strip()
+    F = np.zeros((model.n_nodes, 3))
+    F[model.select_nodes("x1"), 2] = 2.0
+
+    def hold(done, total, message):
+        if done > 0 and not hold.held:
+            hold.held = True
+            time.sleep(2.5)
+
+    hold.held = False
+    with pytest.raises(rt.SolverError, match="time limit of 2 s .* holds the last equilibrium") as info:
+        rt.nonlinear.solve_static(model, F, progress=hold, time_limit=2.0)
+    part = info.value.result
+    assert not part.converged and len(part.load_factors) >= 1 and 0 < part.load_factors[-1] < 1
+    ref = rt.nonlinear.solve_static(model, F * part.load_factors[-1], tol=1e-10)
+    assert np.abs(part.displacements - ref.displacements).max() <= 1e-8 * np.abs(ref.displacements).max()
 
 
 @pytest.mark.parametrize("bad", [dict(progress=5), dict(time_limit=-1.0), dict(time_limit="soon")])
