@@ -102,13 +102,19 @@ def carry_over(old, model, transfer, into=None):
     return into
 
 
+def _material_of(model):
+    """A model's material, or its regions' {label: material or law}."""
+    return getattr(model, "materials", None) or model.material
+
+
 def _check_remesh(old, new, P) -> None:
     """``new`` must be a remesh of ``old`` (rt.cut's) through ``P``: the same material, and the old
     nodes interpolated land on the new ones (within half the median element edge: a cut moves nodes
     by at most that); else the state would be carried onto the wrong nodes."""
-    if type(old.material) is not type(new.material) or old.material != new.material:
-        raise ModelError(f"the new model's material {new.material} is not the old one's {old.material}: carry a state "
-                         "only to a remesh of the same model (rt.cut's)")
+    a, b = _material_of(old), _material_of(new)
+    if type(a) is not type(b) or a != b:
+        raise ModelError(f"the new model's material {b} is not the old one's {a}: carry a state only to a remesh of "
+                         "the same model (rt.cut's)")
     if getattr(old, "law", None) is not None and type(old.law) is not type(getattr(new, "law", None)):
         raise ModelError("the new model's law is not the old one's: carry a state only to a remesh of the same model")
     if not (hasattr(old, "tetmesh") and hasattr(new, "tetmesh")):

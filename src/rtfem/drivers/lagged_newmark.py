@@ -36,16 +36,19 @@ __all__ = ["LaggedNewmarkSimulator"]
 
 class _Kernels:
     """A solid's element forces and tangents by the compiled kernels (corotated linear material,
-    neo-Hookean, Mooney-Rivlin, Ogden), or None where they do not apply (shells, tet4-anp, a Prony
-    law, no numba): the system's own batched evaluation is used then."""
+    neo-Hookean, Mooney-Rivlin, Ogden; a model of several regions each region's), or None where
+    they do not apply (shells, tet4-anp, a Prony law, no numba): the system's own batched
+    evaluation is used then."""
 
     def __init__(self, system) -> None:
+        from ..fe.regions import RegionTets
         from ..fe.solid import CorotationalTets, HyperelasticTets
         from ..fe.viscoelastic import ViscoelasticTets
         from ..reduction import tet_kernels as tk, tet_node_kernels as tnk
 
         kern = system.kernel
-        self.ok = (system.dpn == 3 and isinstance(kern, CorotationalTets) and not isinstance(kern, ViscoelasticTets)
+        self.ok = (system.dpn == 3 and isinstance(kern, (CorotationalTets, RegionTets))
+                   and not isinstance(kern, ViscoelasticTets)
                    and not hasattr(kern, "patch_tangent") and tk.compiled_solid_forces() is not None)
         if not self.ok:
             return
@@ -55,8 +58,12 @@ class _Kernels:
         self.X = np.ascontiguousarray(np.asarray(system.model.mesh.vertices, dtype=float)[cells])
         self.G = np.ascontiguousarray(np.stack(kern.G, axis=1))
         self.wdet = np.ascontiguousarray(np.stack(kern.wdet, axis=1))
-        self.lm = np.tile([kern.lam, kern.mu], (cells.shape[0], 1))
-        self.law = kern.law if isinstance(kern, HyperelasticTets) else None
+        if isinstance(kern, RegionTets):  # (elements, law or None: the corotated linear material) per region
+            self.lm, self.parts = np.ascontiguousarray(kern.lm), kern.laws
+        else:
+            self.lm = np.tile([kern.lam, kern.mu], (cells.shape[0], 1))
+            self.parts = [(None, kern.law if isinstance(kern, HyperelasticTets) else None)]
+        self.linear = all(law is None for _, law in self.parts)  # the node kernel's fast path applies
         E, k = cells.shape
         self._F = np.empty((E, 3 * k))
         kern.inverted(self.X + 0.0)  # builds the points the inversion check looks at (a tet10's corners too)
@@ -71,27 +78,36 @@ class _Kernels:
 
     def forces(self, u: np.ndarray) -> np.ndarray:
         """The internal forces (n_dofs,) at nodal displacements u (n, 3)."""
-        if self.law is None:
+        if self.linear:
             f = np.empty(self.system.model.n_dofs)
             if self.tnk.solid_node_forces(np.ascontiguousarray(u, dtype=float), self.cells, self.X, self.G, self.wdet,
                                          self.lm, f):
                 return f
-        V = self._dofs(u)
-        if self.law is None:
-            self.tk.solid_element_forces(V, self.X, self.G, self.wdet, self.lm, self._F)
-        else:
-            self.tk.law_forces(V, self.X, self.G, self.wdet, self.law, self._F)
+        self._each(self._dofs(u), self._F, self.tk.solid_element_forces, self.tk.law_forces)
         return self.system.gather(self._F)
 
     def tangent(self, u: np.ndarray):
         """The tangent stiffness on the free dofs (CSR) at nodal displacements u (n, 3)."""
         V = self._dofs(u)
         Ke = np.empty((V.shape[0], V.shape[1], V.shape[1]))
-        if self.law is None:
-            self.tk.solid_element_tangents(V, self.X, self.G, self.wdet, self.lm, Ke)
-        else:
-            self.tk.law_tangents(V, self.X, self.G, self.wdet, self.law, Ke)
+        self._each(V, Ke, self.tk.solid_element_tangents, self.tk.law_tangents)
         return self.system.tangent_matrix(Ke)
+
+    def _each(self, V: np.ndarray, out: np.ndarray, linear, law_kernel) -> None:
+        """out[e] = each element's forces or tangent at its dofs V: ``linear`` (the corotated
+        material, Lame constants per element) or ``law_kernel`` (a law's), each region's own."""
+        for idx, law in self.parts:
+            if idx is None:
+                args, res = (V, self.X, self.G, self.wdet), out
+            else:
+                args = tuple(np.ascontiguousarray(a[idx]) for a in (V, self.X, self.G, self.wdet))
+                res = np.empty((idx.size,) + out.shape[1:])
+            if law is None:
+                linear(*args, self.lm if idx is None else np.ascontiguousarray(self.lm[idx]), res)
+            else:
+                law_kernel(*args, law, res)
+            if idx is not None:
+                out[idx] = res
 
 
 class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):

@@ -64,13 +64,23 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
         if not held.any():
             raise ModelError("free='remove' with nothing fixed: every part of the solid would be removed; fix the "
                              "model first")
-        mesh, info, fixed = _drop_free(mesh, info, fixed, held, recipe.material.density)
+        mesh, info, fixed = _drop_free(mesh, info, fixed, held, _densities(recipe.material, mesh.labels))
     elif not held.all() and fixed.any():
         warnings.warn(f"the cut frees {int((~held).sum())} of {info.pieces} parts of the solid with nothing fixed: "
                       "they would float; fix a node of each, or cut less (or free='remove')", RtfemWarning, stacklevel=2)
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info
     return new
+
+
+def _densities(material, labels: np.ndarray) -> np.ndarray:
+    """Each tet's density: the material's, or its region's (a model of several regions)."""
+    if not isinstance(material, dict):
+        return np.full(labels.shape, float(material.density))
+    out = np.zeros(labels.shape)
+    for label, law in material.items():
+        out[labels == label] = law.density
+    return out
 
 
 def _drop_free(mesh, info, fixed, held, density):
@@ -83,9 +93,10 @@ def _drop_free(mesh, info, fixed, held, density):
     new_index[keep] = np.arange(keep.size)
     T = np.asarray(mesh.tets)
     inside = (new_index[T] >= 0).all(axis=1)
-    lost = float(np.asarray(mesh.volumes())[~inside].sum()) * float(density)
+    lost = float((np.asarray(mesh.volumes()) * density)[~inside].sum())
     groups = {k: new_index[v][new_index[v] >= 0] for k, v in mesh.groups.items()}
-    out = TetMesh(np.asarray(mesh.vertices)[keep], new_index[T[inside]], repair=False, merge_tol=0.0, groups=groups)
+    out = TetMesh(np.asarray(mesh.vertices)[keep], new_index[T[inside]], repair=False, merge_tol=0.0, groups=groups,
+                  labels=mesh.labels[inside], region_names=mesh.region_names)
     info = type(info)(info)
     pieces = np.unique(info.piece[keep], return_inverse=True)[1]
     info.update(parent=info.parent[keep], piece=pieces.ravel(), pieces=int(held.sum()), kept=keep,

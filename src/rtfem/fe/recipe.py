@@ -23,7 +23,7 @@ class ModelRecipe:
     Parameters
     ----------
     mesh : the model's TriMesh (a shell) or TetMesh (a solid).
-    material : its Material, or a solid's law.
+    material : its Material, or a solid's law, or a solid's {label: material or law} of its regions.
     options : the constructor's keyword arguments (a solid's element, mass, constraints, penalty;
         a shell's membrane, rotary_inertia, constraints, penalty).
     fixed : the (n, dofs per node) mask of fixed dofs.
@@ -54,7 +54,7 @@ class ModelRecipe:
             raise ModelError(f"model={validate.show(model)} must be an rt.ShellModel or rt.SolidModel to be rebuilt "
                              "on a cluster's workers")
         options.update(constraints=model.constraints, penalty=model.penalty)
-        material = getattr(model, "law", None) or model.material
+        material = getattr(model, "materials", None) or getattr(model, "law", None) or model.material
         fixed = np.array(model.fixed, dtype=bool)
         return cls(mesh, material, options, fixed, _identity(mesh, material, options, fixed), type(model))
 
@@ -72,6 +72,9 @@ def _identity(mesh, material, options: dict, fixed: np.ndarray) -> str:
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     cells = getattr(mesh, "tets", None)
     h.update(np.ascontiguousarray(mesh.triangles if cells is None else cells, dtype=np.int64).tobytes())
+    labels = getattr(mesh, "labels", None)
+    if labels is not None and np.asarray(labels).any():
+        h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
     h.update(repr(material).encode())
     h.update(json.dumps(options, sort_keys=True, default=str).encode())
     h.update(np.ascontiguousarray(fixed).tobytes())

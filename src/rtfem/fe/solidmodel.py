@@ -8,6 +8,7 @@ drawn and touched is the tet mesh's boundary over the model's own node numbering
 from __future__ import annotations
 
 import time
+from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
@@ -19,6 +20,7 @@ from ..errors import ModelError
 from .hyperelastic import Hyperelastic
 from .material import Material
 from .model import FEModel
+from .regions import RegionTets, linear_materials, region_materials
 from ..mesh.tetmesh import TET10_EDGES, TetMesh
 
 __all__ = ["SolidModel"]
@@ -37,6 +39,9 @@ class SolidModel(FEModel):
         :class:`~rtfem.Ogden`): the full-order nonlinear solvers (``rt.nonlinear.solve_static``,
         the corotational and Newmark simulators) use the law, the linear ones (modes, statics,
         SLDM, maps) its linearization at rest (``law.linearized()``, kept as ``model.material``).
+        Or, for a mesh of several regions (``mesh.labels``), ``{label or region name: material or
+        law}``, one for each region (:mod:`rtfem.fe.regions`): kept as :attr:`materials`; such a
+        model has no single ``material``.
     element : "tet4" (linear, constant strain; stiff in bending and near incompressibility),
         "tet10" (quadratic; a 4-node mesh gets mid-edge nodes added, :meth:`TetMesh.quadratic`) or
         "tet4-anp" (tet4 with an averaged nodal pressure, :func:`rtfem.fe.solid.anp_volumetric`:
@@ -65,6 +70,9 @@ class SolidModel(FEModel):
             raise ModelError(f"mesh must be an rtfem TetMesh, got {type(mesh).__name__}; use rt.load_mesh on a volume "
                              "file or rt.tetrahedralize(surface)")
         self.law = None  # a hyperelastic law (full-order nonlinear solves), its linear twin the Material
+        self.materials = None  # {label: Material or law} of a model of several regions
+        if isinstance(material, Mapping) and isinstance(mesh, TetMesh):
+            material = self._regions(mesh, material, element)
         if isinstance(material, Hyperelastic):
             self.law, material = material, material.linearized()
         if not isinstance(material, Material):
@@ -83,10 +91,45 @@ class SolidModel(FEModel):
         self.mass = mass
         self._setup(mesh.surface, material, constraints, penalty)
 
+    def _regions(self, mesh: TetMesh, materials: Mapping, element: str):
+        """Keep a mesh's regions' materials (:attr:`materials`); the one material of a mesh of one region."""
+        given = region_materials(materials, mesh)
+        if len(given) == 1:
+            return next(iter(given.values()))
+        if element == "tet4-anp":
+            raise ModelError("element='tet4-anp' averages the pressure at the nodes, which would mix the regions' bulk "
+                             "moduli at their interface: a mesh of several regions takes element='tet10' (or 'tet4')")
+        self.materials = given
+        return linear_materials(given)[next(iter(given))]  # what FEModel keeps; `material` refuses to answer
+
+    @property
+    def material(self) -> Material:
+        """The model's linear material (a law's linearization at rest). A model of several regions
+        has none: its regions' are in :attr:`materials` (a ModelError says so)."""
+        if self.materials is not None:
+            raise ModelError(f"this solid has {len(self.materials)} regions, each with its own material: read "
+                             "model.materials[label] (what uses one material for the whole model, such as the viewer's "
+                             "E control, does not take a model of several regions yet)")
+        return self._material
+
+    @material.setter
+    def material(self, value: Material) -> None:
+        self._material = value
+
+    def _linear_regions(self) -> list[tuple[np.ndarray | None, Material]]:
+        """(tets, linear material) per region; (None, material) for a model of one material."""
+        if self.materials is None:
+            return [(None, self._material)]
+        labels = np.asarray(self.tetmesh.labels)
+        return [(np.flatnonzero(labels == k), mat) for k, mat in linear_materials(self.materials).items()]
+
     @property
     def metadata(self) -> dict:
         """What a saved basis or map records about the model."""
-        return {"model": "solid", "element": self.element, "mass": self.mass, "constraints": self.constraints}
+        out = {"model": "solid", "element": self.element, "mass": self.mass, "constraints": self.constraints}
+        if self.materials is not None:
+            out["regions"] = {str(k): repr(v) for k, v in self.materials.items()}
+        return out
 
     def __repr__(self) -> str:
         nf = int(self.fixed.any(axis=1).sum())
@@ -96,25 +139,32 @@ class SolidModel(FEModel):
     # ------------------------------------------------------------ assembly
     def _assemble(self) -> None:
         t0 = time.perf_counter()
-        T = np.asarray(self.tetmesh.tets)
         X = np.asarray(self.tetmesh.vertices)
-        done = self._assemble_compiled(X, T) if self.mass == "lumped" else None
-        K, lumped = done if done is not None else self._assemble_numpy(X, T)
+        K, lumped, Mc = None, np.zeros(self.n_nodes), None
+        for tets, material in self._linear_regions():  # a region's elements with its constants, summed
+            T = np.asarray(self.tetmesh.tets) if tets is None else np.asarray(self.tetmesh.tets)[tets]
+            done = self._assemble_compiled(X, T, material) if self.mass == "lumped" else None
+            Kr, lumped_r, Mr = done if done is not None else self._assemble_numpy(X, T, material)
+            K, lumped = (Kr if K is None else (K + Kr).tocsr()), lumped + lumped_r
+            Mc = Mr if Mc is None else Mc + Mr
         if self.element == "tet4-anp":  # the volumetric part: one pressure per node
-            K = K + solid.anp_volumetric(X, T, self.material, self.n_nodes)
+            K = K + solid.anp_volumetric(X, np.asarray(self.tetmesh.tets), self.material, self.n_nodes)
             K = ((K + K.T) * 0.5).tocsr()
+        if Mc is not None:
+            Mc = ((Mc + Mc.T) * 0.5).tocsr()
+            self._Mc = sp.kron(Mc, sp.identity(3), format="csr")
         self._K, self._M = K, np.repeat(lumped, 3)
         self.timings["assemble"] = time.perf_counter() - t0
 
-    def _assemble_numpy(self, X: np.ndarray, T: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
-        """The stiffness and the lumped nodal masses from batched element matrices (and the
-        consistent mass matrix, where asked for)."""
+    def _assemble_numpy(self, X: np.ndarray, T: np.ndarray, material: Material):
+        """The stiffness, the lumped nodal masses and the consistent node mass matrix (None unless
+        asked for) of the tets T of one material, from batched element matrices."""
         ne, k = T.shape
         kdata, mdata = [], []
         lumped = np.zeros(self.n_nodes)
         for s in range(0, ne, _CHUNK):
             c = slice(s, min(s + _CHUNK, ne))
-            Ke, Me = solid.element_matrices(X[T[c]], self.material, self.element, self.mass)
+            Ke, Me = solid.element_matrices(X[T[c]], material, self.element, self.mass)
             kdata.append(Ke)
             if self.mass == "consistent":
                 mdata.append(Me.reshape(-1))
@@ -122,17 +172,17 @@ class SolidModel(FEModel):
             else:
                 lumped_e = np.einsum("mii->mi", Me)
             lumped += np.bincount(T[c].ravel(), lumped_e.ravel(), minlength=self.n_nodes)
+        Mn = None
         if self.mass == "consistent":
             r = np.repeat(T, k, axis=1).ravel()
             c = np.tile(T, (1, k)).ravel()
             Mn = sp.coo_matrix((np.concatenate(mdata), (r, c)), shape=(self.n_nodes, self.n_nodes)).tocsr()
-            Mn = ((Mn + Mn.T) * 0.5).tocsr()
-            self._Mc = sp.kron(Mn, sp.identity(3), format="csr")
-        return assemble_blocks(T, np.concatenate(kdata), self.n_nodes, 3), lumped  # exactly symmetric
+        return assemble_blocks(T, np.concatenate(kdata), self.n_nodes, 3), lumped, Mn  # exactly symmetric
 
-    def _assemble_compiled(self, X: np.ndarray, T: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray] | None:
-        """The stiffness in one compiled pass and the lumped nodal masses, or None where numba does not run."""
-        done = assemble_solid(X, T, *solid.stiffness_rule(self.element), *solid.element_lame(self.material, self.element),
+    def _assemble_compiled(self, X: np.ndarray, T: np.ndarray, material: Material):
+        """The stiffness of the tets T of one material in one compiled pass and the lumped nodal
+        masses (and None: no consistent mass), or None where numba does not run."""
+        done = assemble_solid(X, T, *solid.stiffness_rule(self.element), *solid.element_lame(material, self.element),
                               self.n_nodes)
         if done is None:
             return None
@@ -140,9 +190,9 @@ class SolidModel(FEModel):
         lumped = np.zeros(self.n_nodes)
         for s in range(0, T.shape[0], _CHUNK):
             c = slice(s, min(s + _CHUNK, T.shape[0]))
-            Me = solid.element_mass(X[T[c]], self.material, self.element, "lumped", vol[c])
+            Me = solid.element_mass(X[T[c]], material, self.element, "lumped", vol[c])
             lumped += np.bincount(T[c].ravel(), np.einsum("mii->mi", Me).ravel(), minlength=self.n_nodes)
-        return K, lumped
+        return K, lumped, None
 
     @property
     def M(self) -> sp.csr_matrix:
@@ -249,6 +299,8 @@ class SolidModel(FEModel):
                                  "rt.Ogden (a linear material's twin: rt.NeoHookean(mu=E / (2 (1 + nu)), kappa=E / "
                                  "(3 (1 - 2 nu)))), or take element='tet10' (no locking either)")
             return AnpTets(X, self.law, T, self.n_nodes), T
+        if self.materials is not None:
+            return RegionTets(X, np.asarray(self.tetmesh.labels), self.materials, self.element), T
         if self.law is not None:
             return self.law.tets(X, self.element), T
         return solid.CorotationalTets(X, self.material, self.element), T

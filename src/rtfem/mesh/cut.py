@@ -186,7 +186,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     C = V[T[:, TET10_EDGES]]
     edge = float(np.median(np.linalg.norm(C[:, :, 1] - C[:, :, 0], axis=2)))
     tol = max(_TOL * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), ON_SURFACE * edge, 1e-300)
-    moved, born, at = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0)
+    moved, born, at, source = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0])
     if snap == "split" and T.shape[1] != 4:
         raise ModelError("snap='split' splits tet4 elements; a tet10 mesh is cut with snap=True (nodes moved)")
     if snap:
@@ -195,7 +195,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
             V, snapped = _snap(V, T, tri, tol)
             moved += snapped
         if T.shape[1] == 4:
-            V, T, born, at, nudged = _split_edges(V, T, tri, tol)
+            V, T, born, at, nudged, source = _split_edges(V, T, tri, tol)
             moved += nudged
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
@@ -213,7 +213,8 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0])
     groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, mesh.n_vertices), born))))
               for name, nodes in mesh.groups.items()}
-    new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups)
+    new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
+                  region_names=mesh.region_names)
     pieces, piece = _pieces(T_new, parent.size)
     n0 = mesh.n_vertices
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
@@ -247,8 +248,9 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     :data:`MIN_SPLIT` of the edge moves that end instead, where its tets keep :data:`MIN_VOLUME`.
     The crossing edges are found once a round and split in turn (a round's splits make new edges
     only from nodes on the surface; a curved surface may need a few rounds). Returns V, T, the edges
-    split (s, 2), where along each the node is (s,: 0 at its first end, 1 at its second) and how
-    many ends moved."""
+    split (s, 2), where along each the node is (s,: 0 at its first end, 1 at its second), how
+    many ends moved and the tet of the input each tet came from."""
+    source = np.arange(T.shape[0])
     born: list = []
     at: list = []
     nudged = 0
@@ -275,9 +277,10 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
             t1, t2 = T[on].copy(), T[on].copy()
             t1[t1 == b], t2[t2 == a] = p, p
             T = np.concatenate([T[~on], t1, t2])
+            source = np.concatenate([source[~on], source[on], source[on]])
             born.append((a, b))
             at.append(s)
-    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged
+    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged, source
 
 
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume

@@ -61,9 +61,11 @@ def load_mesh(path: str | os.PathLike, *, scale: float = 1.0, repair: bool = Tru
     repair = validate.flag(repair, "repair", error=MeshError)
     merge_tol = validate.in_range(merge_tol, "merge_tol", 0.0, 1.0, hi_open=True, error=MeshError)
     regular_file(p, "mesh file", error=MeshError)  # a pipe or /dev/zero would never end
-    points, triangles, tets, groups = _read(p)
+    points, triangles, tets, groups, regions = _read(p)
     if tets is not None:
-        mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups)
+        labels, names = regions or (None, None)
+        mesh = TetMesh(points * s, tets, repair=repair, merge_tol=merge_tol, groups=groups, labels=labels,
+                       region_names=names)
         if mesh.report.merged_nodes:  # a volume mesh's twin nodes are a cut or a crack (rt.cut writes them)
             warnings.warn(f"{p.name}: {mesh.report.merged_nodes} node(s) coincide with others and were merged, which "
                           "closes any cut or crack the mesh has; pass merge_tol=0 to keep them apart", RtfemWarning,
@@ -110,29 +112,50 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
     if not fmt:
         raise MeshError(f"{str(p)!r}: the suffix {p.suffix!r} names no mesh format; use one of {_SURFACE_FORMATS}")
     data = {str(k): point_field(v, mesh.n_vertices, f"point_data[{k!r}]") for k, v in (point_data or {}).items()}
+    if fmt[0] == "medit" and isinstance(mesh, TetMesh) and mesh.order == 2:
+        raise MeshError(f"{str(p)!r}: MEDIT's .mesh format has no 10-node tets; save a 10-node mesh as .vtu, .msh or "
+                        ".inp, or its corners (mesh.linear()) as .mesh")
+    regions = _region_data(mesh, fmt[0]) if isinstance(mesh, TetMesh) and mesh.labels.any() else {}
     with atomic_target(p, "mesh file") as tmp:
         try:
             meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), mesh_cells(mesh), point_data=data,
-                                      file_format=fmt[0])
+                                      **{"file_format": fmt[0], **regions})
         except (ValueError, KeyError, TypeError) as exc:
             raise MeshError(f"could not write {str(p)!r}: {_clean(exc)}") from None
+
+
+def _region_data(mesh: TetMesh, fmt: str) -> dict:
+    """The keyword arguments that write a labelled mesh's regions in ``fmt``: Gmsh physical groups
+    (with their names), MEDIT references, Abaqus element sets (by name), else a 'region' cell field
+    (names as field data)."""
+    labels = np.asarray(mesh.labels)
+    if fmt == "abaqus":
+        names = {v: k for k, v in mesh.region_names.items()}
+        return {"cell_sets": {names.get(int(r), f"region{int(r)}"): [np.flatnonzero(labels == r)] for r in mesh.regions}}
+    if fmt == "gmsh":  # written as Gmsh 2.2, whose physical tags are a cell field (Gmsh 4's are read too)
+        return {"file_format": "gmsh22", "cell_data": {"gmsh:physical": [labels], "gmsh:geometrical": [labels]},
+                "field_data": {k: np.array([v, 3]) for k, v in mesh.region_names.items()}}
+    if fmt == "medit":
+        return {"cell_data": {"medit:ref": [labels]}}
+    return {"cell_data": {"region": [labels]}, "field_data": {k: np.array([v]) for k, v in mesh.region_names.items()}}
 
 
 def _clean(exc: BaseException) -> str:
     return validate.one_line(f"{type(exc).__name__}: {exc}", 200)
 
 
-def _read(p: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
-    """Points, triangles (None for a volume), tets (None for a surface) and point groups. OBJ and legacy
-    ASCII VTK are read here, without importing meshio (60 ms of a cold `rtfem modes`, issue 54)."""
+def _read(p: Path) -> tuple:
+    """Points, triangles (None for a volume), tets (None for a surface), point groups and the tets'
+    regions (labels, {name: label}) or None. OBJ and legacy ASCII VTK are read here, without importing
+    meshio (60 ms of a cold `rtfem modes`, issue 54)."""
     err: Exception | None = None
     suffix = p.suffix.lower()
     if suffix == ".obj":
-        return _with_no_tets(_read_obj(p))
+        return _with_no_tets(_read_obj(p)) + (None,)
     if suffix == ".stl":
         _check_binary_stl(p)
     if suffix == ".vtk" and _is_legacy_ascii_vtk(p):
-        return _read_legacy_vtk(p)
+        return _read_legacy_vtk(p) + (None,)
     import meshio
 
     try:
@@ -144,7 +167,7 @@ def _read(p: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, di
         err = exc
     if err is not None:
         if p.suffix.lower() == ".vtk":
-            return _read_legacy_vtk(p)
+            return _read_legacy_vtk(p) + (None,)
         known = "" if p.suffix.lower() in _SURFACE_FORMATS.split() else f" (suffix {p.suffix!r} is not a known mesh format)"
         raise MeshError(
             f"could not read {str(p)!r} as a mesh{known}: {_clean(err)}. "
@@ -154,7 +177,43 @@ def _read(p: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, di
     groups = {k: np.asarray(v).ravel() for k, v in (m.point_sets or {}).items()}
     tets = _tets_from_cells(cells, p)
     tris = None if tets is not None else _triangles_from_cells(cells, p)
-    return np.asarray(m.points, dtype=float), tris, tets, groups
+    return np.asarray(m.points, dtype=float), tris, tets, groups, (_regions(m, p) if tets is not None else None)
+
+
+# the cell data a region label is read from (the first found), and where each format writes it
+_LABEL_KEYS = ("gmsh:physical", "medit:ref", "region", "labels", "CellEntityIds", "RegionId", "MaterialIds")
+
+
+def _regions(m, p: Path) -> tuple[np.ndarray, dict] | None:
+    """The tets' region labels and names from a meshio mesh: a label cell field (Gmsh's physical
+    groups, MEDIT's references, VTU's 'region'), or Abaqus-style element sets (each numbered from 1,
+    in the file's order, named), with names from Gmsh's physical names or VTU field data."""
+    blocks = [i for i, c in enumerate(m.cells) if c.type in ("tetra", "tetra10")]
+    for key in _LABEL_KEYS:
+        data = (m.cell_data or {}).get(key)
+        if data is not None:
+            labels = np.concatenate([np.asarray(data[i]).reshape(-1) for i in blocks])
+            names = {}
+            for name, value in (m.field_data or {}).items():
+                v = np.asarray(value).reshape(-1)
+                if v.size and (v.size == 1 or (v.size == 2 and int(v[1]) == 3)):
+                    names[str(name)] = int(v[0])
+            return labels, names
+    sets = {name: v for name, v in (m.cell_sets or {}).items() if not name.startswith("gmsh:")}
+    if not sets:
+        return None
+    sizes = [len(m.cells[i].data) for i in blocks]
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    labels, names = np.zeros(int(offsets[-1]), dtype=np.int64), {}
+    tags = {str(k): np.asarray(v).reshape(-1) for k, v in (m.field_data or {}).items()}
+    for k, (name, per_block) in enumerate(sets.items(), start=1):
+        tag = tags.get(str(name))
+        k = int(tag[0]) if tag is not None and tag.size == 2 and int(tag[1]) == 3 else k  # Gmsh 4's physical tag
+        for j, i in enumerate(blocks):
+            if i < len(per_block) and per_block[i] is not None and len(per_block[i]):
+                labels[offsets[j] + np.asarray(per_block[i], dtype=np.int64)] = k
+                names[str(name)] = k
+    return (labels, names) if names else None
 
 
 def _with_no_tets(read: tuple) -> tuple:

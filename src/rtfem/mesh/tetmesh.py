@@ -94,26 +94,35 @@ class TetMesh:
         to the repaired ones (-1 for dropped nodes). With ``repair=False`` a mesh that needs
         any of it is refused with the place named.
     groups : optional named node sets (indices into the input nodes).
+    labels : optional (m,) integer region label of each tet (a segmentation's label, a Gmsh physical
+        group, a MEDIT reference): a :class:`~rtfem.SolidModel` takes a material per label. Default:
+        every tet in region 0. Repair keeps each kept tet's label.
+    region_names : optional {name: label}, the regions' names (e.g. ``{"liver": 1, "tumor": 2}``), by
+        which a model's materials may be given.
 
     Raises
     ------
     MeshError : empty mesh, non-finite coordinates, out-of-range or non-integer indices,
-        faces shared by more than two tets (overlapping elements).
+        faces shared by more than two tets (overlapping elements), labels that are not one
+        integer per tet, names that name no label.
     """
 
     def __init__(self, vertices, tets, *, repair: bool = True, merge_tol: float = 1e-10,
-                 groups: Mapping[str, np.ndarray] | None = None) -> None:
+                 groups: Mapping[str, np.ndarray] | None = None, labels=None,
+                 region_names: Mapping[str, int] | None = None) -> None:
         repair = validate.flag(repair, "repair", error=MeshError)
         merge_tol = validate.in_range(merge_tol, "merge_tol", 0.0, 1.0, hi_open=True,
                                       what="a fraction of the bounding-box diagonal", error=MeshError)
         V, T = _check_arrays(vertices, tets)
+        labels = _check_labels(labels, T.shape[0])
         groups = _check_groups(groups, V.shape[0])
         report = TetReport(n_nodes_in=V.shape[0], n_tets_in=T.shape[0])
-        V, T, vmap = _repair(V, T, merge_tol, report, repair)
+        V, T, vmap, kept = _repair(V, T, merge_tol, report, repair)
         T = _orient(V, T, report, repair)
-        self._vertices, self._tets = V, T
-        V.flags.writeable = False
-        T.flags.writeable = False
+        self._vertices, self._tets, self._labels = V, T, np.ascontiguousarray(labels[kept])
+        for a in (V, T, self._labels):
+            a.flags.writeable = False
+        self.region_names = _check_names(region_names, self._labels)
         self.vertex_map = vmap
         self.report = report
         self.groups: dict[str, np.ndarray] = {}
@@ -134,6 +143,20 @@ class TetMesh:
     def tets(self) -> np.ndarray:
         """(m, 4) or (m, 10) node indices (read-only)."""
         return self._tets
+
+    @property
+    def labels(self) -> np.ndarray:
+        """(m,) the region label of each tet (read-only; all 0 unless given)."""
+        return self._labels
+
+    @property
+    def regions(self) -> np.ndarray:
+        """The distinct region labels, ascending."""
+        return np.unique(self._labels)
+
+    def _same(self, vertices, tets, **options) -> "TetMesh":
+        """A mesh of these regions (labels and names) over other nodes or node numbering."""
+        return TetMesh(vertices, tets, labels=self._labels, region_names=self.region_names, **options)
 
     @property
     def corner_tets(self) -> np.ndarray:
@@ -311,7 +334,7 @@ class TetMesh:
     def scaled(self, factor: float) -> "TetMesh":
         """A copy with coordinates multiplied by ``factor`` (e.g. 1e-3 for mm -> m)."""
         factor = validate.positive(factor, "scale", "a length factor, e.g. 1e-3 for mm", error=MeshError)
-        return TetMesh(self._vertices * factor, self._tets, repair=False, groups=self.groups)
+        return self._same(self._vertices * factor, self._tets, repair=False, groups=self.groups)
 
     def quadratic(self) -> "TetMesh":
         """The 10-node version: a node added at the middle of each corner edge (straight edges).
@@ -331,14 +354,14 @@ class TetMesh:
             both = np.flatnonzero(inside[edges[:, 0]] & inside[edges[:, 1]])
             groups[name] = np.concatenate([np.asarray(idx, dtype=np.int64), self.n_vertices + both])
         # merge_tol 0: a cut mesh's twin nodes stay apart
-        return TetMesh(np.vstack([self._vertices, mid]), T, repair=False, merge_tol=0.0, groups=groups)
+        return self._same(np.vstack([self._vertices, mid]), T, repair=False, merge_tol=0.0, groups=groups)
 
     def linear(self) -> "TetMesh":
         """The 4-node mesh of the corners (mid-edge nodes dropped and the nodes renumbered;
         :attr:`vertex_map` of the result maps this mesh's nodes to it)."""
         if self.order == 1:
             return self
-        return TetMesh(self._vertices, self.corner_tets, repair=True, merge_tol=0.0, groups=self.groups)
+        return self._same(self._vertices, self.corner_tets, repair=True, merge_tol=0.0, groups=self.groups)
 
     def fingerprint(self) -> str:
         """A short hash of the node coordinates and the tets (what saved results are checked against)."""
@@ -347,6 +370,8 @@ class TetMesh:
         h = hashlib.sha1()
         h.update(np.ascontiguousarray(self._vertices).tobytes())
         h.update(np.ascontiguousarray(self._tets, dtype=np.int64).tobytes())
+        if self._labels.any():  # a mesh of one region 0 keeps the fingerprint it had before labels
+            h.update(np.ascontiguousarray(self._labels, dtype=np.int64).tobytes())
         return h.hexdigest()[:16]
 
 
@@ -397,7 +422,9 @@ def _degenerate(V: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 
 def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: TetReport, repair: bool):
+    """The repaired nodes and tets, the input nodes' new indices and the input tets kept."""
     n_in = V.shape[0]
+    kept = np.arange(T.shape[0])
     if repair:
         diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
         merge = _merge_classes(V, merge_tol * (diag if diag > 0 else 1.0)) if merge_tol > 0 else np.arange(n_in)
@@ -418,7 +445,7 @@ def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: TetReport, r
             raise MeshError(f"degenerate (zero-volume or repeated-node) tet {_listing(np.flatnonzero(deg))}: nodes "
                             f"{T[k].tolist()}; pass repair=True to remove them, or re-mesh")
         report.removed_degenerate = int(deg.sum())
-        T = T[~deg]
+        T, kept = T[~deg], kept[~deg]
         if T.shape[0] == 0:
             raise MeshError("every tet is degenerate (zero volume): the mesh has no usable volume")
     _, first = unique_rows(np.sort(T[:, :4], axis=1), return_index=True)
@@ -427,15 +454,49 @@ def _repair(V: np.ndarray, T: np.ndarray, merge_tol: float, report: TetReport, r
             dup = np.setdiff1d(np.arange(T.shape[0]), first)
             raise MeshError(f"duplicate tet {_listing(dup)} (same four corners as another); pass repair=True to remove them")
         report.removed_duplicate_tets = int(T.shape[0] - first.size)
-        T = T[np.sort(first)]
+        T, kept = T[np.sort(first)], kept[np.sort(first)]
     used = np.zeros(n_in, bool)
     used[T.ravel()] = True
     if not repair or used.all():
-        return V, T, merge
+        return V, T, merge, kept
     new_index = np.full(n_in, -1, dtype=np.int64)
     new_index[used] = np.arange(int(used.sum()))
     report.dropped_unreferenced = int(n_in - report.merged_nodes - used.sum())
-    return V[used], new_index[T], new_index[merge]
+    return V[used], new_index[T], new_index[merge], kept
+
+
+def _check_labels(labels, m: int) -> np.ndarray:
+    """(m,) int64 region labels (zeros when None)."""
+    if labels is None:
+        return np.zeros(m, dtype=np.int64)
+    try:
+        raw = np.asarray(labels)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"labels are not an integer array: {exc}") from None
+    if raw.shape != (m,):
+        raise MeshError(f"labels must be one integer per tet, shape ({m},), got shape {raw.shape}")
+    if raw.dtype.kind == "f" and np.all(np.isfinite(raw)) and np.all(raw == np.round(raw)):
+        raw = raw.astype(np.int64)
+    if raw.dtype.kind not in "iu" or (raw.size and (raw.min() < -2**31 or raw.max() >= 2**31)):
+        raise MeshError(f"labels must be integers (of 32 bits), got {raw.dtype} values "
+                        f"{validate.show(raw[:3].tolist())}...: a label map's region numbers")
+    return raw.astype(np.int64)
+
+
+def _check_names(names, labels: np.ndarray) -> dict[str, int]:
+    """{name: label} for labels the mesh has (names of labels no tet carries are dropped)."""
+    if names is None:
+        return {}
+    if not isinstance(names, Mapping):
+        raise MeshError(f"region_names={validate.show(names)} must be a mapping {{name: label}}")
+    out, present = {}, set(np.unique(labels).tolist())
+    for name, label in names.items():
+        if not isinstance(name, str) or not name or isinstance(label, bool) or not isinstance(label, (int, np.integer)):
+            raise MeshError(f"region_names: {validate.show(name)} = {validate.show(label)} must be a name (a string) "
+                            "and an integer label")
+        if int(label) in present:
+            out[name] = int(label)
+    return out
 
 
 def _orient(V: np.ndarray, T: np.ndarray, report: TetReport, repair: bool) -> np.ndarray:

@@ -46,7 +46,7 @@ def model_key(model) -> str:
     load onto the same mesh held or made otherwise."""
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(np.asarray(model.fixed, dtype=bool)).tobytes())
-    material = getattr(model, "material", None)
+    material = None if getattr(model, "materials", None) else getattr(model, "material", None)  # regions: metadata
     h.update(repr(tuple(float(getattr(material, k, 0.0)) for k in ("E", "nu", "thickness", "density"))).encode())
     h.update(json.dumps(getattr(model, "metadata", {}), sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]

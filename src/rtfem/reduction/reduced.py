@@ -168,6 +168,10 @@ class ReducedNonlinearModel(ElementTerms):
         """The model, its law, nonlinear system, free dofs and rest stiffness with its factorization."""
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
+        if getattr(model, "materials", None):
+            raise ModelError(f"this solid has {len(model.materials)} regions with their own materials: the reduced "
+                             "nonlinear model does not take regions yet (its cubature must be trained per region). Step it "
+                             "full order (rt.DirectSimulator(model, dt, large_deformation=True)) or linear (modes, SLDM)")
         if getattr(model, "element", None) == "tet4-anp":
             raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
                              "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")

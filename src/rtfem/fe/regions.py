@@ -1,0 +1,142 @@
+"""Solids of several regions, each with its own material: a tumour stiffer than the liver around
+it, a vessel wall, a layer of fat (issue 58).
+
+A :class:`~rtfem.TetMesh` carries a region label per tet (``mesh.labels``; read from a Gmsh
+physical group, a MEDIT reference, a VTU 'region' field or Abaqus element sets). A
+:class:`~rtfem.SolidModel` given ``{label or region name: material or law}`` builds each region's
+elements with its own law; the regions share their interface nodes, so the mesh stays one
+conforming body. Every operator is a sum over elements, so a region is a subset of the elements
+with its own constants:
+
+- the linear stiffness and mass: each region's elements assembled with its Lame constants and
+  density, the matrices summed (:func:`linear_materials`);
+- the nonlinear solvers (full order, static and dynamic): :class:`RegionTets`, each region's
+  elements evaluated by its own law's kernel (the corotated linear material for a
+  :class:`~rtfem.Material`, the hyperelastic law's otherwise) and the results put back in the
+  mesh's element order.
+
+Not yet with regions (refused with the reason): the averaged-nodal-pressure tet4 (``tet4-anp``,
+whose nodal pressure would mix two bulk moduli), Prony series (viscoelastic regions), and the
+reduced nonlinear model (whose cubature must be trained per region).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import ModelError
+from .hyperelastic import Hyperelastic
+from .material import Material
+
+__all__ = ["region_materials", "linear_materials", "RegionTets"]
+
+
+def region_materials(materials: Mapping, mesh) -> dict[int, object]:
+    """``{label: Material or law}`` for every region of ``mesh``, from a mapping by label (an int)
+    or by region name (``mesh.region_names``). Raises ModelError for a region left without a
+    material, a key that names no region, or a value that is not a material or law."""
+    from .viscoelastic import Prony
+
+    if not materials:
+        raise ModelError("materials={} gives no material: give {label: rt.Material(...) or a law} for each region")
+    names, present = dict(mesh.region_names), set(mesh.regions.tolist())
+    out: dict[int, object] = {}
+    for key, value in materials.items():
+        if isinstance(key, str) and key in names:
+            label = names[key]
+        elif isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+            label = int(key)
+        else:
+            known = ", ".join(f"{n!r} = {v}" for n, v in names.items()) or "none"
+            raise ModelError(f"material key {key!r} names no region: give a region label (an int; this mesh has "
+                             f"{sorted(present)}) or a region name (this mesh's: {known})")
+        if label not in present:
+            raise ModelError(f"material for region {key!r}: no tet of this mesh has label {label} (its labels: "
+                             f"{sorted(present)})")
+        if label in out:
+            raise ModelError(f"region {label} is given two materials ({key!r} and another key naming it)")
+        if isinstance(value, Prony):
+            raise ModelError(f"region {key!r}: a Prony (viscoelastic) law per region is not supported yet; give the "
+                             "regions rt.Material or hyperelastic laws (rt.NeoHookean, rt.MooneyRivlin, rt.Ogden)")
+        if not isinstance(value, (Material, Hyperelastic)):
+            raise ModelError(f"region {key!r}: the material must be an rt.Material or a hyperelastic law (rt.NeoHookean, "
+                             f"rt.MooneyRivlin, rt.Ogden), got {type(value).__name__}")
+        out[label] = value
+    missing = sorted(present - set(out))
+    if missing:
+        raise ModelError(f"the mesh's regions {missing} have no material ({_count(mesh, missing)}): give one for every "
+                         f"label in mesh.regions ({sorted(present)})")
+    return dict(sorted(out.items()))
+
+
+def _count(mesh, labels) -> str:
+    return ", ".join(f"{int(np.sum(mesh.labels == k))} tets with label {k}" for k in labels)
+
+
+def linear_materials(materials: Mapping[int, object]) -> dict[int, Material]:
+    """Each region's linear material (a law's linearization at rest)."""
+    return {k: (v.linearized() if isinstance(v, Hyperelastic) else v) for k, v in materials.items()}
+
+
+class RegionTets:
+    """The tets of a mesh of several regions, each region's evaluated by its own kernel (the
+    corotated linear material, :class:`~rtfem.fe.solid.CorotationalTets`, or a law's tets), in the
+    mesh's element order.
+
+    ``parts``: (element indices, kernel) per region; ``laws``: (element indices, law or None for
+    the corotated linear material); ``G``, ``wdet``: per quadrature point, every element's shape
+    gradients (m, k, 3) and weights (m,); ``lm`` (m, 2): every element's Lame constants (a law's at
+    rest)."""
+
+    def __init__(self, X: np.ndarray, labels: np.ndarray, materials: Mapping[int, object], element: str) -> None:
+        from .solid import CorotationalTets, _lame
+
+        m = X.shape[0]
+        self.parts, self.laws = [], []
+        self.lm = np.zeros((m, 2))
+        for label, law in materials.items():
+            idx = np.flatnonzero(labels == label)
+            lin = law.linearized() if isinstance(law, Hyperelastic) else law
+            kern = law.tets(X[idx], element) if isinstance(law, Hyperelastic) else CorotationalTets(X[idx], lin, element)
+            self.parts.append((idx, kern))
+            self.laws.append((idx, law if isinstance(law, Hyperelastic) else None))
+            self.lm[idx] = _lame(lin)
+        self.G = [self._spread(lambda k, q=q: k.G[q], (X.shape[1], 3)) for q in range(len(self.parts[0][1].G))]
+        self.wdet = [self._spread(lambda k, q=q: k.wdet[q], ()) for q in range(len(self.parts[0][1].wdet))]
+        self._m = m
+
+    def _spread(self, part_array, shape: tuple) -> np.ndarray:
+        """An array over all elements from each part's (its elements' rows)."""
+        out = np.zeros((sum(idx.size for idx, _ in self.parts),) + shape)
+        for idx, kern in self.parts:
+            out[idx] = part_array(kern)
+        return out
+
+    @property
+    def _G_check(self) -> list[np.ndarray]:
+        """The gradients the inversion check looks at (quadrature points, a tet10's corners too)."""
+        n = len(self.parts[0][1]._G_check)
+        return [self._spread(lambda k, q=q: k._G_check[q], self.G[0].shape[1:]) for q in range(n)]
+
+    def inverted(self, x: np.ndarray) -> np.ndarray:
+        """(m,) mask of the elements turned inside out in deformed nodes x (m, k, 3)."""
+        bad = np.zeros(x.shape[0], dtype=bool)
+        for idx, kern in self.parts:
+            bad[idx] = kern.inverted(x[idx])
+        return bad
+
+    def evaluate(self, x: np.ndarray, tangent: bool = True):
+        """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies (m,)
+        for deformed nodes x (m, k, 3), each region's by its own law."""
+        m, k = x.shape[:2]
+        f = np.zeros((m, 3 * k))
+        K = np.zeros((m, 3 * k, 3 * k)) if tangent else None
+        energy = np.zeros(m)
+        for idx, kern in self.parts:
+            fe, Ke, e = kern.evaluate(x[idx], tangent)
+            f[idx], energy[idx] = fe, e
+            if tangent:
+                K[idx] = Ke
+        return f, K, energy

@@ -1,0 +1,145 @@
+"""Labelled tet meshes and models of several regions (issue 58): labels through repair, the mesh's
+derived forms, files and cuts; the region materials' checks and refusals; the full-order step's
+compiled kernels against the nonlinear system's batched evaluation on a two-region model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+
+
+def _labelled(order: int = 1):
+    box = rt.meshes.box(0.03, 0.02, 0.02, nx=3, ny=2, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    mesh = rt.TetMesh(box.vertices, box.tets, labels=np.where(c[:, 0] > 0.02, 7, 3),
+                      region_names={"liver": 3, "tumor": 7}, groups=box.groups)
+    return mesh.quadratic() if order == 2 else mesh
+
+
+def test_labels_follow_repair_and_the_derived_meshes():
+    box = rt.meshes.box(1.0, 1.0, 1.0, nx=2, ny=2, nz=2)
+    T = np.asarray(box.tets)
+    labels = np.arange(T.shape[0]) % 3
+    # a duplicate tet (dropped by repair) and a flat one (removed): the kept tets keep their labels
+    flat = np.array([[0, 1, 2, 2]])
+    mesh = rt.TetMesh(box.vertices, np.vstack([T, T[:1], flat]), labels=np.r_[labels, 9, 8])
+    assert mesh.report.removed_duplicate_tets == 1 and mesh.report.removed_degenerate == 1
+    assert np.array_equal(mesh.labels, labels)
+    lab = _labelled()
+    for other in (lab.quadratic(), lab.quadratic().linear(), lab.scaled(1e3)):
+        assert np.array_equal(other.labels, lab.labels) and other.region_names == {"liver": 3, "tumor": 7}
+    assert lab.fingerprint() != rt.TetMesh(lab.vertices, lab.tets).fingerprint()
+    assert rt.TetMesh(box.vertices, T).fingerprint() == box.fingerprint()  # one region: the fingerprint it had
+
+
+@pytest.mark.parametrize("bad, match", [(np.zeros(3), "one integer per tet"), (np.full(48, 0.5), "integers"),
+                                        ("abc", "one integer per tet")])
+def test_labels_that_are_not_one_integer_per_tet_are_refused(bad, match):
+    box = rt.meshes.box(1.0, 1.0, 1.0, nx=2, ny=2, nz=2)
+    with pytest.raises(rt.MeshError, match=match):
+        rt.TetMesh(box.vertices, box.tets, labels=bad)
+    with pytest.raises(rt.MeshError, match="name .* and an integer label"):
+        rt.TetMesh(box.vertices, box.tets, region_names={"a": "b"})
+
+
+@pytest.mark.parametrize("suffix, names", [(".vtu", False), (".vtk", False), (".msh", True), (".mesh", False)])
+@pytest.mark.parametrize("order", [1, 2])
+def test_regions_survive_a_file(tmp_path, suffix, names, order):
+    """Gmsh physical groups (with their names), MEDIT references, a VTU / VTK 'region' cell field."""
+    mesh = _labelled(order)
+    path = tmp_path / f"organ{suffix}"
+    if suffix == ".mesh" and order == 2:
+        with pytest.raises(rt.MeshError, match="no 10-node tets"):
+            rt.save_mesh(mesh, path)
+        return
+    rt.save_mesh(mesh, path)
+    back = rt.load_mesh(path)
+    assert np.array_equal(back.labels, mesh.labels) and np.array_equal(back.tets, mesh.tets)
+    assert back.region_names == (mesh.region_names if names else {})
+
+
+def test_abaqus_element_sets_are_regions_by_name(tmp_path):
+    """An Abaqus deck has element sets, not numbers: each set is a region numbered from 1 in the file's
+    order, named as the set."""
+    mesh = _labelled()
+    rt.save_mesh(mesh, tmp_path / "organ.inp")
+    back = rt.load_mesh(tmp_path / "organ.inp")
+    assert back.region_names == {"liver": 1, "tumor": 2}
+    assert np.array_equal(back.labels, np.where(mesh.labels == 7, 2, 1))
+
+
+def test_a_model_of_regions_says_what_it_lacks():
+    mesh = _labelled()
+    soft, stiff = rt.Material(E=3e4, nu=0.45), rt.Material(E=3e5, nu=0.45)
+    with pytest.raises(rt.ModelError, match=r"regions \[7\] have no material"):
+        rt.SolidModel(mesh, {3: soft})
+    with pytest.raises(rt.ModelError, match="'kidney' names no region.*'liver' = 3"):
+        rt.SolidModel(mesh, {"liver": soft, "kidney": stiff})
+    with pytest.raises(rt.ModelError, match="no tet of this mesh has label 5"):
+        rt.SolidModel(mesh, {3: soft, 7: stiff, 5: stiff})
+    with pytest.raises(rt.ModelError, match="given two materials"):
+        rt.SolidModel(mesh, {3: soft, "liver": soft, 7: stiff})
+    with pytest.raises(rt.ModelError, match="Prony"):
+        rt.SolidModel(mesh, {3: soft, 7: rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.3], tau=[0.1])})
+    with pytest.raises(rt.ModelError, match="must be an rt.Material"):
+        rt.SolidModel(mesh, {3: soft, 7: 3e5})
+    with pytest.raises(rt.ModelError, match="tet4-anp"):
+        rt.SolidModel(mesh, {3: soft, 7: stiff}, element="tet4-anp")
+    model = rt.SolidModel(mesh, {"liver": soft, "tumor": stiff})
+    assert model.materials == {3: soft, 7: stiff}
+    with pytest.raises(rt.ModelError, match="2 regions"):
+        model.material
+    model.fix("x0")
+    modes = rt.modal_analysis(model, 6)
+    with pytest.raises(rt.ModelError, match="regions.*reduced nonlinear"):
+        rt.ReducedNonlinearModel(model, modes, derivatives=2)
+    one = rt.SolidModel(mesh, {3: soft, 7: soft})  # every region the same: still two regions, the same K
+    plain = rt.SolidModel(rt.TetMesh(mesh.vertices, mesh.tets), soft)
+    assert abs(one.K - plain.K).max() < 1e-12 * abs(plain.K).max()
+    single = rt.SolidModel(rt.TetMesh(mesh.vertices, mesh.tets, labels=np.full(mesh.n_tets, 4)), {4: soft})
+    assert single.materials is None and single.material == soft  # one region: a model of one material
+
+
+def test_the_full_order_kernels_of_regions_equal_the_batched_system():
+    """The lagged full-order step's compiled kernels (each region's own: the corotated material and a
+    neo-Hookean law) against the nonlinear system's batched evaluation, at a random displacement:
+    the same internal forces and tangent (1e-10), so DirectSimulator steps the two-region model as
+    rt.nonlinear.solve_static sees it."""
+    from rtfem.drivers.lagged_newmark import _Kernels
+    from rtfem.fe.nonlinear import Configuration
+
+    mesh = _labelled(2)
+    model = rt.SolidModel(mesh, {3: rt.Material(E=3e4, nu=0.45), 7: rt.NeoHookean(mu=5e4, kappa=5e5)}, element="tet10")
+    model.fix("x0")
+    system = model.nonlinear()
+    kernels = _Kernels(system)
+    if not kernels.ok:
+        pytest.skip("numba is not installed: the compiled kernels do not run")
+    u = np.random.default_rng(5).normal(scale=2e-4, size=(model.n_nodes, 3)) * ~model.fixed
+    conf = Configuration.rest(model.n_nodes, False)
+    conf.u = u
+    f, K = system.evaluate(conf)[:2]
+    f_k = kernels.forces(u)
+    assert np.abs(f_k - f).max() < 1e-10 * np.abs(f).max()
+    K_k = kernels.tangent(u)
+    assert abs(K_k - K).max() < 1e-10 * abs(K).max()
+
+
+def test_a_cut_keeps_the_regions():
+    """rt.cut of a two-region model: the cut model's tets keep their regions (split ones their
+    parent's), and its materials are the model's."""
+    mesh = _labelled()
+    soft, stiff = rt.Material(E=3e4, nu=0.45), rt.Material(E=3e5, nu=0.45)
+    model = rt.SolidModel(mesh, {3: soft, 7: stiff})
+    model.fix("x0")
+    x = 0.0155  # between the node planes at 10 and 20 mm: elements are split
+    V = np.array([[x, -0.01, -0.01], [x, 0.03, -0.01], [x, 0.03, 0.012], [x, -0.01, 0.012]])
+    cut = rt.cut(model, V, np.array([[0, 1, 2], [0, 2, 3]]), snap="split")
+    assert cut.materials == {3: soft, 7: stiff}
+    c_old = np.asarray(mesh.vertices)[mesh.corner_tets].mean(axis=1)
+    c_new = np.asarray(cut.tetmesh.vertices)[cut.tetmesh.corner_tets].mean(axis=1)
+    assert np.array_equal(cut.tetmesh.labels, np.where(c_new[:, 0] > 0.02, 7, 3))
+    assert np.isclose(cut.tetmesh.volumes()[cut.tetmesh.labels == 7].sum(), mesh.volumes()[mesh.labels == 7].sum())
+    assert c_old.shape[0] < c_new.shape[0]
