@@ -66,7 +66,7 @@ class CutWorker:
                 pickle.dump((model, vertices, triangles, snap), self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
                 self._proc.stdin.flush()
                 kind, value = pickle.load(self._proc.stdout)
-            except (OSError, EOFError, pickle.UnpicklingError) as exc:
+            except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:  # ValueError: closed meanwhile
                 self.close()
                 raise WorkerGone(f"the cut worker process stopped ({type(exc).__name__}); cutting in this process "
                                  "from now on") from None

@@ -34,7 +34,8 @@ class ElementTerms:
         if self.dpn == 3:
             G = np.ascontiguousarray(np.stack(kern.G, axis=1)[idx])
             wdet = np.ascontiguousarray(np.stack(kern.wdet, axis=1)[idx])
-            return Ue, X, G, wdet, np.tile([kern.lam, kern.mu], (idx.size, 1))
+            lm = kern.lm[idx] if hasattr(kern, "lm") else np.tile([kern.lam, kern.mu], (idx.size, 1))  # regions: own
+            return Ue, X, G, wdet, np.ascontiguousarray(lm)
         return (Ue, X, np.ascontiguousarray(kern.R0[idx]), np.ascontiguousarray(kern.x2[idx]),
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
                 np.ascontiguousarray(kern.k[idx]))

@@ -141,7 +141,7 @@ class ReducedNonlinearModel(ElementTerms):
         if modes.fingerprint != mesh_fingerprint(model.mesh) or modes.shapes.shape[0] != model.n_nodes:
             raise ModelError("these modes were computed for another mesh: pass the model they came from, or "
                              "recompute them with rt.modal_analysis(model, ...)")
-        check_model_key(modes.info, model, "these modes")
+        check_model_key(modes.info, model, "the modal basis")
         n_modes = modes.omega.size
         derivatives = validate.count(derivatives, "derivatives", 0, n_modes)
         self._setup(model)
@@ -168,10 +168,12 @@ class ReducedNonlinearModel(ElementTerms):
         """The model, its law, nonlinear system, free dofs and rest stiffness with its factorization."""
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
-        if getattr(model, "materials", None):
-            raise ModelError(f"this solid has {len(model.materials)} regions with their own materials: the reduced "
-                             "nonlinear model does not take regions yet (its cubature must be trained per region). Step it "
-                             "full order (rt.DirectSimulator(model, dt, large_deformation=True)) or linear (modes, SLDM)")
+        laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if getattr(v, "linearized", None)]
+        if laws:
+            raise ModelError(f"the regions {laws} of this solid have hyperelastic laws: the reduced nonlinear model takes "
+                             "regions of rt.Material only (the corotated material, Lame constants per element). Step it "
+                             "full order (rt.DirectSimulator(model, dt, large_deformation=True)), or give those regions "
+                             "rt.Material(E, nu) (law.linearized())")
         if getattr(model, "element", None) == "tet4-anp":
             raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
                              "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
@@ -342,7 +344,7 @@ class ReducedNonlinearModel(ElementTerms):
 
     # ---------------------------------------------------------------- elements and cubature
     def train_cubature(self, poses: int = 16, *, tol: float = 0.05, reach: float = 0.1, seed: int = 0,
-                       remainder: bool = False, scheduler=None) -> dict:
+                       remainder: bool = False, scheduler=None, regions: bool | None = None) -> dict:
         """Choose the elements and weights of the reduced forces (optimized cubature, An, Kim &
         James 2008) on ``poses`` random poses, each moving the organ by up to ``reach`` times its
         size. Afterwards :meth:`reduced_forces` with ``cubature=True`` sums those elements only.
@@ -350,8 +352,10 @@ class ReducedNonlinearModel(ElementTerms):
         stiffness) and the cubature fits only the nonlinear remainder sum_e U_e^T (g_e(v) - K_e v),
         so the forces are exact to first order in the motion and ``tol`` bounds the error of the
         remainder alone. ``scheduler``: the poses' element forces on a Dask cluster (one pose a task;
-        :mod:`rtfem.cluster`). Returns what it found (``elements``, relative training ``error``,
-        ``seconds``)."""
+        :mod:`rtfem.cluster`). ``regions`` (default: where the solid has several): each region's
+        elements fitted to that region's own forces, to ``tol`` of them, so that a small stiff
+        region is not averaged away in the whole's sum; ``False``: one fit over all elements.
+        Returns what it found (``elements``, relative training ``error``, ``seconds``)."""
         from . import cubature
 
         t0 = time.perf_counter()
@@ -379,14 +383,18 @@ class ReducedNonlinearModel(ElementTerms):
         shrunk = sum(f[2] for f in found)
         A, b = np.vstack(rows), np.concatenate(targets)
         pinned = np.zeros(0, int) if self.local is None else self.local["elements"]
+        groups = self._region_groups(regions)
         if pinned.size:  # a localized model: the patch's elements exact, the others fitted to the rest
             others = np.setdiff1d(np.arange(E), pinned)
             rest = b - A[:, pinned].sum(axis=1)  # the same tolerance relative to the whole force
             chosen, w, _ = cubature.train(A[:, others], rest, tol * np.linalg.norm(b) / max(np.linalg.norm(rest), 1e-300))
             elements, weights = np.concatenate([pinned, others[chosen]]), np.concatenate([np.ones(pinned.size), w])
-            error = float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
+        elif groups is not None:  # each region to its own forces
+            fits = [(g, *cubature.train(A[:, g], A[:, g].sum(axis=1), tol, seed=seed)[:2]) for g in groups]
+            elements, weights = np.concatenate([g[c] for g, c, _ in fits]), np.concatenate([w for _, _, w in fits])
         else:
             elements, weights, error = cubature.train(A, b, tol)
+        error = float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
         if elements.size == 0:
             raise ModelError(f"cubature training chose no element (training error {error:.3g}): the training forces "
                              "carry no information; train on larger poses (reach) or more of them")
@@ -399,8 +407,20 @@ class ReducedNonlinearModel(ElementTerms):
         self._cubature_remainder = remainder
         self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
                                  "remainder": remainder, "pinned": int(pinned.size), "halved_poses": shrunk,
-                                 "seconds": time.perf_counter() - t0}
+                                 "regions": 0 if groups is None else len(groups), "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
+
+    def _region_groups(self, regions) -> list[np.ndarray] | None:
+        """The elements of each region (the system's element order) where the cubature is fitted per
+        region: ``regions`` True, or None on a solid of several regions; else None."""
+        labels = np.asarray(self.model.tetmesh.labels) if getattr(self.model, "materials", None) else None
+        if regions is None:
+            regions = labels is not None
+        if not validate.flag(regions, "regions"):
+            return None
+        if labels is None:
+            raise ModelError("train_cubature(regions=True) needs a solid of several regions (a material per label)")
+        return [np.flatnonzero(labels == k) for k in np.unique(labels)]
 
     def cubature_forces(self, q: np.ndarray, *, single: bool = False) -> np.ndarray:
         """The reduced forces g_r(q) summed over the cubature elements (compiled; see
