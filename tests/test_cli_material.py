@@ -58,7 +58,8 @@ def test_a_neo_hookean_solid_probed_lightly_pushes_back_like_its_linear_twin(bar
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--material", "liver"], "not in rtfem yet"),
+    (["--material", "liver#3"], "has 2 liver set(s); give #1 .. #2"),
+    (["--material", "brain#2"], "does not give its law's constants"),
     (["--material", "rubber"], "choose one of"),
     (["--material", "ogden:1000,2,5"], "pairs"),
     (["--material", "mooney-rivlin:700"], "C10,C01"),

@@ -220,3 +220,26 @@ def test_the_cli_refuses_a_bad_material_table_in_one_line(folder, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "key 'material': mu=-5 must be > 0" in err and "Traceback" not in err
     assert not (folder / "out").exists()
+
+
+def test_a_body_of_regions_takes_a_material_per_region_by_label_or_name(tmp_path):
+    """A labelled tet mesh (Gmsh physical groups, named) placed by rotate: the body's model keeps the
+    labels through the placement and takes each region's table, keyed by name or by label; a key that
+    names no region is refused naming it; a shell takes one material."""
+    box = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    labels = np.where(c[:, 0] > 0.05, 2, 1)
+    rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names={"soft": 1, "stiff": 2}),
+                 tmp_path / "box.msh")
+    body = ('[[body]]\nname = "box"\nmesh = "box.msh"\nrotate = [0, 0, 30]\nelement = "tet4"\nfix = "bottom:0.1"\n'
+            'modes = 6\nmaterial = { soft = { E = 3e4 }, 2 = { law = "neo-hookean", mu = 1e5, kappa = 1e6 } }\n')
+    (tmp_path / "scene.toml").write_text(body)
+    model = load_scene(tmp_path / "scene.toml").bodies[0].model
+    assert np.array_equal(model.tetmesh.labels, labels)
+    assert model.materials[1] == rt.Material(E=3e4) and model.materials[2].mu == 1e5
+    (tmp_path / "bad.toml").write_text(body.replace("soft = {", "liver = {"))
+    with pytest.raises(rt.ModelError, match="key 'material': material key 'liver' names no region"):
+        load_scene(tmp_path / "bad.toml")
+    (tmp_path / "shell.toml").write_text(body.replace('element = "tet4"\n', 'kind = "shell"\n'))
+    with pytest.raises(rt.ModelError, match="a material per region is for solids"):
+        load_scene(tmp_path / "shell.toml")

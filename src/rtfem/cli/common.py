@@ -281,6 +281,7 @@ def build_model(args, *, quiet: bool = False):
     preload()  # MKL loads on the other core while the mesh is read and the model assembled (issue 54)
     from ..fe.material import Material
     from ..fe.build import make_model
+    from ..fe.tissues import tissue_from_text
     from ..fe.viscoelastic import material_from_text
     from ..mesh.tetmesh import TetMesh
 
@@ -306,6 +307,9 @@ def build_model(args, *, quiet: bool = False):
             lin = model.material
             print(f"material    {model.law!r} (the linear methods use its linearization at rest: E = {lin.E:.4g} Pa, "
                   f"nu = {lin.nu:.4g})")
+        source = tissue_from_text(getattr(args, "material", "linear"), Material(E=args.E, nu=args.nu, density=args.density))
+        if source is not None:  # a sourced set: where it was read, how sure, what was not in it
+            print("tissue      " + str(source).replace("\n", "\n            "))
     return model
 
 

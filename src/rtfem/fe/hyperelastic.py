@@ -357,12 +357,10 @@ def law_from_text(text: str, material: Material):
     text = str(text).strip()
     name, _, values = text.partition(":")
     name = name.strip().lower()
-    if name == "liver":
-        raise ModelError("--material liver: published liver parameters are not in rtfem yet (issue 41 item 4); give "
-                         "the law and its parameters, e.g. --material mooney-rivlin:C10,C01 or ogden:mu1,alpha1")
     if name not in LAWS:
         raise ModelError(f"--material {text!r}: choose one of {', '.join(LAWS)} (mooney-rivlin and ogden with their "
-                         "parameters: mooney-rivlin:C10,C01, ogden:mu1,alpha1[,mu2,alpha2...], in Pa)")
+                         "parameters: mooney-rivlin:C10,C01, ogden:mu1,alpha1[,mu2,alpha2...], in Pa), or a sourced tissue "
+                         "set: brain, fat, gallbladder, liver, muscle, skin, stomach (rt.tissue; TISSUE#N its N-th set)")
     if name in ("linear", "neo-hookean"):
         if values:
             raise ModelError(f"--material {text!r}: {name} takes no parameters (its moduli are --E and --nu's)")

@@ -216,7 +216,8 @@ def prony_commit(law: Prony, x: np.ndarray, G, h: np.ndarray, dt: float) -> np.n
 
 
 def material_from_text(text: str, material):
-    """The material a command line names (``--material``): what
+    """The material a command line names (``--material``): a sourced tissue set
+    (:func:`rtfem.fe.tissues.tissue_from_text`: "liver", "liver#2", "skin"), or what
     :func:`rtfem.fe.hyperelastic.law_from_text` reads, optionally followed by
     "+prony:g1,tau1[,g2,tau2,...]" (a :class:`Prony` series on that law: fractions of its isochoric
     stress and their relaxation times in s).
@@ -237,7 +238,12 @@ def material_from_text(text: str, material):
         Text that names no law, or a Prony series that is not pairs of numbers, or not on a
         hyperelastic law.
     """
+    from .tissues import tissue_from_text
+
     text = str(text).strip()
+    found = tissue_from_text(text, material)  # a sourced tissue set ("liver", "liver#2", "skin")
+    if found is not None:
+        return found.material
     base, plus, prony = text.partition("+")
     if not plus:
         return law_from_text(text, material)

@@ -22,6 +22,8 @@
     # material = { law = "neo-hookean", mu = 3000, kappa = 30000, density = 1060 }       (or E and nu)
     # material = { law = "mooney-rivlin", c10 = 500, c01 = 200, kappa = 30000 }         (or nu for kappa)
     # material = { law = "ogden", mu = [2000], alpha = [8], nu = 0.45, prony = { g = [0.5], tau = [0.1] } }
+    # or, for a tet mesh of regions (mesh.labels), a table per label or region name:
+    # material = { liver = { E = 3e4 }, tumor = { law = "neo-hookean", mu = 1e5, kappa = 1e6 } }
     fix = "bottom:0.1"             # a node selection (rt.select_nodes) of the placed body; absent: a free body
     modes = 20                     # the modal basis (a free body's six rigid-body modes among them)
     alpha = 10.0                   # mass-proportional damping (1/s)
@@ -339,10 +341,16 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
     where.keys(table, BODY_KEYS, ("name", "mesh"))
     mat = _material(table, where)  # before any meshing
     mesh, kind = _body_mesh(table, where, folder)
+    if kind == "shell" and isinstance(mat, dict):
+        raise where.error("material", "a material per region is for solids (a labelled tet mesh); a shell takes one")
     if kind == "shell" and not isinstance(mat, Material):
         law = table["material"].get("law")
         raise where.error("material", f"law {law!r} is for solids (kind = 'solid', tets); a shell takes law = 'linear' "
                           "with E, nu, density and thickness")
+    if isinstance(mat, dict):  # a region's key that names none is the material's fault, said so
+        from ..fe.regions import region_materials
+
+        where.check("material", region_materials, mat, mesh)
     options = {"element": table.get("element", "tet10")} if kind == "solid" else {}
     model = where.check("element" if options else "mesh", make_model, mesh, mat, **options)
     fix = table.get("fix")
@@ -379,8 +387,11 @@ def _body_mesh(table: dict, where: _Where, folder: Path):
         mesh = where.check("mesh", tetrahedralize, mesh)
     if R is not None:
         X = np.asarray(mesh.vertices) @ R.T + t
-        cells = mesh.tets if isinstance(mesh, TetMesh) else mesh.triangles
-        mesh = type(mesh)(X, cells, repair=False, groups=mesh.groups)
+        if isinstance(mesh, TetMesh):
+            mesh = TetMesh(X, mesh.tets, repair=False, groups=mesh.groups, labels=mesh.labels,
+                           region_names=mesh.region_names)
+        else:
+            mesh = type(mesh)(X, mesh.triangles, repair=False, groups=mesh.groups)
     if kind == "shell" and isinstance(mesh, TetMesh):
         mesh = mesh.surface
     return mesh, kind
@@ -421,8 +432,14 @@ def _triple(table: dict, key: str, where: _Where, what: str) -> np.ndarray:
 
 def _material(table: dict, where: _Where):
     """The body's ``material`` table: any law ``--material`` takes
-    (:func:`rtfem.fe.viscoelastic.material_from_table`)."""
+    (:func:`rtfem.fe.viscoelastic.material_from_table`), or one such table per region of a labelled
+    tet mesh, keyed by label or region name (``material = { 1 = {...}, tumor = {...} }``)."""
     from ..fe.viscoelastic import material_from_table
+
+    raw = table.get("material", {})
+    if isinstance(raw, dict) and raw and all(isinstance(v, dict) for v in raw.values()):
+        return {(int(k) if k.lstrip("-").isdigit() else k): where.check(f"material.{k}", material_from_table, v)
+                for k, v in raw.items()}
 
     return where.check("material", material_from_table, table.get("material", {}))
 

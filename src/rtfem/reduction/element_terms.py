@@ -8,9 +8,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import validate
 from ..errors import ModelError
 
 __all__ = ["ElementTerms"]
+
+
+def check_regions(model) -> None:
+    """Refuse a solid whose regions have hyperelastic laws (the reduced model's kernels take the
+    corotated material with Lame constants per element)."""
+    laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if getattr(v, "linearized", None)]
+    if laws:
+        raise ModelError(f"the regions {laws} of this solid have hyperelastic laws: the reduced nonlinear model takes "
+                         "regions of rt.Material only (the corotated material, Lame constants per element). Step it "
+                         "full order (rt.DirectSimulator(model, dt, large_deformation=True)), or give those regions "
+                         "rt.Material(E, nu) (law.linearized())")
 
 
 class ElementTerms:
@@ -39,6 +51,18 @@ class ElementTerms:
         return (Ue, X, np.ascontiguousarray(kern.R0[idx]), np.ascontiguousarray(kern.x2[idx]),
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
                 np.ascontiguousarray(kern.k[idx]))
+
+    def _region_groups(self, regions) -> list[np.ndarray] | None:
+        """The elements of each region (the system's element order) where the cubature is fitted per
+        region: ``regions`` True, or None on a solid of several regions; else None."""
+        labels = np.asarray(self.model.tetmesh.labels) if getattr(self.model, "materials", None) else None
+        if regions is None:
+            regions = labels is not None
+        if not validate.flag(regions, "regions"):
+            return None
+        if labels is None:
+            raise ModelError("train_cubature(regions=True) needs a solid of several regions (a material per label)")
+        return [np.flatnonzero(labels == k) for k in np.unique(labels)]
 
     def _kernel_forces(self, V: np.ndarray, data) -> np.ndarray:
         """Each element's forces (E, nd) at its dofs V (E, nd) (compiled where numba is): the

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from .. import validate
 from ..errors import ModelError, SolverError
-from .element_terms import ElementTerms
+from .element_terms import ElementTerms, check_regions
 from .modal import check_model_key, mesh_fingerprint
 from ..fe.nonlinear import MIN_LOAD_STEP, Configuration
 from ..fe.rotations import integrated_rotation, rotation
@@ -168,12 +168,7 @@ class ReducedNonlinearModel(ElementTerms):
         """The model, its law, nonlinear system, free dofs and rest stiffness with its factorization."""
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
-        laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if getattr(v, "linearized", None)]
-        if laws:
-            raise ModelError(f"the regions {laws} of this solid have hyperelastic laws: the reduced nonlinear model takes "
-                             "regions of rt.Material only (the corotated material, Lame constants per element). Step it "
-                             "full order (rt.DirectSimulator(model, dt, large_deformation=True)), or give those regions "
-                             "rt.Material(E, nu) (law.linearized())")
+        check_regions(model)
         if getattr(model, "element", None) == "tet4-anp":
             raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
                              "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
@@ -409,18 +404,6 @@ class ReducedNonlinearModel(ElementTerms):
                                  "remainder": remainder, "pinned": int(pinned.size), "halved_poses": shrunk,
                                  "regions": 0 if groups is None else len(groups), "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
-
-    def _region_groups(self, regions) -> list[np.ndarray] | None:
-        """The elements of each region (the system's element order) where the cubature is fitted per
-        region: ``regions`` True, or None on a solid of several regions; else None."""
-        labels = np.asarray(self.model.tetmesh.labels) if getattr(self.model, "materials", None) else None
-        if regions is None:
-            regions = labels is not None
-        if not validate.flag(regions, "regions"):
-            return None
-        if labels is None:
-            raise ModelError("train_cubature(regions=True) needs a solid of several regions (a material per label)")
-        return [np.flatnonzero(labels == k) for k in np.unique(labels)]
 
     def cubature_forces(self, q: np.ndarray, *, single: bool = False) -> np.ndarray:
         """The reduced forces g_r(q) summed over the cubature elements (compiled; see
