@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || \
 	  { rm -rf $(VENV); echo "could not create a virtual environment: on Debian/Ubuntu run 'apt-get install python3-venv'"; exit 1; }
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[viewer,plots,video,test,fast,mesh,docs,igtl,cluster]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[viewer,plots,video,test,fast,mesh,docs,igtl,cluster,segmentation]"
 	@touch $(STAMP)
 
 ifeq ($(HEADLESS),)

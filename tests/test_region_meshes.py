@@ -44,10 +44,11 @@ def test_labels_that_are_not_one_integer_per_tet_are_refused(bad, match):
         rt.TetMesh(box.vertices, box.tets, region_names={"a": "b"})
 
 
-@pytest.mark.parametrize("suffix, names", [(".vtu", False), (".vtk", False), (".msh", True), (".mesh", False)])
+@pytest.mark.parametrize("suffix, names", [(".vtu", True), (".vtk", False), (".msh", True), (".mesh", False)])
 @pytest.mark.parametrize("order", [1, 2])
 def test_regions_survive_a_file(tmp_path, suffix, names, order):
-    """Gmsh physical groups (with their names), MEDIT references, a VTU / VTK 'region' cell field."""
+    """Gmsh physical groups (with their names), MEDIT references, a VTU (names as field data) or VTK
+    'region' cell field."""
     mesh = _labelled(order)
     path = tmp_path / f"organ{suffix}"
     if suffix == ".mesh" and order == 2:

@@ -289,6 +289,11 @@ def build_model(args, *, quiet: bool = False):
     material = material_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
     mesh = mesh_of_args(args)
     locking = locking_warning(args.element, args.nu) if isinstance(mesh, TetMesh) else None
+    if isinstance(mesh, TetMesh) and mesh.regions.size > 1 and not quiet:
+        names = {v: k for k, v in mesh.region_names.items()}
+        warn(f"the mesh has {mesh.regions.size} regions ({', '.join(names.get(int(r), str(r)) for r in mesh.regions)}); "
+             "this command gives them all one material (a material per region: a scene file's material table, or "
+             "rt.SolidModel(mesh, {label: material}))")
     if locking and not quiet:
         warn(locking)
     nodes, how = fixed_nodes(mesh, args.fix)

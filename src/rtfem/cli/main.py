@@ -479,9 +479,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     if command in ("info", "modes"):
         _add_info_and_modes(sub)
         return ap
-    from . import batch, cache, devices
+    from . import batch, cache, devices, segment
     for add in (_add_info_and_modes, _add_simulate, _add_impedance, batch.add_batch_command, _add_bench_and_pictures,
-                _add_view_and_demo, devices.add_device_commands, cache.add_cache_command):
+                _add_view_and_demo, devices.add_device_commands, cache.add_cache_command, segment.add_mesh_command):
         add(sub)
     return ap
 

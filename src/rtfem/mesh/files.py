@@ -120,6 +120,8 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
         try:
             meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), mesh_cells(mesh), point_data=data,
                                       **{"file_format": fmt[0], **regions})
+            if fmt[0] == "vtu" and regions.get("field_data"):
+                _vtu_field_data(tmp, regions["field_data"])
         except (ValueError, KeyError, TypeError) as exc:
             raise MeshError(f"could not write {str(p)!r}: {_clean(exc)}") from None
 
@@ -138,6 +140,18 @@ def _region_data(mesh: TetMesh, fmt: str) -> dict:
     if fmt == "medit":
         return {"cell_data": {"medit:ref": [labels]}}
     return {"cell_data": {"region": [labels]}, "field_data": {k: np.array([v]) for k, v in mesh.region_names.items()}}
+
+
+def _vtu_field_data(path: Path, fields: dict) -> None:
+    """Add the regions' names to a VTU file as FieldData (integer arrays named by region, which
+    meshio reads back as field_data; its writer leaves field data out)."""
+    from xml.sax.saxutils import quoteattr
+
+    arrays = "".join(f'<DataArray type="Int64" Name={quoteattr(str(k))} NumberOfTuples="1" format="ascii">'
+                     f"{int(np.asarray(v).ravel()[0])}</DataArray>" for k, v in fields.items())
+    text = Path(path).read_text()
+    at = text.index("<UnstructuredGrid>") + len("<UnstructuredGrid>")
+    Path(path).write_text(text[:at] + "\n<FieldData>" + arrays + "</FieldData>" + text[at:])
 
 
 def _clean(exc: BaseException) -> str:
