@@ -179,3 +179,35 @@ def test_the_reduced_model_of_regions_and_its_cubature_per_region():
         ReducedNonlinearModel(plain, rt.modal_analysis(model, 4), 0)  # the regions are in the model's key
     with pytest.raises(rt.ModelError, match="several regions"):
         ReducedNonlinearModel(plain, rt.modal_analysis(plain, 4), 0).train_cubature(4, regions=True)
+
+
+def test_the_viewer_colours_the_regions_and_scales_every_region_alike():
+    """The viewer's session on a solid of two regions given a material each: the drawn surface in two
+    palette colours, each on its region's side (x < 30 mm one, x > 30 mm the other; the vertices of the
+    interface ring take either), lightened where the surface moves; the panel's E scales both regions'
+    moduli alike (their ratio kept) and the panel names them."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    from rtfem.viewer.app import surface_encoder, surface_glb
+    from rtfem.viewer.gltf import REGION_PALETTE
+    from rtfem.viewer.session import Session, Settings, describe_material
+
+    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    mesh = rt.TetMesh(box.vertices, box.tets, labels=np.where(c[:, 0] > 0.03, 2, 1), groups=box.groups)
+    s = Session(mesh, {1: rt.Material(E=3e4), 2: rt.Material(E=3e5)}, fixed="x0", settings=Settings(n_modes=10),
+                model_options={"element": "tet4"})
+    x = s.X[s.drawn, 0]
+    rgb = s.region_colours[:, :3]
+    assert (rgb[x < 0.029] == REGION_PALETTE[0]).all() and (rgb[x > 0.031] == REGION_PALETTE[1]).all()
+    assert len(surface_glb(s, surface_encoder(s), np.zeros((s.drawn.size, 3)), 1e-3)) > 0  # a frame is made
+    colours = []
+    u = np.zeros((s.drawn.size, 3))
+    u[x > 0.05, 2] = 1e-3  # the free end moved by the colour scale
+    for field in (np.zeros_like(u), u):
+        surface_glb(s, lambda X, rgba: colours.append(rgba), field, 1e-3)
+    assert np.array_equal(colours[0], s.region_colours)  # at rest: the regions' own colours
+    lighter = colours[1][:, :3].astype(int) - s.region_colours[:, :3]
+    assert (lighter[x > 0.05] > 0).all() and (lighter[x < 0.05] == 0).all()
+    s.configure(E=6e4)
+    assert [m.E for m in s.model.materials.values()] == [6e4, 6e5]
+    assert "region 1: Material(E=60000.0" in describe_material(s.model)

@@ -30,8 +30,15 @@ HELP = (
 
 def surface_glb(session, glb: SurfaceGlb, u: np.ndarray, vmax: float) -> bytes:
     """One frame: the drawn surface (``session.drawn``, encoded by ``glb``: :func:`surface_encoder`)
-    displaced by ``u`` (k, 3), coloured by the displacement magnitude on 0..vmax."""
-    return glb(session.X[session.drawn] + u, colormap(np.linalg.norm(u, axis=1), vmax))
+    displaced by ``u`` (k, 3), coloured by the displacement magnitude on 0..vmax; a solid of regions
+    in its regions' colours (``session.region_colours``), lightened where it moves."""
+    base = getattr(session, "region_colours", None)
+    if base is None:
+        return glb(session.X[session.drawn] + u, colormap(np.linalg.norm(u, axis=1), vmax))
+    t = np.clip(np.linalg.norm(u, axis=1) / vmax, 0.0, 1.0)[:, None] if vmax > 0 else 0.0
+    colours = base.copy()
+    colours[:, :3] = np.round(base[:, :3] + (255.0 - base[:, :3]) * 0.7 * t).astype(np.uint8)
+    return glb(session.X[session.drawn] + u, colours)
 
 
 def surface_encoder(session) -> SurfaceGlb:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["SurfaceGlb", "colormap", "srgb_to_linear"]
+__all__ = ["SurfaceGlb", "colormap", "srgb_to_linear", "region_colours", "REGION_PALETTE"]
 
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=float)
 
@@ -39,6 +39,25 @@ def colormap(values: np.ndarray, vmax: float) -> np.ndarray:
     rgb = (1 - w) * _VIRIDIS[i] + w * _VIRIDIS[i + 1]
     out = np.full((values.size, 4), 255, dtype=np.uint8)
     out[:, :3] = np.round(rgb).astype(np.uint8)
+    return out
+
+
+REGION_PALETTE = np.array([[166, 97, 74], [232, 193, 90], [96, 160, 200], [140, 190, 110], [200, 120, 190],
+                           [230, 140, 60], [120, 120, 200], [190, 190, 190]], dtype=np.uint8)
+
+
+def region_colours(volume, drawn: np.ndarray):
+    """(k, 4) uint8 colours of the drawn vertices by the region of the boundary faces around each (a
+    palette colour per label, in label order), or None for a solid of one region or a shell."""
+    if volume is None or volume.regions.size < 2:
+        return None
+    F, inverse, count = volume._faces()
+    outer = np.flatnonzero(count[inverse] == 1)
+    rank = np.searchsorted(volume.regions, np.asarray(volume.labels))[outer // 4]
+    per_vertex = np.zeros(volume.n_vertices, dtype=np.int64)
+    per_vertex[F[outer].ravel()] = np.repeat(rank, 3)
+    out = np.full((drawn.size, 4), 255, dtype=np.uint8)
+    out[:, :3] = REGION_PALETTE[per_vertex[drawn] % len(REGION_PALETTE)]
     return out
 
 

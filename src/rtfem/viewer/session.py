@@ -34,6 +34,7 @@ from ..drivers.fullorder import DirectSimulator
 from ..drivers.impedance_driver import ImpedanceDriver
 from ..fe.hyperelastic import Hyperelastic
 from ..fe.material import Damping, Material
+from .gltf import region_colours
 from ..mesh.surface import TriMesh
 from ..mesh.tetmesh import TetMesh
 from ..reduction.modal import ModalBasis
@@ -101,6 +102,8 @@ def describe_material(model) -> str:
     law = getattr(model, "law", None)
     if law is not None:
         return f"{law.name} {law!r}"
+    if getattr(model, "materials", None):
+        return "; ".join(f"region {k}: {v!r}" for k, v in model.materials.items())
     m = model.material
     text = f"linear elastic, E = {m.E / 1e3:g} kPa, nu = {m.nu:g}, density {m.density:g} kg/m^3"
     return text + (f", thickness {m.thickness * 1e3:g} mm" if getattr(model, "element", None) is None else "")
@@ -155,9 +158,13 @@ class Session(PhysicsThread):
                  settings: Settings | None = None, model_options: dict | None = None, progress=None) -> None:
         if not isinstance(mesh, (TriMesh, TetMesh)):
             raise ModelError(f"mesh={validate.show(mesh)} must be an rtfem TriMesh (a shell) or TetMesh (a solid)")
-        if material is not None and not isinstance(material, (Material, Hyperelastic)):
+        if isinstance(material, dict) and isinstance(mesh, TetMesh):  # a material per region (issue 58)
+            from ..fe.regions import region_materials
+
+            material = region_materials(material, mesh)
+        elif material is not None and not isinstance(material, (Material, Hyperelastic)):
             raise ModelError(f"material={validate.show(material)} must be an rt.Material, a hyperelastic law "
-                             "(rt.NeoHookean, ...; solids) or None")
+                             "(rt.NeoHookean, ...; solids), a solid's {region: material} or None")
         if settings is not None and not isinstance(settings, Settings):
             raise ModelError(f"settings={validate.show(settings)} must be a viewer Settings (or None)")
         # a solid is drawn and touched on its boundary, over the same node numbering
@@ -173,6 +180,7 @@ class Session(PhysicsThread):
         self._fixed = fixed
         self.X = np.asarray(self.mesh.vertices)
         self.drawn = self.mesh.used_vertices()  # the surface's vertices (a solid's interior is not drawn)
+        self.region_colours = region_colours(self.volume, self.drawn)  # a labelled solid's regions, else None
         self._lock = threading.RLock()
         self.field_device = "gpu" if gpu.module() is not None else "cpu"  # where a modal field is drawn from
         self._stop = threading.Event()
@@ -193,14 +201,21 @@ class Session(PhysicsThread):
     # ---------------------------------------------------------------- building
     @property
     def _linear(self) -> Material:
-        """The linear material (a law's linearization at rest)."""
+        """The linear material (a law's linearization at rest; of regions, the first region's: the
+        panel's E is its, the others scaled alike)."""
         m = self.material
+        m = next(iter(m.values())) if isinstance(m, dict) else m
         return m.linearized() if isinstance(m, Hyperelastic) else m
 
     def _model(self, E: float):
-        m = self.material  # the panel's E: a law's moduli scaled alike
-        m = m.scaled(E / m.linearized().E) if isinstance(m, Hyperelastic) else replace(m, E=E)
+        factor = E / self._linear.E  # the panel's E: every modulus (a law's, each region's) scaled alike
+
+        def scaled(m):  # (one linear material gets the panel's E itself, not E / E0 * E0)
+            return m.scaled(factor) if isinstance(m, Hyperelastic) else replace(m, E=E if m is self._linear else m.E * factor)
+
+        m = {k: scaled(v) for k, v in self.material.items()} if isinstance(self.material, dict) else scaled(self.material)
         model = make_model(self.volume or self.mesh, m, **self._model_options)
+        model._viewer_E = E
         model.fix(self._fixed)
         model.check_restrained()
         return model
@@ -235,7 +250,7 @@ class Session(PhysicsThread):
         try:
             self.building = "assembling the model ..."
             old = getattr(self, "model", None)
-            model = old if old is not None and old.material.E == s.E else self._model(s.E)
+            model = old if old is not None and getattr(old, "_viewer_E", None) == s.E else self._model(s.E)
             basis: ModalBasis | None = getattr(self, "modes", None)
             if basis is None or basis.model is not model or basis.n_modes < s.n_modes:
                 r = max(s.n_modes, 40)
