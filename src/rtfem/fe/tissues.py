@@ -33,12 +33,24 @@ _LAWS = ("linear", "neo-hookean", "ogden")
 
 @dataclass(frozen=True)
 class TissueSet:
-    """One sourced parameter set and the material made of it.
+    """One sourced parameter set and the material made of it (what :func:`tissue` returns; frozen).
 
-    ``name``, ``species``, ``law`` (the set's own), ``parameters`` (as the table gives them, SI),
-    ``citation``, ``source`` (the address it was read at), ``quote`` (the words), ``confidence``
-    ("table", "abstract" or "secondary"), ``note``, ``test``; ``material``: the rt.Material or law
-    made of it (in ``made_as``); ``derived``: each thing that did not come from the set, said."""
+    Parameters
+    ----------
+    name, species : the tissue and the species, as the table gives them.
+    law : the set's own law ("linear", "neo-hookean", "ogden", "mooney-rivlin").
+    parameters : the set's values as the table gives them (SI).
+    citation, source, quote : the publication, the address it was read at, the words read.
+    confidence : "table", "abstract" or "secondary" (see the table's header).
+    note, test : the table's note and the test the values come from.
+    made_as : the law the material was made in.
+    material : the rt.Material or law made of the set.
+    derived : each thing that did not come from the set, said.
+
+    Raises
+    ------
+    Nothing: it is built by :func:`tissue`, which checks.
+    """
 
     name: str
     species: str
