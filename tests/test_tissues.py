@@ -41,6 +41,13 @@ def test_a_set_in_its_own_law_keeps_the_sources_numbers():
     assert "doi:10.1016/j.jbiomech.2014.05.017" in text and "confidence: abstract" in text and "assumed" in text
 
 
+def test_the_issues_spelling_rt_materials_tissue():
+    """rt.materials.tissue(name), as the issue writes it, is rt.tissue."""
+    assert rt.materials.tissue is rt.tissue
+    assert repr(rt.materials.tissue("fat").material) == "NeoHookean(mu=800, kappa=66670, density=1060)"  # C10 400 Pa
+    assert rt.materials.Material is rt.Material and rt.materials.fit_material is rt.fit_material
+
+
 def test_what_is_derived_is_said_and_what_cannot_be_is_refused():
     g = rt.tissue("liver", which=1)  # G = 1.8 kPa: E = 2 G (1 + nu)
     assert g.material.E == pytest.approx(2 * 1800.0 * 1.45) and any("E = 2 G (1 + nu)" in d for d in g.derived)

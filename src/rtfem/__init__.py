@@ -25,6 +25,7 @@ _LAZY = {
     "Prony": (".fe.viscoelastic", 'Prony'),
     "fit_material": (".fe.fitting", 'fit_material'),
     "tissue": (".fe.tissues", 'tissue'),
+    "materials": (".fe.materials", None),
     "TissueSet": (".fe.tissues", 'TissueSet'),
     "MeshReport": (".mesh.repair", 'MeshReport'),
     "TriMesh": (".mesh.surface", 'TriMesh'),
