@@ -15,9 +15,12 @@ with its own constants:
   :class:`~rtfem.Material`, the hyperelastic law's otherwise) and the results put back in the
   mesh's element order.
 
+- the reduced nonlinear model: regions of :class:`~rtfem.Material` (Lame constants per element in
+  its compiled kernels), its cubature fitted per region.
+
 Not yet with regions (refused with the reason): the averaged-nodal-pressure tet4 (``tet4-anp``,
-whose nodal pressure would mix two bulk moduli), Prony series (viscoelastic regions), and the
-reduced nonlinear model (whose cubature must be trained per region).
+whose nodal pressure would mix two bulk moduli), Prony series (viscoelastic regions), hyperelastic
+regions in the reduced nonlinear model.
 """
 
 from __future__ import annotations
@@ -105,7 +108,6 @@ class RegionTets:
             self.lm[idx] = _lame(lin)
         self.G = [self._spread(lambda k, q=q: k.G[q], (X.shape[1], 3)) for q in range(len(self.parts[0][1].G))]
         self.wdet = [self._spread(lambda k, q=q: k.wdet[q], ()) for q in range(len(self.parts[0][1].wdet))]
-        self._m = m
 
     def _spread(self, part_array, shape: tuple) -> np.ndarray:
         """An array over all elements from each part's (its elements' rows)."""

@@ -108,8 +108,8 @@ class SolidModel(FEModel):
         has none: its regions' are in :attr:`materials` (a ModelError says so)."""
         if self.materials is not None:
             raise ModelError(f"this solid has {len(self.materials)} regions, each with its own material: read "
-                             "model.materials[label] (what uses one material for the whole model, such as the viewer's "
-                             "E control, does not take a model of several regions yet)")
+                             "model.materials[label] (what needs one material for the whole model does not take a "
+                             "model of several regions)")
         return self._material
 
     @material.setter
