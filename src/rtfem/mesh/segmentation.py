@@ -150,6 +150,7 @@ def label_mesh(volume: LabelVolume, labels: Mapping[str, int], *, edge_length: f
     names = _check_labels(volume.data, labels)
     smoothing = validate.count(smoothing, "smoothing", 0, 1000, error=MeshError)
     scale = validate.positive(scale, "scale", "world units to metres (1e-3 for mm)", error=MeshError)
+    volume = _cropped(volume, np.isin(volume.data, list(names.values())))  # a CT's 512^3 voxels: the organ's box
     mask = np.isin(volume.data, list(names.values()))
     V, T = _surface(mask, volume.affine, smoothing)
     surface = TriMesh(V * scale, T)
@@ -164,6 +165,19 @@ def label_mesh(volume: LabelVolume, labels: Mapping[str, int], *, edge_length: f
     at = np.clip(np.rint(ijk).astype(np.int64), 0, np.asarray(mask.shape)[:, None] - 1)
     region = volume.data[tuple(nearest[d][at[0], at[1], at[2]] for d in range(3))]
     return TetMesh(tets.vertices, tets.tets, repair=False, groups=tets.groups, labels=region, region_names=names)
+
+
+def _cropped(volume: LabelVolume, mask: np.ndarray, margin: int = 2) -> LabelVolume:
+    """The part of ``volume`` around ``mask``'s voxels (``margin`` voxels more each side), its affine
+    moved to the part's first voxel (the distance transform's indices are 3 int64 per voxel)."""
+    if not mask.any():
+        raise MeshError("no voxel carries the labels asked for: nothing to mesh")
+    where = np.argwhere(mask)
+    lo = np.maximum(where.min(axis=0) - margin, 0)
+    hi = np.minimum(where.max(axis=0) + margin + 1, mask.shape)
+    affine = volume.affine.copy()
+    affine[:3, 3] = volume.affine[:3, :3] @ lo + volume.affine[:3, 3]
+    return LabelVolume(volume.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], affine)
 
 
 def _check_labels(data: np.ndarray, labels) -> dict[str, int]:
@@ -190,8 +204,6 @@ def _surface(mask: np.ndarray, affine: np.ndarray, smoothing: int) -> tuple[np.n
     except ImportError as exc:
         raise MeshError(f"meshing a label map needs {exc.name} (pip install scikit-image trimesh, or "
                         "rtfem[segmentation])") from None
-    if not mask.any():
-        raise MeshError("no voxel carries the labels asked for: nothing to mesh")
     verts, faces, _, _ = measure.marching_cubes(np.pad(mask.astype(np.float32), 1), 0.5)
     world = (affine @ np.column_stack([verts - 1.0, np.ones(len(verts))]).T)[:3].T
     surf = trimesh.Trimesh(world, faces, process=True)
