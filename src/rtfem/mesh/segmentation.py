@@ -150,8 +150,7 @@ def label_mesh(volume: LabelVolume, labels: Mapping[str, int], *, edge_length: f
     names = _check_labels(volume.data, labels)
     smoothing = validate.count(smoothing, "smoothing", 0, 1000, error=MeshError)
     scale = validate.positive(scale, "scale", "world units to metres (1e-3 for mm)", error=MeshError)
-    volume = _cropped(volume, np.isin(volume.data, list(names.values())))  # a CT's 512^3 voxels: the organ's box
-    mask = np.isin(volume.data, list(names.values()))
+    volume, mask = _cropped(volume, np.isin(volume.data, list(names.values())))  # a CT's 512^3 voxels: the organ's box
     V, T = _surface(mask, volume.affine, smoothing)
     surface = TriMesh(V * scale, T)
     # fTetWild's envelope: a quarter of a voxel (the surface is known to about half), not 1e-3 of the diagonal
@@ -167,9 +166,10 @@ def label_mesh(volume: LabelVolume, labels: Mapping[str, int], *, edge_length: f
     return TetMesh(tets.vertices, tets.tets, repair=False, groups=tets.groups, labels=region, region_names=names)
 
 
-def _cropped(volume: LabelVolume, mask: np.ndarray, margin: int = 2) -> LabelVolume:
+def _cropped(volume: LabelVolume, mask: np.ndarray, margin: int = 2) -> tuple[LabelVolume, np.ndarray]:
     """The part of ``volume`` around ``mask``'s voxels (``margin`` voxels more each side), its affine
-    moved to the part's first voxel (the distance transform's indices are 3 int64 per voxel)."""
+    moved to the part's first voxel (the distance transform's indices are 3 int64 per voxel), and
+    the mask's same part."""
     if not mask.any():
         raise MeshError("no voxel carries the labels asked for: nothing to mesh")
     where = np.argwhere(mask)
@@ -177,7 +177,8 @@ def _cropped(volume: LabelVolume, mask: np.ndarray, margin: int = 2) -> LabelVol
     hi = np.minimum(where.max(axis=0) + margin + 1, mask.shape)
     affine = volume.affine.copy()
     affine[:3, 3] = volume.affine[:3, :3] @ lo + volume.affine[:3, 3]
-    return LabelVolume(volume.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], affine)
+    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(lo[2], hi[2]))
+    return LabelVolume(volume.data[box], affine), mask[box]
 
 
 def _check_labels(data: np.ndarray, labels) -> dict[str, int]:
