@@ -393,6 +393,12 @@ class WireServer:
         if self._closed:
             return
         self._closed = True
+        # the listening socket first: a client that reads its end of the link finds the port free already
+        for s in (self._listen, self._wake_r, self._wake_w):
+            try:
+                s.close()
+            except OSError:  # pragma: no cover
+                pass
         for peer in list(self._peers):
             peer.closed = True
             try:
@@ -401,11 +407,6 @@ class WireServer:
                 pass
         with self._lock:
             self._peers.clear()
-        for s in (self._listen, self._wake_r, self._wake_w):
-            try:
-                s.close()
-            except OSError:  # pragma: no cover
-                pass
         try:
             self._sel.close()
         except Exception:  # noqa: BLE001 - closing anyway
