@@ -255,11 +255,31 @@ def test_tetrahedralize_a_sphere_and_refusals(tmp_path, monkeypatch):
         rt.tetrahedralize(sphere, 1e-9)
 
 
-@needs_mesher
 def test_solid_default_liver_keeps_its_groups_and_its_mesh():
+    """The default solid liver is the shipped mesh (no mesher needed: the same organ on every
+    machine), and it is a mesh of the surface ``liver(3)`` that the code generates: its boundary
+    lies within fTetWild's envelope (1e-3 of the diagonal) of the surface's triangles."""
+    from importlib import resources
+
+    from scipy.spatial import cKDTree
+
+    from rtfem.interaction.contact_points import closest_points_on_triangles
+
     a = rt.meshes.liver(solid=True)
     b = rt.meshes.liver(solid=True)
-    assert a.fingerprint() == b.fingerprint()  # kept on disk: the same mesh in every process
+    assert a.fingerprint() == b.fingerprint()
+    with np.load(resources.files("rtfem") / "data" / "liver_tets.npz") as shipped:
+        assert np.array_equal(a.vertices, shipped["vertices"]) and np.array_equal(a.tets, shipped["tets"])
+    s = rt.meshes.liver(3)
+    V, T = np.asarray(s.vertices), np.asarray(s.triangles)
+    P = np.asarray(a.vertices)[a.surface_nodes()]
+    _, near = cKDTree(V[T].mean(axis=1)).query(P, k=12)
+    dist = np.full(len(P), np.inf)
+    for j in range(near.shape[1]):
+        t = T[near[:, j]]
+        q, _ = closest_points_on_triangles(P, V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
+        dist = np.minimum(dist, np.linalg.norm(q - P, axis=1))
+    assert dist.max() < 1e-3 * s.diagonal(), dist.max() / s.diagonal()  # shipped: 3.2e-4
     surface = set(a.surface_nodes().tolist())
     assert len(a.groups["probe"]) == 1 and int(a.groups["probe"][0]) in surface
     assert a.groups["attachment"].size >= 10 and set(a.groups["attachment"].tolist()) <= surface
@@ -294,3 +314,17 @@ def test_clamping_a_tet10_model_by_its_corner_nodes_clamps_the_mid_edge_nodes_be
     assert one.fixed.any(axis=1).sum() == 1  # no edge with both corners fixed
     z = rt.SolidModel(mesh, rt.Material(E=1e5, nu=0.3), element="tet10").fix(corners, dofs="z")
     assert z.fixed[:, 2].sum() == by_region.held_nodes.sum() and not z.fixed[:, :2].any()
+
+
+def test_a_damaged_shipped_liver_says_reinstall(tmp_path, monkeypatch):
+    """The shipped tets, damaged in the installed package: a MeshError that says what to do, not a
+    traceback from numpy's reader."""
+    import importlib.resources
+
+    from rtfem.mesh.meshes import _embedded_liver  # under liver(solid=True)'s memo of its meshes
+
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "liver_tets.npz").write_bytes(b"PK\x03\x04 not a zip any more")
+    monkeypatch.setattr(importlib.resources, "files", lambda package: tmp_path)
+    with pytest.raises(rt.MeshError, match="liver_tets.npz.*reinstall rtfem"):
+        _embedded_liver()

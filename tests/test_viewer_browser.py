@@ -127,10 +127,6 @@ def viewer(request):
     from rtfem.viewer.session import Session, default_session
 
     if request.param == "default":
-        from rtfem.mesh.meshing import mesher_available
-
-        if not mesher_available():
-            pytest.skip("the mesh extra (pytetwild) is not installed")
         session = default_session()
         assert session.kind == "solid (tet10)" and session.settings.method == "nonlinear"
     else:
@@ -198,7 +194,9 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     if viewer.kind == "default":
         # the reduced nonlinear model (40 modes + derivatives of 10) against the full order's nonlinear
         # equilibrium under the same held forces: settled 3 cm pulls of the probe vertex measured 5.9-6.9 %
-        # (derivatives of 20 / 10); here after a 2 s hold, so 15 %; and nearer it than the linear model is
+        # (derivatives of 20 / 10); here after a 2 s hold, so 15 %; and nearer it than the linear model is.
+        # On the shipped liver 3.0 % in 3 of 4 runs (MKL_CBWR=COMPATIBLE), 13.5 % in one; on livers meshed
+        # afresh, as each machine did before the mesh was shipped, 4.2-13.6 % in 8 runs, and 16 % in CI
         reference = float(np.linalg.norm(rt.nonlinear.solve_static(model, loads, steps=8).displacements, axis=1).max())
         assert abs(during["max_displacement"] - reference) < 0.15 * reference, (during, reference, linear)
         assert abs(during["max_displacement"] - reference) < abs(linear - reference), (during, reference, linear)

@@ -143,7 +143,8 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
     from ..mesh.meshing import cached_tetrahedralize, is_cached, mesher_available
     from ..mesh.tetmesh import TetMesh
 
-    if solid == "auto" and not mesher_available():
+    embedded = path is None and edge_length is None  # the shipped tets: no mesher needed
+    if solid == "auto" and not embedded and not mesher_available():
         print("shell       the mesh extra (pytetwild) is not installed, so the surface is modelled as a shell; "
               "pip install 'rtfem[mesh]' (make installs it) to mesh a closed organ into tets", flush=True)
         solid = False
@@ -151,7 +152,7 @@ def load_mesh_arg(path: str | None, scale: float = 1.0, solid: bool | str = Fals
         _check_organ_size(meshes.liver(), "the embedded liver", scale, factor=scale)  # before any meshing
         if solid:  # True, or "auto": the embedded liver is closed
             spacing = None if edge_length is None else edge_length / scale
-            if not is_cached(meshes.liver(3), spacing):
+            if not embedded and not is_cached(meshes.liver(3), spacing):
                 print("meshing     the embedded liver into tets (fTetWild, a few seconds; kept for later runs) ...",
                       flush=True)
             mesh = meshes.liver(solid=True, spacing=spacing)

@@ -199,13 +199,14 @@ def liver(level: int = 4, *, solid: bool = False, spacing: float | None = None):
     :data:`PROBE_POINT`), where the examples, demo and benchmarks press.
     Generated from an icosphere by a smooth map; no data files are involved.
 
-    ``solid=True`` gives the volume as a :class:`TetMesh` (needs the ``mesh`` extra), meshed
-    from the level-3 surface (or ``level`` if lower) by :func:`rtfem.tetrahedralize` with target
-    edge ``spacing`` (m; default 5 % of the diagonal: about 1,150 nodes and 4,900 tets, 3 s;
-    ``spacing=0.0075`` gives about 4,300 nodes and 21,000 tets, the size of SOFA's liver
-    scene); groups carried over to the nearest surface nodes. The mesher's output differs from
-    run to run, so the mesh is made once per machine and kept on disk
-    (:func:`rtfem.cache.cache_dir`): the same call then gives the same mesh.
+    ``solid=True`` gives the volume as a :class:`TetMesh`: the level-3 surface (or ``level`` if
+    lower) filled by :func:`rtfem.tetrahedralize` with target edge ``spacing`` (m; default 5 % of
+    the diagonal), groups carried over to the nearest surface nodes. The default, 1,152 nodes and
+    4,903 tets, is shipped with rtfem (meshed once by tools/embed_liver.py): the mesher's output
+    differs from run to run, and the default organ is the same on every machine, with no mesher
+    needed. Another ``spacing`` (``0.0075`` gives about 4,300 nodes and 21,000 tets, the size of
+    SOFA's liver scene) or a lower ``level`` is meshed here (the ``mesh`` extra) and kept on disk
+    (:func:`rtfem.cache.cache_dir`): the same call then gives the same mesh on this machine.
     """
     level = _count("level", level, 1, 8)
     solid = validate.flag(solid, "solid", error=MeshError)
@@ -249,7 +250,28 @@ def gallbladder(level: int = 2) -> TriMesh:
 def _solid_liver(level: int, spacing: float | None) -> TetMesh:
     from .meshing import cached_tetrahedralize
 
+    if level == 3 and spacing is None:
+        return _embedded_liver()
     return cached_tetrahedralize(liver(level), spacing)
+
+
+def _embedded_liver() -> TetMesh:
+    """The default solid liver: fTetWild's tets of ``liver(3)`` at the default edge, made once
+    (tools/embed_liver.py) and shipped, so that every machine has the same organ; the groups are
+    carried from the surface as :func:`rtfem.tetrahedralize` carries them."""
+    import zipfile
+    from importlib import resources
+
+    from .meshing import _carry_groups
+
+    try:
+        with resources.files("rtfem").joinpath("data", "liver_tets.npz").open("rb") as f, \
+                np.load(f, allow_pickle=False) as z:
+            X, T = np.array(z["vertices"], dtype=np.float64), np.array(z["tets"], dtype=np.int64)
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise MeshError(f"the embedded liver's tets (rtfem/data/liver_tets.npz) cannot be read ({exc}); "
+                        "reinstall rtfem") from None
+    return _carry_groups(liver(3), TetMesh(X, T))
 
 
 def box(lx: float = 1.0, ly: float = 0.1, lz: float = 0.1, nx: int = 20, ny: int = 2, nz: int = 2) -> TetMesh:

@@ -469,14 +469,13 @@ def serve(mesh=None, *, material: Material | None = None, fixed="attachment",
     """Precompute, serve the viewer and (``block``) run until Ctrl-C. ``mesh``: a TriMesh (a shell)
     or a TetMesh (a solid, drawn and touched on its boundary); ``model_options`` go to the model
     (``element``, ``mass`` of a solid). No mesh: the scene of ``rtfem view``, the embedded liver
-    as a solid of tet10 with the reduced nonlinear model (a shell where the mesh extra is absent).
+    (its shipped tets) as a solid of tet10 with the reduced nonlinear model.
     ``session``: serve this one instead (built by the caller)."""
     from ..mesh import meshes
-    from ..mesh.meshing import mesher_available
 
     _need_viser()
     if session is None:
-        if mesh is None and mesher_available():
+        if mesh is None:
             session = default_session(settings=settings)
         else:
             session = Session(meshes.liver() if mesh is None else mesh, material, fixed, settings, model_options)
