@@ -64,7 +64,12 @@ def test_a_neo_hookean_solid_probed_lightly_pushes_back_like_its_linear_twin(bar
     (["--material", "ogden:1000,2,5"], "pairs"),
     (["--material", "mooney-rivlin:700"], "C10,C01"),
     (["--material", "mooney-rivlin:a,b"], "numbers"),
-    (["--material", "neo-hookean:5"], "no parameters"),
+    (["--material", "neo-hookean:5e4,0.3,1"], "neo-hookean:E[,nu]"),
+    (["--material", "linear:3e5,0.7"], "nu=0.7 is outside"),
+    (["--material", "linear:-3e5"], "E=-300000.0 must be > 0"),
+    (["--material", "stiff=linear:3e5"], "a mesh of one region"),
+    (["--material", "=linear"], "name the region before '='"),
+    (["--material", "liver", "--material", "skin"], "given 2 times without a region"),
     (["--material", "mooney-rivlin:-700,300"], "shear modulus"),
     (["--material", "neo-hookean+prony:0.5"], "LAW+prony:g1,tau1"),
     (["--material", "neo-hookean+prony:0.7,1,0.5,2"], "sum < 1"),
@@ -118,3 +123,47 @@ def test_a_relaxing_law_on_the_command_line_relaxes_a_held_probe(bar_file, tmp_p
         assert relaxing[1] / relaxing[0] < elastic[1] / elastic[0] - 0.1 and relaxing[1] < elastic[1], (method, relaxing)
         ratios[method] = relaxing[1] / relaxing[0]
     assert abs(ratios["direct"] - ratios["nonlinear"]) < 0.03, ratios
+
+
+@pytest.fixture(scope="module")
+def two_region_bar(tmp_path_factory):
+    """The bar of two named regions (VTU region data): x < 30 mm "soft", the rest "stiff"."""
+    mesh = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
+    centres = np.asarray(mesh.vertices)[np.asarray(mesh.tets)].mean(axis=1)
+    labelled = rt.TetMesh(mesh.vertices, mesh.tets, labels=(centres[:, 0] > 0.03).astype(int),
+                          region_names={"soft": 0, "stiff": 1})
+    path = tmp_path_factory.mktemp("bar2") / "bar2.vtu"
+    rt.save_mesh(labelled, path)
+    return str(path), labelled
+
+
+def test_a_material_per_region_on_the_command_line(two_region_bar, tmp_path, capsys):
+    """--material REGION=LAW (by name or label; the LAW given without a region for the rest) gives
+    the modes of rt.SolidModel(mesh, {label: material}) to round-off, between the all-soft and the
+    all-stiff bar's; the run names each region's law."""
+    path, mesh = two_region_bar
+    soft, stiff = rt.Material(E=3e4, nu=0.45), rt.Material(E=3e5, nu=0.45)
+    api = rt.SolidModel(mesh, {0: soft, 1: stiff}, element="tet4").fix(np.flatnonzero(mesh.vertices[:, 0] < 0.001))
+    omega = rt.modal_analysis(api, 6).omega
+    uniform = rt.modal_analysis(rt.SolidModel(mesh, soft, element="tet4").fix(api.held_nodes), 6).omega
+    for argv in (["--material", "stiff=linear:3e5"], ["--material", "linear", "--material", "1=linear:3e5,0.45"],
+                 ["--material", "soft=linear", "--material", "stiff=linear:3e5"]):
+        rc, out, err = run(capsys, "modes", path, *FIX, "--element", "tet4", "-n", 6, *argv, "-o", tmp_path / "m.npz")
+        assert rc == 0, err
+        assert "region      stiff (label 1, 72 tets): Material(E=300000" in out, out
+        got = rt.ModalBasis.load(tmp_path / "m.npz", model=api).omega
+        np.testing.assert_allclose(got, omega, rtol=1e-9)
+    # K grows with E at one mass, so each frequency lies between the all-soft bar's and the all-stiff
+    # bar's (sqrt(10) times it): measured 1.06-1.18 times the soft one
+    assert np.all(omega > 1.05 * uniform) and np.all(omega < np.sqrt(10.0) * uniform), omega / uniform
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--material", "liver=linear:3e5"], "names no region"),
+    (["--material", "7=linear:3e5"], "no tet of this mesh has label 7"),
+    (["--material", "stiff=linear:3e5", "--material", "1=linear"], "two materials"),
+    (["--material", "stiff=linear:3e5"] * 2, "given two materials"),
+])
+def test_region_materials_that_do_not_fit_the_mesh_are_refused(two_region_bar, argv, message, capsys):
+    rc, out, err = run(capsys, "modes", two_region_bar[0], *FIX, "--element", "tet4", "-n", 4, *argv)
+    assert rc == 2 and message in err and "Traceback" not in err, err

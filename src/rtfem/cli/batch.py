@@ -231,12 +231,12 @@ def _check_table(table: dict, where: str, folder: Path, problems: list) -> None:
 def _check_organ(spec: dict, where: str, problems: list) -> None:
     """The organ's settings as a whole: the command line's parser takes them, the material is one."""
     from ..fe.material import Material
-    from ..fe.viscoelastic import material_from_text
+    from .common import material_texts, materials_from_texts
 
     try:
         args = _model_args(spec)
-        material_from_text(args.material, Material(E=args.E, nu=args.nu, thickness=args.thickness,
-                                                   density=args.density))
+        materials_from_texts(material_texts(args), Material(E=args.E, nu=args.nu, thickness=args.thickness,
+                                                            density=args.density))
     except RtfemError as exc:
         problems.append(f"{where}: {validate.one_line(str(exc))}")
 

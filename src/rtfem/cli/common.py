@@ -222,12 +222,16 @@ def add_model_options(p: argparse.ArgumentParser, *, dynamics: bool = True) -> N
     g.add_argument("--nu", type=poisson, default=m.nu, help=f"Poisson's ratio (default {m.nu:g})")
     g.add_argument("--thickness", type=positive, default=m.thickness, help=f"shell thickness in m (default {m.thickness:g})")
     g.add_argument("--density", type=positive, default=m.density, help=f"density in kg/m^3 (default {m.density:g})")
-    g.add_argument("--material", default="linear", metavar="LAW",
+    g.add_argument("--material", action="append", default=None, metavar="[REGION=]LAW",
                    help="a solid's material law: linear (default; corotated in the nonlinear methods), neo-hookean "
-                        "(mu and kappa of --E and --nu), mooney-rivlin:C10,C01 or ogden:mu1,alpha1[,mu2,alpha2...] (Pa; "
-                        "kappa keeps --nu's ratio to mu), each optionally +prony:g1,tau1[,g2,tau2...] (its isochoric "
-                        "stress relaxing: --method direct --large or nonlinear). The nonlinear methods use the law, the "
-                        "linear ones its linearization at rest (a relaxing law's long-term one)")
+                        "(mu and kappa of --E and --nu; linear:E[,nu] and neo-hookean:E[,nu] their own), "
+                        "mooney-rivlin:C10,C01 or ogden:mu1,alpha1[,mu2,alpha2...] (Pa; kappa keeps --nu's ratio to mu), "
+                        "each optionally +prony:g1,tau1[,g2,tau2...] (its isochoric stress relaxing: --method direct "
+                        "--large or nonlinear), or a sourced tissue set (liver, skin, ...: rt.tissue). The nonlinear "
+                        "methods use the law, the linear ones its linearization at rest (a relaxing law's long-term one). "
+                        "A mesh with regions: repeat it as REGION=LAW (a region's name or label), e.g. "
+                        "--material liver --material tumor=linear:3e5 (a region not named takes the LAW given "
+                        "without one: linear of --E and --nu if none is)")
     g.add_argument("--fix", default=None, metavar="REGION",
                    help="fixed nodes: a group name, AXIS<VALUE or AXIS>VALUE (m), bottom:FRACTION or nodes:i,j,k "
                         "(default: the group 'attachment' if the mesh has one, else bottom:0.1)")
@@ -283,18 +287,20 @@ def build_model(args, *, quiet: bool = False):
     from ..fe.material import Material
     from ..fe.build import make_model
     from ..fe.tissues import tissue_from_text
-    from ..fe.viscoelastic import material_from_text
     from ..mesh.tetmesh import TetMesh
 
-    material = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
-    material = material_from_text(getattr(args, "material", "linear"), material)  # a bad --material before any work
+    base = Material(E=args.E, nu=args.nu, thickness=args.thickness, density=args.density)
+    texts = material_texts(args)  # a bad --material before any work
+    material = materials_from_texts(texts, base)
     mesh = mesh_of_args(args)
     locking = locking_warning(args.element, args.nu) if isinstance(mesh, TetMesh) else None
-    if isinstance(mesh, TetMesh) and mesh.regions.size > 1 and not quiet:
+    if isinstance(material, dict):
+        material = region_materials_of(material, mesh)
+    elif isinstance(mesh, TetMesh) and mesh.regions.size > 1 and not quiet:
         names = {v: k for k, v in mesh.region_names.items()}
         warn(f"the mesh has {mesh.regions.size} regions ({', '.join(names.get(int(r), str(r)) for r in mesh.regions)}); "
-             "this command gives them all one material (a material per region: a scene file's material table, or "
-             "rt.SolidModel(mesh, {label: material}))")
+             "this command gives them all one material (a material per region: --material REGION=LAW for each, a "
+             "scene file's material table, or rt.SolidModel(mesh, {label: material}))")
     if locking and not quiet:
         warn(locking)
     nodes, how = fixed_nodes(mesh, args.fix)
@@ -309,14 +315,79 @@ def build_model(args, *, quiet: bool = False):
         else:
             size = f"{mesh.n_vertices:,} vertices, {mesh.n_triangles:,} triangles"
         print(f"model       {name}: {size}, {model.n_dofs:,} dof; {nodes.size} nodes fixed ({how})")
-        if getattr(model, "law", None) is not None:
+        if getattr(model, "materials", None) is not None:
+            names = {v: k for k, v in mesh.region_names.items()}
+            for label, law in model.materials.items():
+                print(f"region      {names.get(label, label)} (label {label}, {int(np.sum(mesh.labels == label)):,} tets): "
+                      f"{law!r}")
+        elif getattr(model, "law", None) is not None:
             lin = model.material
             print(f"material    {model.law!r} (the linear methods use its linearization at rest: E = {lin.E:.4g} Pa, "
                   f"nu = {lin.nu:.4g})")
-        source = tissue_from_text(getattr(args, "material", "linear"), Material(E=args.E, nu=args.nu, density=args.density))
-        if source is not None:  # a sourced set: where it was read, how sure, what was not in it
-            print("tissue      " + str(source).replace("\n", "\n            "))
+        for _, text in texts:
+            source = tissue_from_text(text, Material(E=args.E, nu=args.nu, density=args.density))
+            if source is not None:  # a sourced set: where it was read, how sure, what was not in it
+                print("tissue      " + str(source).replace("\n", "\n            "))
     return model
+
+
+def material_texts(args) -> list[tuple[str | None, str]]:
+    """The ``--material`` options as (region or None, law text): "linear" when none is given."""
+    given = getattr(args, "material", None) or ["linear"]
+    if isinstance(given, str):  # a batch plan's one material
+        given = [given]
+    out, plain = [], 0
+    for text in given:
+        region, eq, law = str(text).partition("=")
+        if eq and not region.strip():
+            raise RtfemError(f"--material {text!r}: name the region before '=' (REGION=LAW), or give LAW alone")
+        out.append((region.strip() if eq else None, (law if eq else region).strip()))
+        plain += not eq
+    if plain > 1:
+        raise RtfemError(f"--material is given {plain} times without a region: give one LAW, and REGION=LAW for "
+                         "each region that differs from it")
+    if not plain:  # the regions not named: the default law (linear, of --E and --nu)
+        out.append((None, "linear"))
+    return out
+
+
+def materials_from_texts(texts, base):
+    """One material (no region named) or {region key: material} with the plain LAW under None."""
+    from ..fe.viscoelastic import material_from_text
+
+    if all(region is None for region, _ in texts):
+        return material_from_text(texts[0][1], base)
+    out = {}
+    for region, text in texts:
+        key = None if region is None else (int(region) if region.lstrip("-").isdigit() else region)
+        if key in out:
+            raise RtfemError(f"--material: region {region!r} is given two materials")
+        out[key] = material_from_text(text, base)
+    return out
+
+
+def region_materials_of(given: dict, mesh) -> dict:
+    """{label: material} for every region of ``mesh`` from the command line's (the plain LAW for
+    the regions not named); a shell or a mesh without regions refused."""
+    from ..fe.regions import region_materials
+    from ..mesh.tetmesh import TetMesh
+
+    if not isinstance(mesh, TetMesh) or mesh.regions.size < 2:
+        what = "a shell" if not isinstance(mesh, TetMesh) else "a mesh of one region"
+        raise RtfemError(f"--material REGION=LAW: the model is {what}; give one --material LAW (regions come from a "
+                         "volume file's region data, or rtfem mesh LABELS)")
+    given = dict(given)
+    default = given.pop(None, None)
+    names = {v: k for k, v in mesh.region_names.items()}
+    merged = dict(given)
+    if default is not None:
+        merged.update({label: default for label in mesh.regions.tolist() if not _names(label, given, names)})
+    return region_materials(merged, mesh)
+
+
+def _names(label: int, given: dict, names: dict) -> bool:
+    """Whether a key of ``given`` names region ``label`` (by its label or its name)."""
+    return label in given or names.get(label) in given
 
 
 def damping_of(args):

@@ -160,6 +160,8 @@ def simulate_scene(args: argparse.Namespace) -> int:
 
 def _material(model) -> str:
     """What a body's material is, and what its modes use of it (a law's linearization at rest)."""
+    if getattr(model, "materials", None) is not None:  # a material per region
+        return "regions " + "; ".join(f"{label}: {law!r}" for label, law in model.materials.items())
     law, lin = getattr(model, "law", None), model.material
     if law is None:
         return f"linear, E = {lin.E:.4g} Pa, nu = {lin.nu:.4g}"

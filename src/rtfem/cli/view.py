@@ -76,7 +76,8 @@ def _view(args: argparse.Namespace, settings, device) -> int:
     t0 = time.perf_counter()
     bars = _StageBars()
     try:
-        session = Session(mesh, getattr(model, "law", None) or model.material, np.flatnonzero(model.held_nodes), settings,
+        material = getattr(model, "materials", None) or getattr(model, "law", None) or model.material
+        session = Session(mesh, material, np.flatnonzero(model.held_nodes), settings,
                           model_options(args, mesh), progress=bars)
     finally:
         bars.close()

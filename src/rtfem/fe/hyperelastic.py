@@ -349,7 +349,8 @@ def make_law(name: str, material: Material, *, mu=None, kappa=None, c10=None, c0
 
 def law_from_text(text: str, material: Material):
     """The material a command line names (``--material``): "linear" (``material`` itself),
-    "neo-hookean" (mu and kappa of ``material``'s E and nu), "mooney-rivlin:C10,C01" or
+    "neo-hookean" (mu and kappa of ``material``'s E and nu; "linear:E[,nu]" and
+    "neo-hookean:E[,nu]" with their own), "mooney-rivlin:C10,C01" or
     "ogden:mu1,alpha1[,mu2,alpha2,...]" (moduli in Pa; kappa keeps ``material``'s ratio kappa / mu,
     i.e. the same Poisson's ratio at rest); the density is ``material``'s (a relaxing law:
     :func:`rtfem.fe.viscoelastic.material_from_text`; the law built by :func:`make_law`). Raises
@@ -362,8 +363,16 @@ def law_from_text(text: str, material: Material):
                          "parameters: mooney-rivlin:C10,C01, ogden:mu1,alpha1[,mu2,alpha2...], in Pa), or a sourced tissue "
                          "set: brain, fat, gallbladder, liver, muscle, skin, stomach (rt.tissue; TISSUE#N its N-th set)")
     if name in ("linear", "neo-hookean"):
-        if values:
-            raise ModelError(f"--material {text!r}: {name} takes no parameters (its moduli are --E and --nu's)")
+        if values.strip():  # its own E[, nu]: a region stiffer than the rest
+            try:
+                numbers = [float(v) for v in values.split(",")]
+            except ValueError:
+                numbers = []
+            if not 1 <= len(numbers) <= 2:
+                raise ModelError(f"--material {text!r}: {name} takes --E and --nu's moduli, or its own as {name}:E[,nu] "
+                                 "(Pa and a ratio)")
+            material = Material(E=numbers[0], nu=numbers[1] if len(numbers) == 2 else material.nu,
+                                thickness=material.thickness, density=material.density)
         return make_law(name, material)
     try:
         numbers = [float(v) for v in values.split(",")] if values.strip() else []
