@@ -243,3 +243,31 @@ def test_a_body_of_regions_takes_a_material_per_region_by_label_or_name(tmp_path
     (tmp_path / "shell.toml").write_text(body.replace('element = "tet4"\n', 'kind = "shell"\n'))
     with pytest.raises(rt.ModelError, match="a material per region is for solids"):
         load_scene(tmp_path / "shell.toml")
+
+
+def test_a_scene_names_a_sourced_tissue_set_as_the_command_line_does(tmp_path):
+    """``material = { tissue = "liver#2" }`` is the set ``--material liver#2`` names (rt.tissue's, with
+    the density given); per region too; keys a set gives itself, or a name of no set, are refused
+    naming the key."""
+    from rtfem.fe.viscoelastic import material_from_table, material_from_text
+
+    for text in ("liver", "liver#2", "skin"):
+        base = rt.Material(density=1000.0)
+        assert _params(material_from_table({"tissue": text, "density": 1000.0})) == _params(material_from_text(text, base))
+    assert material_from_table({"tissue": "liver#2"}).E == rt.tissue("liver", which=1).material.E
+    box = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    labels = np.where(c[:, 0] > 0.05, 2, 1)
+    rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names={"liver": 1, "capsule": 2}),
+                 tmp_path / "box.msh")
+    body = ('[[body]]\nname = "box"\nmesh = "box.msh"\nelement = "tet4"\nfix = "bottom:0.1"\nmodes = 6\n'
+            'material = { liver = { tissue = "liver" }, capsule = { E = 3e5 } }\n')
+    (tmp_path / "scene.toml").write_text(body)
+    model = load_scene(tmp_path / "scene.toml").bodies[0].model
+    assert model.materials[1] == rt.tissue("liver").material and model.materials[2].E == 3e5
+    for bad, match in (('{ tissue = "rubber" }', "key 'material.liver': tissue = 'rubber' names no set of the table"),
+                       ('{ tissue = "liver", E = 3e4 }', "E: a sourced tissue set gives its own law and moduli"),
+                       ('{ tissue = "liver#9" }', "give #1 .. #")):
+        (tmp_path / "bad.toml").write_text(body.replace('{ tissue = "liver" }', bad))
+        with pytest.raises(rt.ModelError, match=match):
+            load_scene(tmp_path / "bad.toml")

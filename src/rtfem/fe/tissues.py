@@ -188,10 +188,11 @@ def _shear_modulus(row: dict, nu: float) -> float:
     raise ModelError(f"the {row['name']} set gives no modulus rtfem can use")
 
 
-def tissue_from_text(text: str, material) -> TissueSet | None:
+def tissue_from_text(text: str, material, *, nu_given: bool = False) -> TissueSet | None:
     """The set a command line's ``--material TISSUE`` or ``TISSUE#N`` (the N-th of that name, from 1)
     names, with ``material``'s nu where the set has none and its density; None when ``text`` names
-    no tissue of the table."""
+    no tissue of the table. ``nu_given``: ``material``'s nu was asked for (a scene file's ``nu``),
+    so a set with a nu of its own refuses another."""
     name, _, number = str(text).strip().partition("#")
     found = tissues(name)
     if not found:
@@ -202,5 +203,5 @@ def tissue_from_text(text: str, material) -> TissueSet | None:
         raise ModelError(f"--material {text!r}: after '#' give which {name} set, 1 .. {len(found)}") from None
     if not 0 <= which < len(found):
         raise ModelError(f"--material {text!r}: the table has {len(found)} {name} set(s); give #1 .. #{len(found)}")
-    nu = None if found[which].get("nu") is not None else material.nu
+    nu = None if found[which].get("nu") is not None and not nu_given else material.nu
     return tissue(name, which=which, nu=nu, density=material.density)

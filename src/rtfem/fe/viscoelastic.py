@@ -276,6 +276,30 @@ TABLE_WHAT = {"E": "Young's modulus in Pa", "nu": "Poisson's ratio", "density": 
               "c10": "C10 in Pa", "c01": "C01 in Pa", "alpha": "Ogden's exponents"}
 
 
+def _tissue_of_table(table: dict):
+    """``{ tissue = "liver#2" }``: a sourced set (:func:`rtfem.tissue`) with, besides it, only the
+    nu it lacks, a density or a shell's thickness."""
+    from .material import Material
+    from .tissues import tissue_from_text
+
+    extra = sorted(set(table) - {"tissue", "nu", "density", "thickness"})
+    if extra:
+        raise ModelError(f"{', '.join(extra)}: a sourced tissue set gives its own law and moduli; beside tissue give "
+                         "only nu (where the set has none), density or thickness")
+    text = table["tissue"]
+    if not isinstance(text, str) or not text.strip():
+        raise ModelError(f"tissue = {validate.show(text)}: give a tissue set's name, e.g. 'liver' or 'liver#2'")
+    base = Material(**{k: validate.number(table[k], k, TABLE_WHAT[k]) for k in ("nu", "density", "thickness")
+                       if k in table})
+    found = tissue_from_text(text, base, nu_given="nu" in table)
+    if found is None:
+        from .tissues import tissues
+
+        names = sorted({t["name"] for t in tissues()})
+        raise ModelError(f"tissue = {text!r} names no set of the table: {', '.join(names)} (rt.tissue)")
+    return found.material
+
+
 def material_from_table(table):
     """The material a table names (a scene file's ``material = {...}``): any law ``--material``
     takes, with its parameters as keys, built by :func:`rtfem.fe.hyperelastic.make_law` as the
@@ -286,7 +310,9 @@ def material_from_table(table):
     [alpha_1, ...], kappa or nu; each hyperelastic law optionally ``prony = {g = [...], tau = [...]}``
     (:class:`Prony`). A modulus left out comes from E and nu (default :class:`~rtfem.Material`'s) as
     --E and --nu give it: a neo-Hookean mu = E / (2 (1 + nu)), every law's kappa keeps nu's ratio
-    kappa / mu; density defaults to Material's.
+    kappa / mu; density defaults to Material's. ``tissue = "liver"`` (or "liver#2") instead of a
+    law: a sourced set (:func:`rtfem.tissue`), with only nu (where the set has none), density or
+    thickness beside it.
 
     Parameters
     ----------
@@ -307,6 +333,8 @@ def material_from_table(table):
     if not isinstance(table, dict):
         raise ModelError(f"{validate.show(table)} must be a table, e.g. {{ law = 'neo-hookean', mu = 2000, kappa = "
                          "50000, density = 1060 }")
+    if "tissue" in table:
+        return _tissue_of_table(table)
     law = validate.choice(table.get("law", "linear"), "law", LAWS)
     keys = TABLE_KEYS[law]
     for key in table:

@@ -22,6 +22,7 @@
     # material = { law = "neo-hookean", mu = 3000, kappa = 30000, density = 1060 }       (or E and nu)
     # material = { law = "mooney-rivlin", c10 = 500, c01 = 200, kappa = 30000 }         (or nu for kappa)
     # material = { law = "ogden", mu = [2000], alpha = [8], nu = 0.45, prony = { g = [0.5], tau = [0.1] } }
+    # material = { tissue = "liver#2", density = 1060 }   # a sourced set (rt.tissue), as --material liver#2
     # or, for a tet mesh of regions (mesh.labels), a table per label or region name:
     # material = { liver = { E = 3e4 }, tumor = { law = "neo-hookean", mu = 1e5, kappa = 1e6 } }
     fix = "bottom:0.1"             # a node selection (rt.select_nodes) of the placed body; absent: a free body
