@@ -15,14 +15,26 @@ __all__ = ["ElementTerms"]
 
 
 def check_regions(model) -> None:
-    """Refuse a solid whose regions have hyperelastic laws (the reduced model's kernels take the
-    corotated material with Lame constants per element)."""
-    laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if getattr(v, "linearized", None)]
+    """Refuse a solid whose regions have relaxing (Prony) laws: the reduced model's history
+    variables are one law's."""
+    from ..fe.viscoelastic import Prony
+
+    laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if isinstance(v, Prony)]
     if laws:
-        raise ModelError(f"the regions {laws} of this solid have hyperelastic laws: the reduced nonlinear model takes "
-                         "regions of rt.Material only (the corotated material, Lame constants per element). Step it "
-                         "full order (rt.DirectSimulator(model, dt, large_deformation=True)), or give those regions "
-                         "rt.Material(E, nu) (law.linearized())")
+        raise ModelError(f"the regions {laws} of this solid have Prony (relaxing) laws, which the reduced nonlinear "
+                         "model does not take per region; give those regions a hyperelastic law or rt.Material")
+
+
+def _region_laws(system):
+    """(each element's group (m,), the groups' laws: a hyperelastic law, or None for the corotated
+    linear material) of a solid whose regions are not all rt.Material; else None."""
+    laws = getattr(system.kernel, "laws", None)
+    if not laws or all(law is None for _, law in laws):
+        return None
+    group = np.empty(sum(idx.size for idx, _ in laws), dtype=np.int64)
+    for g, (idx, _) in enumerate(laws):
+        group[idx] = g
+    return group, [law for _, law in laws]
 
 
 class ElementTerms:
@@ -47,6 +59,9 @@ class ElementTerms:
             G = np.ascontiguousarray(np.stack(kern.G, axis=1)[idx])
             wdet = np.ascontiguousarray(np.stack(kern.wdet, axis=1)[idx])
             lm = kern.lm[idx] if hasattr(kern, "lm") else np.tile([kern.lam, kern.mu], (idx.size, 1))  # regions: own
+            regions = _region_laws(self.system)
+            if regions is not None:  # regions of their own laws: each element's group, a sixth array
+                return Ue, X, G, wdet, np.ascontiguousarray(lm), regions[0][idx]
             return Ue, X, G, wdet, np.ascontiguousarray(lm)
         return (Ue, X, np.ascontiguousarray(kern.R0[idx]), np.ascontiguousarray(kern.x2[idx]),
                 np.ascontiguousarray(kern.x3[idx]), np.ascontiguousarray(kern.y3[idx]),
@@ -71,12 +86,33 @@ class ElementTerms:
         from . import cubature, tet_kernels
 
         F = np.empty(V.shape)
+        if len(data) == 6:
+            return self._by_region(V, data, F, tet_kernels.solid_element_forces, tet_kernels.law_forces)
         if len(data) == 5 and self.law is not None:
             tet_kernels.law_forces(np.ascontiguousarray(V), *data[1:4], self.law, F)
             return F
         kernel = tet_kernels.solid_element_forces if len(data) == 5 else cubature.element_forces
         kernel(np.ascontiguousarray(V), *data[1:], F)
         return F
+
+    def _by_region(self, V: np.ndarray, data, out: np.ndarray, corotated, by_law) -> np.ndarray:
+        """``out`` filled region by region (data's sixth array: each element's group): ``corotated``
+        (V, X, G, wdet, lm, out) for the groups of the corotated material, ``by_law`` (V, X, G, wdet,
+        law, out) for a hyperelastic law's."""
+        groups, laws = data[5], _region_laws(self.system)[1]
+        for g, law in enumerate(laws):
+            sel = np.flatnonzero(groups == g)
+            if sel.size == 0:
+                continue
+            part = np.empty((sel.size,) + out.shape[1:])
+            args = [np.ascontiguousarray(a[sel]) for a in data[1:5]]
+            Vs = np.ascontiguousarray(V[sel], dtype=float)
+            if law is None:
+                corotated(Vs, *args, part)
+            else:
+                by_law(Vs, *args[:3], law, part)
+            out[sel] = part
+        return out
 
     def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool,
                         rest: np.ndarray | None = None, UT: np.ndarray | None = None,
@@ -140,6 +176,10 @@ class ElementTerms:
         step's linearization, which sets no equilibrium)."""
         E, nd = V.shape
         Ke = np.empty((E, nd, nd))
+        if len(data) == 6:
+            from .tet_kernels import law_tangents, solid_element_tangents
+
+            return self._by_region(V, data, Ke, solid_element_tangents, law_tangents)
         if len(data) == 5:
             from .tet_kernels import law_tangents, solid_element_tangents
 
