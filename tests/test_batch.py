@@ -93,7 +93,10 @@ def test_a_batch_writes_what_the_library_builds_and_resumes(plan, capsys):
 ])
 def test_a_bad_plan_is_one_line(tmp_path, capsys, text, said):
     (tmp_path / "plan.toml").write_text(text)
+    capsys.readouterr()
     assert main(["batch", str(tmp_path / "plan.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "material = ['linear', 3]: give a law" in err and err.count("\n") == 1, err
     err = capsys.readouterr().err
     assert said in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
 
@@ -130,3 +133,26 @@ def test_a_saved_reduced_model_loads_only_onto_its_own_model_and_whole(tmp_path)
     with pytest.raises(rt.ModelError, match="localized"):
         local.save(tmp_path / "local.npz")
     assert not (tmp_path / "local.npz").exists() and path.read_bytes() == red.save(path).read_bytes()
+
+
+def test_a_plan_gives_a_mesh_of_regions_a_material_per_region(tmp_path, capsys):
+    """``material = ["stiff=linear:3e5"]`` in a plan is --material repeated: the organ's modes are those
+    of rt.SolidModel(mesh, {label: material}); a material that is not a law or a list of them is one
+    line naming the key."""
+    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    mesh = rt.TetMesh(box.vertices, box.tets, labels=(c[:, 0] > 0.03).astype(int), region_names={"soft": 0, "stiff": 1})
+    rt.save_mesh(mesh, tmp_path / "bar.vtu")
+    (tmp_path / "plan.toml").write_text('out = "out"\n[[organ]]\nname = "bar"\nmesh = "bar.vtu"\nbuild = ["modes"]\n'
+                                        'modes = 6\nelement = "tet4"\nfix = "x<0.001"\n'
+                                        'material = ["linear", "stiff=linear:3e5"]\n')
+    assert main(["batch", str(tmp_path / "plan.toml")]) == 0
+    model = rt.SolidModel(mesh, {0: rt.Material(), 1: rt.Material(E=3e5)}, element="tet4")
+    model.fix(np.flatnonzero(np.asarray(mesh.vertices)[:, 0] < 0.001))
+    got = rt.ModalBasis.load(tmp_path / "out" / "bar.modes.npz", model=model).omega
+    np.testing.assert_allclose(got, rt.modal_analysis(model, 6).omega, rtol=1e-9)
+    (tmp_path / "plan.toml").write_text((tmp_path / "plan.toml").read_text().replace('"stiff=linear:3e5"]', "3]"))
+    capsys.readouterr()
+    assert main(["batch", str(tmp_path / "plan.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "material = ['linear', 3]: give a law" in err and err.count("\n") == 1, err

@@ -180,6 +180,12 @@ def _checks() -> dict:
                 raise RtfemError(f"{key} = {validate.show(v)}: give {what}")
         return check
 
+    def materials(v):  # one law, or a list of [REGION=]LAW as --material repeated
+        laws = v if isinstance(v, list) else [v]
+        if not laws or len(laws) > 1000 or not all(isinstance(t, str) and t.strip() for t in laws):
+            raise RtfemError(f"material = {validate.show(v)}: give a law (linear, neo-hookean, mooney-rivlin:C10,C01, "
+                             "ogden:mu1,alpha1, a tissue set such as liver), or a list of REGION=LAW for a mesh of regions")
+
     def build(v):
         v = _as_list(v)
         if not isinstance(v, list) or not v or not all(isinstance(b, str) and b in BUILD for b in v):
@@ -191,7 +197,7 @@ def _checks() -> dict:
         "solid": lambda v: _boolean("solid", v), "element": lambda v: validate.choice(v, "element", ELEMENTS),
         "mass": lambda v: validate.choice(v, "mass", ("lumped", "consistent")),
         "fix": text("fix", "a region: a group name, AXIS<VALUE, bottom:FRACTION or nodes:i,j,k"),
-        "material": text("material", "a law: linear, neo-hookean, mooney-rivlin:C10,C01 or ogden:mu1,alpha1"),
+        "material": materials,
         "E": number("E", what="Young's modulus in Pa"), "nu": number("nu", lo=-1.0, hi=0.5, what="Poisson's ratio"),
         "density": number("density", what="kg/m^3"), "thickness": number("thickness", what="a shell's thickness in m"),
         "scale": number("scale", what="a factor on the coordinates"),
@@ -254,6 +260,9 @@ def _model_args(spec: dict) -> argparse.Namespace:
     for key, flag in KEYS.items():
         value = spec.get(key)
         if flag is None or value is None or value is False:
+            continue
+        if isinstance(value, list):  # material: each [REGION=]LAW as the flag repeated
+            argv += [a for v in value for a in (flag, str(v))]
             continue
         argv += [flag] if value is True else [flag, str(value)]
     said = io.StringIO()
