@@ -1,17 +1,19 @@
 """Cubature per region or over the whole (issue 58): the reduced nonlinear model of a two-region liver
 against its own full order under a pull.
 
-The embedded solid liver (level 3: 1,160 nodes, 4,942 tet4; E 30 kPa, nu 0.45, held at its
-attachment) with a ball of other tissue, a soft one (E 3 kPa, a cyst) or a stiff one (E 300 kPa, a
-tumour), under two loads scaled so that their linear answer moves the organ 15 mm (pull) or 20 mm
-(gravity): ``pull``, a 15 mm ball 12 mm under the probe point (73 tets) and the probe's surface
+The embedded solid liver (level 3, its shipped tets: 1,152 nodes, 4,903 tet4; the first tables of
+benchmarks/results/regions_cubature.txt were measured on a mesh made on this machine, 1,160 nodes,
+4,942 tets; E 30 kPa, nu 0.45, held at its attachment) with a ball of other tissue, a soft one
+(E 3 kPa, a cyst) or a stiff one (E 300 kPa, a tumour), under two loads scaled so that their
+linear answer moves the organ 15 mm (pull) or 20 mm (gravity): ``pull``, a 15 mm ball 12 mm under
+the probe point (73 tets) and the probe's surface
 patch (radius 20 mm) pulled outward; ``gravity``, a 30 mm ball at the organ's centre (357 tets) and
 the organ's weight. Each row: the reduced model's
 settled static answer (``solve_static(cubature=True)``) against rt.nonlinear.solve_static's on the
 full order (worst node, as a fraction of the largest displacement), and against the reduced model's
 own answer without cubature (all elements: what the cubature alone adds), for cubature fitted per
 region (``train_cubature(regions=True)``, the default on a model of regions) and over all elements
-at once; medians and ranges over three training seeds, with the elements chosen (of 4,942) and how
+at once; medians and ranges over the training seeds (--seeds), with the elements chosen and how
 many lie in the ball.
 
     python benchmarks/regions_cubature.py [--modes 30 80] [--derivatives 15 20] [--tol 0.05]

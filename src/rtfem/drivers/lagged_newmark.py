@@ -48,7 +48,7 @@ class _Kernels:
 
         kern = system.kernel
         self.ok = (system.dpn == 3 and isinstance(kern, (CorotationalTets, RegionTets))
-                   and not isinstance(kern, ViscoelasticTets)
+                   and not isinstance(kern, ViscoelasticTets) and not getattr(kern, "history_size", 0)
                    and not hasattr(kern, "patch_tangent") and tk.compiled_solid_forces() is not None)
         if not self.ok:
             return

@@ -15,12 +15,14 @@ with its own constants:
   :class:`~rtfem.Material`, the hyperelastic law's otherwise) and the results put back in the
   mesh's element order.
 
+  A region of a :class:`~rtfem.Prony` law carries its own history (its quadrature points' Q_i and
+  S_iso), a segment of the whole's, stepped by the full-order dynamics.
 - the reduced nonlinear model: regions of :class:`~rtfem.Material` (Lame constants per element in
-  its compiled kernels), its cubature fitted per region.
+  its compiled kernels) and of hyperelastic laws (each region's elements by its law's kernels), its
+  cubature fitted per region.
 
 Not yet with regions (refused with the reason): the averaged-nodal-pressure tet4 (``tet4-anp``,
-whose nodal pressure would mix two bulk moduli), Prony series (viscoelastic regions), hyperelastic
-regions in the reduced nonlinear model.
+whose nodal pressure would mix two bulk moduli), Prony regions in the reduced nonlinear model.
 """
 
 from __future__ import annotations
@@ -40,8 +42,6 @@ def region_materials(materials: Mapping, mesh) -> dict[int, object]:
     """``{label: Material or law}`` for every region of ``mesh``, from a mapping by label (an int)
     or by region name (``mesh.region_names``). Raises ModelError for a region left without a
     material, a key that names no region, or a value that is not a material or law."""
-    from .viscoelastic import Prony
-
     if not materials:
         raise ModelError("materials={} gives no material: give {label: rt.Material(...) or a law} for each region")
     names, present = dict(mesh.region_names), set(mesh.regions.tolist())
@@ -60,9 +60,6 @@ def region_materials(materials: Mapping, mesh) -> dict[int, object]:
                              f"{sorted(present)})")
         if label in out:
             raise ModelError(f"region {label} is given two materials ({key!r} and another key naming it)")
-        if isinstance(value, Prony):
-            raise ModelError(f"region {key!r}: a Prony (viscoelastic) law per region is not supported yet; give the "
-                             "regions rt.Material or hyperelastic laws (rt.NeoHookean, rt.MooneyRivlin, rt.Ogden)")
         if not isinstance(value, (Material, Hyperelastic)):
             raise ModelError(f"region {key!r}: the material must be an rt.Material or a hyperelastic law (rt.NeoHookean, "
                              f"rt.MooneyRivlin, rt.Ogden), got {type(value).__name__}")
@@ -129,16 +126,44 @@ class RegionTets:
             bad[idx] = kern.inverted(x[idx])
         return bad
 
-    def evaluate(self, x: np.ndarray, tangent: bool = True):
+    @property
+    def history_size(self) -> int:
+        """The floats of the regions' viscoelastic histories (:class:`~rtfem.Prony` regions; 0 if none):
+        each region's, one after another in the order of ``parts``."""
+        return int(sum(getattr(kern, "history_size", 0) for _, kern in self.parts))
+
+    def _histories(self, history):
+        """Each part's (history segment, dt), or None for a part without one (or no history given)."""
+        if history is None:
+            return [None] * len(self.parts)
+        h, dt = history
+        if h.size != self.history_size:
+            raise ModelError(f"a viscoelastic history of {h.size} values for regions of {self.history_size}")
+        out, at = [], 0
+        for _, kern in self.parts:
+            n = getattr(kern, "history_size", 0)
+            out.append((h[at:at + n], dt) if n else None)
+            at += n
+        return out
+
+    def evaluate(self, x: np.ndarray, tangent: bool = True, history=None):
         """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies (m,)
-        for deformed nodes x (m, k, 3), each region's by its own law."""
+        for deformed nodes x (m, k, 3), each region's by its own law; ``history`` (h, dt): the
+        regions' viscoelastic histories (:attr:`history_size`), each Prony region's step from its
+        segment (none: a Prony region's long-term law)."""
         m, k = x.shape[:2]
         f = np.zeros((m, 3 * k))
         K = np.zeros((m, 3 * k, 3 * k)) if tangent else None
         energy = np.zeros(m)
-        for idx, kern in self.parts:
-            fe, Ke, e = kern.evaluate(x[idx], tangent)
+        for (idx, kern), h in zip(self.parts, self._histories(history)):
+            fe, Ke, e = kern.evaluate(x[idx], tangent) if h is None else kern.evaluate(x[idx], tangent, h)
             f[idx], energy[idx] = fe, e
             if tangent:
                 K[idx] = Ke
         return f, K, energy
+
+    def committed(self, x: np.ndarray, history) -> np.ndarray:
+        """The regions' histories after a step that ended at deformed nodes x (m, k, 3)."""
+        parts = [kern.committed(x[idx], h) for (idx, kern), h in zip(self.parts, self._histories(history))
+                 if h is not None]
+        return np.concatenate(parts) if parts else np.zeros(0)
