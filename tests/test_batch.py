@@ -93,10 +93,7 @@ def test_a_batch_writes_what_the_library_builds_and_resumes(plan, capsys):
 ])
 def test_a_bad_plan_is_one_line(tmp_path, capsys, text, said):
     (tmp_path / "plan.toml").write_text(text)
-    capsys.readouterr()
     assert main(["batch", str(tmp_path / "plan.toml")]) == 2
-    err = capsys.readouterr().err
-    assert "material = ['linear', 3]: give a law" in err and err.count("\n") == 1, err
     err = capsys.readouterr().err
     assert said in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
 
