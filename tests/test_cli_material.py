@@ -67,7 +67,9 @@ def test_a_neo_hookean_solid_probed_lightly_pushes_back_like_its_linear_twin(bar
     (["--material", "neo-hookean:5e4,0.3,1"], "neo-hookean:E[,nu]"),
     (["--material", "linear:3e5,0.7"], "nu=0.7 is outside"),
     (["--material", "linear:-3e5"], "E=-300000.0 must be > 0"),
-    (["--material", "stiff=linear:3e5"], "a mesh of one region"),
+    (["--material", "stiff=linear:3e5"], "material key 'stiff' names no region"),
+    (["--material", "liver+prony:0.5,0.1"], "a sourced tissue set (liver) is taken as its source gives it"),
+    (["--material", "liver#"], "after '#' give which liver set"),
     (["--material", "=linear"], "name the region before '='"),
     (["--material", "liver", "--material", "skin"], "given 2 times without a region"),
     (["--material", "mooney-rivlin:-700,300"], "shear modulus"),
@@ -167,3 +169,25 @@ def test_a_material_per_region_on_the_command_line(two_region_bar, tmp_path, cap
 def test_region_materials_that_do_not_fit_the_mesh_are_refused(two_region_bar, argv, message, capsys):
     rc, out, err = run(capsys, "modes", two_region_bar[0], *FIX, "--element", "tet4", "-n", 4, *argv)
     assert rc == 2 and message in err and "Traceback" not in err, err
+
+
+def test_region_names_that_look_like_labels_or_hold_an_equals_sign(tmp_path, capsys):
+    """A region is named by its name first, else by the label the text spells: a name that spells
+    another region's label is refused as ambiguous; a name with '=' is split at the last '=' (a law
+    has none); a region name with a control or bidirectional character is refused when the mesh is
+    made (it would break the one-line output)."""
+    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.tets)].mean(axis=1)
+    labels = (c[:, 0] > 0.03).astype(int)
+    for names, argv, ok, said in (({"1": 0, "0": 1}, ["1=linear:3e5"], False, "'1' is the name of region 0 and the label"),
+                                  ({"-2": 0, "x": 1}, ["-2=linear:3e5"], True, "region      -2 (label 0, 72 tets): "
+                                   "Material(E=300000"),
+                                  ({"a=b": 0, "x": 1}, ["a=b=linear:3e5"], True, "region      a=b (label 0, 72 tets): "
+                                   "Material(E=300000")):
+        path = tmp_path / f"m{len(list(tmp_path.iterdir()))}.vtu"
+        rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names=names), path)
+        rc, out, err = run(capsys, "modes", path, *FIX, "--element", "tet4", "-n", 2, *[f"--material={a}" for a in argv])
+        assert (rc == 0) == ok and said in (out if ok else err), (rc, out, err)
+    for bad in ("a\nb", "a\u202eb", "x" * 201):
+        with pytest.raises(rt.MeshError, match="is not a region name"):
+            rt.TetMesh(box.vertices, box.tets, labels=labels, region_names={bad: 0})

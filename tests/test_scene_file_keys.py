@@ -265,6 +265,9 @@ def test_a_scene_names_a_sourced_tissue_set_as_the_command_line_does(tmp_path):
     (tmp_path / "scene.toml").write_text(body)
     model = load_scene(tmp_path / "scene.toml").bodies[0].model
     assert model.materials[1] == rt.tissue("liver").material and model.materials[2].E == 3e5
+    (tmp_path / "mixed.toml").write_text(body.replace("capsule = { E = 3e5 } }", "capsule = { E = 3e5 }, density = 1000 }"))
+    with pytest.raises(rt.ModelError, match="key 'material': a material is either one law's keys .* put density inside"):
+        load_scene(tmp_path / "mixed.toml")
     for bad, match in (('{ tissue = "rubber" }', "key 'material.liver': tissue = 'rubber' names no set of the table"),
                        ('{ tissue = "liver", E = 3e4 }', "E: a sourced tissue set gives its own law and moduli"),
                        ('{ tissue = "liver#9" }', "give #1 .. #")):

@@ -338,7 +338,9 @@ def material_texts(args) -> list[tuple[str | None, str]]:
         given = [given]
     out, plain = [], 0
     for text in given:
-        region, eq, law = str(text).partition("=")
+        region, eq, law = str(text).rpartition("=")  # a law has no '=': a region's name may
+        if not eq:
+            region, law = law, ""
         if eq and not region.strip():
             raise RtfemError(f"--material {text!r}: name the region before '=' (REGION=LAW), or give LAW alone")
         out.append((region.strip() if eq else None, (law if eq else region).strip()))
@@ -359,30 +361,42 @@ def materials_from_texts(texts, base):
         return material_from_text(texts[0][1], base)
     out = {}
     for region, text in texts:
-        key = None if region is None else (int(region) if region.lstrip("-").isdigit() else region)
-        if key in out:
+        if region in out:
             raise RtfemError(f"--material: region {region!r} is given two materials")
-        out[key] = material_from_text(text, base)
+        out[region] = material_from_text(text, base)
     return out
 
 
 def region_materials_of(given: dict, mesh) -> dict:
     """{label: material} for every region of ``mesh`` from the command line's (the plain LAW for
-    the regions not named); a shell or a mesh without regions refused."""
+    the regions not named; a region by its name, else by the label it spells); a shell refused."""
     from ..fe.regions import region_materials
     from ..mesh.tetmesh import TetMesh
 
-    if not isinstance(mesh, TetMesh) or mesh.regions.size < 2:
-        what = "a shell" if not isinstance(mesh, TetMesh) else "a mesh of one region"
-        raise RtfemError(f"--material REGION=LAW: the model is {what}; give one --material LAW (regions come from a "
+    if not isinstance(mesh, TetMesh):
+        raise RtfemError("--material REGION=LAW: the model is a shell; give one --material LAW (regions come from a "
                          "volume file's region data, or rtfem mesh LABELS)")
     given = dict(given)
     default = given.pop(None, None)
     names = {v: k for k, v in mesh.region_names.items()}
-    merged = dict(given)
+    keyed = {_region_key(k, mesh): v for k, v in given.items()}
+    merged = dict(keyed)
     if default is not None:
-        merged.update({label: default for label in mesh.regions.tolist() if not _names(label, given, names)})
+        merged.update({label: default for label in mesh.regions.tolist() if not _names(label, keyed, names)})
     return region_materials(merged, mesh)
+
+
+def _region_key(text: str, mesh):
+    """A --material REGION: the region of that name, else the label it spells; ambiguous (a name
+    that spells another region's label) refused."""
+    present = set(mesh.regions.tolist())
+    label = int(text) if text.lstrip("-").isdigit() else None
+    if text in mesh.region_names:
+        if label is not None and label in present and label != mesh.region_names[text]:
+            raise RtfemError(f"--material {text}=...: {text!r} is the name of region {mesh.region_names[text]} and the "
+                             f"label of another; name that region by another of its names, or rename it in the file")
+        return text
+    return text if label is None else label
 
 
 def _names(label: int, given: dict, names: dict) -> bool:

@@ -59,10 +59,12 @@ def region_materials(materials: Mapping, mesh) -> dict[int, object]:
             raise ModelError(f"material for region {key!r}: no tet of this mesh has label {label} (its labels: "
                              f"{sorted(present)})")
         if label in out:
-            raise ModelError(f"region {label} is given two materials ({key!r} and another key naming it)")
+            other = {v: k for k, v in names.items()}.get(label)
+            raise ModelError(f"region {label}{f' ({other!r})' if other else ''} is given two materials (by its name and "
+                             "its label, or twice)")
         if not isinstance(value, (Material, Hyperelastic)):
             raise ModelError(f"region {key!r}: the material must be an rt.Material or a hyperelastic law (rt.NeoHookean, "
-                             f"rt.MooneyRivlin, rt.Ogden), got {type(value).__name__}")
+                             f"rt.MooneyRivlin, rt.Ogden, or rt.Prony on one), got {type(value).__name__}")
         out[label] = value
     missing = sorted(present - set(out))
     if missing:

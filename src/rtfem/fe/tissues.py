@@ -193,11 +193,13 @@ def tissue_from_text(text: str, material, *, nu_given: bool = False) -> TissueSe
     names, with ``material``'s nu where the set has none and its density; None when ``text`` names
     no tissue of the table. ``nu_given``: ``material``'s nu was asked for (a scene file's ``nu``),
     so a set with a nu of its own refuses another."""
-    name, _, number = str(text).strip().partition("#")
+    name, hash_, number = str(text).strip().partition("#")
     found = tissues(name)
     if not found:
         return None
     try:
+        if hash_ and not number.strip():
+            raise ValueError
         which = int(number) - 1 if number else 0
     except ValueError:
         raise ModelError(f"--material {text!r}: after '#' give which {name} set, 1 .. {len(found)}") from None

@@ -247,6 +247,10 @@ def material_from_text(text: str, material):
     base, plus, prony = text.partition("+")
     if not plus:
         return law_from_text(text, material)
+    if tissue_from_text(base.strip(), material) is not None:
+        raise ModelError(f"--material {text!r}: a sourced tissue set ({base.strip()}) is taken as its source gives it; "
+                         "a Prony series goes on a law: LAW+prony:g1,tau1 (e.g. neo-hookean+prony:0.5,0.1, with --E and "
+                         "--nu of the set)")
     kind, _, values = prony.partition(":")
     try:
         numbers = [float(v) for v in values.split(",")] if values.strip() else []

@@ -438,6 +438,12 @@ def _material(table: dict, where: _Where):
     from ..fe.viscoelastic import material_from_table
 
     raw = table.get("material", {})
+    if isinstance(raw, dict) and any(isinstance(v, dict) for k, v in raw.items() if k != "prony") and \
+            not all(isinstance(v, dict) for v in raw.values()):
+        raise where.error("material", "a material is either one law's keys (E, nu, law, tissue, ...) or one table per "
+                          "region ({ liver = { ... }, tumor = { ... } }), not both: put "
+                          f"{', '.join(sorted(k for k, v in raw.items() if not isinstance(v, dict)))} inside the regions' "
+                          "tables")
     if isinstance(raw, dict) and raw and all(isinstance(v, dict) for v in raw.values()):
         return {(int(k) if k.lstrip("-").isdigit() else k): where.check(f"material.{k}", material_from_table, v)
                 for k, v in raw.items()}

@@ -485,6 +485,8 @@ def _check_labels(labels, m: int) -> np.ndarray:
 
 def _check_names(names, labels: np.ndarray) -> dict[str, int]:
     """{name: label} for labels the mesh has (names of labels no tet carries are dropped)."""
+    import unicodedata
+
     if names is None:
         return {}
     if not isinstance(names, Mapping):
@@ -494,6 +496,10 @@ def _check_names(names, labels: np.ndarray) -> dict[str, int]:
         if not isinstance(name, str) or not name or isinstance(label, bool) or not isinstance(label, (int, np.integer)):
             raise MeshError(f"region_names: {validate.show(name)} = {validate.show(label)} must be a name (a string) "
                             "and an integer label")
+        if len(name) > 200 or any(unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp") for c in name):
+            raise MeshError(f"region_names: {ascii(name[:60])} is not a region name: give at most 200 characters with no "
+                            "control, formatting (bidirectional, zero-width) or line-break character (rename the region "
+                            "in the file)")
         if int(label) in present:
             out[name] = int(label)
     return out
