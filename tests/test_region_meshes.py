@@ -91,6 +91,10 @@ def test_a_model_of_regions_says_what_it_lacks():
         rt.SolidModel(mesh, {3: soft, 7: stiff}, element="tet4-anp")
     model = rt.SolidModel(mesh, {"liver": soft, "tumor": stiff})
     assert model.materials == {3: soft, 7: stiff}
+    assert rt.SolidModel(mesh, {"3": soft, "tumor": stiff}).materials == {3: soft, 7: stiff}  # a file's "3": the label
+    named = rt.TetMesh(mesh.vertices, mesh.tets, labels=mesh.labels, region_names={"7": 3, "tumor": 7})
+    with pytest.raises(rt.ModelError, match="'7' is the name of region 3 and the label of another region"):
+        rt.SolidModel(named, {"7": soft, "tumor": stiff})
     with pytest.raises(rt.ModelError, match="2 regions"):
         model.material
     one = rt.SolidModel(mesh, {3: soft, 7: soft})  # every region the same: still two regions, the same K

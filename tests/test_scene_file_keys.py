@@ -222,15 +222,21 @@ def test_the_cli_refuses_a_bad_material_table_in_one_line(folder, capsys):
     assert not (folder / "out").exists()
 
 
+def _two_region_box(path, names: dict) -> np.ndarray:
+    """A 100 x 100 x 50 mm tet box written to ``path`` (Gmsh), label 1 at x < 50 mm, 2 beyond, with
+    ``names``; returns the labels."""
+    box = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    labels = np.where(c[:, 0] > 0.05, 2, 1)
+    rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names=names), path)
+    return labels
+
+
 def test_a_body_of_regions_takes_a_material_per_region_by_label_or_name(tmp_path):
     """A labelled tet mesh (Gmsh physical groups, named) placed by rotate: the body's model keeps the
     labels through the placement and takes each region's table, keyed by name or by label; a key that
     names no region is refused naming it; a shell takes one material."""
-    box = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
-    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
-    labels = np.where(c[:, 0] > 0.05, 2, 1)
-    rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names={"soft": 1, "stiff": 2}),
-                 tmp_path / "box.msh")
+    labels = _two_region_box(tmp_path / "box.msh", {"soft": 1, "stiff": 2})
     body = ('[[body]]\nname = "box"\nmesh = "box.msh"\nrotate = [0, 0, 30]\nelement = "tet4"\nfix = "bottom:0.1"\n'
             'modes = 6\nmaterial = { soft = { E = 3e4 }, 2 = { law = "neo-hookean", mu = 1e5, kappa = 1e6 } }\n')
     (tmp_path / "scene.toml").write_text(body)
@@ -255,11 +261,7 @@ def test_a_scene_names_a_sourced_tissue_set_as_the_command_line_does(tmp_path):
         base = rt.Material(density=1000.0)
         assert _params(material_from_table({"tissue": text, "density": 1000.0})) == _params(material_from_text(text, base))
     assert material_from_table({"tissue": "liver#2"}).E == rt.tissue("liver", which=1).material.E
-    box = rt.meshes.box(0.1, 0.1, 0.05, nx=4, ny=4, nz=2)
-    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
-    labels = np.where(c[:, 0] > 0.05, 2, 1)
-    rt.save_mesh(rt.TetMesh(box.vertices, box.tets, labels=labels, region_names={"liver": 1, "capsule": 2}),
-                 tmp_path / "box.msh")
+    _two_region_box(tmp_path / "box.msh", {"liver": 1, "capsule": 2})
     body = ('[[body]]\nname = "box"\nmesh = "box.msh"\nelement = "tet4"\nfix = "bottom:0.1"\nmodes = 6\n'
             'material = { liver = { tissue = "liver" }, capsule = { E = 3e5 } }\n')
     (tmp_path / "scene.toml").write_text(body)

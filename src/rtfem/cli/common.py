@@ -379,29 +379,15 @@ def region_materials_of(given: dict, mesh) -> dict:
     given = dict(given)
     default = given.pop(None, None)
     names = {v: k for k, v in mesh.region_names.items()}
-    keyed = {_region_key(k, mesh): v for k, v in given.items()}
-    merged = dict(keyed)
+    merged = dict(given)
     if default is not None:
-        merged.update({label: default for label in mesh.regions.tolist() if not _names(label, keyed, names)})
+        merged.update({label: default for label in mesh.regions.tolist() if not _names(label, given, names)})
     return region_materials(merged, mesh)
 
 
-def _region_key(text: str, mesh):
-    """A --material REGION: the region of that name, else the label it spells; ambiguous (a name
-    that spells another region's label) refused."""
-    present = set(mesh.regions.tolist())
-    label = int(text) if text.lstrip("-").isdigit() else None
-    if text in mesh.region_names:
-        if label is not None and label in present and label != mesh.region_names[text]:
-            raise RtfemError(f"--material {text}=...: {text!r} is the name of region {mesh.region_names[text]} and the "
-                             f"label of another; name that region by another of its names, or rename it in the file")
-        return text
-    return text if label is None else label
-
-
 def _names(label: int, given: dict, names: dict) -> bool:
-    """Whether a key of ``given`` names region ``label`` (by its label or its name)."""
-    return label in given or names.get(label) in given
+    """Whether a key of ``given`` (a REGION as typed) names region ``label`` (its name or its label)."""
+    return names.get(label) in given or (str(label) in given and str(label) not in names)
 
 
 def damping_of(args):

@@ -362,22 +362,18 @@ def law_from_text(text: str, material: Material):
         raise ModelError(f"--material {text!r}: choose one of {', '.join(LAWS)} (mooney-rivlin and ogden with their "
                          "parameters: mooney-rivlin:C10,C01, ogden:mu1,alpha1[,mu2,alpha2...], in Pa), or a sourced tissue "
                          "set: brain, fat, gallbladder, liver, muscle, skin, stomach (rt.tissue; TISSUE#N its N-th set)")
+    try:
+        numbers = [float(v) for v in values.split(",")] if values.strip() else []
+    except ValueError:
+        raise ModelError(f"--material {text!r}: the parameters after ':' must be numbers separated by commas") from None
     if name in ("linear", "neo-hookean"):
-        if values.strip():  # its own E[, nu]: a region stiffer than the rest
-            try:
-                numbers = [float(v) for v in values.split(",")]
-            except ValueError:
-                numbers = []
-            if not 1 <= len(numbers) <= 2:
+        if numbers:  # its own E[, nu]: a region stiffer than the rest
+            if len(numbers) > 2:
                 raise ModelError(f"--material {text!r}: {name} takes --E and --nu's moduli, or its own as {name}:E[,nu] "
                                  "(Pa and a ratio)")
             material = Material(E=numbers[0], nu=numbers[1] if len(numbers) == 2 else material.nu,
                                 thickness=material.thickness, density=material.density)
         return make_law(name, material)
-    try:
-        numbers = [float(v) for v in values.split(",")] if values.strip() else []
-    except ValueError:
-        raise ModelError(f"--material {text!r}: the parameters after ':' must be numbers separated by commas") from None
     if name == "mooney-rivlin":
         if len(numbers) != 2:
             raise ModelError(f"--material {text!r}: give mooney-rivlin:C10,C01 (two moduli in Pa)")

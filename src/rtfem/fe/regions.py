@@ -40,15 +40,22 @@ __all__ = ["region_materials", "linear_materials", "RegionTets"]
 
 def region_materials(materials: Mapping, mesh) -> dict[int, object]:
     """``{label: Material or law}`` for every region of ``mesh``, from a mapping by label (an int)
-    or by region name (``mesh.region_names``). Raises ModelError for a region left without a
+    or by region name (``mesh.region_names``); a text key is a region's name first, else the label
+    it spells (a name that spells another region's label is refused as ambiguous). Raises ModelError for a region left without a
     material, a key that names no region, or a value that is not a material or law."""
     if not materials:
         raise ModelError("materials={} gives no material: give {label: rt.Material(...) or a law} for each region")
     names, present = dict(mesh.region_names), set(mesh.regions.tolist())
     out: dict[int, object] = {}
     for key, value in materials.items():
+        spelled = int(key) if isinstance(key, str) and key.lstrip("-").isdigit() else None  # a file's or a CLI's "2"
         if isinstance(key, str) and key in names:
             label = names[key]
+            if spelled is not None and spelled in present and spelled != label:
+                raise ModelError(f"{key!r} is the name of region {label} and the label of another region: name that "
+                                 "region by another of its names, or rename it in the file")
+        elif spelled is not None:
+            label = spelled
         elif isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             label = int(key)
         else:

@@ -434,7 +434,8 @@ def _triple(table: dict, key: str, where: _Where, what: str) -> np.ndarray:
 def _material(table: dict, where: _Where):
     """The body's ``material`` table: any law ``--material`` takes
     (:func:`rtfem.fe.viscoelastic.material_from_table`), or one such table per region of a labelled
-    tet mesh, keyed by label or region name (``material = { 1 = {...}, tumor = {...} }``)."""
+    tet mesh, keyed by region name or label (``material = { 1 = {...}, tumor = {...} }``; the keys
+    as written, resolved by :func:`rtfem.fe.regions.region_materials`)."""
     from ..fe.viscoelastic import material_from_table
 
     raw = table.get("material", {})
@@ -445,8 +446,7 @@ def _material(table: dict, where: _Where):
                           f"{', '.join(sorted(k for k, v in raw.items() if not isinstance(v, dict)))} inside the regions' "
                           "tables")
     if isinstance(raw, dict) and raw and all(isinstance(v, dict) for v in raw.values()):
-        return {(int(k) if k.lstrip("-").isdigit() else k): where.check(f"material.{k}", material_from_table, v)
-                for k, v in raw.items()}
+        return {k: where.check(f"material.{k}", material_from_table, v) for k, v in raw.items()}
 
     return where.check("material", material_from_table, table.get("material", {}))
 
