@@ -99,7 +99,7 @@ class ElementTerms:
         """``out`` filled region by region (data's sixth array: each element's group): ``corotated``
         (V, X, G, wdet, lm, out) for the groups of the corotated material, ``by_law`` (V, X, G, wdet,
         law, out) for a hyperelastic law's."""
-        groups, laws = data[5], _region_laws(self.system)[1]
+        groups, laws = data[5], [law for _, law in self.system.kernel.laws]  # (the group array: data's, made once)
         for g, law in enumerate(laws):
             sel = np.flatnonzero(groups == g)
             if sel.size == 0:
