@@ -115,3 +115,95 @@ def test_the_step_is_chosen_by_model_and_option():
         rt.DirectSimulator(model, 1e-3, None, solver="lagged")
     with pytest.raises(rt.ModelError, match="solver="):
         rt.NonlinearNewmarkSimulator(model, 1e-3, None, solver="lagged")
+
+
+def _twisted_block():
+    """A 3,000-tet block (more than two of the element loop's chunks) bent, twisted and stretched, with
+    one element pushed through itself: every branch of the compiled tet4 forces."""
+    mesh = rt.meshes.box(0.1, 0.05, 0.05, nx=10, ny=5, nz=10)
+    model = rt.SolidModel(mesh, rt.Material(E=3e4, nu=0.45, density=1000.0), element="tet4").fix("x0")
+    X = np.asarray(model.mesh.vertices)
+    a = 2.0 * X[:, 0]  # a twist about x growing to 0.2 rad at the end, a bend and a stretch
+    y, z = X[:, 1] - 0.025, X[:, 2] - 0.025
+    u = np.column_stack([0.1 * X[:, 0], y * np.cos(a) - z * np.sin(a) - y, y * np.sin(a) + z * np.cos(a) - z])
+    u[:, 2] += 3.0 * X[:, 0] ** 2
+    tet = np.asarray(model.tetmesh.tets)[len(model.tetmesh.tets) // 2]
+    u[tet[0]] += 1.5 * (X[tet[1:]].mean(axis=0) - X[tet[0]])  # its first node through the opposite face
+    return model, u
+
+
+def test_the_compiled_tet4_forces_are_the_elements_own(monkeypatch):
+    """The full-order step's tet4 kernel (unrolled, its elements shared among threads) against the
+    corotated tets' batched numpy evaluation (rt.fe.solid.CorotationalTets: another code, the polar
+    decomposition by SVD): the same forces, the same count of inverted elements, and the same bits
+    whatever the number of threads (each element's forces are summed at the nodes in one order)."""
+    from rtfem.fe.nonlinear import Configuration
+
+    model, u = _twisted_block()
+    assert model.tetmesh.n_tets > 2 * 1024
+    sim = rt.DirectSimulator(model, 1e-3, None, large_deformation=True)
+    kernels = sim._kernels
+    if not kernels.ok:
+        pytest.skip("numba is not installed: the lagged step evaluates its forces in numpy")
+    conf = Configuration.rest(model.n_nodes, False)
+    conf.u = u.copy()
+    reference = sim.system.evaluate(conf, False)[0]
+    # the elements' own inversion check (each corner's det F; the one pushed through and its neighbours)
+    inverted = int(np.count_nonzero(kernels.tnk.inverted_elements(kernels._dofs(u), kernels.X, kernels.G_check)))
+    assert 1 <= inverted <= 8
+    got = {}
+    for threads in ("1", "3"):
+        monkeypatch.setenv("RTFEM_ELEMENT_THREADS", threads)
+        got[threads] = kernels.forces(u)
+        assert kernels.inverted(u) == inverted
+    assert np.abs(got["1"] - reference).max() < 1e-11 * np.abs(reference).max()
+    assert np.array_equal(got["1"], got["3"])
+
+
+def test_chunked_runs_every_chunk_once_in_order_and_raises_a_workers_error(monkeypatch):
+    from rtfem.fe import jit
+
+    monkeypatch.setenv("RTFEM_ELEMENT_THREADS", "4")
+    n = 10 * jit.MIN_CHUNK + 7
+    seen = np.zeros(n, dtype=int)
+
+    def work(lo, hi):
+        seen[lo:hi] += 1
+        return lo
+    starts = jit.chunked(n, work)
+    assert len(starts) == 8 and starts == sorted(starts) and starts[0] == 0 and (seen == 1).all()
+
+    def bad(lo, hi):
+        if lo > 0:
+            raise ValueError("a chunk failed")
+    with pytest.raises(ValueError, match="a chunk failed"):
+        jit.chunked(n, bad)
+    jit.reserve_core(True)
+    try:
+        monkeypatch.delenv("RTFEM_ELEMENT_THREADS")
+        from rtfem.threads import usable_cores
+
+        assert jit.element_threads() == max(1, min(8, usable_cores() - 1))
+    finally:
+        jit.reserve_core(False)
+
+
+def test_the_predictor_and_the_refresh_change_the_work_not_the_answer():
+    """Steps started from the extrapolated state and a factor refreshed only once it costs iterations
+    (the defaults) against steps from the committed state and a factor refreshed every 20 steps: the
+    same motion to the tolerance's level (1e-3 of it; the Newton reference agrees as closely), fewer
+    iterations and factorizations (on this bar 265 iterations and 2 factorizations in 120 steps against
+    290 and 6)."""
+    model, F, _ = _bar()
+    runs = {}
+    for options in (dict(), dict(predictor=False), dict(predictor=False, refresh=20)):
+        sim = _run(model, F, 0, **options)
+        iterations = 0
+        for _ in range(120):
+            sim.step(F)
+            iterations += sim.iterations
+        runs[tuple(options)] = (sim.displacements(), iterations, sim.refreshes)
+    U, its, refreshes = runs[()]
+    for key in (("predictor",), ("predictor", "refresh")):
+        assert np.abs(runs[key][0] - U).max() < 1e-3 * np.abs(U).max()
+    assert its < runs[("predictor",)][1] and refreshes < runs[("predictor", "refresh")][2]

@@ -138,6 +138,6 @@ def _keep_in_place(old, new, P, state: dict, solved: np.ndarray) -> None:
     if not np.abs(shift).max(initial=0.0) > 0:
         return
     full = shift.ravel()[solved]
-    for key in ("u", "ref_u"):
+    for key in ("u", "ref_u", "u_1", "u_2"):  # (the lagged step's factor point and its predictor's history)
         if key in state:
             state[key] = state[key] + full

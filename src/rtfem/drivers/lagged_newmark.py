@@ -1,6 +1,6 @@
 """The fast full-order large-deformation step (issue 55): the same HHT-Newmark equations as
 :class:`~rtfem.drivers.nonlinear_newmark.NonlinearNewmarkSimulator`, solved by chord iterations on
-a lagged Newmark tangent, factorized once and refreshed every ``refresh`` steps (or on a thread),
+a lagged Newmark tangent, factorized once and refreshed when it has gone stale (or on a thread),
 with the internal forces from compiled element kernels.
 
 Why it is fast. At a haptic or visual step (dt of a millisecond) the Newmark matrix
@@ -8,13 +8,16 @@ A = M / (beta dt^2) + gamma / (beta dt) B + (1 + a) K_t is dominated by its mass
 the step resolves, so a factor of A at a recent state is a good inverse of today's: each iteration
 x <- x - A_ref^-1 r(x) contracts the residual by about |A_ref^-1 (A_t - A_ref)|, the change of the
 tangent since the refresh weighed against the mass. An iteration costs one evaluation of the
-internal forces (the compiled corotated or hyperelastic tet kernels of the reduced models,
-:mod:`rtfem.reduction.tet_kernels`: no Python per element) and one pair of triangular solves; the
-forces at the end of a step are those at the start of the next, so a step that converges at once
+internal forces (compiled kernels: a tet4's unrolled, :mod:`rtfem.reduction.tet_node_kernels`, the
+others the reduced models' :mod:`rtfem.reduction.tet_kernels`; no Python per element, the elements
+shared among threads by :func:`rtfem.fe.jit.chunked`) and one pair of triangular solves; the
+forces at the end of a step are those at the start of the next, and the step starts from the state
+and forces extrapolated from the last three (no evaluation), so a step that converges at once
 costs one force evaluation and one solve (a linearly implicit step, Baraff & Witkin 1998, whose
 residual is checked). The factor is that of Courtecuisse, Allard, Duriez & Cotin (2010): a
-factorization of a recent tangent, refreshed in the background (``background=True``) or every
-``refresh`` steps (reproducible), and at once where the chord stalls; the contact compliances of
+factorization of a recent tangent, refreshed once its extra iterations have cost about a
+factorization (``refresh="auto"``: in a calm motion never), every ``refresh`` steps, or in the
+background (``background=True``), and at once where the chord stalls; the contact compliances of
 the one-step contract come from it (Saupin et al.; Courtecuisse et al. 2014).
 
 The step converges to the same equations as the Newton step (each step's residual below ``tol``
@@ -29,6 +32,7 @@ import numpy as np
 
 from .. import validate
 from ..errors import SolverError
+from ..fe.jit import chunked
 from .nonlinear_newmark import NonlinearNewmarkSimulator
 
 __all__ = ["LaggedNewmarkSimulator"]
@@ -64,13 +68,19 @@ class _Kernels:
             self.lm = np.tile([kern.lam, kern.mu], (cells.shape[0], 1))
             self.parts = [(None, kern.law if isinstance(kern, HyperelasticTets) else None)]
         self.linear = all(law is None for _, law in self.parts)  # the node kernel's fast path applies
+        self.tet4 = cells.shape[1] == 4 and self.G.shape[1] == 1  # its force evaluation counts inversions
+        self._last = None  # (u, elements inverted there) of the last tet4 force evaluation
         E, k = cells.shape
         self._F = np.empty((E, 3 * k))
         kern.inverted(self.X + 0.0)  # builds the points the inversion check looks at (a tet10's corners too)
         self.G_check = np.ascontiguousarray(np.stack(kern._G_check, axis=1))
 
     def inverted(self, u: np.ndarray) -> int:
-        """How many elements are turned inside out at nodal displacements u (n, 3)."""
+        """How many elements are turned inside out at nodal displacements u (n, 3) (a tet4's counted by
+        the force evaluation at u where that was the last)."""
+        last = self._last
+        if last is not None and np.array_equal(last[0], u):
+            return last[1]
         return int(np.count_nonzero(self.tnk.inverted_elements(self._dofs(u), self.X, self.G_check)))
 
     def _dofs(self, u: np.ndarray) -> np.ndarray:
@@ -80,8 +90,10 @@ class _Kernels:
         """The internal forces (n_dofs,) at nodal displacements u (n, 3)."""
         if self.linear:
             f = np.empty(self.system.model.n_dofs)
-            if self.tnk.solid_node_forces(np.ascontiguousarray(u, dtype=float), self.cells, self.X, self.G, self.wdet,
-                                         self.lm, f):
+            u = np.ascontiguousarray(u, dtype=float)
+            bad = self.tnk.solid_node_forces(u, self.cells, self.X, self.G, self.wdet, self.lm, f)
+            if bad is not None:
+                self._last = (u.copy(), bad) if self.tet4 else None
                 return f
         self._each(self._dofs(u), self._F, self.tk.solid_element_forces, self.tk.law_forces)
         return self.system.gather(self._F)
@@ -98,14 +110,14 @@ class _Kernels:
         material, Lame constants per element) or ``law_kernel`` (a law's), each region's own."""
         for idx, law in self.parts:
             if idx is None:
-                args, res = (V, self.X, self.G, self.wdet), out
+                args, res = (V, self.X, self.G, self.wdet, self.lm), out
             else:
-                args = tuple(np.ascontiguousarray(a[idx]) for a in (V, self.X, self.G, self.wdet))
+                args = tuple(np.ascontiguousarray(a[idx]) for a in (V, self.X, self.G, self.wdet, self.lm))
                 res = np.empty((idx.size,) + out.shape[1:])
             if law is None:
-                linear(*args, self.lm if idx is None else np.ascontiguousarray(self.lm[idx]), res)
+                chunked(res.shape[0], lambda lo, hi: linear(*(a[lo:hi] for a in args), res[lo:hi]))
             else:
-                law_kernel(*args, law, res)
+                chunked(res.shape[0], lambda lo, hi: law_kernel(*(a[lo:hi] for a in args[:4]), law, res[lo:hi]))
             if idx is not None:
                 out[idx] = res
 
@@ -124,10 +136,22 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         Newton reference's, converged to 1e-8, to 3e-5 .. 6.5e-5 of it; at rest the equilibrium is the
         same whatever the tolerance, a residual of zero).
     max_iterations : chord iterations per step before the step fails (default 40).
-    refresh : the tangent is refactorized every ``refresh`` steps (default 20), and at once in a step
-        whose chord iterations pass ``stall`` (default 4), so that the run is reproducible.
-    background : refresh on a thread instead, each step taking the newest factor ready (the
-        real-time setting: a step never waits for a factorization; not reproducible run to run).
+    refresh : when the tangent is refactorized: ``"auto"`` (the default) once the chord iterations the
+        factor has cost beyond the fewest a step of it took add up to ``refresh_cost``: a factor that
+        still converges as it did when fresh is kept (in a calm motion for good), one the motion left
+        behind is replaced as soon as it has cost about a factorization; or every ``refresh`` steps
+        (a whole number). Either way also at once in a step whose chord iterations pass ``stall``
+        (default 4); the run is reproducible.
+    refresh_cost : a factorization's cost in chord iterations, for ``refresh="auto"`` (default 25: on
+        the 9k-tet liver of benchmarks/fullorder.py the tangent and its factorization took 30-40 ms,
+        an iteration (forces and a solve) 1.1-1.3 ms).
+    predictor : start each step's iterations from the displacements and forces extrapolated from the
+        last three committed states (default True; see ``_predicted``): on the swinging liver of
+        benchmarks/fullorder.py 1.1 force evaluations a step instead of 1.9, the same answer to the
+        tolerance.
+    background : refresh on a thread instead (when ``refresh`` says), each step taking the newest
+        factor ready (the real-time setting: a step never waits for a factorization; not
+        reproducible run to run).
 
     Raises
     ------
@@ -143,21 +167,31 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
 
     def __init__(self, model, dt: float, damping=None, *, method: str | None = None,
                  large_deformation: bool | None = None, numerical_damping: float = 0.05, tol: float = 1e-4,
-                 max_iterations: int = 40, refresh: int = 20, stall: int = 4, background: bool = False,
-                 solver: str | None = None) -> None:
+                 max_iterations: int = 40, refresh: int | str = "auto", refresh_cost: int = 25, stall: int = 4,
+                 background: bool = False, predictor: bool = True, solver: str | None = None) -> None:
         super().__init__(model, dt, damping, method=method, large_deformation=large_deformation,
                          numerical_damping=numerical_damping, tol=tol, max_iterations=max_iterations,
                          solver=solver)
-        self.refresh = validate.count(refresh, "refresh", 1, 10**6)
+        self.refresh = refresh if isinstance(refresh, str) and refresh == "auto" else \
+            validate.count(refresh, "refresh", 1, 10**6, what='or "auto"')
+        self.refresh_cost = validate.count(refresh_cost, "refresh_cost", 1, 10**6)
         self.stall = validate.count(stall, "stall", 1, 1000)
         self.background = validate.flag(background, "background")
+        self.predictor = validate.flag(predictor, "predictor")
         self._kernels = _Kernels(self.system)
         self._f = None  # the internal forces at the committed configuration (the next step's first residual)
         self._factor = None  # (factorization of the Newmark tangent, the step it was made at)
         # where the factor was made (its displacements, its step, a Prony law's history then): part of
         # the state, so that a restored state iterates with the same factor and replays bit for bit
         self._ref_u, self._ref_step = np.zeros_like(self._u), np.zeros(1)
-        self._state = (*self._state, "_ref_u", "_ref_step")
+        # the fewest chord iterations a step took on the factor (-1: none yet) and the iterations beyond
+        # those since it was made (refresh="auto")
+        self._chord = np.array([-1.0, 0.0])
+        # the two committed displacements before this one and how many of them the next step may
+        # extrapolate from (the predictor: see _predicted); their forces are evaluated again after a restore
+        self._u_1, self._u_2, self._past = np.zeros_like(self._u), np.zeros_like(self._u), np.zeros(1)
+        self._f_past: list = []  # the forces at _u_1, _u_2 (n_dofs each)
+        self._state = (*self._state, "_ref_u", "_ref_step", "_chord", "_u_1", "_u_2", "_past")
         if self._visc.size:
             self._ref_visc = self._visc.copy()
             self._state = (*self._state, "_ref_visc")
@@ -196,6 +230,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         reuse = None if self.background or self._factor is None else self._factor[0]
         self._factor = (self._factorize(conf, history, reuse), self.steps)
         self._ref_u, self._ref_step = u.copy(), np.array([float(self.steps)])
+        self._chord = np.array([-1.0, 0.0])
         if self._visc.size:
             self._ref_visc = self._visc.copy()
 
@@ -221,17 +256,20 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             ref.u = self.system.expand(self._ref_u)[:, :3].copy()  # (a solid's: no rotations to restore)
             ref_history = (self._ref_visc, self.dt) if self._visc.size else None
             self._factor = (self._factorize(ref, ref_history), int(self._ref_step[0]))
+        stale = self._chord[1] >= self.refresh_cost if self.refresh == "auto" else \
+            self.steps - self._factor[1] >= self.refresh
         if self.background:
             with self._lock:
                 ready, self._ready = self._ready, None
             if ready is not None:
                 self._factor = ready[:2]
                 self._ref_u, self._ref_step = ready[2], np.array([float(ready[1])])
+                self._chord = np.array([-1.0, 0.0])
                 if ready[3] is not None:
                     self._ref_visc = ready[3]
-            if (self._pending is None or not self._pending.is_alive()) and self.steps - self._factor[1] >= 1:
+            elif stale and (self._pending is None or not self._pending.is_alive()):
                 self._refresh_on_thread()
-        elif self.steps - self._factor[1] >= self.refresh:
+        elif stale:
             self._refactor(conf, self._u, history)
         return self._factor[0]
 
@@ -244,7 +282,9 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         u = self._u.copy()
         Ff = F[self._solved]
         history = (self._visc, self.dt) if self._visc.size else None
-        f = self._f if self._f is not None else self._forces(conf, history)
+        if self._f is None:  # (after a restore, or a Prony law's commit)
+            self._f = self._forces(conf, history)
+        f = self._f
         fac = self._lagged(conf, history)
         first = 1
         warm = self._free
@@ -258,6 +298,9 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             u = warm[2] + delta
             f = self._forces(conf, history)
             first = 0
+        predicted = first == 1 and self._past[0] > 0
+        if predicted:
+            u, f = self._predicted(conf, u, f)
         norm_F = float(np.linalg.norm(Ff))
         previous = np.inf
         for it in range(self.max_iterations + 1):
@@ -266,8 +309,11 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             Ma = self._M @ a
             r = Ma + (1 + al) * g - al * self._g
             rn = float(np.linalg.norm(r))
-            if not rn < previous:  # the chord does not contract (a stale tangent far from this motion, or a
-                return self._newton_step(F, history)  # step the mass does not dominate): Newton's step here
+            # the chord does not contract (a stale tangent far from this motion, or a step the mass does not
+            # dominate): Newton's step here (the first residual after a prediction is compared with nothing:
+            # the one before it was the predictor's model)
+            if not rn < previous and not (predicted and it == 1):
+                return self._newton_step(F, history)
             if it >= first and rn <= self.tol * (norm_F + float(np.linalg.norm(f)) + float(np.linalg.norm(Ma)) + 1e-300):
                 self.iterations = it
                 self._f_trial = f
@@ -285,6 +331,30 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         raise SolverError(f"the full-order step {self.steps + 1} did not converge in {self.max_iterations} iterations "
                           f"(residual {rn:.3g}): the step is too large for this motion; use a smaller dt or more "
                           "damping (the state is unchanged)")
+
+    def _predicted(self, conf, u: np.ndarray, f: np.ndarray):
+        """The step's first iterate extrapolated in time from the committed displacements (u_p = 3 u - 3 u_1
+        + u_2, or 2 u - u_1 with one before), with the forces extrapolated alike (a secant model along
+        the motion: no evaluation); ``conf`` is moved there. Only the first iteration's residual is the
+        model's: the chord then iterates on true residuals to the same tolerance, so the predictor
+        changes how many iterations a step takes, not what it converges to. ``conf`` is a solid's."""
+        n = int(self._past[0])
+        if len(self._f_past) < n:  # after a restore: the history's forces, evaluated again (bit for bit)
+            self._f_past = [self._forces_at(x) for x in (self._u_1, self._u_2)[:n]]
+        if n >= 2:
+            up = 3.0 * (u - self._u_1) + self._u_2
+            fp = 3.0 * (f - self._f_past[0]) + self._f_past[1]
+        else:
+            up, fp = 2.0 * u - self._u_1, 2.0 * f - self._f_past[0]
+        conf.u = self.system.expand(up)[:, :3].copy()  # (set, not moved by up - u: the same bits as u)
+        return up, fp
+
+    def _forces_at(self, u: np.ndarray) -> np.ndarray:
+        from ..fe.nonlinear import Configuration
+
+        conf = Configuration.rest(self.model.n_nodes, False)
+        conf.update(self.system.expand(u))
+        return self._forces(conf, None)
 
     def _newton_step(self, F: np.ndarray, history):
         """The step by Newton's method with its line search (the reference's), from the step's start:
@@ -317,7 +387,15 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
 
     def _commit(self, conf, u, g) -> None:
         f = getattr(self, "_f_trial", None)
+        if self._f is not None and not self._visc.size and self.predictor:  # the history the predictor extrapolates
+            self._u_1, self._u_2 = self._u, self._u_1
+            self._f_past = [self._f] + self._f_past[:1]
+            self._past = np.array([min(2.0, self._past[0] + 1)])
+        else:
+            self._past = np.zeros(1)
         super()._commit(conf, u, g)
+        fewest = self.iterations if self._chord[0] < 0 else min(self._chord[0], self.iterations)
+        self._chord = np.array([fewest, self._chord[1] + self.iterations - fewest])
         # the forces at the committed state, for the next step's first residual (a Prony history
         # changed at the commit: its forces are evaluated again)
         self._f = f if not self._visc.size else None
@@ -348,6 +426,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         super()._state_changed()
         self._f = None
         self._factor = None
+        self._f_past = []
         if hasattr(self, "_lock"):
             with self._lock:
                 self._ready = None

@@ -186,12 +186,14 @@ class _MultiRate:
         """Start the physics thread (the first :meth:`update` does)."""
         if self._thread is not None and self._thread.is_alive():
             return self
+        from ..fe.jit import reserve_core
         from ..threads import background
 
         self._stop.clear()
         self._t0, self._sim0 = time.perf_counter(), float(self.driver.time)
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL)
+        reserve_core(True)
         self._thread = threading.Thread(target=self._run, name="rtfem-multirate-physics", daemon=True)
         background(self._thread, self._stop.set)
         self._thread.start()
@@ -199,6 +201,8 @@ class _MultiRate:
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop the physics thread (after the step it is in) and restore the switch interval."""
+        from ..fe.jit import reserve_core
+
         self._stop.set()
         self._wake.set()
         th = self._thread
@@ -208,6 +212,7 @@ class _MultiRate:
         if self._switch is not None:
             sys.setswitchinterval(self._switch)
             self._switch = None
+            reserve_core(False)
 
     def __enter__(self):
         return self
