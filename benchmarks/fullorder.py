@@ -115,15 +115,19 @@ def mujoco_stepper(model, held, tip):
     return (lambda: mujoco.mj_step(m, d)), f"MuJoCo {mujoco.__version__} flex ({m.nv} dof)"
 
 
-def settle(model, F) -> tuple[float, float]:
-    """(|u - u_static| / |u_static| after the lagged step came to rest, the linear answer's same measure)."""
+def settle(model, F) -> tuple[float, float, float]:
+    """(|u - u_static| / |u_static| after 25 / w1 and after 50 / w1 of the lagged step, critically damped,
+    the linear answer's same measure)."""
     w1 = float(rt.modal_analysis(model, 1).omega[0])
     sim = rt.DirectSimulator(model, 2e-3, rt.Damping(alpha=2 * w1), large_deformation=True)
-    for _ in range(int(np.ceil(25.0 / w1 / 2e-3))):  # 25 / w1: 12 time constants of the critically damped mode
-        sim.step(F)
     static = rt.nonlinear.solve_static(model, F).displacements
     scale = np.abs(static).max()
-    return np.abs(sim.displacements() - static).max() / scale, np.abs(model.solve_static(F) - static).max() / scale
+    gaps = []
+    for _ in range(2):  # 25 / w1 each: 12 time constants of the critically damped lowest mode
+        for _ in range(int(np.ceil(25.0 / w1 / 2e-3))):
+            sim.step(F)
+        gaps.append(np.abs(sim.displacements() - static).max() / scale)
+    return gaps[0], gaps[1], np.abs(model.solve_static(F) - static).max() / scale
 
 
 def run(repeat: int, seconds: float, busy: bool, sizes: list[int]) -> None:
@@ -171,9 +175,9 @@ def run(repeat: int, seconds: float, busy: bool, sizes: list[int]) -> None:
             big.append([f"{m2.tetmesh.n_tets:,}", f"{m2.n_nodes:,}", f"{first:.2f} s", f"{r:.1f}"])
         if big:
             print_table(["tet4", "nodes", "first step (factorization)", "lagged steps/s"], big)
-    gap, linear_gap = settle(model, F)
-    print(f"settled: the lagged step's rest state against rt.nonlinear.solve_static: {gap:.2e} of the motion "
-          f"(the linear answer: {linear_gap:.2e})")
+    gap, later, linear_gap = settle(model, F)
+    print(f"settled: the lagged step's state against rt.nonlinear.solve_static: {gap:.2e} of the motion after "
+          f"25 / w1, {later:.2e} after 50 / w1 (the linear answer: {linear_gap:.2e})")
 
 
 def main() -> None:
