@@ -117,18 +117,20 @@ def test_the_step_is_chosen_by_model_and_option():
         rt.NonlinearNewmarkSimulator(model, 1e-3, None, solver="lagged")
 
 
-def _twisted_block():
+def _twisted_block(law=None, inverted=True):
     """A 3,000-tet block (more than two of the element loop's chunks) bent, twisted and stretched (by 10 %,
     and by 60 % more in its far half, where four side-by-side polar iterations are not enough), with one
     element pushed through itself: every branch of the compiled tet4 forces."""
     mesh = rt.meshes.box(0.1, 0.05, 0.05, nx=10, ny=5, nz=10)
-    model = rt.SolidModel(mesh, rt.Material(E=3e4, nu=0.45, density=1000.0), element="tet4").fix("x0")
+    model = rt.SolidModel(mesh, law or rt.Material(E=3e4, nu=0.45, density=1000.0), element="tet4").fix("x0")
     X = np.asarray(model.mesh.vertices)
     a = 2.0 * X[:, 0]  # a twist about x growing to 0.2 rad at the end, a bend and a stretch
     y, z = X[:, 1] - 0.025, X[:, 2] - 0.025
     u = np.column_stack([0.1 * X[:, 0], y * np.cos(a) - z * np.sin(a) - y, y * np.sin(a) + z * np.cos(a) - z])
     u[:, 2] += 3.0 * X[:, 0] ** 2
     u[:, 0] += 0.6 * np.clip(X[:, 0] - 0.05, 0.0, None)
+    if not inverted:
+        return model, u
     tet = np.asarray(model.tetmesh.tets)[len(model.tetmesh.tets) // 2]
     x = X + u
     u[tet[0]] += 1.5 * (x[tet[1:]].mean(axis=0) - x[tet[0]])  # its first node through the opposite face
@@ -161,6 +163,28 @@ def test_the_compiled_tet4_forces_are_the_elements_own(monkeypatch):
         assert kernels.inverted(u) == inverted
     assert np.abs(got["1"] - reference).max() < 1e-11 * np.abs(reference).max()
     assert np.array_equal(got["1"], got["3"])
+
+
+def test_a_hyperelastic_solids_forces_and_tangent_shared_among_threads_are_its_own(monkeypatch):
+    """A neo-Hookean block's forces and tangent by the reduced models' law kernels, in chunks on 1 and 3
+    threads, against rt.fe.solid.HyperelasticTets' batched numpy evaluation."""
+    from rtfem.fe.nonlinear import Configuration
+
+    model, u = _twisted_block(rt.NeoHookean(mu=1e4, kappa=9e4, density=1000.0), inverted=False)
+    sim = rt.DirectSimulator(model, 1e-3, None, large_deformation=True)
+    kernels = sim._kernels
+    if not kernels.ok:
+        pytest.skip("numba is not installed: the lagged step evaluates its forces in numpy")
+    conf = Configuration.rest(model.n_nodes, False)
+    conf.u = u.copy()
+    f_ref, K_ref, _ = sim.system.evaluate(conf, True)
+    got = {}
+    for threads in ("1", "3"):
+        monkeypatch.setenv("RTFEM_ELEMENT_THREADS", threads)
+        got[threads] = (kernels.forces(u), kernels.tangent(u))
+    assert np.abs(got["1"][0] - f_ref).max() < 1e-10 * np.abs(f_ref).max()
+    assert abs(got["1"][1] - K_ref).max() < 1e-9 * abs(K_ref).max()
+    assert np.array_equal(got["1"][0], got["3"][0]) and np.array_equal(got["1"][1].data, got["3"][1].data)
 
 
 def test_chunked_runs_every_chunk_once_in_order_and_raises_a_workers_error(monkeypatch):

@@ -29,6 +29,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import scipy.sparse as sp
 
 from .. import validate
 from ..errors import SolverError
@@ -217,12 +218,27 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         """The factorization of the Newmark tangent at ``conf`` (the HHT-weighted stiffness): ``reuse``
         (a factorization of this system's pattern, not in use elsewhere) factorized again in place where
         the backend can (PARDISO's numeric phase alone: the ordering kept), else a new one."""
-        A = (self._dyn + (1 + self._hht) * self._tangent(conf, history)).tocsr()
+        A = self._newmark_matrix(self._tangent(conf, history))
         with self._lock:
             self.refreshes += 1
         if reuse is not None and reuse.refactor(A):
             return reuse
         return self.system.solver(A, "the Newmark tangent", refactorable=not self.background)
+
+    def _newmark_matrix(self, K):
+        """dyn + (1 + a) K: on the tangent pattern's own arrays one product and sum of their values (the
+        mass and damping, whose pattern is within the tangent's, put there once), else scipy's sum
+        (which holds the GIL for the whole merge of the patterns)."""
+        indices, indptr, n = self.system._pattern
+        if K.indices is indices and K.indptr is indptr:
+            if getattr(self, "_dyn_on_K", None) is None:
+                P = (sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, n)) + self._dyn).tocsr()
+                P.sort_indices()
+                ok = P.nnz == indices.size and np.array_equal(P.indices, indices) and np.array_equal(P.indptr, indptr)
+                self._dyn_on_K = P.data if ok else False
+            if self._dyn_on_K is not False:
+                return sp.csr_matrix((self._dyn_on_K + (1 + self._hht) * K.data, indices, indptr), shape=(n, n))
+        return (self._dyn + (1 + self._hht) * K).tocsr()
 
     def _refactor(self, conf, u: np.ndarray, history) -> None:
         """The factor of the Newmark tangent at ``conf`` (displacements ``u``), kept with where it was made

@@ -99,6 +99,9 @@ def chunked(n: int, work) -> list:
                 if left[0] == 0:
                     done.set()
 
+    work(0, 0)  # an empty chunk here first: a kernel compiled (or loaded from numba's cache) on first use is
+    # compiled by the calling thread, not a pool's beside it (CPython 3.11's compile() is not safe in two
+    # threads at once: a test importing its module there failed with "AST constructor recursion depth mismatch")
     pool = _pool(threads - 1)
     helpers = [pool.submit(drain) for _ in range(threads - 1)]
     drain()
