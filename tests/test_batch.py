@@ -153,3 +153,20 @@ def test_a_plan_gives_a_mesh_of_regions_a_material_per_region(tmp_path, capsys):
     assert main(["batch", str(tmp_path / "plan.toml")]) == 2
     err = capsys.readouterr().err
     assert "material = ['linear', 3]: give a law" in err and err.count("\n") == 1, err
+
+
+def test_a_shell_given_materials_per_region_is_refused_before_any_work(tmp_path, capsys):
+    """A surface organ is a shell of one material: REGION=LAW is refused when the plan is read (it
+    failed only when the organ ran), naming the organ; the same organ as a solid is taken."""
+    rt.save_mesh(rt.meshes.liver(1), tmp_path / "liver.obj")
+    plan = ('out = "out"\n[[organ]]\nname = "liver"\nmesh = "liver.obj"\nbuild = ["modes"]\nmodes = 4\n'
+            'fix = "attachment"\nmaterial = ["liver", "0=linear:3e5"]\n')
+    (tmp_path / "plan.toml").write_text(plan)
+    assert main(["batch", str(tmp_path / "plan.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "organ 1 ('liver'): material REGION=LAW needs a solid of regions" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+    from rtfem.cli.batch import load_plan
+
+    (tmp_path / "plan.toml").write_text(plan + "solid = true\n")
+    assert load_plan(tmp_path / "plan.toml")[2][0]["solid"] is True

@@ -165,6 +165,7 @@ def test_a_material_per_region_on_the_command_line(two_region_bar, tmp_path, cap
     (["--material", "7=linear:3e5"], "no tet of this mesh has label 7"),
     (["--material", "stiff=linear:3e5", "--material", "1=linear"], "two materials"),
     (["--material", "stiff=linear:3e5"] * 2, "given two materials"),
+    (["--material", "-1=linear:3e5"], "is given as --material=-1=LAW"),  # argparse reads '-1=...' as a flag
 ])
 def test_region_materials_that_do_not_fit_the_mesh_are_refused(two_region_bar, argv, message, capsys):
     rc, out, err = run(capsys, "modes", two_region_bar[0], *FIX, "--element", "tet4", "-n", 4, *argv)

@@ -61,6 +61,17 @@ def test_regions_survive_a_file(tmp_path, suffix, names, order):
     assert back.region_names == (mesh.region_names if names else {})
 
 
+@pytest.mark.parametrize("suffix, label", [(".vtu", 0), (".msh", 0), (".inp", 1)])
+def test_a_single_named_region_keeps_its_name_in_a_file(tmp_path, suffix, label):
+    """A mesh of one region, label 0, named: its name was lost in a file (only labels not all 0 were
+    written). An Abaqus deck numbers its sets from 1."""
+    box = rt.meshes.box(0.02, 0.02, 0.02, nx=2, ny=2, nz=2)
+    mesh = rt.TetMesh(box.vertices, box.tets, labels=np.zeros(len(box.tets), dtype=int), region_names={"liver": 0})
+    rt.save_mesh(mesh, tmp_path / f"organ{suffix}")
+    back = rt.load_mesh(tmp_path / f"organ{suffix}")
+    assert back.region_names == {"liver": label} and (np.asarray(back.labels) == label).all()
+
+
 def test_abaqus_element_sets_are_regions_by_name(tmp_path):
     """An Abaqus deck has element sets, not numbers: each set is a region numbered from 1 in the file's
     order, named as the set."""

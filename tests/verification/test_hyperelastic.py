@@ -171,6 +171,7 @@ def test_bad_laws_and_unsupported_uses_are_refused():
                         (lambda: rt.MooneyRivlin(-600.0, 100.0, KAPPA), "shear modulus"),
                         (lambda: rt.Ogden([1.0, 2.0], [2.0], KAPPA), "same length"),
                         (lambda: rt.Ogden([1.0], [0.0], KAPPA), "alpha_i != 0"),
+                        (lambda: rt.Ogden([1.0], [1e300], KAPPA), "each exponent must be within"),
                         (lambda: rt.NeoHookean(MU, 1e4 * MU), "kappa / mu"),
                         (lambda: rt.NeoHookean(MU, KAPPA, density=float("nan")), "density")]:
         with pytest.raises(ModelError, match=match):

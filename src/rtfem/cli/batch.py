@@ -126,6 +126,9 @@ def load_plan(path: str | Path, *, out: str | Path | None = None) -> tuple[Path,
     return folder, scheduler, specs
 
 
+VOLUME_SUFFIXES = (".vtu", ".vtk", ".msh", ".mesh", ".inp")  # the files an organ is a solid from
+
+
 def _as_list(value) -> list:
     return [value] if isinstance(value, str) else value
 
@@ -241,10 +244,19 @@ def _check_organ(spec: dict, where: str, problems: list) -> None:
 
     try:
         args = _model_args(spec)
-        materials_from_texts(material_texts(args), Material(E=args.E, nu=args.nu, thickness=args.thickness,
-                                                            density=args.density))
+        given = materials_from_texts(material_texts(args), Material(E=args.E, nu=args.nu, thickness=args.thickness,
+                                                                    density=args.density))
     except RtfemError as exc:
         problems.append(f"{where}: {validate.one_line(str(exc))}")
+        return
+    if isinstance(given, dict) and not _is_solid(spec):
+        problems.append(f"{where}: material REGION=LAW needs a solid of regions (a volume file such as .vtu or .msh, "
+                        "or solid = true), but this organ is a shell: give one material")
+
+
+def _is_solid(spec: dict) -> bool:
+    """Whether an organ is a solid: ``solid = true``, or a volume file."""
+    return bool(spec.get("solid")) or Path(spec.get("mesh") or "x.obj").suffix.lower() in VOLUME_SUFFIXES
 
 
 def _model_args(spec: dict) -> argparse.Namespace:
@@ -374,9 +386,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     address = check_scheduler(args)  # the command line's; a plan's may only be local:N
     out, planned, specs = load_plan(args.plan, out=args.out)
     for spec in specs:  # a solid: --solid, or a volume file
-        solid = spec.get("solid") or Path(spec.get("mesh") or "x.obj").suffix.lower() in (".vtu", ".vtk", ".msh",
-                                                                                           ".mesh", ".inp")
-        locking = locking_warning(spec.get("element"), float(spec.get("nu", 0.45))) if solid else None
+        locking = locking_warning(spec.get("element"), float(spec.get("nu", 0.45))) if _is_solid(spec) else None
         if locking:
             warn(f"organ {spec['name']}: {locking}")
     with scheduler_of(args, address or planned) as scheduler:

@@ -117,6 +117,8 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # type: ignore[override]
         cmd = self.prog.split()[-1] if " " in self.prog else ""
         hint = f"; see rtfem {cmd} --help" if cmd else "; see rtfem --help"
+        if message.startswith("argument --material: expected one argument"):  # --material -1=LAW: '-1=...' read as a flag
+            hint = "; a value starting with '-' (a region labelled -1) is given as --material=-1=LAW" + hint
         self.exit(2, f"rtfem: error: {_one_line(message)}{hint}\n")
 
 

@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 
 from .. import validate
 from ..errors import ModelError
-from .hyperelastic import MooneyRivlin, NeoHookean, Ogden
+from .hyperelastic import MAX_OGDEN_ALPHA, MooneyRivlin, NeoHookean, Ogden
 
 __all__ = ["fit_material", "uniaxial_stress"]
 
@@ -101,8 +101,11 @@ def fit_material(stretch, stress, law: str = "neo-hookean", *, terms: int = 1, k
             alphas = [exps[(k + j) % len(exps)] for j in range(terms)]
             starts.append([v for a in alphas for v in (mu0 / terms, a)])
     best = None
+    lo = np.full(len(starts[0]), -np.inf)
+    if name == "ogden":  # the exponents within what rt.Ogden takes
+        lo[1::2] = -MAX_OGDEN_ALPHA
     for x0 in starts:
-        r = least_squares(residual, x0, method="trf", x_scale="jac", max_nfev=2000)
+        r = least_squares(residual, x0, method="trf", x_scale="jac", max_nfev=2000, bounds=(lo, -lo))
         if best is None or r.cost < best.cost:
             best = r
     p = best.x

@@ -228,6 +228,9 @@ class MooneyRivlin(_Invariants):
         return f"MooneyRivlin(c10={self.c10:g}, c01={self.c01:g}, kappa={self.kappa:g}, density={self.density:g})"
 
 
+MAX_OGDEN_ALPHA = 100.0  # the largest |alpha_i| an Ogden law takes
+
+
 class Ogden(Hyperelastic):
     """Ogden: W = sum_i 2 mu_i / alpha_i^2 (lambda_1bar^alpha_i + lambda_2bar^alpha_i +
     lambda_3bar^alpha_i - 3) + kappa / 2 (J - 1)^2 (Abaqus / CalculiX ``OGDEN``, N = 1..6 terms);
@@ -248,7 +251,8 @@ class Ogden(Hyperelastic):
     Raises
     ------
     ModelError
-        Lists of different lengths, more than 6 terms, an alpha or a mu_i of 0, or sum mu_i <= 0
+        Lists of different lengths, more than 6 terms, an alpha or a mu_i of 0, an |alpha_i| over 100, or
+        sum mu_i <= 0
         (no stable initial shear modulus).
     """
 
@@ -262,6 +266,9 @@ class Ogden(Hyperelastic):
                              "two lists of the same length (e.g. mu=[2000.0], alpha=[8.0])")
         if not (np.isfinite(mus).all() and np.isfinite(alphas).all()):
             raise ModelError("Ogden mu and alpha must be finite numbers")
+        if (np.abs(alphas) > MAX_OGDEN_ALPHA).any():
+            raise ModelError(f"Ogden alpha={alphas.tolist()}: each exponent must be within +-{MAX_OGDEN_ALPHA:g} (fitted "
+                             "soft tissue uses |alpha| up to about 30; a stretch of 1.5 to the power 1e3 is 1e176)")
         if (alphas == 0).any() or (mus == 0).any():
             raise ModelError(f"Ogden mu={mus.tolist()}, alpha={alphas.tolist()}: every term needs mu_i != 0 and "
                              "alpha_i != 0 (drop a term that is zero)")

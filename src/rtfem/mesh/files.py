@@ -115,7 +115,8 @@ def save_mesh(mesh: TriMesh | TetMesh, path: str | os.PathLike, point_data: dict
     if fmt[0] == "medit" and isinstance(mesh, TetMesh) and mesh.order == 2:
         raise MeshError(f"{str(p)!r}: MEDIT's .mesh format has no 10-node tets; save a 10-node mesh as .vtu, .msh or "
                         ".inp, or its corners (mesh.linear()) as .mesh")
-    regions = _region_data(mesh, fmt[0]) if isinstance(mesh, TetMesh) and mesh.labels.any() else {}
+    regions = _region_data(mesh, fmt[0]) if isinstance(mesh, TetMesh) and (mesh.labels.any() or mesh.region_names) \
+        else {}  # (a named region 0 alone too: its name would be lost)
     with atomic_target(p, "mesh file") as tmp:
         try:
             meshio.write_points_cells(str(tmp), np.asarray(mesh.vertices), mesh_cells(mesh), point_data=data,
