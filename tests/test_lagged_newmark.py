@@ -117,12 +117,12 @@ def test_the_step_is_chosen_by_model_and_option():
         rt.NonlinearNewmarkSimulator(model, 1e-3, None, solver="lagged")
 
 
-def _twisted_block(law=None, inverted=True):
+def _twisted_block(law=None, inverted=True, element="tet4"):
     """A 3,000-tet block (more than two of the element loop's chunks) bent, twisted and stretched (by 10 %,
     and by 60 % more in its far half, where four side-by-side polar iterations are not enough), with one
     element pushed through itself: every branch of the compiled tet4 forces."""
     mesh = rt.meshes.box(0.1, 0.05, 0.05, nx=10, ny=5, nz=10)
-    model = rt.SolidModel(mesh, law or rt.Material(E=3e4, nu=0.45, density=1000.0), element="tet4").fix("x0")
+    model = rt.SolidModel(mesh, law or rt.Material(E=3e4, nu=0.45, density=1000.0), element=element).fix("x0")
     X = np.asarray(model.mesh.vertices)
     a = 2.0 * X[:, 0]  # a twist about x growing to 0.2 rad at the end, a bend and a stretch
     y, z = X[:, 1] - 0.025, X[:, 2] - 0.025
@@ -137,14 +137,16 @@ def _twisted_block(law=None, inverted=True):
     return model, u
 
 
-def test_the_compiled_tet4_forces_are_the_elements_own(monkeypatch):
-    """The full-order step's tet4 kernel (unrolled, its elements shared among threads) against the
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_the_compiled_forces_are_the_elements_own(monkeypatch, element):
+    """The full-order step's kernels (a tet4's unrolled, a tet10's four points; the rotations found 32 side
+    by side, the elements shared among threads) against the
     corotated tets' batched numpy evaluation (rt.fe.solid.CorotationalTets: another code, the polar
     decomposition by SVD): the same forces, the same count of inverted elements, and the same bits
     whatever the number of threads (each element's forces are summed at the nodes in one order)."""
     from rtfem.fe.nonlinear import Configuration
 
-    model, u = _twisted_block()
+    model, u = _twisted_block(element=element)
     assert model.tetmesh.n_tets > 2 * 1024
     sim = rt.DirectSimulator(model, 1e-3, None, large_deformation=True)
     kernels = sim._kernels

@@ -116,9 +116,10 @@ class _Kernels:
                 args = tuple(np.ascontiguousarray(a[idx]) for a in (V, self.X, self.G, self.wdet, self.lm))
                 res = np.empty((idx.size,) + out.shape[1:])
             if law is None:
-                chunked(res.shape[0], lambda lo, hi: linear(*(a[lo:hi] for a in args), res[lo:hi]))
+                chunked(res.shape[0], lambda lo, hi: linear(*(a[lo:hi] for a in args), res[lo:hi]), self.G.shape[1])
             else:
-                chunked(res.shape[0], lambda lo, hi: law_kernel(*(a[lo:hi] for a in args[:4]), law, res[lo:hi]))
+                chunked(res.shape[0], lambda lo, hi: law_kernel(*(a[lo:hi] for a in args[:4]), law, res[lo:hi]),
+                        self.G.shape[1])
             if idx is not None:
                 out[idx] = res
 

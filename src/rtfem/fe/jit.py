@@ -73,16 +73,17 @@ def _pool(workers: int):
         return pool
 
 
-def chunked(n: int, work) -> list:
+def chunked(n: int, work, weight: int = 1) -> list:
     """[work(lo, hi) for each chunk of range(n)], the chunks shared among :func:`element_threads`
     threads: this one and a pool's (the kernels release the GIL). Each thread takes the next chunk
     not yet taken, so a thread the system keeps waiting (a busy core) holds up nothing but its own
     chunk; the caller returns as soon as every chunk is done, whatever the pool is busy with. A
-    chunk's result does not depend on the thread that made it: the results are those of one thread."""
+    chunk's result does not depend on the thread that made it: the results are those of one thread.
+    ``weight``: an element's work in elements of one point (a tet10's four quadrature points: 4)."""
     threads = element_threads()
-    if threads <= 1 or n < 2 * MIN_CHUNK:
+    if threads <= 1 or n * weight < 2 * MIN_CHUNK or n < 2:
         return [work(0, n)]
-    m = min(2 * threads, n // MIN_CHUNK)
+    m = min(2 * threads, n * weight // MIN_CHUNK, n)
     bounds = [n * i // m for i in range(m + 1)]
     results: list = [None] * m
     taken = itertools.count()

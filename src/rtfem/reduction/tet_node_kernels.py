@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from ..fe.jit import chunked, compiled
-from .tet_kernels import _add_stress_forces, _deformed_nodes, _element_forces, _gradient, _polar_rotation, _rotation
+from .tet_kernels import _deformed_nodes, _gradient, _polar_rotation, _rotation
 
 __all__ = ["solid_node_forces", "inverted_elements"]
 
@@ -49,21 +49,9 @@ def _tet4_forces(u, cells, X, G, wdet, lm, Fe):
             _newton_lanes(Rb, change, detF, nb, it == 0)
         for j in range(nb):
             e = e0 + j
-            for a in range(3):
-                for b in range(3):
-                    Fm[a, b] = Fb[3 * a + b, j]
-                    R[a, b] = Rb[3 * a + b, j]
             if not detF[j] > 0.0:
                 bad += 1
-                _rotation(Fm, R, Z)
-            elif not change[j] < 1e-16:  # on from the iterate (the same polar factor as F)
-                for a in range(3):
-                    for b in range(3):
-                        Z[a, b] = R[a, b]
-                _rotation(Z, R, Fm)
-                for a in range(3):
-                    for b in range(3):
-                        Fm[a, b] = Fb[3 * a + b, j]
+            _lane_rotation(Fb, Rb, change, detF, j, Fm, R, Z)
             trS = 0.0
             for a in range(3):
                 for b in range(3):
@@ -108,17 +96,70 @@ def _newton_lanes(Rb, change, detF, nb, first):
 
 def _node_element_forces(u, cells, X, G, wdet, lm, Fe):
     """Fe (E, 3k) = each corotated-linear element's nodal forces at nodal displacements u (n, 3), any
-    element (a tet10's four points): :func:`_element_forces` on its nodes gathered from u. Returns 0
-    (the inversion check of a tet10 looks at its corners too: :func:`inverted_elements`)."""
-    k = cells.shape[1]
-    x = np.zeros((k, 3))
-    Fm, R, Z, P = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
-    for e in range(cells.shape[0]):
-        for i in range(k):
-            for c in range(3):
-                x[i, c] = X[e, i, c] + u[cells[e, i], c]
-        _element_forces(x, G[e], wdet[e], lm[e, 0], lm[e, 1], Fe[e], Fm, R, Z, P)
+    element (a tet10's four points): the rotations of :data:`BLOCK` (element, point) pairs at a time
+    side by side, as :func:`_tet4_forces` does (a tet10 liver's forces 3-4x faster than element by
+    element), each point's share w P G_i added to its element's. Returns 0 (the inversion check of a
+    tet10 looks at its corners too: :func:`inverted_elements`)."""
+    E, nq, k = G.shape[0], G.shape[1], G.shape[2]
+    B = BLOCK
+    Fb, Rb, change, detF = np.empty((9, B)), np.empty((9, B)), np.empty(B), np.empty(B)
+    Fm, R, Z = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Fe[:] = 0.0
+    for s0 in range(0, E * nq, B):
+        nb = min(B, E * nq - s0)
+        for j in range(nb):
+            e, q = (s0 + j) // nq, (s0 + j) % nq
+            for a in range(3):
+                for b in range(3):
+                    Fm[a, b] = 0.0
+            for i in range(k):
+                node = cells[e, i]
+                for a in range(3):
+                    xa = X[e, i, a] + u[node, a]
+                    for b in range(3):
+                        Fm[a, b] += xa * G[e, q, i, b]
+            for a in range(3):
+                for b in range(3):
+                    Fb[3 * a + b, j] = Fm[a, b]
+                    Rb[3 * a + b, j] = Fm[a, b]
+        for it in range(SIDE_BY_SIDE):
+            _newton_lanes(Rb, change, detF, nb, it == 0)
+        for j in range(nb):
+            e, q = (s0 + j) // nq, (s0 + j) % nq
+            _lane_rotation(Fb, Rb, change, detF, j, Fm, R, Z)
+            trS = 0.0
+            for a in range(3):
+                for b in range(3):
+                    trS += R[a, b] * Fm[a, b]
+            w = wdet[e, q]
+            m2, t = 2.0 * lm[e, 1] * w, lm[e, 0] * (trS - 3.0) * w
+            for a in range(3):
+                p0 = m2 * (Fm[a, 0] - R[a, 0]) + t * R[a, 0]
+                p1 = m2 * (Fm[a, 1] - R[a, 1]) + t * R[a, 1]
+                p2 = m2 * (Fm[a, 2] - R[a, 2]) + t * R[a, 2]
+                for i in range(k):
+                    Fe[e, 3 * i + a] += p0 * G[e, q, i, 0] + p1 * G[e, q, i, 1] + p2 * G[e, q, i, 2]
     return 0
+
+
+def _lane_rotation(Fb, Rb, change, detF, j, Fm, R, Z):
+    """Fm, R (3, 3) = lane j's deformation gradient and its rotation after the side-by-side iterations:
+    the lane's own where it converged, else :func:`_rotation` from its iterate (F's polar factor), or
+    from F itself where det F <= 0 (the SVD's)."""
+    for a in range(3):
+        for b in range(3):
+            Fm[a, b] = Fb[3 * a + b, j]
+            R[a, b] = Rb[3 * a + b, j]
+    if not detF[j] > 0.0:
+        _rotation(Fm, R, Z)
+    elif not change[j] < 1e-16:
+        for a in range(3):
+            for b in range(3):
+                Z[a, b] = R[a, b]
+        _rotation(Z, R, Fm)
+        for a in range(3):
+            for b in range(3):
+                Fm[a, b] = Fb[3 * a + b, j]
 
 
 def _scatter(cells, Fe, f):
@@ -137,15 +178,15 @@ def solid_node_forces(u, cells, X, G, wdet, lm, f):
     elements shared among the threads of :func:`rtfem.fe.jit.chunked`. Returns how many tet4s are
     turned inside out (0 for other elements), or None (f untouched) without numba."""
     tet4 = cells.shape[1] == 4 and G.shape[1] == 1
-    fn = compiled("solid-tet4", _tet4_forces, _newton_lanes, _polar_rotation, _rotation) if tet4 else \
-        compiled("solid-node-elements", _node_element_forces, _element_forces, _polar_rotation, _rotation, _gradient,
-                 _add_stress_forces)
+    fn = compiled("solid-tet4", _tet4_forces, _newton_lanes, _lane_rotation, _polar_rotation, _rotation) \
+        if tet4 else compiled("solid-node-elements", _node_element_forces, _newton_lanes, _lane_rotation, _polar_rotation,
+                              _rotation)
     scatter = compiled("scatter", _scatter)
     if fn is None or scatter is None:
         return None
     Fe = np.empty((cells.shape[0], 3 * cells.shape[1]))
     counts = chunked(cells.shape[0], lambda lo, hi: fn(u, cells[lo:hi], X[lo:hi], G[lo:hi], wdet[lo:hi], lm[lo:hi],
-                                                         Fe[lo:hi]))
+                                                         Fe[lo:hi]), G.shape[1])
     scatter(cells, Fe, f)
     return int(sum(counts))
 
