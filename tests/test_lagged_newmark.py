@@ -137,23 +137,28 @@ def _twisted_block(law=None, inverted=True, element="tet4"):
     return model, u
 
 
-@pytest.mark.parametrize("element", ["tet4", "tet10"])
-def test_the_compiled_forces_are_the_elements_own(monkeypatch, element):
-    """The full-order step's kernels (a tet4's unrolled, a tet10's four points; the rotations found 32 side
-    by side, the elements shared among threads) against the
-    corotated tets' batched numpy evaluation (rt.fe.solid.CorotationalTets: another code, the polar
-    decomposition by SVD): the same forces, the same count of inverted elements, and the same bits
-    whatever the number of threads (each element's forces are summed at the nodes in one order)."""
+def _kernels_at(model, u):
+    """(the lagged simulator of ``model``, its compiled kernels, a configuration at displacements u)."""
     from rtfem.fe.nonlinear import Configuration
 
-    model, u = _twisted_block(element=element)
-    assert model.tetmesh.n_tets > 2 * 1024
     sim = rt.DirectSimulator(model, 1e-3, None, large_deformation=True)
-    kernels = sim._kernels
-    if not kernels.ok:
+    if not sim._kernels.ok:
         pytest.skip("numba is not installed: the lagged step evaluates its forces in numpy")
     conf = Configuration.rest(model.n_nodes, False)
     conf.u = u.copy()
+    return sim, sim._kernels, conf
+
+
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_the_compiled_forces_are_the_elements_own(monkeypatch, element):
+    """The full-order step's kernels (a tet4's unrolled, a tet10's four points; the rotations found 32 side
+    by side, the elements shared among threads) against the corotated tets' batched numpy evaluation
+    (rt.fe.solid.CorotationalTets: another code, the polar decomposition by SVD): the same forces, the
+    same count of inverted elements, and the same bits whatever the number of threads (each element's
+    forces are summed at the nodes in one order)."""
+    model, u = _twisted_block(element=element)
+    assert model.tetmesh.n_tets > 2 * 1024
+    sim, kernels, conf = _kernels_at(model, u)
     reference = sim.system.evaluate(conf, False)[0]
     # the elements' own inversion check (each corner's det F; the one pushed through and its neighbours)
     inverted = int(np.count_nonzero(kernels.tnk.inverted_elements(kernels._dofs(u), kernels.X, kernels.G_check)))
@@ -170,15 +175,8 @@ def test_the_compiled_forces_are_the_elements_own(monkeypatch, element):
 def test_a_hyperelastic_solids_forces_and_tangent_shared_among_threads_are_its_own(monkeypatch):
     """A neo-Hookean block's forces and tangent by the reduced models' law kernels, in chunks on 1 and 3
     threads, against rt.fe.solid.HyperelasticTets' batched numpy evaluation."""
-    from rtfem.fe.nonlinear import Configuration
-
     model, u = _twisted_block(rt.NeoHookean(mu=1e4, kappa=9e4, density=1000.0), inverted=False)
-    sim = rt.DirectSimulator(model, 1e-3, None, large_deformation=True)
-    kernels = sim._kernels
-    if not kernels.ok:
-        pytest.skip("numba is not installed: the lagged step evaluates its forces in numpy")
-    conf = Configuration.rest(model.n_nodes, False)
-    conf.u = u.copy()
+    sim, kernels, conf = _kernels_at(model, u)
     f_ref, K_ref, _ = sim.system.evaluate(conf, True)
     got = {}
     for threads in ("1", "3"):
