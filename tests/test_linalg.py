@@ -133,6 +133,31 @@ def test_pardiso_reports_its_factor_and_solves_alike_on_one_thread_or_more(stiff
     np.testing.assert_allclose(x[1], x[0], rtol=0, atol=1e-9 * np.abs(x[0]).max())
 
 
+@pytest.mark.skipif("pardiso" not in linalg.available_backends(), reason="PARDISO is not installed")
+def test_pardiso_solves_leave_no_garbage_for_the_collector(stiffness):
+    """A solve passes its arrays by address: arr.ctypes.data_as() went through ctypes.cast, whose
+    reference cycles (two objects a call) the garbage collector had to find, in the physics thread of a
+    haptic loop."""
+    import gc
+
+    from rtfem.fe import linalg as fe_linalg
+
+    model, K, dofs = stiffness
+    f = fe_linalg._Pardiso(K, "K")
+    b = np.ones(K.shape[0])
+    f.solve(b)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        gc.collect()
+        for _ in range(200):
+            f.solve(b)
+        assert gc.collect() == 0
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def test_the_basis_products_match_numpy_on_slices_and_other_layouts():
     """gram (A^T B) and subtract_product (C -= A B), MKL's dgemm where PARDISO's MKL is loaded: the
     Lanczos basis is a column slice of a column-major array; other layouts take numpy's product."""
