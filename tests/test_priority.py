@@ -66,3 +66,56 @@ def test_a_haptic_loop_reports_its_threads_priority(monkeypatch, liver3_modes):
     stats = rt.HapticLoop(rt.Probe(mesh, sim), rt.ScriptedDevice(lambda t: far), rate=1000).run(0.05)
     expected = _in_thread(threads.raise_priority)["got"]
     assert stats.steps >= 10 and stats.priority == expected
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="real-time scheduling is Linux's")
+def test_real_time_scheduling_is_asked_for_by_the_calling_thread_only_and_said(monkeypatch):
+    """raise_to_realtime puts the calling thread (not the process) under SCHED_FIFO where permitted, else
+    falls back to raise_priority's nice value and says why; RTFEM_HAPTIC_RT=0 asks for none."""
+    def got_in_thread():
+        out = {}
+
+        def work():
+            out["got"] = threads.raise_to_realtime()
+            out["policy"] = os.sched_getscheduler(threading.get_native_id())
+
+        t = threading.Thread(target=work)
+        t.start()
+        t.join()
+        return out
+
+    monkeypatch.delenv("RTFEM_HAPTIC_RT", raising=False)
+    monkeypatch.delenv("RTFEM_PHYSICS_NICE", raising=False)
+    out = got_in_thread()
+    if out["got"].startswith("SCHED_FIFO"):
+        assert out["got"] == f"SCHED_FIFO {threads.HAPTIC_RT_PRIORITY}" and out["policy"] == os.SCHED_FIFO
+    else:
+        assert "real-time scheduling not permitted" in out["got"] and out["policy"] != os.SCHED_FIFO
+    assert os.sched_getscheduler(0) != os.SCHED_FIFO  # this (the main) thread unchanged
+
+    def refuse(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    out = got_in_thread()
+    assert "real-time scheduling not permitted: Operation not permitted" in out["got"] and "rtprio 10" in out["got"]
+    monkeypatch.setenv("RTFEM_HAPTIC_RT", "0")
+    assert got_in_thread()["got"] == _in_thread(threads.raise_priority)["got"]
+
+
+def test_a_multi_rate_loop_runs_its_ticks_in_real_time_where_permitted(monkeypatch):
+    """rt.HapticLoop asks for real-time scheduling for a multi-rate tool's light ticks, the raised nice
+    value for a tool whose tick steps the physics."""
+    monkeypatch.delenv("RTFEM_HAPTIC_RT", raising=False)
+    monkeypatch.delenv("RTFEM_PHYSICS_NICE", raising=False)
+    model = rt.SolidModel(rt.meshes.box(0.04, 0.02, 0.02, nx=4, ny=2, nz=2), rt.Material(E=3e4, nu=0.4), element="tet4")
+    model.fix("x0")
+    sim = rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=10.0), large_deformation=True)
+    far = np.asarray(model.mesh.vertices).max(axis=0) + 1.0
+    with rt.MultiRateProbe(model.mesh, sim) as probe:
+        stats = rt.HapticLoop(probe, rt.ScriptedDevice(lambda t: far), rate=1000).run(0.05)
+    out = {}  # the words raise_to_realtime gives a thread here
+    t = threading.Thread(target=lambda: out.setdefault("got", threads.raise_to_realtime()))
+    t.start()
+    t.join()
+    assert stats.steps >= 10 and stats.priority == out["got"]

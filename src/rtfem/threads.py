@@ -25,7 +25,7 @@ import time
 import weakref
 
 __all__ = ["blas_limits", "usable_cores", "SharedLimit", "runtime", "RUNTIME_THREADS", "background",
-           "raise_priority", "PHYSICS_NICE"]
+           "raise_priority", "PHYSICS_NICE", "raise_to_realtime", "HAPTIC_RT_PRIORITY"]
 
 
 def usable_cores() -> int:
@@ -142,6 +142,38 @@ def raise_priority() -> str:
         return (f"normal: not permitted ({exc.strerror}); allow it with CAP_SYS_NICE or an RLIMIT_NICE "
                 f"(limits.conf: '@users - nice {nice}')")
     return f"nice {nice}"
+
+
+HAPTIC_RT_PRIORITY = 10  # the SCHED_FIFO priority of a multi-rate loop's ticks (RTFEM_HAPTIC_RT overrides; 0: none)
+
+
+def raise_to_realtime() -> str:
+    """Put the calling thread under real-time scheduling (Linux's SCHED_FIFO at
+    :data:`HAPTIC_RT_PRIORITY`, or the whole number in ``RTFEM_HAPTIC_RT``; 0 asks for none), as a
+    haptic servo thread is (CHAI3D, OpenHaptics): it then runs whenever it is ready, ahead of every
+    normal thread of the machine. For a thread whose work is short and which sleeps between ticks:
+    ``rt.HapticLoop`` asks for it when its tool is multi-rate (its ticks are a few array reads, its
+    physics on another thread). Measured (benchmarks/haptic_fullorder.py's probe on the full-order
+    liver, another process spinning on one of the 2 cores, 4.5 s of 1 kHz ticks): at nice -10 1-3
+    ticks over 1 ms (2-4 ms: the thread kept waiting), under SCHED_FIFO none (the longest 0.53 ms).
+    Only where permitted (root, CAP_SYS_NICE, or an RLIMIT_RTPRIO, limits.conf: ``@users - rtprio
+    10``); else :func:`raise_priority`. Returns what the thread got, in words; never raises."""
+    text = os.environ.get("RTFEM_HAPTIC_RT", "").strip()
+    try:
+        prio = int(text) if text else HAPTIC_RT_PRIORITY
+    except ValueError:
+        return f"{raise_priority()} (RTFEM_HAPTIC_RT={text!r} is not a whole number)"
+    if prio <= 0:
+        return raise_priority()
+    if not hasattr(os, "sched_setscheduler") or not hasattr(threading, "get_native_id"):
+        return f"{raise_priority()} (no real-time scheduling on this system)"
+    prio = min(prio, 99)
+    try:
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(prio))
+    except OSError as exc:
+        return (f"{raise_priority()} (real-time scheduling not permitted: {exc.strerror}; allow it with "
+                f"CAP_SYS_NICE or an RLIMIT_RTPRIO, limits.conf: '@users - rtprio {prio}')")
+    return f"SCHED_FIFO {prio}"
 
 
 # ---------------------------------------------------------------- background threads at exit

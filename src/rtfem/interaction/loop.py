@@ -321,10 +321,12 @@ class HapticLoop:
         self.error = None
         self.stats = LoopStats(compiled=compiled)
         run = self._run_compiled if compiled else self._run
-        from ..threads import background, raise_priority
+        from ..threads import background, raise_priority, raise_to_realtime
+
+        light = getattr(self.probe, "light_ticks", False)  # a multi-rate tool: its physics on its own thread
 
         def prioritized(stats, max_steps, seconds):
-            stats.priority = raise_priority()
+            stats.priority = raise_to_realtime() if light else raise_priority()
             run(stats, max_steps, seconds)
 
         self._thread = threading.Thread(target=prioritized, args=(self.stats, max_steps, seconds),

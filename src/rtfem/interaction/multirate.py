@@ -138,6 +138,10 @@ class _MultiRate:
     a subclass builds ``physics`` (the tool on the driver) and ``haptic`` (the same tool on the
     snapshot) and says what a step publishes (:meth:`_published`)."""
 
+    #: a tick is a few array reads (the physics on its own thread): rt.HapticLoop runs these ticks under
+    #: real-time scheduling where permitted (rtfem.threads.raise_to_realtime)
+    light_ticks = True
+
     def _setup(self, driver, rate, pace, thread) -> None:
         rate = validate.positive(rate, "rate", "haptic ticks per second, in Hz")
         self.pace = validate.flag(pace, "pace")
