@@ -109,19 +109,8 @@ class _Kernels:
     def _each(self, V: np.ndarray, out: np.ndarray, linear, law_kernel) -> None:
         """out[e] = each element's forces or tangent at its dofs V: ``linear`` (the corotated
         material, Lame constants per element) or ``law_kernel`` (a law's), each region's own."""
-        for idx, law in self.parts:
-            if idx is None:
-                args, res = (V, self.X, self.G, self.wdet, self.lm), out
-            else:
-                args = tuple(np.ascontiguousarray(a[idx]) for a in (V, self.X, self.G, self.wdet, self.lm))
-                res = np.empty((idx.size,) + out.shape[1:])
-            if law is None:
-                chunked(res.shape[0], lambda lo, hi: linear(*(a[lo:hi] for a in args), res[lo:hi]), self.G.shape[1])
-            else:
-                chunked(res.shape[0], lambda lo, hi: law_kernel(*(a[lo:hi] for a in args[:4]), law, res[lo:hi]),
-                        self.G.shape[1])
-            if idx is not None:
-                out[idx] = res
+        self.tk.by_region(self.parts, V, self.X, self.G, self.wdet, self.lm, out, linear, law_kernel,
+                          share=lambda n, work: chunked(n, work, self.G.shape[1]))
 
 
 class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):

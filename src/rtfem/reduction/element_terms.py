@@ -99,20 +99,11 @@ class ElementTerms:
         """``out`` filled region by region (data's sixth array: each element's group): ``corotated``
         (V, X, G, wdet, lm, out) for the groups of the corotated material, ``by_law`` (V, X, G, wdet,
         law, out) for a hyperelastic law's."""
-        groups, laws = data[5], [law for _, law in self.system.kernel.laws]  # (the group array: data's, made once)
-        for g, law in enumerate(laws):
-            sel = np.flatnonzero(groups == g)
-            if sel.size == 0:
-                continue
-            part = np.empty((sel.size,) + out.shape[1:])
-            args = [np.ascontiguousarray(a[sel]) for a in data[1:5]]
-            Vs = np.ascontiguousarray(V[sel], dtype=float)
-            if law is None:
-                corotated(Vs, *args, part)
-            else:
-                by_law(Vs, *args[:3], law, part)
-            out[sel] = part
-        return out
+        from .tet_kernels import by_region
+
+        groups = data[5]  # (the group array: data's, made once)
+        parts = [(np.flatnonzero(groups == g), law) for g, (_, law) in enumerate(self.system.kernel.laws)]
+        return by_region(parts, np.ascontiguousarray(V, dtype=float), *data[1:5], out, corotated, by_law)
 
     def _element_forces(self, q: np.ndarray, data, weights: np.ndarray, per_element: bool,
                         rest: np.ndarray | None = None, UT: np.ndarray | None = None,

@@ -21,7 +21,7 @@ import numpy as np
 from ..fe.assembly_kernels import _cofactor
 from ..fe.jit import compiled
 
-__all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents",
+__all__ = ["compiled_solid_forces", "compiled_solid_tangents", "solid_element_forces", "solid_element_tangents", "by_region",
            "law_forces", "law_tangents"]
 
 
@@ -306,6 +306,32 @@ def solid_element_tangents(V, X, G, wdet, lm, K) -> None:
     :func:`_solid_element_tangents`): compiled, or batched numpy without numba."""
     fn = compiled_solid_tangents()
     (solid_tangents_numpy if fn is None else fn)(V, X, G, wdet, lm, K)
+
+
+def by_region(parts, V, X, G, wdet, lm, out, corotated, by_law, share=None) -> np.ndarray:
+    """``out`` (E, ...) filled region by region: ``parts`` [(the region's elements (an index array, or
+    None for all), its law or None)], a region of the corotated material by ``corotated`` (V, X, G,
+    wdet, lm, out), a hyperelastic law's by ``by_law`` (V, X, G, wdet, law, out) (the element forces'
+    or tangents' kernels above); ``share(n, work)`` runs work(lo, hi) over a region's elements (the
+    full-order step's :func:`rtfem.fe.jit.chunked`), else one call does."""
+    for idx, law in parts:
+        if idx is not None and idx.size == 0:
+            continue
+        args = (V, X, G, wdet, lm) if idx is None else tuple(np.ascontiguousarray(a[idx]) for a in (V, X, G, wdet, lm))
+        res = out if idx is None else np.empty((idx.size,) + out.shape[1:])
+
+        def work(lo, hi, args=args, res=res, law=law):
+            if law is None:
+                corotated(*(a[lo:hi] for a in args), res[lo:hi])
+            else:
+                by_law(*(a[lo:hi] for a in args[:4]), law, res[lo:hi])
+        if share is None:
+            work(0, res.shape[0])
+        else:
+            share(res.shape[0], work)
+        if idx is not None:
+            out[idx] = res
+    return out
 
 
 # ---------------------------------------------------------------- hyperelastic laws (batched numpy)
