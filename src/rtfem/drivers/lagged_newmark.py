@@ -172,6 +172,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         self._kernels = _Kernels(self.system)
         self._f = None  # the internal forces at the committed configuration (the next step's first residual)
         self._factor = None  # (factorization of the Newmark tangent, the step it was made at)
+        self._dyn_on_K = None  # the mass and damping on the tangent's pattern (False: not within it); at first use
         # where the factor was made (its displacements, its step, a Prony law's history then): part of
         # the state, so that a restored state iterates with the same factor and replays bit for bit
         self._ref_u, self._ref_step = np.zeros_like(self._u), np.zeros(1)
@@ -221,7 +222,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         (which holds the GIL for the whole merge of the patterns)."""
         indices, indptr, n = self.system._pattern
         if K.indices is indices and K.indptr is indptr:
-            if getattr(self, "_dyn_on_K", None) is None:
+            if self._dyn_on_K is None:
                 P = (sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, n)) + self._dyn).tocsr()
                 P.sort_indices()
                 ok = P.nnz == indices.size and np.array_equal(P.indices, indices) and np.array_equal(P.indptr, indptr)
@@ -258,8 +259,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
     def _lagged(self, conf, history):
         """The factor this step iterates with: refreshed on schedule (here, or the thread's newest)."""
         if self._factor is None:  # at the start, or after a restore: the factor of the state's reference
-            ref = self.configuration.copy()
-            ref.u = self.system.expand(self._ref_u)[:, :3].copy()  # (a solid's: no rotations to restore)
+            ref = self._configuration_at(self._ref_u)
             ref_history = (self._ref_visc, self.dt) if self._visc.size else None
             self._factor = (self._factorize(ref, ref_history), int(self._ref_step[0]))
         stale = self._chord[1] >= self.refresh_cost if self.refresh == "auto" else \
@@ -346,7 +346,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         changes how many iterations a step takes, not what it converges to. ``conf`` is a solid's."""
         n = int(self._past[0])
         if len(self._f_past) < n:  # after a restore: the history's forces, evaluated again (bit for bit)
-            self._f_past = [self._forces_at(x) for x in (self._u_1, self._u_2)[:n]]
+            self._f_past = [self._forces(self._configuration_at(x), None) for x in (self._u_1, self._u_2)[:n]]
         if n >= 2:
             up = 3.0 * (u - self._u_1) + self._u_2
             fp = 3.0 * (f - self._f_past[0]) + self._f_past[1]
@@ -354,13 +354,6 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             up, fp = 2.0 * u - self._u_1, 2.0 * f - self._f_past[0]
         conf.u = self.system.expand(up)[:, :3].copy()  # (set, not moved by up - u: the same bits as u)
         return up, fp
-
-    def _forces_at(self, u: np.ndarray) -> np.ndarray:
-        from ..fe.nonlinear import Configuration
-
-        conf = Configuration.rest(self.model.n_nodes, False)
-        conf.update(self.system.expand(u))
-        return self._forces(conf, None)
 
     def _newton_step(self, F: np.ndarray, history):
         """The step by Newton's method with its line search (the reference's), from the step's start:

@@ -101,12 +101,16 @@ class NonlinearNewmarkSimulator(DirectSimulator):
             self._state = (*type(self)._state, "_visc")
 
     def _state_changed(self) -> None:
+        self.configuration = self._configuration_at(self._u)
+        self._free = None
+
+    def _configuration_at(self, u: np.ndarray):
+        """The configuration of displacements u on the solved dofs, from rest."""
         from ..fe.nonlinear import Configuration
 
         conf = Configuration.rest(self.model.n_nodes, self.model.dofs_per_node == 6)
-        conf.update(self.system.expand(self._u))
-        self.configuration = conf
-        self._free = None
+        conf.update(self.system.expand(u))
+        return conf
 
     def get_state(self) -> dict[str, np.ndarray]:
         """A copy of the state; on a shell also the nodal rotations (n, 3) as rotation vectors."""

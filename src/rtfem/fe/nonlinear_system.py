@@ -120,12 +120,12 @@ class NonlinearSystem:
         ``indices`` and ``indptr`` arrays themselves): compiled, the GIL released (np.bincount holds it
         for the whole sum: 3-5 ms on a 9k-tet liver, a haptic tick's wait beside a refreshing step)."""
         indices, indptr, nf = self._pattern
-        data = np.zeros(indices.size)
         fn = compiled("assemble-slots", _add_at_slots)
-        if fn is not None:
-            fn(self._slot, self._keep, np.ascontiguousarray(Ke).reshape(-1), data)
-        else:
+        if fn is None:
             data = np.bincount(self._slot, weights=Ke.reshape(-1)[self._keep], minlength=indices.size)
+        else:
+            data = np.zeros(indices.size)
+            fn(self._slot, self._keep, np.ascontiguousarray(Ke).reshape(-1), data)
         return sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
 
     def deformed(self, conf: Configuration) -> np.ndarray:
