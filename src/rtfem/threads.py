@@ -154,8 +154,8 @@ def raise_to_realtime() -> str:
     normal thread of the machine. For a thread whose work is short and which sleeps between ticks:
     ``rt.HapticLoop`` asks for it when its tool is multi-rate (its ticks are a few array reads, its
     physics on another thread). Measured (benchmarks/haptic_fullorder.py's probe on the full-order
-    liver, another process spinning on one of the 2 cores, 4.5 s of 1 kHz ticks): at nice -10 1-3
-    ticks over 1 ms (2-4 ms: the thread kept waiting), under SCHED_FIFO none (the longest 0.53 ms).
+    liver, another process spinning on one of the 2 cores, 4.5 s of 1 kHz ticks): at nice -10 1-4
+    ticks over 1 ms (1.2-5 ms: the thread kept waiting), under SCHED_FIFO none (the longest 0.53 ms).
     Only where permitted (root, CAP_SYS_NICE, or an RLIMIT_RTPRIO, limits.conf: ``@users - rtprio
     10``); else :func:`raise_priority`. Returns what the thread got, in words; never raises."""
     text = os.environ.get("RTFEM_HAPTIC_RT", "").strip()

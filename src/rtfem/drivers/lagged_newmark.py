@@ -135,11 +135,11 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         (default 4); the run is reproducible.
     refresh_cost : a factorization's cost in chord iterations, for ``refresh="auto"`` (default 25: on
         the 9k-tet liver of benchmarks/fullorder.py the tangent and its factorization took 30-40 ms,
-        an iteration (forces and a solve) 1.1-1.3 ms).
+        an iteration (forces and a solve) 0.7-1.3 ms).
     predictor : start each step's iterations from the displacements and forces extrapolated from the
         last three committed states (default True; see ``_predicted``): on the swinging liver of
-        benchmarks/fullorder.py 1.1 force evaluations a step instead of 1.9, the same answer to the
-        tolerance.
+        benchmarks/fullorder.py 1.70 force evaluations a step instead of 1.86 over the first 500
+        steps, the same answer to the tolerance.
     background : refresh on a thread instead (when ``refresh`` says), each step taking the newest
         factor ready (the real-time setting: a step never waits for a factorization; not
         reproducible run to run).
