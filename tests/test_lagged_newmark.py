@@ -234,3 +234,12 @@ def test_the_predictor_and_the_refresh_change_the_work_not_the_answer():
     for key in (("predictor",), ("predictor", "refresh")):
         assert np.abs(runs[key][0] - U).max() < 1e-3 * np.abs(U).max()
     assert its < runs[("predictor",)][1] and refreshes < runs[("predictor", "refresh")][2]
+
+
+@pytest.mark.parametrize("text", ["two", "0", "-3"])
+def test_a_nonsense_element_thread_count_is_said_and_one_thread_used(monkeypatch, text):
+    from rtfem.fe import jit
+
+    monkeypatch.setenv("RTFEM_ELEMENT_THREADS", text)
+    with pytest.warns(rt.RtfemWarning, match="RTFEM_ELEMENT_THREADS=.* is not a whole number >= 1; using 1 thread"):
+        assert jit.element_threads() == 1

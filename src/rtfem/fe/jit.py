@@ -45,9 +45,17 @@ def element_threads() -> int:
     text = os.environ.get("RTFEM_ELEMENT_THREADS", "").strip()
     if text:
         try:
-            return max(1, int(text))
+            value = int(text)
         except ValueError:
-            return 1
+            value = 0
+        if value < 1:  # a warning (once), not an error: the variable is read at every evaluation
+            import warnings
+
+            from ..errors import RtfemWarning
+
+            warnings.warn(f"RTFEM_ELEMENT_THREADS={text!r} is not a whole number >= 1; using 1 thread",
+                          RtfemWarning, stacklevel=2)
+        return max(1, value)
     from ..threads import usable_cores
 
     return max(1, min(8, usable_cores() - (_RESERVED[0] > 0)))
