@@ -108,7 +108,8 @@ def test_the_step_is_chosen_by_model_and_option():
     assert type(rt.DirectSimulator(model, 1e-3, None, large_deformation=True)) is LaggedNewmarkSimulator
     shell = rt.ShellModel(rt.meshes.plate(0.1, 0.1, 4, 4), rt.Material(E=3e4, nu=0.45, thickness=2e-3)).fix("x0")
     assert type(rt.DirectSimulator(shell, 1e-3, None, large_deformation=True)) is rt.NonlinearNewmarkSimulator
-    for bad in (dict(solver="fast"), dict(refresh=0), dict(stall=0), dict(background="yes"), dict(tol=-1.0)):
+    for bad in (dict(solver="fast"), dict(refresh=0), dict(refresh="sometimes"), dict(refresh_cost=0), dict(stall=0),
+                dict(background="yes"), dict(predictor="yes"), dict(tol=-1.0)):
         with pytest.raises(rt.ModelError):
             rt.DirectSimulator(model, 1e-3, None, large_deformation=True, **bad)
     with pytest.raises(rt.ModelError, match="large_deformation=True"):
