@@ -55,7 +55,8 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise RtfemError("--device and --benchmark: the benchmark's hand is scripted; drop one")
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
-                        local=(args.local or 0.0) * 1e-3, max_force=args.max_force).check()  # before any work
+                        local=(args.local or 0.0) * 1e-3, adapt=args.adapt * 1e-3, adapt_radius=args.adapt_radius * 1e-3,
+                        max_force=args.max_force).check()  # before any work
     device = None
     if args.device:  # opened before the precompute: a missing SDK says so at once
         from .devices import open_device

@@ -46,75 +46,7 @@ from ..drivers.base import as_driver, displacements_at, prepare
 from ..drivers.modal import ModalSimulator
 from ..threads import background, raise_priority, runtime
 
-METHODS = ("modal", "impedance", "direct", "nonlinear")
-#: response samples of the maps the impedance method builds per grabbed vertex (s)
-MAP_TIMES = (0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0)
-
-
-@dataclass
-class Settings:
-    """What the panel controls."""
-
-    method: str = "modal"
-    n_modes: int = 40
-    dt: float = 1e-3  # s
-    alpha: float = 8.0  # mass-proportional damping (1/s)
-    E: float | None = None  # Young's modulus (Pa); None: the material's
-    grasp_stiffness: float = 200.0  # N/m
-    grab_radius: float = 0.01  # m: the jaw holds the surface within this radius of the picked vertex (0: one vertex)
-    max_force: float = 10.0  # N: what a desktop haptic device renders (a Touch X: 7.9 N peak); the panel says when it clips
-    large: bool = False  # large deformation: modal warping (modal), corotational Newton (direct)
-    local: float = 0.0  # m: each grab adds every dof within this of the held nodes to the basis (0: off; method "nonlinear" only)
-    derivatives: int = 10  # method "nonlinear": the modal derivatives of the lowest this many modes
-    spread: int = 1  # method "nonlinear": cubature element groups, one re-evaluated per step (1: all every step, stable)
-
-    def check(self) -> "Settings":
-        """Validate every field; returns a checked copy (numbers as floats, n_modes as an int)."""
-        return Settings(
-            method=validate.choice(self.method, "method", METHODS),
-            n_modes=validate.count(self.n_modes, "n_modes", 1, 2000, what="modes in use"),
-            dt=validate.in_range(self.dt, "dt", 1e-5, 0.05, what="the viewer's time step in s"),
-            alpha=validate.nonnegative(self.alpha, "alpha", "mass-proportional damping in 1/s"),
-            E=None if self.E is None else validate.positive(self.E, "E", "Young's modulus in Pa"),
-            grasp_stiffness=validate.positive(self.grasp_stiffness, "grasp_stiffness", "the grasp spring in N/m"),
-            grab_radius=validate.in_range(self.grab_radius, "grab_radius", 0.0, 1.0, what="the grab radius in m"),
-            max_force=validate.positive(self.max_force, "max_force", "the force cap in N"),
-            large=_large(self.method, self.large),
-            local=validate.in_range(self.local, "local", 0.0, 1.0, what="the radius in m of the patch a grab adds"),
-            derivatives=validate.count(self.derivatives, "derivatives", 0, 200, what="modes whose derivatives are kept"),
-            spread=validate.count(self.spread, "spread", 1, 64, what="cubature element groups"),
-        )
-
-    @property
-    def label(self) -> str:
-        """The method in words, with the large-deformation variant when on."""
-        if self.method == "nonlinear":
-            patch = f", localized per grab ({self.local * 1e3:g} mm)" if self.local > 0 else ""
-            return f"reduced nonlinear (modes + derivatives{patch})"
-        if not self.large:
-            return self.method
-        return {"modal": "modal (warped)", "direct": "direct (corotational)"}.get(self.method, self.method)
-
-
-def describe_material(model) -> str:
-    """The model's material in words: a hyperelastic law with its moduli, or the linear one's E and nu
-    (a shell's thickness too)."""
-    law = getattr(model, "law", None)
-    if law is not None:
-        return f"{law.name} {law!r}"
-    if getattr(model, "materials", None):
-        return "; ".join(f"region {k}: {v!r}" for k, v in model.materials.items())
-    m = model.material
-    text = f"linear elastic, E = {m.E / 1e3:g} kPa, nu = {m.nu:g}, density {m.density:g} kg/m^3"
-    return text + (f", thickness {m.thickness * 1e3:g} mm" if getattr(model, "element", None) is None else "")
-
-
-def _large(method: str, large) -> bool:
-    large = validate.flag(large, "large")
-    if large and method == "impedance":
-        raise ModelError("large deformation: the impedance map superposes linear responses; use the modal method (modal "
-                         "warping) or direct (the corotational full order)")
-    return large
+from .settings import MAP_TIMES, METHODS, Settings, describe_material  # noqa: F401 (re-exported)
 
 
 class PhysicsThread:
@@ -194,6 +126,7 @@ class Session(PhysicsThread):
         self.local_status = ""  # what the per-grab localization is doing (settings.local > 0)
         self.localizing: threading.Thread | None = None
         self._local_gen = 0
+        self._grabs, self._adapted = 0, -1  # grabs so far; the grab the error estimate last localized (issue 56)
         self.building = ""  # what a (re)build is doing now, for the panel ("" when none runs)
         self._progress = progress  # progress(done, total, message) of the precompute (the CLI's bars)
         self._build(self.settings)
@@ -288,7 +221,7 @@ class Session(PhysicsThread):
         if s.method == "nonlinear" and self.indicator_period > 0:
             from ..reduction.indicator import ErrorMonitor
 
-            self.monitor = ErrorMonitor(self.model, self._error_state, period=self.indicator_period)
+            self.monitor = ErrorMonitor(self.model, self._error_state, period=self.indicator_period, on_estimate=self._adapt)
             if self._thread is not None and self._thread.is_alive():
                 self.monitor.start()
 
@@ -327,6 +260,10 @@ class Session(PhysicsThread):
         if s.n_modes > self.model.n_dofs // self.model.dofs_per_node * 3 - 1:
             raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
         changed = {f.name for f in fields(Settings) if getattr(s, f.name) != getattr(self.settings, f.name)}
+        if changed <= {"adapt", "adapt_radius"}:  # when the model adapts: read by the next estimate
+            with self._lock:
+                self.settings = s
+            return
         if changed and changed <= {"grasp_stiffness", "grab_radius", "max_force"}:  # the hand only: no precompute
             grasp = Grasp(self.mesh, self.driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
                           radius=s.grab_radius)
@@ -357,23 +294,40 @@ class Session(PhysicsThread):
                 return node
             self.grasp.grab(node)
             self.node = node
+            self._grabs += 1
             self.target = self.X[node] + self.driver.displacement(node)
         if self.settings.method == "nonlinear" and self.settings.local > 0:
             self._localize(node)
         return node
 
-    def _localize(self, node: int) -> None:
+    def _adapt(self, est) -> None:
+        """The model adapts where it is wrong (issue 56; the monitor's ``on_estimate``, on its thread):
+        while a grasp is held and the error estimate of the state exceeds ``settings.adapt``, the basis
+        is localized around the held vertices (``adapt_radius``), once per grab, in the background."""
+        s = self.settings
+        with self._lock:
+            node, grab = self.node, self._grabs
+            wanted = (s.method == "nonlinear" and s.adapt > 0 and s.local == 0 and node is not None
+                      and grab != self._adapted and est.max_error > s.adapt)
+            if wanted:
+                self._adapted = grab
+        if wanted:
+            self._localize(node, s.adapt_radius, f"the error estimate {est.max_error * 1e3:.2f} mm is above "
+                                                 f"{s.adapt * 1e3:g} mm: ")
+
+    def _localize(self, node: int, radius: float | None = None, why: str = "") -> None:
         """Localize the reduced nonlinear basis around the held vertices in a background thread
-        (:meth:`ReducedNonlinearSimulator.localized`: the patch's dofs added, a new cubature:
-        seconds), while the running basis goes on; then swap it in, in the state the running one
-        has reached, with the grasp carried over (:meth:`Grasp.transferred`). A later grab, a
-        rebuild or another driver meanwhile discards it."""
+        (:meth:`ReducedNonlinearSimulator.localized`: the dofs within ``radius`` (default
+        ``settings.local``) added, a new cubature: seconds), while the running basis goes on; then
+        swap it in, in the state the running one has reached, with the grasp carried over
+        (:meth:`Grasp.transferred`). A later grab, a rebuild or another driver meanwhile discards it."""
         with self._lock:
             self._local_gen += 1
-            gen, driver, nodes, radius = self._local_gen, self.driver, self.grasp.nodes.copy(), self.settings.local
+            gen, driver, nodes = self._local_gen, self.driver, self.grasp.nodes.copy()
+            radius = self.settings.local if radius is None else radius
         if not hasattr(driver, "localized") or nodes.size == 0:
             return
-        self.local_status = f"localizing: the dofs within {radius * 1e3:g} mm of vertex {node} ..."
+        self.local_status = f"{why}localizing: the dofs within {radius * 1e3:g} mm of vertex {node} ..."
 
         def work() -> None:
             # at the priority of the thread that grabbed (not nice 19: a starved thread that holds the
@@ -382,6 +336,7 @@ class Session(PhysicsThread):
                 new = driver.localized(nodes, radius)
                 prepare(new, nodes)  # the held vertices' columns, outside the lock
                 cost = _step_cost(new)
+                new.continue_from(driver)  # linearized at the running state, outside the lock
                 if gen != self._local_gen:  # released or grabbed elsewhere meanwhile: not wanted any more
                     return
                 if cost > 0.9 * new.dt:  # it could not keep real time: the running basis goes on
@@ -394,11 +349,11 @@ class Session(PhysicsThread):
                         if gen == self._local_gen:
                             self.local_status = ""
                         return
-                    new.continue_from(driver)
+                    new.continue_from(driver, tangent="kept")  # the state now, the tangent from just before
                     self.grasp = self.grasp.transferred(new)
                     self.driver = new
                 info = new.reduced.info["local"]
-                self.local_status = (f"localized: {info['nodes']} nodes within {radius * 1e3:g} mm of vertex {node}, "
+                self.local_status = (f"{why}localized: {info['nodes']} nodes within {radius * 1e3:g} mm of vertex {node}, "
                                      f"+{info['coordinates']} coordinates")
             except Exception as exc:  # shown in the panel; the running basis goes on
                 self.local_status = ""
