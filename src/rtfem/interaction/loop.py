@@ -35,6 +35,13 @@ class LoopStats:
     slots: list[int] = field(default_factory=list)  # the schedule slot of each step (k: due at start + k / rate)
     compiled: bool = False  # True when the ticks ran in compiled code without the GIL
     priority: str = ""  # the loop thread's scheduling priority (rtfem.threads.raise_priority)
+    monitor: object = field(default=None, repr=False)  # the loop's ErrorMonitor (HapticLoop(monitor=...)), or None
+
+    @property
+    def error_estimate(self):
+        """The latest :class:`~rtfem.reduction.indicator.ErrorEstimate` of the loop's monitor (the
+        organ's full-order error, estimated beside the loop), or None."""
+        return None if self.monitor is None else self.monitor.latest
 
     def period_errors(self) -> np.ndarray:
         """|interval between consecutive ticks - period| (s), over pairs of adjacent slots: the
@@ -75,6 +82,9 @@ class LoopStats:
         if self.missed:
             share = 100.0 * self.missed / (self.missed + self.steps)
             text += f"; FELL BEHIND: {self.missed} ticks skipped ({share:.1f} % of the schedule)"
+        est = self.error_estimate
+        if est is not None:
+            text += f"; error estimate {est.max_error * 1e3:.3g} mm at node {est.worst_node}"
         return text
 
 
@@ -103,6 +113,9 @@ class HapticLoop:
     rate : ticks per second (Hz), up to 1e5.
     spin : seconds of busy-waiting before each tick (sleep alone is too coarse for 1 ms), 0 .. 0.1.
     compiled : None (compiled ticks where they can run), True (insist), False (Python ticks).
+    monitor : an :class:`~rtfem.reduction.indicator.ErrorMonitor` of the organ
+        (:func:`~rtfem.reduction.indicator.probe_monitor`) run on its own low-priority thread from
+        :meth:`start` to :meth:`stop`: ``stats.error_estimate`` is its latest estimate (issue 56).
 
     Raises
     ------
@@ -115,7 +128,7 @@ class HapticLoop:
     MAX_RATE = 1e5  # Hz: beyond this a Python-level tick cannot be scheduled (the OS clock alone jitters ~us)
 
     def __init__(self, probe: Probe, device, rate: float = 1000.0, spin: float = 3e-4, *,
-                 compiled: bool | None = None) -> None:
+                 compiled: bool | None = None, monitor=None) -> None:
         if not callable(getattr(probe, "update", None)) or not hasattr(probe, "driver"):
             raise ModelError(f"probe={validate.show(probe)} must be an rt.Probe (or an rt.Grasp): an object with "
                              "update(position) and a driver")
@@ -127,7 +140,10 @@ class HapticLoop:
             raise ModelError(f"rate={rate:g} Hz is above the {self.MAX_RATE:g} Hz a loop can be scheduled at; "
                              "haptic devices run at 1 .. 10 kHz")
         spin = validate.in_range(spin, "spin", 0.0, 0.1, what="seconds of busy-waiting before each tick")
-        self.probe, self.device = probe, device
+        if monitor is not None and not (callable(getattr(monitor, "start", None)) and hasattr(monitor, "latest")):
+            raise ModelError(f"monitor={validate.show(monitor)} must be an ErrorMonitor (rtfem.reduction.indicator."
+                             "probe_monitor(probe)) or None")
+        self.probe, self.device, self.monitor = probe, device, monitor
         self.rate = rate
         self.period = 1.0 / rate
         self.spin = spin
@@ -319,7 +335,9 @@ class HapticLoop:
         self._paused.clear()
         self._resume.clear()
         self.error = None
-        self.stats = LoopStats(compiled=compiled)
+        self.stats = LoopStats(compiled=compiled, monitor=self.monitor)
+        if self.monitor is not None:
+            self.monitor.start()
         run = self._run_compiled if compiled else self._run
         from ..threads import background, raise_priority, raise_to_realtime
 
@@ -376,6 +394,8 @@ class HapticLoop:
         to end by itself and a SolverError says so, instead of waiting forever."""
         timeout = validate.positive(timeout, "timeout", "seconds to wait for the loop's thread")
         self._signal_stop()
+        if self.monitor is not None:
+            self.monitor.stop(timeout)
         if self._thread is not None:
             self._thread.join(timeout)
             if self._thread.is_alive():

@@ -24,7 +24,7 @@ import numpy as np
 from .. import validate
 from ..errors import ModelError
 
-__all__ = ["ErrorEstimate", "ErrorMonitor", "driver_inertia", "error_estimate"]
+__all__ = ["ErrorEstimate", "ErrorMonitor", "driver_inertia", "error_estimate", "probe_monitor"]
 
 
 @dataclass
@@ -258,3 +258,55 @@ class ErrorMonitor:
                 except Exception as exc:  # noqa: BLE001 - an inverted state, a singular tangent: said, not fatal
                     self.error = f"{type(exc).__name__}: {exc}"
                 self._stop.wait(self.period)
+
+
+def probe_monitor(probe, model=None, *, period: float = 0.5, iterations: int = 3) -> ErrorMonitor:
+    """An :class:`ErrorMonitor` of the organ a haptic tool drives, for ``rt.HapticLoop(...,
+    monitor=...)``: its estimates appear in the loop's :class:`~rtfem.LoopStats`
+    (``stats.error_estimate``, and said by ``str(stats)``).
+
+    The state is the tool's driver's displacements, the loads the tool applies now (an ``rt.Grasp``'s
+    forces on its held vertices, an ``rt.Probe``'s on its contact vertex, otherwise the driver's
+    own) and the driver's inertial forces (:func:`driver_inertia`). It is read on the monitor's
+    thread while the loop steps, so it may be one step older than the loads: far below the
+    estimate at a 0.5 s period.
+
+    Parameters
+    ----------
+    probe : the tool (anything with a ``driver``).
+    model : the full-order model (default: the driver's reduced model's, ``driver.reduced.model``,
+        else ``driver.model``).
+    period, iterations : as :class:`ErrorMonitor`.
+
+    Raises
+    ------
+    ModelError
+        A tool without a driver, a driver whose full-order model is not found (pass ``model``).
+    """
+    driver = getattr(probe, "driver", None)
+    if driver is None:
+        raise ModelError(f"probe={validate.show(probe)} has no driver: give an rt.Probe, an rt.Grasp or a tool")
+    if model is None:
+        model = getattr(getattr(driver, "reduced", None), "model", None) or getattr(driver, "model", None)
+    if model is None or not callable(getattr(model, "nonlinear", None)):
+        raise ModelError(f"the full-order model of {type(driver).__name__} is not found: pass model= (a ShellModel "
+                         "or a SolidModel)")
+
+    def state():
+        U = np.array(driver.displacements(), dtype=float)
+        return U, _tool_loads(probe, driver), driver_inertia(driver, model)
+
+    return ErrorMonitor(model, state, period=period, iterations=iterations)
+
+
+def _tool_loads(probe, driver):
+    """The loads a tool applies now ({node: f}), or the driver's own, or None."""
+    nodes, forces = getattr(probe, "nodes", None), getattr(probe, "forces", None)
+    if nodes is not None and forces is not None and len(nodes) == len(forces):  # a Grasp
+        return {int(v): np.array(f, float) for v, f in zip(np.asarray(nodes).tolist(), np.asarray(forces))} or None
+    node = getattr(probe, "contact_node", None)
+    if node is not None and getattr(probe, "force", None) is not None:  # a Probe: the organ takes -force
+        return {int(node): -np.asarray(probe.force, float)}
+    loads, array = getattr(driver, "_loads", None), getattr(driver, "_load_array", None)
+    return array if array is not None else (dict(loads) or None if loads else None)
+
