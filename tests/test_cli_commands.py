@@ -142,6 +142,9 @@ def test_every_command_rejects_a_broken_file(tmp_path, command):
     (["view", "--method", "modal", "--local", "20"], "use it with --method nonlinear"),
     (["view", "--shell", "--solid"], "contradict"),
     (["view", "--max-force", "0"], "max-force"),
+    (["view", "--adapt", "-1"], "--adapt"),
+    (["view", "--adapt-radius", "0"], "--adapt-radius"),
+    (["view", "--adapt", "2000"], "adapt"),
     (["view", "--benchmark", "0"], "--benchmark"),
 ])
 def test_bad_options_exit_2_with_a_message(capsys, argv, words):
