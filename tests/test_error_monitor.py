@@ -148,3 +148,27 @@ def test_a_haptic_loops_statistics_carry_the_error_estimate():
         rt.HapticLoop(grasp, device, monitor="yes")
     with pytest.raises(rt.ModelError, match="no driver"):
         probe_monitor(object())
+
+
+def test_a_labelled_solids_estimate_is_given_per_region():
+    """On a solid of two regions the monitor's estimate carries each region's largest value (over its
+    elements' nodes, an interface's in both): the worst node's region has the whole estimate, and each
+    equals the largest of the estimate's field over that region's nodes taken from the elements."""
+    box = rt.meshes.box(0.1, 0.04, 0.04, nx=6, ny=2, nz=2)
+    V, T = np.asarray(box.vertices), np.asarray(box.tets)
+    labels = np.where(V[T].mean(axis=1)[:, 0] < 0.05, 1, 2)
+    mesh = rt.TetMesh(V, T, groups=box.groups, labels=labels, region_names={"base": 1, "tip": 2})
+    s = Session(mesh, rt.Material(E=4e4, nu=0.45, density=1000.0), fixed="x0",
+                settings=Settings(method="nonlinear", n_modes=10, derivatives=3, alpha=30.0, grab_radius=0.0, adapt=0.0),
+                model_options={"element": "tet10"})
+    node = s.grab([0.1, 0.02, 0.02])
+    s.drag(s.X[node] + [0.0, 0.0, 0.02])
+    for _ in range(300):
+        s.step()
+    est = s.monitor.estimate()
+    assert set(est.regions) == {"base", "tip"}
+    Tq, lab = np.asarray(s.volume.tets), np.asarray(s.volume.labels)
+    assert Tq.shape[1] == 10  # the model's own (quadratic) elements
+    for name, k in (("base", 1), ("tip", 2)):
+        assert est.regions[name] == est.node_error[np.unique(Tq[lab == k])].max()
+    assert est.regions["tip"] == est.max_error > est.regions["base"] > 0

@@ -181,6 +181,8 @@ class ErrorMonitor:
     period : seconds between two estimates (the estimate itself takes 0.01-0.5 s).
     iterations, held : as :func:`error_estimate` (``held`` may be a callable returning the nodes).
     on_estimate : called with each estimate on the monitor's thread (the viewer adapts its model).
+    regions : {name: nodes}: each estimate's ``regions`` is then the largest estimate over each
+        region's nodes (a labelled solid's regions: nodes on an interface count in both).
 
     Raises
     ------
@@ -188,11 +190,15 @@ class ErrorMonitor:
         A period that is not positive, a state that is not callable.
     """
 
-    def __init__(self, model, state, *, period: float = 0.5, iterations: int = 3, held=None, on_estimate=None) -> None:
+    def __init__(self, model, state, *, period: float = 0.5, iterations: int = 3, held=None, on_estimate=None,
+                 regions=None) -> None:
         import threading
 
         if not callable(state):
             raise ModelError(f"state={validate.show(state)} must be a callable returning (displacements, forces)")
+        if regions is not None and not isinstance(regions, dict):
+            raise ModelError(f"regions={validate.show(regions)} must be a {{name: nodes}} mapping (or None)")
+        self.regions = {k: validate.nodes(v, model.n_nodes) for k, v in (regions or {}).items()}
         self.model, self.state, self.held, self.on_estimate = model, state, held, on_estimate
         self.period = validate.positive(period, "period", "seconds between two estimates")
         self.iterations = validate.count(iterations, "iterations", 1, 50)
@@ -212,6 +218,8 @@ class ErrorMonitor:
         U, F, inertia = (*got, None)[:3]
         held = self.held() if callable(self.held) else self.held
         est = error_estimate(self.model, U, F, held=held, iterations=self.iterations, inertia=inertia)
+        if self.regions:
+            est.regions = {k: float(est.node_error[v].max()) for k, v in self.regions.items()}
         self.cost.append(time.perf_counter() - t)
         self.latest = est
         return est

@@ -419,6 +419,8 @@ class Viewer(Served):
             est = mon.latest
             lines.append(f"error estimate **{est.max_error * 1e3:.2f} mm** at node {est.worst_node} (the full order's "
                          f"residual of this state, every {mon.period:g} s, {mon.cost[-1]:.2f} s each)")
+            if est.regions:
+                lines.append("per region: " + ", ".join(f"{k} {v * 1e3:.2f} mm" for k, v in est.regions.items()))
         elif mon is not None and mon.error:
             lines.append(f"error estimate: {mon.error}")
         if s.building:

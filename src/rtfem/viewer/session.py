@@ -221,7 +221,8 @@ class Session(PhysicsThread):
         if s.method == "nonlinear" and self.indicator_period > 0:
             from ..reduction.indicator import ErrorMonitor
 
-            self.monitor = ErrorMonitor(self.model, self._error_state, period=self.indicator_period, on_estimate=self._adapt)
+            self.monitor = ErrorMonitor(self.model, self._error_state, period=self.indicator_period, on_estimate=self._adapt,
+                                        regions=_region_nodes(self.volume))
             if self._thread is not None and self._thread.is_alive():
                 self.monitor.start()
 
@@ -527,6 +528,15 @@ class Session(PhysicsThread):
                     window_steps, window_start, computes = 0, c1, []
         except Exception as exc:  # shown in the panel; the viewer keeps serving
             self.error = f"{type(exc).__name__}: {exc}"
+
+
+def _region_nodes(volume) -> dict | None:
+    """{region name (or label): its elements' nodes} of a solid of two regions or more, else None."""
+    if volume is None or volume.regions.size < 2:
+        return None
+    names = {v: k for k, v in (volume.region_names or {}).items()}
+    T, labels = np.asarray(volume.tets), np.asarray(volume.labels)
+    return {names.get(int(k), int(k)): np.unique(T[labels == k]) for k in volume.regions.tolist()}
 
 
 def _step_cost(driver, steps: int = 30) -> float:
