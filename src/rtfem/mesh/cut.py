@@ -7,7 +7,7 @@ The cut follows element faces. Where the surface passes through elements, the ne
 edge it crosses is first moved onto it (node snapping, :func:`_snap`; no tet keeps under
 :data:`MIN_VOLUME` of its volume, else the surface is refused with the elements named). Nothing is
 removed: the mass and the volume stay, and the new faces are surface (contact, drawing and export see
-them). With ``snap="split"`` (tet4) the crossed elements are split instead and no node moves by more
+them). With ``snap="split"`` (tet4, tet10) the crossed elements are split instead and no node moves by more
 than :data:`MIN_SPLIT` of an edge (what a solid cut while it runs needs). Splitting by virtual nodes
 (Molino, Bao and Fedkiw 2004), which leaves no slivers, is a later step.
 
@@ -62,7 +62,13 @@ class CutInfo(dict):
         for (a, b), s in zip(born.tolist(), at.tolist()):
             ra, rb = (I[a] if a < n else rows[a - n]), (I[b] if b < n else rows[b - n])
             rows.append((1.0 - s) * ra + s * rb)
-        return sp.vstack([I, *rows], format="csr")[parent]
+        out = sp.vstack([I, *rows], format="csr")
+        given = self.get("rows")  # a split tet10 mesh: its nodes' quadratic interpolation in their old tet
+        if given is not None:
+            keep = np.ones(out.shape[0])
+            keep[np.unique(given.tocoo().row)] = 0.0
+            out = (sp.diags(keep) @ out + given).tocsr()
+        return out[parent]
 
 
 def _surface(vertices, triangles) -> np.ndarray:
@@ -164,9 +170,10 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     snap : where the surface passes through elements, move nodes onto it first (:func:`_snap`: the
         nearer end of each crossing edge, straight onto the crossed triangle's plane, no tet left
         with under :data:`MIN_VOLUME` of its volume), so that the cut follows their faces; "split"
-        (tet4): move no node by more than :data:`MIN_SPLIT` of an edge, split the crossed elements
-        instead (:func:`_split_edges`: the geometry unchanged, what a running simulation needs: a moved
-        node of a deformed solid can turn its elements inside out); False: refuse such a surface.
+        (tet4 and tet10): move no node by more than :data:`MIN_SPLIT` of an edge, split the crossed
+        elements instead (:func:`_split_edges`, :func:`_split_tet10`: the geometry unchanged, what a
+        running simulation needs: a moved node of a deformed solid can turn its elements inside out);
+        where snapping cannot move a node (True), the element is split too; False: refuse such a surface.
 
     Returns
     -------
@@ -177,8 +184,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     ------
     ModelError
         A malformed surface; a surface still through the inside of elements after snapping (they are
-        named: a tet10 mesh is not split, and no node moves where a tet would keep under
-        :data:`MIN_VOLUME` of its volume), or with ``snap=False``; one that lies along no element
+        named: splitting could not follow it), or with ``snap=False``; one that lies along no element
         face inside the solid.
     """
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
@@ -187,8 +193,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     edge = float(np.median(np.linalg.norm(C[:, :, 1] - C[:, :, 0], axis=2)))
     tol = max(_TOL * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), ON_SURFACE * edge, 1e-300)
     moved, born, at, source = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0])
-    if snap == "split" and T.shape[1] != 4:
-        raise ModelError("snap='split' splits tet4 elements; a tet10 mesh is cut with snap=True (nodes moved)")
+    rows = None
     if snap:
         V, moved = _onto(V, T, tri, tol)
         if snap != "split":
@@ -196,7 +201,9 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
             moved += snapped
         if T.shape[1] == 4:
             V, T, born, at, nudged, source = _split_edges(V, T, tri, tol)
-            moved += nudged
+        else:
+            V, T, born, at, nudged, source, rows = _split_tet10(V, T, tri, tol, np.asarray(mesh.vertices, dtype=float))
+        moved += nudged
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
@@ -217,9 +224,14 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
                   region_names=mesh.region_names)
     pieces, piece = _pieces(T_new, parent.size)
     n0 = mesh.n_vertices
+    shift = np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1)
+    if rows is not None:  # a split edge's mid-edge node, moved along it, is interpolated, not moved
+        shift[np.unique(rows.tocoo().row[rows.tocoo().row < n0])] = 0.0
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
-                   piece=piece, moved=moved, max_move=float(np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1).max()),
+                   piece=piece, moved=moved, max_move=float(shift.max(initial=0.0)),
                    split=born, split_at=at, uncut=n0)
+    if rows is not None:
+        info["rows"] = rows
     return new, info
 
 
@@ -244,7 +256,7 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     left, a tet with two nodes on the surface and the other two on either side, where moving either
     flattens it), a node is added where the edge crosses the surface and every tet on that edge is
     split in two there (conforming: all of them are;
-    the geometry, mass and volume unchanged; tet4 only); a crossing nearer an end than
+    the geometry, mass and volume unchanged; a tet10 mesh through :func:`_split_tet10`); a crossing nearer an end than
     :data:`MIN_SPLIT` of the edge moves that end instead, where its tets keep :data:`MIN_VOLUME`.
     The crossing edges are found once a round and split in turn (a round's splits make new edges
     only from nodes on the surface; a curved surface may need a few rounds). Returns V, T, the edges
@@ -281,6 +293,57 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
             born.append((a, b))
             at.append(s)
     return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged, source
+
+
+def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: np.ndarray):
+    """:func:`_split_edges` on a tet10 mesh (straight-sided: each mid-edge node midway): its corners'
+    tets split as a tet4 mesh's, then the mid-edge nodes rebuilt. A split edge's mid-edge node becomes
+    that of its first half, moved midway along it; every other new edge gets a new one midway; those of
+    the edges at a nudged corner follow it. Returns what :func:`_split_edges` does, the new mid-edge
+    nodes' edges appended to the split edges (at 0.5: a node's fixes and groups are its edge's), and
+    the quadratic interpolation (the tet10 shape functions at each new or rebuilt node in the uncut
+    tet it lies in, ``V0`` that mesh's nodes) as a sparse (nodes, uncut nodes) matrix of their rows."""
+    n0 = V.shape[0]
+    V, C, born, at, nudged, source = _split_edges(V, T[:, :4], tri, tol)
+    n1 = V.shape[0]
+    mids = {}  # (a, b) a < b -> its mid-edge node
+    for t in T:
+        for (i, j), m in zip(TET10_EDGES.tolist(), t[4:].tolist()):
+            mids[(min(t[i], t[j]), max(t[i], t[j]))] = m
+    rebuilt = []
+    for k, (a, b) in enumerate(born.tolist()):  # the split edge's node goes to its first half
+        m = mids.pop((min(a, b), max(a, b)), None)
+        if m is not None:
+            mids[(min(a, n0 + k), max(a, n0 + k))] = m
+            rebuilt.append(m)
+    edges = np.sort(C[:, TET10_EDGES].reshape(-1, 2), axis=1)
+    new_edges = [e for e in unique_rows(edges).tolist() if tuple(e) not in mids]
+    for k, e in enumerate(new_edges):
+        mids[tuple(e)] = n1 + k
+    M = np.array([mids[(a, b)] for a, b in edges.tolist()], dtype=np.int64).reshape(-1, 6)
+    T10 = np.concatenate([C, M], axis=1)
+    V = np.vstack([V, np.zeros((len(new_edges), 3))])
+    V[T10[:, 4:]] = 0.5 * (V[C[:, TET10_EDGES[:, 0]]] + V[C[:, TET10_EDGES[:, 1]]])  # midway (a nudge moved some)
+    born = np.concatenate([born, np.array(new_edges, dtype=np.int64).reshape(-1, 2)])
+    at = np.concatenate([at, np.full(len(new_edges), 0.5)])
+    need = np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64)])
+    return V, T10, born, at, nudged, source, _quadratic_rows(V, T10, source, need, T, V0)
+
+
+def _quadratic_rows(V, T10, source, need, T0, V0) -> sp.csr_matrix:
+    """(nodes, uncut nodes) rows of the nodes ``need``: the tet10 shape functions of the uncut tet
+    each lies in (the one a new tet holding it came from), at its barycentric coordinates there."""
+    holder = np.full(V.shape[0], -1)
+    e, k = np.nonzero(np.isin(T10, need))
+    holder[T10[e, k]] = source[e]
+    need = need[holder[need] >= 0]
+    t = holder[need]
+    X = V0[T0[t, :4]]  # (p, 4, 3) the uncut tets' corners
+    A = np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1))
+    lam = np.linalg.solve(A, (V[need] - X[:, 0])[..., None])[..., 0]
+    L = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)  # (p, 4) barycentric
+    N = np.concatenate([L * (2.0 * L - 1.0), 4.0 * L[:, TET10_EDGES[:, 0]] * L[:, TET10_EDGES[:, 1]]], axis=1)
+    return sp.csr_matrix((N.ravel(), (np.repeat(need, 10), T0[t].ravel())), shape=(V.shape[0], V0.shape[0]))
 
 
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
@@ -383,14 +446,10 @@ def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, s
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
         which = np.flatnonzero(has)
         if not snapped:
-            why = "(snap=False): let rt.cut move nodes onto it, or split the elements (snap='split', tet4)"
-        elif T.shape[1] == 4:
+            why = "(snap=False): let rt.cut move nodes onto it, or split the elements (snap='split')"
+        else:
             why = ("that splitting could not follow in 8 rounds (the surface folds back within elements): smooth the "
                    "surface there, or refine the mesh")
-        else:
-            why = (f"where moving a node onto it would flatten a tet to under {MIN_VOLUME:g} of its volume, and a "
-                   "tet10 mesh's elements are not split yet: cut the tet4 model, refine the mesh there, or move the "
-                   "surface")
         raise ModelError(f"the cut surface passes through the inside of {which.size} element(s) (first: tets "
                          f"{which[:5].tolist()}) {why}")
 
