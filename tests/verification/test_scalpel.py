@@ -34,8 +34,8 @@ MAT = rt.Material(E=3e4, nu=0.45, density=1060.0)
 QUAD = [[0, 1, 2], [0, 2, 3]]
 
 
-def _block(ends: bool = False) -> rt.SolidModel:
-    model = rt.SolidModel(rt.meshes.box(L, W, W, nx=20, ny=4, nz=4), MAT, element="tet4")
+def _block(ends: bool = False, element: str = "tet4") -> rt.SolidModel:
+    model = rt.SolidModel(rt.meshes.box(L, W, W, nx=20, ny=4, nz=4), MAT, element=element)
     groups = model.tetmesh.groups
     return model.fix(np.concatenate([groups["x0"], groups["x1"]]) if ends else groups["x0"])
 
@@ -156,17 +156,19 @@ def _stroke(sc, z0, z1, ys, tip_low=True):
     return np.array(forces)
 
 
-def test_a_blade_drawn_across_a_still_block_cuts_what_rt_cut_cuts_along_its_plane():
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_a_blade_drawn_across_a_still_block_cuts_what_rt_cut_cuts_along_its_plane(element):
     """No gravity and no resistance (nothing moves the block): the blade, upright at mid-length from
     half the height to above the top, drawn across the width, leaves the model rt.cut makes with that
-    plane: the same coordinates and tets, node for node."""
-    model = _block()
+    plane: the same coordinates and tets, node for node (tet10: its slit faces' mid-edge nodes too)."""
+    model = _block(element=element)
     sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
                     thread=False)
     _stroke(sc, W / 2, W + 0.01, np.linspace(-0.005, W + 0.005, 61))
     sc.finish()
     ref = rt.cut(model, _slit(W / 2, W + 0.001), QUAD)
-    assert sc.cuts >= 1 and sc.refused is None and sc.model.n_nodes == ref.n_nodes == model.n_nodes + 10
+    added = 10 if element == "tet4" else 36
+    assert sc.cuts >= 1 and sc.refused is None and sc.model.n_nodes == ref.n_nodes == model.n_nodes + added
     assert _same_mesh(sc.model.tetmesh, ref.tetmesh)
     assert sc.driver.model is sc.model and sc.displacements().shape == (ref.n_nodes, 3)
     assert np.abs(sc.displacements()).max() < 1e-12

@@ -26,7 +26,7 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
     model : an rt.SolidModel (tet4, tet4-anp or tet10; any material or law, mass and constraints option).
     vertices, triangles : the cut surface.
     snap : where the surface passes through elements, move their nodes onto it first (True; see
-        :func:`rtfem.mesh.cut.cut_mesh`), split those elements instead ("split", tet4: the geometry
+        :func:`rtfem.mesh.cut.cut_mesh`), split those elements instead ("split", tet4 and tet10: the geometry
         unchanged, for a solid cut while it runs), or refuse such a surface (False).
     free : what becomes of a part the cut frees with nothing fixed: "warn" (kept, with a warning: it
         would float) or "remove" (dropped, as a scalpel's cut-away piece falls away:

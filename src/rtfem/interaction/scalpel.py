@@ -8,7 +8,7 @@ to the reference configuration (each point less the displacement about it) and, 
 advanced by ``advance`` there, the strip between where it was and where it is is added to the cut
 surface, cell by cell, where a cell reaches inside the solid and has not been swept before. A cutter
 thread then has the model cut along the new strips and their neighbours (:func:`rtfem.cut`: tet4
-elements split, see docs/guide/cutting.md) and the cut model assembled, in a worker process
+and tet10 elements split, see docs/guide/cutting.md) and the cut model assembled, in a worker process
 (:mod:`rtfem.interaction.cut_worker`) where the scalpel runs threaded; it builds the driver on the cut
 model, and the physics thread swaps it in between two steps, the state carried over node by node
 (:meth:`DirectSimulator.carry_over`). Ticks never wait for any of this.
@@ -337,11 +337,11 @@ class Scalpel(_MultiRate):
 
     def _cut(self, model, V: np.ndarray, T: np.ndarray):
         """The model cut along the triangles and assembled: in the worker process where there is one (see
-        :mod:`rtfem.interaction.cut_worker`), else here. Tet4 elements are split (no node of the running
+        :mod:`rtfem.interaction.cut_worker`), else here. Tet4 and tet10 elements are split (no node of the running
         solid moves); a piece cut free falls away."""
         from .cut_worker import WorkerGone, cut_and_assemble
 
-        split = "split" if model.tetmesh.order == 1 else True
+        split = "split"  # tet4 and tet10 alike: no node of the running solid moves by over a fifth of an edge
         worker = self._worker
         if worker is not None:
             try:
