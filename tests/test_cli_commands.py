@@ -144,7 +144,10 @@ def test_every_command_rejects_a_broken_file(tmp_path, command):
     (["view", "--max-force", "0"], "max-force"),
     (["view", "--adapt", "-1"], "--adapt"),
     (["view", "--adapt-radius", "0"], "--adapt-radius"),
-    (["view", "--adapt", "2000"], "adapt"),
+    (["view", "--adapt", "2000"], "at most 1000 mm"),
+    (["view", "--adapt-radius", "60"], "at most 1000 mm and 50 mm"),
+    (["view", "--method", "modal", "--adapt", "1"], "use them with --method nonlinear"),
+    (["view", "--method", "nonlinear", "--local", "10", "--adapt", "1"], "without --local"),
     (["view", "--benchmark", "0"], "--benchmark"),
 ])
 def test_bad_options_exit_2_with_a_message(capsys, argv, words):

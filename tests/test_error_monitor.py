@@ -83,23 +83,40 @@ def test_the_model_adapts_only_above_the_tolerance_while_a_grasp_is_held():
     def est(mm):
         return ErrorEstimate(np.zeros((n, 3)), np.zeros(n), mm * 1e-3, 0, 0.0, 1.0, {})
 
-    s._adapt(est(5.0))  # nothing held: nothing to localize around
+    def adapt(mm):  # what the monitor does: the state (and the grab it is of) read, then the estimate
+        s._error_state()
+        s._adapt(est(mm))
+
+    adapt(5.0)  # nothing held: nothing to localize around
     assert s.localizing is None
     s.grab([0.1, 0.02, 0.02])
-    s._adapt(est(0.4))  # below the tolerance
+    adapt(0.4)  # below the tolerance
     assert s.localizing is None
     s.configure(adapt=0.0)
-    s._adapt(est(5.0))  # adapt 0: never
+    adapt(5.0)  # adapt 0: never
     assert s.localizing is None
     s.configure(adapt=3e-3, adapt_radius=0.03)
-    s._adapt(est(5.0))
+    s._error_state()  # an estimate of this grab ...
+    s.release()
+    s.grab([0.1, 0.0, 0.0])
+    s._adapt(est(5.0))  # ... arriving after another grab: not this one's
+    assert s.localizing is None
+    plain = s.driver
+    adapt(5.0)
+    s.grab([0.1, 0.04, 0.04])  # a grab elsewhere while the patch trains (no release between): it is dropped
+    s.localizing.join(60)
+    assert s.driver is plain and s.grasp.driver is plain
+    adapt(5.0)
     s.localizing.join(60)
     assert "the error estimate 5.00 mm is above 3 mm: localized" in s.local_status, s.local_status
-    assert s.driver.reduced.info["local"]["radius"] == 0.03
+    assert s.driver.reduced.info["local"]["radius"] == 0.03 and s.driver.tangent == "rest"
+    s.configure()  # the panel's reset: the same settings rebuild, the patch and the grasp gone
+    assert s.node is None and s.driver.reduced.local is None
     with pytest.raises(rt.ModelError, match="adapt"):
         Settings(adapt=-1.0).check()
-    with pytest.raises(rt.ModelError, match="adapt_radius"):
-        Settings(adapt_radius=0.0).check()
+    for bad in (0.0, 0.06):
+        with pytest.raises(rt.ModelError, match="adapt_radius"):
+            Settings(adapt_radius=bad).check()
 
 
 def test_no_monitor_for_the_linear_methods_and_bad_arguments_are_refused():
@@ -144,6 +161,13 @@ def test_a_haptic_loops_statistics_carry_the_error_estimate():
     assert U[node, 2] > 0.05 and true > 1e-3  # a large lift, and an error worth telling
     assert 0.5 < est.max_error / true < 2.0, (est.max_error, true)
     assert rt.HapticLoop(grasp, device).stats.error_estimate is None
+    assert not loop.compiled  # the monitor reads the tool's loads in Python
+    modal = rt.ModalSimulator(rt.modal_analysis(model, 6), 1e-3)
+    on_modal = rt.Grasp(mesh.surface, modal, stiffness=50.0, radius=0.0)
+    assert probe_monitor(on_modal).model is model
+    with pytest.raises(rt.ModelError, match="compiled=False"):
+        rt.HapticLoop(on_modal, device, monitor=probe_monitor(on_modal), compiled=True)
+    assert not rt.HapticLoop(on_modal, device, monitor=probe_monitor(on_modal)).compiled
     with pytest.raises(rt.ModelError, match="ErrorMonitor"):
         rt.HapticLoop(grasp, device, monitor="yes")
     with pytest.raises(rt.ModelError, match="no driver"):

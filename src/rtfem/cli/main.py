@@ -455,11 +455,11 @@ def _add_view_and_demo(sub) -> None:
                    "of the picked point, in mm (default 10; 0: one vertex)")
     p.add_argument("--local", type=positive, metavar="MM", help="--method nonlinear: each grab adds every dof within MM "
                    "mm of the held vertices to the basis (trained in the background, seconds; then swapped in mid-pull)")
-    p.add_argument("--adapt", type=nonnegative, default=0.5, metavar="MM", help="--method nonlinear: when the error "
+    p.add_argument("--adapt", type=nonnegative, metavar="MM", help="--method nonlinear: when the error "
                    "estimate under a held grasp is above MM mm (default 0.5; 0: never), the basis is localized around it "
                    "once per grab, in the background (see --adapt-radius)")
-    p.add_argument("--adapt-radius", type=positive, default=10.0, metavar="MM", help="the patch --adapt adds: every dof "
-                   "within MM mm of the held vertices (default 10)")
+    p.add_argument("--adapt-radius", type=positive, metavar="MM", help="the patch --adapt adds: every dof "
+                   "within MM mm of the held vertices (default 10, at most 50)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")

@@ -49,13 +49,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.local and args.method != "nonlinear":
         raise RtfemError("--local adds a patch to the reduced nonlinear model's basis at each grab: use it with --method "
                          "nonlinear")
+    if (args.adapt is not None or args.adapt_radius is not None) and (args.method != "nonlinear" or args.local):
+        raise RtfemError("--adapt and --adapt-radius localize the reduced nonlinear model where its error estimate is "
+                         "large: use them with --method nonlinear and without --local (which localizes at every grab)")
+    adapt, adapt_radius = 0.5 if args.adapt is None else args.adapt, 10.0 if args.adapt_radius is None else args.adapt_radius
+    if adapt > 1000 or adapt_radius > 50:
+        raise RtfemError(f"--adapt {adapt:g} mm / --adapt-radius {adapt_radius:g} mm: give at most 1000 mm and 50 mm")
     if args.shell and args.solid:
         raise RtfemError("--shell and --solid contradict each other: give one (a closed surface is a solid by default)")
     if args.device and args.benchmark is not None:
         raise RtfemError("--device and --benchmark: the benchmark's hand is scripted; drop one")
     settings = Settings(method=args.method, n_modes=args.modes, dt=args.dt, alpha=args.alpha, E=args.E,
                         grasp_stiffness=args.stiffness, grab_radius=args.grab_radius * 1e-3, large=args.large,
-                        local=(args.local or 0.0) * 1e-3, adapt=args.adapt * 1e-3, adapt_radius=args.adapt_radius * 1e-3,
+                        local=(args.local or 0.0) * 1e-3, adapt=adapt * 1e-3, adapt_radius=adapt_radius * 1e-3,
                         max_force=args.max_force).check()  # before any work
     device = None
     if args.device:  # opened before the precompute: a missing SDK says so at once

@@ -115,7 +115,8 @@ class HapticLoop:
     compiled : None (compiled ticks where they can run), True (insist), False (Python ticks).
     monitor : an :class:`~rtfem.reduction.indicator.ErrorMonitor` of the organ
         (:func:`~rtfem.reduction.indicator.probe_monitor`) run on its own low-priority thread from
-        :meth:`start` to :meth:`stop`: ``stats.error_estimate`` is its latest estimate (issue 56).
+        :meth:`start` to :meth:`stop`: ``stats.error_estimate`` is its latest estimate (issue 56). With a
+        monitor the ticks run in Python (compiled ticks do not keep the tool's loads where it reads them).
 
     Raises
     ------
@@ -143,6 +144,9 @@ class HapticLoop:
         if monitor is not None and not (callable(getattr(monitor, "start", None)) and hasattr(monitor, "latest")):
             raise ModelError(f"monitor={validate.show(monitor)} must be an ErrorMonitor (rtfem.reduction.indicator."
                              "probe_monitor(probe)) or None")
+        if monitor is not None and compiled:  # the compiled ticks leave the tool's loads where the monitor reads them stale
+            raise ModelError("monitor= reads the tool's loads, which compiled ticks do not keep in Python: pass "
+                             "compiled=False (or None) with a monitor")
         self.probe, self.device, self.monitor = probe, device, monitor
         self.rate = rate
         self.period = 1.0 / rate
@@ -159,7 +163,7 @@ class HapticLoop:
         why = self._compiled_refusal()
         self._required = compiled is not None and validate.flag(compiled, "compiled")
         if compiled is None:
-            compiled = why is None
+            compiled = why is None and monitor is None
         elif self._required and why is not None:
             raise ModelError(f"compiled=True: {why}")
         self.compiled = bool(compiled)  # ticks in compiled code where the run allows it (see start)
@@ -337,6 +341,7 @@ class HapticLoop:
         self.error = None
         self.stats = LoopStats(compiled=compiled, monitor=self.monitor)
         if self.monitor is not None:
+            self.monitor.latest = None  # (not the last run's)
             self.monitor.start()
         run = self._run_compiled if compiled else self._run
         from ..threads import background, raise_priority, raise_to_realtime

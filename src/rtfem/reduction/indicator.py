@@ -229,10 +229,11 @@ class ErrorMonitor:
 
         from ..threads import background
 
-        if self._thread is not None and self._thread.is_alive():
+        if self._thread is not None and self._thread.is_alive() and not self._stop.is_set():
             return self
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="rtfem-error-monitor", daemon=True)
+        # a new thread with its own stop flag: one still finishing an estimate after stop() ends by itself
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(self._stop,), name="rtfem-error-monitor", daemon=True)
         background(self._thread, self._stop.set)
         self._thread.start()
         return self
@@ -243,7 +244,7 @@ class ErrorMonitor:
             self._thread.join(timeout)
         self._thread = None
 
-    def _run(self) -> None:
+    def _run(self, stop) -> None:
         import os
         import threading
         import time
@@ -256,7 +257,7 @@ class ErrorMonitor:
             pass
         t0 = time.perf_counter()
         with runtime():
-            while not self._stop.is_set():
+            while not stop.is_set():
                 try:
                     est = self.estimate()
                     self.history.append((time.perf_counter() - t0, est.max_error))
@@ -265,7 +266,7 @@ class ErrorMonitor:
                         self.on_estimate(est)
                 except Exception as exc:  # noqa: BLE001 - an inverted state, a singular tangent: said, not fatal
                     self.error = f"{type(exc).__name__}: {exc}"
-                self._stop.wait(self.period)
+                stop.wait(self.period)
 
 
 def probe_monitor(probe, model=None, *, period: float = 0.5, iterations: int = 3) -> ErrorMonitor:
@@ -283,7 +284,7 @@ def probe_monitor(probe, model=None, *, period: float = 0.5, iterations: int = 3
     ----------
     probe : the tool (anything with a ``driver``).
     model : the full-order model (default: the driver's reduced model's, ``driver.reduced.model``,
-        else ``driver.model``).
+        else ``driver.model``, else its modes', ``driver.modes.model``).
     period, iterations : as :class:`ErrorMonitor`.
 
     Raises
@@ -295,7 +296,8 @@ def probe_monitor(probe, model=None, *, period: float = 0.5, iterations: int = 3
     if driver is None:
         raise ModelError(f"probe={validate.show(probe)} has no driver: give an rt.Probe, an rt.Grasp or a tool")
     if model is None:
-        model = getattr(getattr(driver, "reduced", None), "model", None) or getattr(driver, "model", None)
+        model = next((m for m in (getattr(getattr(driver, "reduced", None), "model", None), getattr(driver, "model", None),
+                                  getattr(getattr(driver, "modes", None), "model", None)) if m is not None), None)
     if model is None or not callable(getattr(model, "nonlinear", None)):
         raise ModelError(f"the full-order model of {type(driver).__name__} is not found: pass model= (a ShellModel "
                          "or a SolidModel)")

@@ -231,6 +231,7 @@ class Session(PhysicsThread):
         from ..reduction.indicator import driver_inertia
 
         with self._lock:
+            self._estimated_grab = self._grabs if self.node is not None else None  # the grab the estimate is of
             U = np.array(self.driver.displacements(), dtype=float)
             g = self.grasp
             loads = {int(v): tuple(map(float, f)) for v, f in zip(np.asarray(g.nodes).tolist(), g.forces)}
@@ -261,7 +262,7 @@ class Session(PhysicsThread):
         if s.n_modes > self.model.n_dofs // self.model.dofs_per_node * 3 - 1:
             raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
         changed = {f.name for f in fields(Settings) if getattr(s, f.name) != getattr(self.settings, f.name)}
-        if changed <= {"adapt", "adapt_radius"}:  # when the model adapts: read by the next estimate
+        if changed and changed <= {"adapt", "adapt_radius"}:  # when the model adapts: read by the next estimate
             with self._lock:
                 self.settings = s
             return
@@ -271,6 +272,7 @@ class Session(PhysicsThread):
             with self._lock:
                 self.settings, self.grasp = s, grasp
                 self.node, self.target = None, None
+                self._local_gen += 1  # a patch training for the grasp dropped here is not wanted
             return
         self._build(s)
 
@@ -296,6 +298,7 @@ class Session(PhysicsThread):
             self.grasp.grab(node)
             self.node = node
             self._grabs += 1
+            self._local_gen += 1  # a patch still training for an earlier grab is dropped when it arrives
             self.target = self.X[node] + self.driver.displacement(node)
         if self.settings.method == "nonlinear" and self.settings.local > 0:
             self._localize(node)
@@ -306,10 +309,12 @@ class Session(PhysicsThread):
         while a grasp is held and the error estimate of the state exceeds ``settings.adapt``, the basis
         is localized around the held vertices (``adapt_radius``), once per grab, in the background."""
         s = self.settings
+        running = self._thread is None or self._thread.is_alive()  # (a failed step ended it: nothing to adapt)
         with self._lock:
             node, grab = self.node, self._grabs
-            wanted = (s.method == "nonlinear" and s.adapt > 0 and s.local == 0 and node is not None
-                      and grab != self._adapted and est.max_error > s.adapt)
+            wanted = (s.method == "nonlinear" and s.adapt > 0 and s.local == 0 and node is not None and running
+                      and not self.error and grab != self._adapted and grab == getattr(self, "_estimated_grab", None)
+                      and est.max_error > s.adapt)
             if wanted:
                 self._adapted = grab
         if wanted:
@@ -358,7 +363,7 @@ class Session(PhysicsThread):
                                      f"+{info['coordinates']} coordinates")
             except Exception as exc:  # shown in the panel; the running basis goes on
                 self.local_status = ""
-                self.error = f"localizing failed ({type(exc).__name__}: {exc}); the running basis goes on"
+                self.error = self.error or f"localizing failed ({type(exc).__name__}: {exc}); the running basis goes on"
 
         self.localizing = background(threading.Thread(target=work, name="rtfem-viewer-localize", daemon=True))
         self.localizing.start()
@@ -373,8 +378,8 @@ class Session(PhysicsThread):
         with self._lock:
             self.node, self.target = None, None
             self.grasp.release()
+            self._local_gen += 1  # a patch still training (or about to) is for this grab: dropped when it arrives
             if self.localizing is not None and self.localizing.is_alive():
-                self._local_gen += 1  # a patch still training is for this grab: dropped when it arrives
                 self.local_status = "released before the patch was ready: it is dropped, the running basis goes on"
 
     def attach_device(self, device) -> None:
@@ -492,6 +497,8 @@ class Session(PhysicsThread):
     def stop(self) -> None:
         if getattr(self, "monitor", None) is not None:
             self.monitor.stop()
+        with self._lock:
+            self._local_gen += 1  # a patch still training is not swapped into a stopped session
         super().stop()
 
     def _run(self) -> None:

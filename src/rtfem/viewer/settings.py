@@ -48,8 +48,9 @@ class Settings:
             local=validate.in_range(self.local, "local", 0.0, 1.0, what="the radius in m of the patch a grab adds"),
             adapt=validate.in_range(self.adapt, "adapt", 0.0, 1.0, what="the error estimate in m above which the basis "
                                     "is localized around the grasp (0: never)"),
-            adapt_radius=validate.in_range(self.adapt_radius, "adapt_radius", 0.0, 1.0, lo_open=True,
-                                           what="the radius in m of the patch an estimate above adapt adds"),
+            adapt_radius=validate.in_range(self.adapt_radius, "adapt_radius", 0.0, 0.05, lo_open=True,
+                                           what="the radius in m of the patch an estimate above adapt adds; a 0.5 m "
+                                           "patch of the 1,701-node block trained for minutes in 4.8 GB"),
             derivatives=validate.count(self.derivatives, "derivatives", 0, 200, what="modes whose derivatives are kept"),
             spread=validate.count(self.spread, "spread", 1, 64, what="cubature element groups"),
         )
