@@ -110,9 +110,9 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         projected on the basis; every element's with ``cubature=False``) at the predictor of the
         step it was refreshed at, kept positive definite (negative eigenvalues clipped: only the
         step's stability depends on it); with ``spread`` > 1 each group's lagged remainder is also
-        carried to the predictor along the group's tangent (nearly second order in the lag). On a
-        localized model the patch then needs no over-stiff reference (``stiffening`` is for
-        "rest"). "rest": T the rest stiffness, fixed.
+        carried to the predictor along the group's tangent (nearly second order in the lag); a
+        localized model's patch under a sudden pull needs "rest" (see :meth:`localized`).
+        "rest": T the rest stiffness, fixed (a patch's over-stiff: ``stiffening``).
     refresh : steps between tangent refreshes (default 10; a refresh costs ~13 ms on the default
         liver: element tangents and an r x r projection; the swung cantilever of the tests settles
         to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
