@@ -1,7 +1,6 @@
 """The run-time driver of a reduced nonlinear model (:class:`rtfem.reduction.reduced.ReducedNonlinearModel`):
 its reduced coordinates integrated by the average-acceleration Newmark rule, linearized once per
-step, with the tangent refreshed in the background, the static correction and patch stiffening.
-"""
+step, with the tangent refreshed in the background, the static correction and patch stiffening."""
 
 from __future__ import annotations
 
@@ -80,10 +79,10 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         the default liver's pulls (``benchmarks/reduced_nonlinear.py``) it cuts the error against
         the corotational full order by 1.4-6 times; ``reduced_nonlinear_driver`` turns it on.
         Three sparse solves per loaded vertex the first time (``prepare`` does them ahead).
-    stiffening : with ``tangent="rest"``, on a localized model (:meth:`ReducedNonlinearModel.localize`),
-        the factor on the patch coordinates' rest stiffness in the step's linearization (default
-        100; ignored otherwise). The step linearizes about the predictor with a constant tangent and takes the
-        rest of the forces explicitly; for a stiff, light coordinate that is a fixed-point
+    stiffening : on a localized model (:meth:`ReducedNonlinearModel.localize`), the factor on the patch
+        coordinates' rest stiffness in the step's linearization (default 100; the current tangent gets the
+        margin added). The step linearizes about the predictor with a constant tangent and takes the rest of
+        the forces explicitly; for a stiff, light coordinate that is a fixed-point
         iteration, which converges only while the true tangent stays below twice the one used.
         A patch pulled centimetres stiffens far more than that (its elements stretched: a strong
         geometric stiffness), so the patch coordinates are linearized with an over-stiff
@@ -110,9 +109,8 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         projected on the basis; every element's with ``cubature=False``) at the predictor of the
         step it was refreshed at, kept positive definite (negative eigenvalues clipped: only the
         step's stability depends on it); with ``spread`` > 1 each group's lagged remainder is also
-        carried to the predictor along the group's tangent (nearly second order in the lag); a
-        localized model's patch under a sudden pull needs "rest" (see :meth:`localized`).
-        "rest": T the rest stiffness, fixed (a patch's over-stiff: ``stiffening``).
+        carried to the predictor along the group's tangent (nearly second order in the lag).
+        "rest": T the rest stiffness, fixed. A patch's part is over-stiff with either (``stiffening``).
     refresh : steps between tangent refreshes (default 10; a refresh costs ~13 ms on the default
         liver: element tangents and an r x r projection; the swung cantilever of the tests settles
         to the same field with 10, 50 or 200). Synchronous, in the step: reproducible.
@@ -187,12 +185,14 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         if self.background and self.tangent == "rest":
             raise ModelError("background=True refreshes the step's tangent on a thread: it needs tangent='current'")
         self.compliance_changes = self.tangent == "current"  # W follows the tangent: consumers must not cache it
-        self.stiffening = 1.0 if local is None or self.tangent == "current" else factor
+        self.stiffening = 1.0 if local is None else factor
         self._stiffening, self.damping = factor, damping  # as given: for localized()
         Kref = self._K0r.copy()
         if self.stiffening != 1.0:  # the patch's coordinates linearized with an over-stiff reference (see the class)
             c = local["columns"]
             Kref[c:, c:] *= self.stiffening
+        self._patch_margin, Kref = (Kref - self._K0r, self._K0r) if self.tangent == "current" and self.stiffening != 1 \
+            else (None, Kref)  # (the current tangent gets the margin: tangent.Linearization._step_inverse)
         self._trans = self._translation_rows()
         self._init_correction(validate.flag(static_correction, "static_correction"), model,
                               self._trans.reshape(-1, U.shape[1]), np.ones(U.shape[1]))
@@ -361,19 +361,19 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
 
     def localized(self, nodes, radius: float, *, tol: float = 0.05) -> "ReducedNonlinearSimulator":
         """This simulator on its model localized around ``nodes`` (:meth:`ReducedNonlinearModel.localize`:
-        every dof within ``radius`` m of them added to the basis, a new cubature trained to ``tol``;
-        seconds: 20 s on the solid liver), with the same settings and continuing from this one's
-        state (:meth:`continue_from`): what a grab far from the last patch needs. Nothing of this
-        simulator changes. Its step is linearized about the over-stiff rest reference (``tangent="rest"``):
-        with the current one refreshed every 2-10 steps a 10 mm patch of the tet10 block pulled 1-2.25 cm
-        at once diverged in 41-220 steps (only every step held), with this one it settled."""
+        every dof within ``radius`` m of them added to the basis, a new cubature trained to ``tol``; 20 s
+        on the solid liver), with the same settings, continuing from this one's state (:meth:`continue_from`).
+        Its patch is linearized over-stiff (``stiffening``) with either tangent: with the bare current one a
+        10 mm patch of the tet10 block pulled 2.25 cm at once diverged in 41-220 steps, on the rest one the
+        tet10 cantilever lifted 30 % of L did; both settle with it. Nothing of this simulator changes."""
         red = self.reduced.localize(nodes, radius)
         if self.cubature:
             red.train_cubature(16, tol=tol)
         new = ReducedNonlinearSimulator(red, self.dt, self.damping, cubature=self.cubature, spread=self.spread,
                                         precision="single" if self.single else "double",
                                         static_correction=self.static_correction, stiffening=self._stiffening,
-                                        patch_zeta=self.patch_zeta, tangent="rest")
+                                        patch_zeta=self.patch_zeta, tangent=self.tangent, refresh=self.refresh,
+                                        background=self.background)
         new.continue_from(self)
         return new
 

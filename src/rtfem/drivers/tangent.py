@@ -145,6 +145,8 @@ class Linearization:
         the one-step compliances (and a stiff grasp's force) blow up. None where it is not finite."""
         h = self.dt
         K = 0.5 * (K + K.T)
+        if getattr(self, "_patch_margin", None) is not None:  # a localized patch's coordinates, linearized over-stiff
+            K = K + self._patch_margin
         S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
         S = 0.5 * (S + S.T)
         try:
