@@ -72,3 +72,37 @@ def reduced_carry_over(self, model, transfer, *, large_deformation: bool = True,
     _keep_in_place(old, model, P, state, solved)
     into.set_state(state)
     return into
+
+
+def reduced_take_over(self, driver) -> None:
+    """Take over the state of ``driver``, a full-order :class:`rt.DirectSimulator` of this simulator's
+    model (a cut organ's full order, once a reduced model of the cut mesh is built: the way back from
+    :meth:`carry_over`): the displacement, velocity and acceleration projected on this basis in the
+    stiffness inner product (K-orthonormal: exact for a field the basis and the static correction of
+    the loads hold), its held loads (the static correction's), its step count and time.
+
+    Raises
+    ------
+    ModelError
+        A driver that is not a full-order one of this simulator's model, or a Prony law.
+    """
+    from .fullorder import DirectSimulator
+
+    red = self.reduced
+    if not isinstance(driver, DirectSimulator) or driver.model is not red.model:
+        raise ModelError(f"driver={type(driver).__name__} must be a full-order rt.DirectSimulator of this simulator's "
+                         "model (the cut model its reduced model was built on)")
+    if self._visc is not None:
+        raise ModelError("a Prony law's history is not taken over from the full order yet: use an elastic law")
+    state, n, dpn = driver.get_state(), red.model.n_nodes, red.model.dofs_per_node
+
+    def coordinates(values):  # solved-dof values -> this basis's coordinates, U^T K0 u
+        full = np.zeros(red.model.n_dofs)
+        full[driver._solved] = values
+        return self._U.T @ (red._K0 @ full[red.free])
+
+    held = np.asarray(state.get("held", np.zeros(red.model.n_dofs))).reshape(n, dpn)[:, :3]
+    loads = {int(i): held[i].copy() for i in np.flatnonzero(np.abs(held).sum(axis=1) > 0)}
+    self.set_state({"q": coordinates(state["u"]), "qdot": coordinates(state["v"]), "qddot": coordinates(state["a"]),
+                    "steps": int(state["steps"])})
+    self._loads, self._load_array = (loads, None) if self.static_correction else ({}, None)

@@ -422,7 +422,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
             self._tangent_step = self._tangent_at = self.steps
         self._loads, self._load_array = (loads, load_array) if self.static_correction else ({}, None)
 
-    from .reduced_carry import reduced_carry_over as carry_over  # (self, model, transfer): a cut organ goes full order
+    from .reduced_carry import reduced_carry_over as carry_over, reduced_take_over as take_over  # a cut organ: full and back
 
     @property
     def fingerprint(self) -> str:
