@@ -67,3 +67,40 @@ def test_the_viewers_tet10_liver_is_cut_by_splitting_where_snapping_cannot():
         moved = np.linalg.norm(P @ X - np.asarray(cut.tetmesh.vertices), axis=1)
         assert moved.max() <= info.max_move + 1e-12  # only nodes moved onto the surface are off their interpolation
         assert (cut.tetmesh.volumes() > 0).all()
+
+
+def test_awkward_surfaces_through_tet10_elements_cut_cleanly_or_say_why():
+    """Found by an independent probe: (a) two parallel sheets in one element layer, the far one first:
+    a split edge's half split again had its mid-edge node's row summed twice (rows of the transfer
+    summing to 2, nodes 5 cm off); every row sums to 1 and lands the old nodes on the new. (b) A sheet
+    one element row long whose cut faces all keep their corners joined through the faces around
+    them: it opens nothing, and says so (a tet10's mid-edge nodes alone were copied, a non-conforming
+    mesh and a traceback; on tet4 a silent hole). (c) Tilted planes through the tet10 liver (16 of 27
+    failed so): each cuts, every tet positive, the volume kept to 1e-3."""
+    box = rt.meshes.box(L, W, W, nx=10, ny=4, nz=4).quadratic()
+    model = _model(box, "tet10")
+
+    def sheet(x):
+        return np.array([[x, -0.001, 0.0105], [x, 0.021, 0.0105], [x, 0.021, 0.021], [x, -0.001, 0.021]])
+
+    two = rt.cut(model, np.vstack([sheet(0.0565), sheet(0.0525)]), np.vstack([QUAD, QUAD + 4]), snap="split")
+    P = two.cut_info.transfer()
+    assert np.abs(np.asarray(P.sum(axis=1)).ravel() - 1).max() < 1e-12
+    assert np.abs(P @ np.asarray(box.vertices) - np.asarray(two.tetmesh.vertices)).max() < 1e-15
+    diagonal = np.array([[0.045, 0, 0], [0.065, 0, 0], [0.065, W, W], [0.045, W, W]])
+    for element in ("tet4", "tet10"):
+        m = _model(rt.meshes.box(L, W, W, nx=10, ny=4, nz=4), "tet4") if element == "tet4" else model
+        with pytest.raises(rt.mesh.cut.NothingToCut, match="opens nothing"):
+            rt.cut(m, diagonal, QUAD, snap="split")
+    liver = rt.meshes.liver(solid=True).quadratic()
+    X = np.asarray(liver.vertices)
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    organ = rt.SolidModel(liver, MAT, element="tet10").fix(np.flatnonzero(X[:, 0] < lo[0] + 0.1 * (hi[0] - lo[0])))
+    for tilt, f in ((15, 0.35), (30, 0.6)):
+        x, t = lo[0] + f * (hi[0] - lo[0]), np.tan(np.radians(tilt))
+        zm = 0.5 * (lo[2] + hi[2])
+        plane = np.array([[x, lo[1] - 0.01, zm], [x, hi[1] + 0.01, zm], [x + t * (hi[2] + 0.01 - zm), hi[1] + 0.01, hi[2] + 0.01],
+                          [x + t * (hi[2] + 0.01 - zm), lo[1] - 0.01, hi[2] + 0.01]])
+        cut = rt.cut(organ, plane, QUAD, snap="split")
+        assert cut.cut_info.faces > 0 and (cut.tetmesh.volumes() > 0).all()
+        assert cut.tetmesh.volume() == pytest.approx(liver.volume(), rel=1e-3)

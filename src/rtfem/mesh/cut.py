@@ -326,7 +326,7 @@ def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: 
     V[T10[:, 4:]] = 0.5 * (V[C[:, TET10_EDGES[:, 0]]] + V[C[:, TET10_EDGES[:, 1]]])  # midway (a nudge moved some)
     born = np.concatenate([born, np.array(new_edges, dtype=np.int64).reshape(-1, 2)])
     at = np.concatenate([at, np.full(len(new_edges), 0.5)])
-    need = np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64)])
+    need = np.unique(np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64)]))  # (one row each)
     return V, T10, born, at, nudged, source, _quadratic_rows(V, T10, source, need, T, V0)
 
 
@@ -483,11 +483,21 @@ def _manifold_split(T, elem, slots, f1, f2, cut, n: int):
     """:func:`_split_nodes`, with the cut faces that would leave the boundary non-manifold left joined:
     where the cut's edge meets the outside or another cut along an edge alone (its nodes still joined
     through other faces), that edge would hold four boundary faces; the cut faces on it stay uncut
-    until the cut goes on past them (a pinch is not a surface the solid can be drawn and touched by).
-    Returns parent, the new tets and the faces cut."""
+    until the cut goes on past them (a pinch is not a surface the solid can be drawn and touched by), and
+    so do cut faces whose corners uncut faces elsewhere keep joined. Returns parent, the new tets and the
+    faces cut."""
     cut = cut.copy()
     for _ in range(16):
+        if not cut.any():
+            raise NothingToCut("the faces along the cut surface stay joined at their corners through the faces around "
+                               "them: the surface opens nothing; extend it, or cut along a smoother surface")
         parent, T_new = _split_nodes(T, elem, slots, f1, f2, cut, n)
+        k = np.flatnonzero(cut)
+        sides = [np.sort(T_new[elem[f][:, None], slots[f][:, :3]], axis=1) for f in (f1[k], f2[k])]
+        joined = (sides[0] == sides[1]).all(axis=1)  # corners still shared through uncut faces: not opened
+        if joined.any():  # (a tet10's mid-edge node alone would be copied: a non-conforming mesh)
+            cut[k[joined]] = False
+            continue
         keys, _, index, count = _faces(T_new[:, :4])
         outer = keys[count[index] == 1]
         edges = np.sort(outer[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
