@@ -52,7 +52,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     if (args.adapt is not None or args.adapt_radius is not None) and (args.method != "nonlinear" or args.local):
         raise RtfemError("--adapt and --adapt-radius localize the reduced nonlinear model where its error estimate is "
                          "large: use them with --method nonlinear and without --local (which localizes at every grab)")
-    adapt, adapt_radius = 0.5 if args.adapt is None else args.adapt, 10.0 if args.adapt_radius is None else args.adapt_radius
+    adapt = Settings.adapt * 1e3 if args.adapt is None else args.adapt  # mm; the panel's defaults
+    adapt_radius = Settings.adapt_radius * 1e3 if args.adapt_radius is None else args.adapt_radius
     if adapt > 1000 or adapt_radius > 50:
         raise RtfemError(f"--adapt {adapt:g} mm / --adapt-radius {adapt_radius:g} mm: give at most 1000 mm and 50 mm")
     if args.shell and args.solid:

@@ -29,6 +29,12 @@ def lumped_nodal_masses(model) -> np.ndarray:
     return np.asarray(model.mass_diagonal, dtype=float).reshape(model.n_nodes, model.dofs_per_node)[:, 0]
 
 
+def mass_share(old, new, P: sp.csr_matrix) -> np.ndarray:
+    """(new.n_nodes,) each new node's lumped mass over that of what it interpolates (P of the old
+    nodes' masses): a load carried through P times this is shared among a node's copies by mass."""
+    return lumped_nodal_masses(new) / np.maximum(P @ lumped_nodal_masses(old), np.finfo(float).tiny)
+
+
 def transfer_matrix(old, new, transfer) -> sp.csr_matrix:
     """``transfer`` checked, as a sparse (new.n_nodes, old.n_nodes) interpolation."""
     if old.dofs_per_node != new.dofs_per_node:
@@ -77,8 +83,7 @@ def carried_state(old, new, P: sp.csr_matrix) -> dict:
         nodal = P @ full.reshape(-1, dpn)
         if f"_{key}" in EXTENSIVE:
             if share is None:
-                m_from = P @ lumped_nodal_masses(old.model)
-                share = lumped_nodal_masses(new.model) / np.maximum(m_from, np.finfo(float).tiny)
+                share = mass_share(old.model, new.model, P)
             nodal = nodal * share[:, None]
         out[key] = np.asarray(nodal).ravel()[pick].copy()
     return out
@@ -141,4 +146,3 @@ def _keep_in_place(old, new, P, state: dict, solved: np.ndarray) -> None:
     for key in ("u", "ref_u", "u_1", "u_2"):  # (the lagged step's factor point and its predictor's history)
         if key in state:
             state[key] = state[key] + full
-

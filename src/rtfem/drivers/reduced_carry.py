@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ModelError
-from .carry import _check_remesh, _keep_in_place, lumped_nodal_masses, transfer_matrix
+from .carry import _check_remesh, _keep_in_place, mass_share, transfer_matrix
 
 
 def reduced_carry_over(self, model, transfer, *, large_deformation: bool = True, into=None):
@@ -62,9 +62,8 @@ def reduced_carry_over(self, model, transfer, *, large_deformation: bool = True,
     if "held" in state:
         loads = self._load_array if self._load_array is not None else old.force_vector(self._loads or np.zeros((old.n_nodes, 3)),
                                                                                           warn=False).reshape(old.n_nodes, dpn)
-        share = lumped_nodal_masses(model) / np.maximum(P @ lumped_nodal_masses(old), np.finfo(float).tiny)
         held = np.zeros((model.n_nodes, dpn))
-        held[:, :3] = (P @ np.asarray(loads, float).reshape(old.n_nodes, -1)[:, :3]) * share[:, None]
+        held[:, :3] = (P @ np.asarray(loads, float).reshape(old.n_nodes, -1)[:, :3]) * mass_share(old, model, P)[:, None]
         state["held"] = held.ravel()
     if "ref_u" in state:  # the lagged step's first factor at the state, no predictor history yet
         state["ref_u"], state["ref_step"] = state["u"].copy(), np.array([float(self.steps)])

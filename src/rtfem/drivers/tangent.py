@@ -124,7 +124,8 @@ class TangentWorker:
 class Linearization:
     """For :class:`rtfem.drivers.reduced_nonlinear.ReducedNonlinearSimulator`: the step's
     linearization (its state: ``_Sinv``, ``_dK``, ``_tangent_q``, ``_tangent_step``,
-    ``_tangent_at``, ``_worker``, ``sync_refreshes``, set by the simulator's reset and set_state)."""
+    ``_tangent_at``, ``_worker``, ``sync_refreshes``, set by the simulator's reset and set_state; and
+    ``_patch_margin``, a localized patch's over-stiff margin or None, set by its ``__init__``)."""
 
     # background=True: a linearization older than this many steps (a worker starved by a busy
     # machine) is replaced by one computed on the stepping thread
@@ -145,7 +146,7 @@ class Linearization:
         the one-step compliances (and a stiff grasp's force) blow up. None where it is not finite."""
         h = self.dt
         K = 0.5 * (K + K.T)
-        if getattr(self, "_patch_margin", None) is not None:  # a localized patch's coordinates, linearized over-stiff
+        if self._patch_margin is not None:  # a localized patch's coordinates, linearized over-stiff
             K = K + self._patch_margin
         S = self._M + 0.5 * h * self._C + 0.25 * h * h * K
         S = 0.5 * (S + S.T)

@@ -341,14 +341,13 @@ class Scalpel(_MultiRate):
         solid moves); a piece cut free falls away."""
         from .cut_worker import WorkerGone, cut_and_assemble
 
-        split = "split"  # tet4 and tet10 alike: no node of the running solid moves by over a fifth of an edge
-        worker = self._worker
+        worker = self._worker  # (snap="split", tet4 and tet10: no node moves by over a fifth of an edge)
         if worker is not None:
             try:
-                return worker.cut(model, V, T, split)
+                return worker.cut(model, V, T, "split")
             except WorkerGone as exc:
                 self.worker_note, self._worker = str(exc), None
-        return cut_and_assemble(model, V, T, split)
+        return cut_and_assemble(model, V, T, "split")
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop the physics thread (after the step it is in) and the cut worker process; :meth:`finish`

@@ -226,7 +226,8 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     n0 = mesh.n_vertices
     shift = np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1)
     if rows is not None:  # a split edge's mid-edge node, moved along it, is interpolated, not moved
-        shift[np.unique(rows.tocoo().row[rows.tocoo().row < n0])] = 0.0
+        given = np.unique(rows.tocoo().row)
+        shift[given[given < n0]] = 0.0
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
                    piece=piece, moved=moved, max_move=float(shift.max(initial=0.0)),
                    split=born, split_at=at, uncut=n0)

@@ -318,5 +318,5 @@ def _tool_loads(probe, driver):
     if node is not None and getattr(probe, "force", None) is not None:  # a Probe: the organ takes -force
         return {int(node): -np.asarray(probe.force, float)}
     loads, array = getattr(driver, "_loads", None), getattr(driver, "_load_array", None)
-    return array if array is not None else (dict(loads) or None if loads else None)
+    return array if array is not None else (dict(loads) if loads else None)
 

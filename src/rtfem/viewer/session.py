@@ -126,7 +126,8 @@ class Session(PhysicsThread):
         self.local_status = ""  # what the per-grab localization is doing (settings.local > 0)
         self.localizing: threading.Thread | None = None
         self._local_gen = 0
-        self._grabs, self._adapted = 0, -1  # grabs so far; the grab the error estimate last localized (issue 56)
+        # grabs so far; the grab the error estimate last localized; the grab the estimate under way is of (issue 56)
+        self._grabs, self._adapted, self._estimated_grab = 0, -1, None
         self.building = ""  # what a (re)build is doing now, for the panel ("" when none runs)
         self._progress = progress  # progress(done, total, message) of the precompute (the CLI's bars)
         self._build(self.settings)
@@ -313,7 +314,7 @@ class Session(PhysicsThread):
         with self._lock:
             node, grab = self.node, self._grabs
             wanted = (s.method == "nonlinear" and s.adapt > 0 and s.local == 0 and node is not None and running
-                      and not self.error and grab != self._adapted and grab == getattr(self, "_estimated_grab", None)
+                      and not self.error and grab != self._adapted and grab == self._estimated_grab
                       and est.max_error > s.adapt)
             if wanted:
                 self._adapted = grab
