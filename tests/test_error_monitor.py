@@ -96,6 +96,10 @@ def test_the_model_adapts_only_above_the_tolerance_while_a_grasp_is_held():
     adapt(5.0)  # adapt 0: never
     assert s.localizing is None
     s.configure(adapt=3e-3, adapt_radius=0.03)
+    s.error = "SolverError: the step diverged"  # the stepping thread ended on a failure: nothing adapts, the error stays
+    adapt(5.0)
+    assert s.localizing is None and s.error == "SolverError: the step diverged"
+    s.error = None
     s._error_state()  # an estimate of this grab ...
     s.release()
     s.grab([0.1, 0.0, 0.0])
@@ -128,6 +132,9 @@ def test_no_monitor_for_the_linear_methods_and_bad_arguments_are_refused():
         ErrorMonitor(s.model, None)
     with pytest.raises(rt.ModelError, match="period"):
         ErrorMonitor(s.model, lambda: (None, None), period=0.0)
+    for bad in ([0, 1], {"a": [s.model.n_nodes]}, {"a": [-1]}, {"a": [0.5]}):
+        with pytest.raises(rt.ModelError):
+            ErrorMonitor(s.model, lambda: (None, None), regions=bad)
 
 
 def test_a_haptic_loops_statistics_carry_the_error_estimate():

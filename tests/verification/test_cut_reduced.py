@@ -124,5 +124,10 @@ def test_a_reduced_model_of_the_cut_mesh_takes_the_full_order_over_again():
     tip_ref = np.sort(ref[np.isclose(np.asarray(slit.tetmesh.vertices)[:, 0], L)][:, 2])
     tip = np.sort(exact[np.isclose(np.asarray(cut.tetmesh.vertices)[:, 0], L)][:, 2])
     assert np.abs(tip - tip_ref).max() < 0.01 * np.abs(tip_ref).max(), np.abs(tip - tip_ref).max() / np.abs(tip_ref).max()
+    before = back.get_state()
     with pytest.raises(ModelError, match="full-order"):
         back.take_over(sim)
+    with pytest.raises(ModelError, match="tangent"):
+        back.continue_from(sim, tangent="sometimes")
+    after = back.get_state()  # refused: the state as it was
+    assert set(after) == set(before) and all(np.array_equal(after[k], before[k]) for k in before)
