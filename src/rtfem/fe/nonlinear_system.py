@@ -18,7 +18,51 @@ from .protocol import check_model
 from .rotations import rotation
 from ..errors import SolverError
 
-__all__ = ["Configuration", "NonlinearSystem", "LOCAL_ROTATION_LIMIT", "turn_refused", "inversion_refused"]
+__all__ = ["Configuration", "NonlinearSystem", "free_pattern", "LOCAL_ROTATION_LIMIT", "turn_refused", "inversion_refused"]
+
+
+def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
+    """The CSR pattern (indices, indptr; int32, sorted) on the free dofs ``free`` (sorted) of the elements
+    ``cells`` (E, k) with ``dpn`` dofs per node numbered node-major, ``keep`` (the entries of the elements'
+    (E, k dpn, k dpn) matrices, flattened, whose row and column are both free) and ``slot`` (each kept
+    entry's place in the CSR data). Built from the node pattern (the pairs of nodes sharing an element,
+    k^2 per element): free dof (a, i) holds, neighbour b by neighbour b (sorted), b's free dofs, so an
+    entry's place is arithmetic (no sort of the E (k dpn)^2 entries: 108 -> 12 ms on a 9k-tet liver)."""
+    E, k = cells.shape
+    cells = np.asarray(cells, dtype=np.int64)
+    isfree = np.zeros(n_nodes * dpn, dtype=bool)
+    isfree[free] = True
+    isfree = isfree.reshape(n_nodes, dpn)
+    pos = np.full(n_nodes * dpn, -1, dtype=np.int64)
+    pos[free] = np.arange(free.size)
+    pos = pos.reshape(n_nodes, dpn)
+    nfree = isfree.sum(axis=1)
+    rank = np.cumsum(isfree, axis=1) - isfree  # a free dof's place among its node's free dofs
+    pairs = (cells[:, :, None] * n_nodes + cells[:, None, :]).ravel()
+    keys, inverse = np.unique(pairs, return_inverse=True)  # the node pattern, row-major
+    a_of, b_of = keys // n_nodes, keys % n_nodes
+    width = nfree[b_of]  # each node pair's columns in its node row
+    seen = np.cumsum(width) - width
+    first = np.searchsorted(a_of, np.arange(n_nodes))  # each node row's first pair
+    row_len = np.bincount(a_of, weights=width, minlength=n_nodes).astype(np.int64)
+    col_off = seen - seen[np.minimum(first, keys.size - 1)][a_of]  # a pair's first column within its node row
+    base = np.cumsum(nfree * row_len) - nfree * row_len  # where node a's first free row starts
+    indptr = np.zeros(free.size + 1, dtype=np.int64)
+    np.cumsum(np.repeat(row_len, nfree), out=indptr[1:])
+    L = pos[b_of][isfree[b_of]]  # the columns of every node row, node row after node row
+    L_start = np.cumsum(row_len) - row_len
+    lens = np.repeat(row_len, nfree)
+    take = np.repeat(np.repeat(L_start, nfree) - indptr[:-1], lens) + np.arange(int(indptr[-1]))
+    indices = L[take]
+    q = inverse.reshape(E, k, 1, k, 1)  # (e, la, i, lb, j) -> its node pair
+    A = cells[:, :, None, None, None]
+    B = cells[:, None, None, :, None]
+    I, J = np.arange(dpn)[None, None, :, None, None], np.arange(dpn)[None, None, None, None, :]
+    both = (isfree[A, I] & isfree[B, J]).ravel()
+    slot = (base[A] + rank[A, I] * row_len[A] + col_off[q] + rank[B, J]).ravel()
+    keep = np.flatnonzero(both)
+    small = np.int32 if both.size < 2**31 else np.int64  # (half the memory, and of a cut model sent between processes)
+    return indices.astype(np.int32), indptr.astype(np.int32), keep.astype(small), slot[keep].astype(small)
 
 
 @dataclass
@@ -68,17 +112,8 @@ class NonlinearSystem:
         nd = k * self.dpn
         self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
         self.free = model.free_dofs
-        pos = np.full(n_dofs, -1)
-        pos[self.free] = np.arange(self.free.size)
-        pe = pos[self.dofs]
-        rows = np.repeat(pe, nd, axis=1).ravel()
-        cols = np.tile(pe, (1, nd)).ravel()
-        self._keep = np.flatnonzero((rows >= 0) & (cols >= 0))
+        indices, indptr, self._keep, self._slot = free_pattern(self.cells, self.dpn, self.free, model.n_nodes)
         nf = self.free.size
-        keys = rows[self._keep].astype(np.int64) * nf + cols[self._keep]
-        uniq, self._slot = np.unique(keys, return_inverse=True)
-        indices = (uniq % nf).astype(np.int32)
-        indptr = np.searchsorted(uniq // nf, np.arange(nf + 1)).astype(np.int32)
         self._pattern = (indices, indptr, nf)
         self.size = float(np.ptp(model.mesh.vertices, axis=0).max())  # the model's extent (m)
         self.turned = 0.0  # the largest local rotation (degrees) a solve refused
