@@ -177,8 +177,10 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
 
     Returns
     -------
-    (TetMesh, CutInfo): the cut mesh (the old nodes first, in their order, then the copies; the
-    tets in their order; the groups with the copies of their nodes) and what was done.
+    (TetMesh, CutInfo): the cut mesh (the old nodes first, in their order, then those split off, then
+    the copies; the tets in their order, a split tet's parts in its place; the groups with the copies
+    of their nodes) and what was done. Only the tets about the surface are searched and changed
+    (:func:`_zone`).
 
     Raises
     ------
@@ -190,10 +192,74 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     V, T = np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.tets)
     tri = _surface(vertices, triangles)
     C = V[T[:, TET10_EDGES]]
-    edge = float(np.median(np.linalg.norm(C[:, :, 1] - C[:, :, 0], axis=2)))
+    lengths = np.linalg.norm(C[:, :, 1] - C[:, :, 0], axis=2)
+    edge = float(np.median(lengths))
     tol = max(_TOL * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), ON_SURFACE * edge, 1e-300)
+    n0 = mesh.n_vertices
+    zone, zn, whole = _zone(V, T, tri, tol + float(lengths.max()))
+    if not zone.any():
+        raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid")
+    Vz, moved, born, at, source, parent, T_new, cut, rows = _cut_zone(V[zn], _local(T[zone], zn, n0), tri, tol, snap,
+                                                                      whole)
+    z = zn.size
+    glob = np.concatenate([zn, n0 + np.arange(Vz.shape[0] - z)])  # the zone's nodes (and those split) -> the mesh's
+    Vn = np.concatenate([V, Vz[z:]])
+    Vn[zn] = Vz[:z]
+    parent = np.concatenate([np.arange(Vn.shape[0]), glob[parent[Vz.shape[0]:]]])
+    born = glob[born]
+    outside = np.flatnonzero(~zone)
+    T_new = np.concatenate([T[outside], np.concatenate([glob, np.arange(Vn.shape[0], parent.size)])[T_new]])
+    source = np.concatenate([outside, np.flatnonzero(zone)[source]])
+    order = np.argsort(source, kind="stable")  # the tets in their order (a split tet's parts in its place)
+    T_new, source = T_new[order], source[order]
+    groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, n0), born))))
+              for name, nodes in mesh.groups.items()}
+    new = TetMesh(Vn[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
+                  region_names=mesh.region_names)
+    pieces, piece = _pieces(T_new, parent.size)
+    shift = np.linalg.norm(Vz[:z] - V[zn], axis=1)
+    if rows is not None:  # a split edge's mid-edge node, moved along it, is interpolated, not moved
+        R = rows.tocoo()
+        given = np.unique(R.row)
+        shift[given[given < z]] = 0.0
+        rows = sp.csr_matrix((R.data, (glob[R.row], zn[R.col])), shape=(Vn.shape[0], n0))
+    info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
+                   piece=piece, moved=moved, max_move=float(shift.max(initial=0.0)),
+                   split=born, split_at=at, uncut=n0)
+    if rows is not None:
+        info["rows"] = rows
+    return new, info
+
+
+def _zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, reach: float):
+    """The tets a cut along ``tri`` can change (E,), their nodes (sorted) and which of those have all their
+    tets there: the tets with a corner within ``reach`` (the surface's tolerance and the longest element
+    edge) of the surface's bounding box. Each node that can move, be split off or copied (within the
+    tolerance of the surface, or at an end of an edge through it) lies there, with every tet around it:
+    the cut of the zone alone is the cut of the mesh, at the cost of the zone (a scalpel's strip: a few
+    hundred tets of thousands)."""
+    lo, hi = tri.reshape(-1, 3).min(axis=0) - reach, tri.reshape(-1, 3).max(axis=0) + reach
+    near = ((V >= lo) & (V <= hi)).all(axis=1)
+    zone = near[T[:, :4]].any(axis=1)
+    nodes = np.unique(T[zone])
+    return zone, nodes, near[nodes]
+
+
+def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
+    """Tets renumbered onto ``nodes`` (sorted, holding all theirs)."""
+    index = np.full(n, -1, dtype=np.int64)
+    index[nodes] = np.arange(nodes.size)
+    return index[T]
+
+
+def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, whole: np.ndarray):
+    """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
+    nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
+    source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and a tet10's rows. ``whole``:
+    the nodes whose tets are all given (an edge between two of them is on the outside as in the mesh)."""
     moved, born, at, source = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0])
     rows = None
+    V0 = V
     if snap:
         V, moved = _onto(V, T, tri, tol)
         if snap != "split":
@@ -202,7 +268,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
         if T.shape[1] == 4:
             V, T, born, at, nudged, source = _split_edges(V, T, tri, tol)
         else:
-            V, T, born, at, nudged, source, rows = _split_tet10(V, T, tri, tol, np.asarray(mesh.vertices, dtype=float))
+            V, T, born, at, nudged, source, rows = _split_tet10(V, T, tri, tol, V0)
         moved += nudged
     _refuse_crossed(V, T, tri, tol, snap)
     keys, slots, index, count = _faces(T)
@@ -217,23 +283,9 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     if not cut.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
-    parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0])
-    groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, mesh.n_vertices), born))))
-              for name, nodes in mesh.groups.items()}
-    new = TetMesh(V[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
-                  region_names=mesh.region_names)
-    pieces, piece = _pieces(T_new, parent.size)
-    n0 = mesh.n_vertices
-    shift = np.linalg.norm(V[:n0] - np.asarray(mesh.vertices), axis=1)
-    if rows is not None:  # a split edge's mid-edge node, moved along it, is interpolated, not moved
-        given = np.unique(rows.tocoo().row)
-        shift[given[given < n0]] = 0.0
-    info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
-                   piece=piece, moved=moved, max_move=float(shift.max(initial=0.0)),
-                   split=born, split_at=at, uncut=n0)
-    if rows is not None:
-        info["rows"] = rows
-    return new, info
+    whole = np.concatenate([whole, np.ones(V.shape[0] - whole.size, dtype=bool)])  # (a split edge's node: its tets too)
+    parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0], whole)
+    return V, moved, born, at, source, parent, T_new, cut, rows
 
 
 def _mask(nodes, n: int) -> np.ndarray:
@@ -480,13 +532,14 @@ def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
     return parent, new_id[label].reshape(E, K)
 
 
-def _manifold_split(T, elem, slots, f1, f2, cut, n: int):
+def _manifold_split(T, elem, slots, f1, f2, cut, n: int, whole: np.ndarray):
     """:func:`_split_nodes`, with the cut faces that would leave the boundary non-manifold left joined:
     where the cut's edge meets the outside or another cut along an edge alone (its nodes still joined
     through other faces), that edge would hold four boundary faces; the cut faces on it stay uncut
     until the cut goes on past them (a pinch is not a surface the solid can be drawn and touched by), and
-    so do cut faces whose corners uncut faces elsewhere keep joined. Returns parent, the new tets and the
-    faces cut."""
+    so do cut faces whose corners uncut faces elsewhere keep joined. Only edges between nodes ``whole``
+    (n,: all their tets given) count: the others' faces are not all here. Returns parent, the new tets and
+    the faces cut."""
     cut = cut.copy()
     for _ in range(16):
         if not cut.any():
@@ -503,15 +556,18 @@ def _manifold_split(T, elem, slots, f1, f2, cut, n: int):
         outer = keys[count[index] == 1]
         edges = np.sort(outer[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
         pairs, times = unique_rows(edges, return_counts=True)
-        bad = pairs[times > 2]
+        bad = pairs[(times > 2) & whole[parent[pairs]].all(axis=1)]
         if not bad.size:
             return parent, T_new, cut
         k = np.flatnonzero(cut)
         code = bad[:, 0] * (parent.size + 1) + bad[:, 1]
+        hits = []
         for f in (f1[k], f2[k]):  # each lip's face, in the new numbering
             side = np.sort(T_new[elem[f][:, None], slots[f][:, :3]][:, [[0, 1], [1, 2], [0, 2]]], axis=2)
-            hit = np.isin(side[..., 0] * (parent.size + 1) + side[..., 1], code).any(axis=1)
-            cut[k[hit]] = False
+            hits.append(np.isin(side[..., 0] * (parent.size + 1) + side[..., 1], code).any(axis=1))
+        if not (hits[0] | hits[1]).any():  # pinched edges no lip lies on: not the cut's making
+            return parent, T_new, cut
+        cut[k[hits[0] | hits[1]]] = False
     raise ModelError("the cut leaves the solid's outside non-manifold however many of its faces are left joined: "
                      "cut along a smoother surface")
 
