@@ -38,7 +38,7 @@ def _strips(lo, hi):
     x = lo[0] + 0.6 * (hi[0] - lo[0])
     zt = hi[2] + 0.01
     out = []
-    for reach in (0.25, 0.45, 1.1):  # from beyond the side at low y to a share of the width (1.1: across the whole width, the upper part)
+    for reach in (0.25, 0.45, 1.1):  # from beyond the side at low y to a share of the width (1.1: all of it, above 0.4 height)
         y1 = lo[1] + reach * (hi[1] - lo[1])
         V = np.array([[x, lo[1] - 0.01, lo[2] + 0.4 * (hi[2] - lo[2])], [x, y1, lo[2] + 0.4 * (hi[2] - lo[2])],
                       [x, y1, zt], [x, lo[1] - 0.01, zt]])

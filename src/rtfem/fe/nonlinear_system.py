@@ -107,7 +107,6 @@ class NonlinearSystem:
         self.kernel, self.cells = model._corotational()
         self.dpn = model.dofs_per_node
         self.rotations = self.dpn == 6
-        n_dofs = model.n_dofs
         ne, k = self.cells.shape
         nd = k * self.dpn
         self.dofs = (self.dpn * self.cells[:, :, None] + np.arange(self.dpn)).reshape(ne, nd)
