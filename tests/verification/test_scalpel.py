@@ -97,6 +97,36 @@ def test_a_driver_carried_over_to_its_own_model_steps_on_bit_for_bit():
     assert np.array_equal(twin.displacements(), d.displacements())
 
 
+def test_a_driver_prepared_ahead_keeps_its_factor_and_steps_on_as_one_built_at_the_swap():
+    """The scalpel's cutter thread builds the driver on the cut model and factorizes its Newmark tangent
+    (``factorize()``) while the old one steps on; at the swap it takes the state and keeps that factor:
+    its first step makes none (one built at the swap makes one), and it steps on bit for bit as that one
+    (the same reference: the old driver did not refresh meanwhile). A state set again keeps the factor."""
+    model = _block()
+    d = rt.DirectSimulator(model, 1e-3, large_deformation=True)
+    load = {int(i): (0.0, 0.0, -0.01) for i in model.tetmesh.groups["x1"]}
+    for _ in range(20):
+        d.step(load)
+    cut = rt.cut(model, _slit(W / 2, W + 0.001), QUAD)
+    P = cut.cut_info.transfer()
+    prepared = d.carry_over(cut, P)
+    prepared.factorize()
+    assert prepared.refreshes == 1
+    for _ in range(3):
+        d.step(load)
+    refreshed = d.refreshes
+    new, fresh = d.carry_over(cut, P, into=prepared), d.carry_over(cut, P)
+    assert d.refreshes == refreshed
+    new.set_state(new.get_state())
+    new.step(load)
+    fresh.step(load)
+    assert (new.refreshes, fresh.refreshes) == (1, 1)  # new: the one made ahead; fresh: its own, at the step
+    for _ in range(3):
+        new.step(load)
+        fresh.step(load)
+    assert np.array_equal(new.displacements(), fresh.displacements())
+
+
 def test_carry_over_refuses_what_it_cannot_carry():
     model = _block()
     d = rt.DirectSimulator(model, 1e-3, large_deformation=True)

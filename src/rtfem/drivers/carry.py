@@ -95,6 +95,7 @@ def carry_over(old, model, transfer, into=None):
     ``transfer``; ``old`` is left as it was."""
     P = transfer_matrix(old.model, model, transfer)
     _check_remesh(old.model, model, P)
+    prepared = into is not None
     if into is None:
         into = type(old)(model, old.dt, old.damping, **getattr(old, "_settings", {}))
     elif into.model is not model or type(into) is not type(old) or into.dt != old.dt:
@@ -103,6 +104,10 @@ def carry_over(old, model, transfer, into=None):
                          f"{'this' if into.model is model else 'another'} model")
     state = carried_state(old, into, P)
     _keep_in_place(old.model, model, P, state, into._solved)
+    if prepared and "ref_u" in state and getattr(into, "_factor", None) is not None:
+        # the lagged step's factor ``into`` made already (factorize(), on the cutter's thread) is kept: the
+        # state takes its reference (else the new driver factorizes at the reference carried)
+        state["ref_u"], state["ref_step"] = into._ref_u.copy(), into._ref_step.copy()
     into.set_state(state)
     return into
 

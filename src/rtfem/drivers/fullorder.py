@@ -216,7 +216,10 @@ class DirectSimulator(ForceInput):
         transfer : ``cut_info.transfer()``, the sparse (model.n_nodes, n_nodes) interpolation from this
             model's nodes; or (model.n_nodes,) integers, the node each new node copies.
         into : a driver this call returned before on the same ``model``: it only takes the state
-            now (the expensive build done ahead, on another thread; the state mapped at the swap).
+            now (the expensive build done ahead, on another thread; the state mapped at the swap). A
+            large-deformation driver's factor, made there by ``into.factorize()``, is kept (that of the
+            state it was made at: a lagged factor); else the new driver factorizes at the reference
+            carried (to its own model, it steps on bit for bit).
 
         Returns
         -------

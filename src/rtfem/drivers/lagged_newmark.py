@@ -259,9 +259,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
     def _lagged(self, conf, history):
         """The factor this step iterates with: refreshed on schedule (here, or the thread's newest)."""
         if self._factor is None:  # at the start, or after a restore: the factor of the state's reference
-            ref = self._configuration_at(self._ref_u)
-            ref_history = (self._ref_visc, self.dt) if self._visc.size else None
-            self._factor = (self._factorize(ref, ref_history), int(self._ref_step[0]))
+            self.factorize()
         stale = self._chord[1] >= self.refresh_cost if self.refresh == "auto" else \
             self.steps - self._factor[1] >= self.refresh
         if self.background:
@@ -278,6 +276,23 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         elif stale:
             self._refactor(conf, self._u, history)
         return self._factor[0]
+
+    def factorize(self) -> None:
+        """Make the factor the next step iterates with, that of the state's reference, now (where there is
+        none): on another thread, a driver about to be swapped in (a cut model's) then steps at once."""
+        if self._factor is None:
+            ref = self._configuration_at(self._ref_u)
+            ref_history = (self._ref_visc, self.dt) if self._visc.size else None
+            self._factor = (self._factorize(ref, ref_history), int(self._ref_step[0]))
+
+    def set_state(self, state) -> None:
+        """As :meth:`DirectSimulator.set_state`; a state of the same reference as now keeps the factor (the
+        one the first step would make again, bit for bit)."""
+        kept = None if self._factor is None or self._visc.size else (self._factor, self._ref_u.copy(),
+                                                                      self._ref_step.copy())
+        super().set_state(state)
+        if kept is not None and np.array_equal(kept[1], self._ref_u) and np.array_equal(kept[2], self._ref_step):
+            self._factor = kept[0]
 
     # ---------------------------------------------------------------- the step
     def _solve_step(self, F: np.ndarray):

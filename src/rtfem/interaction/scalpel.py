@@ -324,7 +324,10 @@ class Scalpel(_MultiRate):
             try:
                 new = self._cut(driver.model, V, T)
                 P = new.cut_info.transfer()
-                self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
+                prepared = driver.carry_over(new, P)
+                if hasattr(prepared, "factorize"):  # the lagged step's factor, made here: the swap steps at once
+                    prepared.factorize()
+                self._ready = (driver.model, new, P, prepared, n)
             except NothingToCut:  # no new face swept whole yet: the next strip retries
                 pass
             except RtfemError as exc:  # refused (rt.cut says why): the next strip retries with more surface
