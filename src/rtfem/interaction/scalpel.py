@@ -164,6 +164,7 @@ class Scalpel(_MultiRate):
         none = np.zeros(SAMPLES - 1, dtype=bool)
         self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
         self._blade = None  # (tip, heel) in the world, the last tick's
+        self.lifted = False  # the blade out of the tissue (lift()): the organ steps on, nothing is swept
         self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
         self._velocity, self._mid, self._t_tick = np.zeros(3), None, None
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
@@ -198,6 +199,7 @@ class Scalpel(_MultiRate):
             self.force = np.zeros(3)
             raise ModelError(f"the blade's tip {c.tolist()} and heel {h.tolist()} coincide: give a blade of some length")
         self._blade = (c, h)
+        self.lifted = False
         self._tick(c)
         now, mid = time.perf_counter(), 0.5 * (c + h)
         if self._mid is not None and now > self._t_tick:
@@ -209,6 +211,16 @@ class Scalpel(_MultiRate):
         self.force = -self.resistance * v / max(float(np.linalg.norm(v)), V_REG)
         return self.force
 
+    def lift(self) -> None:
+        """The blade out of the tissue (a stroke's end): the organ steps on under gravity, nothing is swept
+        and the hand feels nothing until :meth:`update` places the blade again, which starts a new strip
+        there (not one from where it was lifted)."""
+        with self._lock:
+            none = np.zeros(SAMPLES - 1, dtype=bool)
+            self.lifted, self._anchor, self._last = True, None, (None, none, none, none)
+            self._mid, self.resistance, self._push = None, 0.0, np.zeros(0, dtype=np.int64)
+            self._velocity, self.force = np.zeros(3), np.zeros(3)
+
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step, on the mesh of ``shown[0]``."""
         return self.shown[1].copy()
@@ -217,8 +229,8 @@ class Scalpel(_MultiRate):
     def physics_step(self) -> None:
         """Swap in a cut model if one is ready, step the organ (gravity and the tissue's share of the
         cutting force), add the blade's strip to the cut surface and start a cut job when it grew."""
-        if self._blade is None:
-            raise ModelError("no blade position yet: call update(tip, heel) first")
+        if self._blade is None and not self.lifted:
+            raise ModelError("no blade position yet: call update(tip, heel) first (or lift() it)")
         super().physics_step()
 
     def _advance(self) -> None:
@@ -229,7 +241,8 @@ class Scalpel(_MultiRate):
             np.add.at(F, nodes, -self.force / nodes.size)
         self.driver.step(F)
         U = np.asarray(self.driver.displacements(), dtype=float)
-        self._sweep(U)
+        if not self.lifted:
+            self._sweep(U)
         self._start_cut()
         self.shown = (self.solid.model, U)
 

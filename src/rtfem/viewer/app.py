@@ -2,7 +2,8 @@
 
 Left-drag on the organ grabs the vertex under the cursor and pulls it through a virtual
 spring within the plane facing the camera; shift+left-drag presses it along its inward
-normal by the drag distance. Dragging empty space orbits the camera. The physics runs on
+normal by the drag distance; ctrl+left-drag cuts a solid with a blade along the line of sight
+(:mod:`rtfem.viewer.cut_view`). Dragging empty space orbits the camera. The physics runs on
 its own thread (:class:`~rtfem.viewer.session.Session`); a frame thread sends the deformed,
 colour-coded surface at up to 30 frames per second, the contact-force plot and the rates.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 import threading
 import sys
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -19,12 +21,14 @@ from ..errors import RtfemError
 from ..fe.material import Material
 from ..threads import background
 from .camera import VIEW, frame_client, light_scene, project
+from .cut_view import CutView
 from .gltf import SurfaceGlb, colormap
 from .session import METHODS, Session, Settings, default_session, describe_material
 
 HELP = (
     "**Drag the organ** with the left mouse button to pull it; **shift+drag** presses along the surface "
-    "normal. Drag empty space to orbit, scroll to zoom. Grey dots: fixed nodes."
+    "normal; **ctrl+drag** cuts a solid (it hangs under gravity while cut; Reset to grasp again). Drag empty "
+    "space to orbit, scroll to zoom. Grey dots: fixed nodes."
 )
 
 
@@ -106,7 +110,7 @@ def serve_until_interrupted(viewer) -> None:
         viewer.stop()
 
 
-class Viewer(Served):
+class Viewer(Served, CutView):
     """A viser server showing one :class:`Session`."""
 
     def __init__(self, session: Session, *, host: str = "127.0.0.1", port: int = 8080, fps: float = 30.0) -> None:
@@ -145,6 +149,7 @@ class Viewer(Served):
         light_scene(self.server, centre, size)
         self.server.on_client_connect(lambda client: frame_client(client, centre, 0.5 * size, VIEW))
         self._faces = surface_faces(s)
+        self._drawn_sent = s.drawn  # the drawn vertices the encoder and the pick mesh are of
         self._glb = SurfaceGlb(self._faces, s.drawn.size)
         self.organ = sc.add_glb("/organ", surface_glb(s, self._glb, np.zeros((s.drawn.size, 3)), 1.0))
         # The client disposes each replaced frame's material and with it the shader program, unless
@@ -159,18 +164,22 @@ class Viewer(Served):
         # by PICK_TOLERANCE, at most twice a second, and never during a drag.
         self._pick_u = np.zeros((s.drawn.size, 3))
         self._pick_time = 0.0
-        # drawn (transparent) like any mesh: its front faces only where the surface is closed (on a
-        # browser without a GPU, 17.5 frames/s drawn against 13.5 with both sides)
-        self.pick = sc.add_mesh_simple("/organ_pick", s.X[s.drawn].astype(np.float32), self._faces,
-                                       color=(255, 255, 255), opacity=0.0,
-                                       side="front" if mesh.is_closed() else "double")
+        self.pick = self._add_pick()
         fixed = np.flatnonzero(s.model.held_nodes)
         if fixed.size:
             sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,
                                point_shape="circle")
         self.marker = sc.add_icosphere("/grab", radius=0.012 * size, color=(230, 60, 40), visible=False)
         self.hand = sc.add_icosphere("/hand", radius=0.008 * size, color=(255, 255, 255), visible=False)
-        organ = self.pick
+
+    def _add_pick(self):
+        """The grabbable copy of the drawn surface, its drags bound: drawn (transparent) like any mesh, its
+        front faces only where the surface is closed (on a browser without a GPU, 17.5 frames/s drawn
+        against 13.5 with both sides)."""
+        s = self.session
+        organ = self.server.scene.add_mesh_simple("/organ_pick", s.X[s.drawn].astype(np.float32), self._faces,
+                                                  color=(255, 255, 255), opacity=0.0,
+                                                  side="front" if s.mesh.is_closed() else "double")
 
         @organ.on_drag("left")
         async def _pull(event) -> None:
@@ -179,6 +188,12 @@ class Viewer(Served):
         @organ.on_drag("left", modifier="shift")
         async def _press(event) -> None:
             self._on_drag(event, press=True)
+
+        @organ.on_drag("left", modifier="cmd/ctrl")
+        async def _cut(event) -> None:
+            self._on_cut(event)
+
+        return organ
 
     def _on_drag(self, event, *, press: bool) -> None:
         s = self.session
@@ -328,7 +343,7 @@ class Viewer(Served):
     def _field(self) -> np.ndarray:
         s = self.session
         modes = s.reduced
-        if self.mode_index is not None and self.mode_index < modes.n_modes:
+        if self.mode_index is not None and self.mode_index < modes.n_modes and getattr(modes, "model", s.model) is s.model:
             i = self.mode_index
             phi = modes.shapes[s.drawn, :, i]
             scale = self.mode_amp.value / 100 * self.size / max(float(np.abs(phi).max()), 1e-30)
@@ -345,13 +360,19 @@ class Viewer(Served):
         while not self._stop.is_set():
             t0 = time.perf_counter()
             try:
+                self._apply_cut()  # a blade the mouse moved; a cut organ's new surface
+                with s._lock:  # (a cut swaps these together)
+                    shown = SimpleNamespace(X=s.X, drawn=s.drawn, region_colours=s.region_colours)
                 u = self._field()  # on the drawn vertices
-                full = np.zeros((s.X.shape[0], 3))
-                full[s.drawn] = u
+                if u.shape[0] != shown.drawn.size or shown.drawn is not self._drawn_sent:  # a cut swapped it meanwhile
+                    time.sleep(period)
+                    continue
+                full = np.zeros((shown.X.shape[0], 3))
+                full[shown.drawn] = u
                 self._last_u = full  # the field a grab looks for the nearest vertex on
                 peak = float(np.linalg.norm(u, axis=1).max())
                 self.vmax = max(peak, 0.97 * self.vmax, 1e-4)
-                self.organ.glb_data = surface_glb(s, self._glb, u, self.vmax)
+                self.organ.glb_data = surface_glb(shown, self._glb, u, self.vmax)
                 self._move_pick(u)
                 s.record_force()
                 self._draw_hand(full)
@@ -375,8 +396,8 @@ class Viewer(Served):
         now = time.perf_counter()
         if self._dragging or now - self._pick_time < 0.5:
             return
-        if np.abs(u - self._pick_u).max() < self.PICK_TOLERANCE:
-            return
+        if u.shape != self._pick_u.shape or np.abs(u - self._pick_u).max() < self.PICK_TOLERANCE:
+            return  # (the shapes differ for the frame a cut swapped the surface in)
         self._pick_u, self._pick_time = u.copy(), now
         self.pick.vertices = (self.session.X[self.session.drawn] + u).astype(np.float32)
 
@@ -427,6 +448,8 @@ class Viewer(Served):
             lines.append(f"precomputing: {s.building}")
         if s.local_status:
             lines.append(s.local_status)
+        if s.cut_status:
+            lines.append(s.cut_status)
         if s.device is not None:
             reason = getattr(s.device, "stop_reason", None)
             lines.append(f"device: {type(s.device).__name__}, " + (f"**stopped: {reason}**" if reason else

@@ -46,6 +46,7 @@ from ..drivers.base import as_driver, displacements_at, prepare
 from ..drivers.modal import ModalSimulator
 from ..threads import background, raise_priority, runtime
 
+from .cutting import Cutting
 from .settings import MAP_TIMES, METHODS, Settings, describe_material  # noqa: F401 (re-exported)
 
 
@@ -81,8 +82,9 @@ class Stats:
     computes: deque = field(default_factory=lambda: deque(maxlen=1_000_000))  # every step's compute (s)
 
 
-class Session(PhysicsThread):
-    """The organ, its precomputed dynamics and a thread stepping it in real time."""
+class Session(PhysicsThread, Cutting):
+    """The organ, its precomputed dynamics and a thread stepping it in real time; a blade drawn through a
+    solid cuts it (:meth:`cut`, :meth:`lift`: :mod:`rtfem.viewer.cutting`)."""
 
     _thread_name = "rtfem-viewer-physics"
 
@@ -130,6 +132,7 @@ class Session(PhysicsThread):
         self._grabs, self._adapted, self._estimated_grab = 0, -1, None
         self.building = ""  # what a (re)build is doing now, for the panel ("" when none runs)
         self._progress = progress  # progress(done, total, message) of the precompute (the CLI's bars)
+        self._blade = None  # scalpel mode: the blade (tip, heel) in the tissue, or None (lifted)
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
@@ -180,7 +183,10 @@ class Session(PhysicsThread):
         return ImpedanceDriver.on_demand(model, damping, s.dt, dynamic=True, modes=modes, times=MAP_TIMES)
 
     def _build(self, s: Settings) -> None:
-        """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock)."""
+        """Model, modes and driver for the settings ``s`` (the heavy part runs outside the lock; a scalpel
+        mode is left first, the cut mesh kept)."""
+        with self._lock:
+            self._leave_scalpel_mode()
         try:
             self.building = "assembling the model ..."
             old = getattr(self, "model", None)
@@ -289,6 +295,9 @@ class Session(PhysicsThread):
         """Grab the free vertex nearest ``point`` on the surface displaced by ``displacements``
         (default undeformed); returns it. What the driver needs there (a map, compliance
         columns) is prepared here, outside the lock the stepping thread takes."""
+        if self.scalpel is not None:
+            raise ModelError("the organ is in scalpel mode (hanging, stepped by the scalpel): press Reset to grasp it "
+                             "again (the cut is kept)")
         node = self.model.nearest_free_node(point, displacements)
         with self._lock:
             grasp = self.grasp
@@ -432,6 +441,11 @@ class Session(PhysicsThread):
         """One time step of the driver under the current grasp (and the device's hand, when one is
         attached: it gets the force the hand feels)."""
         with self._lock:
+            if self.scalpel is not None:
+                self._scalpel_step()
+                self.stats.steps += 1
+                self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
+                return
             t = self._t0_sim + self.stats.steps * self.driver.dt
             if self.device is not None:
                 self._device_hand(t)
@@ -473,16 +487,16 @@ class Session(PhysicsThread):
         """The (k, 3) displacements of the drawn vertices (:attr:`drawn`) now: what a frame shows.
         A solid's field is evaluated on its surface only (566 of the 7,398 nodes of the default
         tet10 liver)."""
-        if type(self.driver) is ModalSimulator or self.drawn.size == self.X.shape[0]:
-            return self.displacements()[self.drawn]
         with self._lock:
-            driver = self.driver
+            driver, drawn = self.driver, self.drawn  # (a cut swaps both)
+            if type(driver) is ModalSimulator or drawn.size == self.X.shape[0]:
+                return self.displacements()[drawn]
             if not getattr(driver, "concurrent_reads", False):
-                return displacements_at(driver, self.drawn)
+                return displacements_at(driver, drawn)
         # outside the lock: the stepping thread does not wait for the frame's field (2 ms on a
         # 15,000-node liver with a 114-node grasp: a frame thread pre-empted while holding the lock
         # held the steps back with it; benchmarks/viewer_step.py)
-        return displacements_at(driver, self.drawn)
+        return displacements_at(driver, drawn)
 
     def record_force(self) -> None:
         with self._lock:

@@ -1,0 +1,151 @@
+"""The viewer's scalpel (issue 57): a blade drawn through a solid organ cuts it while it runs.
+
+The first stroke puts the session in scalpel mode. The organ goes full order (a cut opens only there:
+the reduced nonlinear model carries its state over, :meth:`ReducedNonlinearSimulator.carry_over`; a
+linear modal or impedance one starts again from rest on the lagged corotational step), hangs under
+gravity from its fixed nodes, and an :class:`rtfem.Scalpel` steps it, on the session's own clock
+(``thread=False``), cutting where the blade sweeps: each cut is made and assembled in the scalpel's
+worker process and swapped in between two steps. The organ is first brought to its static equilibrium
+under gravity (:func:`rtfem.nonlinear.solve_static`) and set there at rest, so that it hangs before
+the blade touches it, and a cut opens under its weight. Each time it is, the session takes the cut model as
+its own (its surface, drawn vertices and region colours; ``generation`` counts them, for the front end
+to send the new surface). The blade leaves the tissue with :meth:`lift`; the organ keeps hanging. A
+grasp is refused in scalpel mode; :meth:`~rtfem.viewer.session.Session.configure` (the panel's Reset)
+leaves it, rebuilding the chosen method on the cut mesh: the cut is kept, undone only by reloading.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError
+
+__all__ = ["Cutting", "GRAVITY"]
+
+GRAVITY = (0.0, 0.0, -9.81)  # m/s^2 on the organ in scalpel mode (the viewer's frame: z up)
+
+
+class Cutting:
+    """The :class:`~rtfem.viewer.session.Session`'s scalpel mode (see the module)."""
+
+    scalpel = None  # the rt.Scalpel stepping the organ in scalpel mode, else None
+    generation = 0  # the cut models taken so far (the front end redraws the surface when it changes)
+    cut_status = ""  # what the scalpel mode is doing, for the panel
+
+    def cut(self, tip, heel) -> None:
+        """The blade from ``heel`` to ``tip`` (m, the organ's frame) for the next steps: the first call
+        enters scalpel mode (see the module), each call after :meth:`lift` starts a new stroke there."""
+        tip, heel = validate.point(tip, "blade tip"), validate.point(heel, "blade heel")
+        if not np.linalg.norm(tip - heel) > 0:
+            raise ModelError("the blade's tip and heel coincide: give a blade of some length")
+        with self._lock:
+            if self.scalpel is None:
+                self._enter_scalpel_mode()
+            self._blade = (tip, heel)
+
+    def lift(self) -> None:
+        """The blade out of the tissue (the stroke's end): the organ steps on, hanging, uncut further."""
+        with self._lock:
+            self._blade = None
+            if self.scalpel is not None:
+                self.scalpel.lift()
+
+    def _enter_scalpel_mode(self) -> None:
+        from ..interaction.scalpel import Scalpel
+
+        if self.volume is None:
+            raise ModelError("a shell cannot be cut yet: open the organ as a solid (rtfem view ORGAN --solid)")
+        if self.device is not None:
+            raise ModelError("the scalpel follows the mouse: detach the haptic device first")
+        driver, how = self._full_order()
+        self.node, self.target = None, None
+        self.grasp.release()
+        self._local_gen += 1  # a patch training for the reduced model is not wanted any more
+        if getattr(self, "monitor", None) is not None:
+            self.monitor.stop(timeout=0.0)
+            self.monitor = None
+        scalpel = Scalpel(driver, gravity=GRAVITY, thread=False, worker=True)
+        try:
+            _hang(driver, scalpel.solid.weights)
+        except Exception:
+            scalpel.close()
+            raise
+        self.scalpel = scalpel
+        scalpel.lift()
+        self.driver = driver
+        self.settings = replace(self.settings, method="direct", large=True)
+        self.cut_status = f"scalpel mode: {how}; the organ hangs under gravity (Reset leaves it, keeping the cut)"
+
+    def _full_order(self):
+        """The running organ on the full-order lagged corotational step, and how it got there."""
+        from ..drivers.fullorder import DirectSimulator
+
+        d = self.driver
+        if hasattr(d, "carry_over") and hasattr(getattr(d, "model", None), "tetmesh"):
+            if getattr(d, "large_deformation", True) and hasattr(d, "factorize"):
+                return d, "the full order as it ran"
+            return DirectSimulator(self.model, d.dt, self.damping, large_deformation=True), \
+                "the full order again, large deformation (from rest)"
+        if hasattr(d, "reduced") and hasattr(d, "carry_over"):  # the reduced nonlinear model: its state carried
+            full = d.carry_over(self.model, np.arange(self.model.n_nodes))
+            return full, "the reduced model's state carried to the full order (a cut opens only there)"
+        return DirectSimulator(self.model, d.dt, self.damping, large_deformation=True), \
+            f"the full order from rest (the {self.settings.method} model's state is not carried)"
+
+    def _scalpel_step(self) -> None:
+        """One step in scalpel mode (under the session's lock): the blade placed, the organ stepped, a
+        cut ready swapped in (and taken by the session)."""
+        sc = self.scalpel
+        if self._blade is not None:
+            sc.update(*self._blade)
+        sc.physics_step()
+        if sc.model is not self.model:
+            self._take(sc.model)
+        self.driver = sc.driver
+        if sc.refused:
+            self.cut_status = f"the last strip was not cut: {sc.refused}"
+
+    def _take(self, model) -> None:
+        """The cut model as the session's own: its mesh drawn and touched from now on."""
+        from ..interaction.haptics import Grasp
+        from .gltf import region_colours
+
+        model._viewer_E = self.settings.E
+        self.model, self.volume = model, model.tetmesh
+        self.mesh = model.tetmesh.surface
+        self.X = np.asarray(self.mesh.vertices)
+        self.drawn = self.mesh.used_vertices()
+        self.region_colours = region_colours(self.volume, self.drawn)
+        s = self.settings
+        self.grasp = Grasp(self.mesh, self.scalpel.driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
+                           radius=s.grab_radius)
+        self.generation += 1
+        sc = self.scalpel
+        self.cut_status = (f"cut {sc.cuts} time(s): {model.n_nodes} nodes, {model.tetmesh.n_tets} tets; the last strip "
+                           f"applied {1e3 * sc.latencies[-1]:.0f} ms after it was swept" if sc.latencies else "")
+
+    def _leave_scalpel_mode(self) -> None:
+        """Before a rebuild: the scalpel closed (its worker process too); the cut mesh stays the session's."""
+        sc, self.scalpel, self._blade = self.scalpel, None, None
+        if sc is not None:
+            sc.close()
+            self.cut_status = f"the cut organ ({self.model.n_nodes} nodes) rebuilt with the chosen method"
+
+
+def _hang(driver, weights: np.ndarray) -> None:
+    """``driver`` (the lagged full-order step) set at rest at the static equilibrium of its model under
+    ``weights`` (n, 3): the displacements solve_static finds, no velocity or acceleration, the loads
+    held (what the next steps apply) those weights, its HHT residual zero, its factor made there."""
+    from ..fe.nonlinear import solve_static
+
+    weights = np.where(driver.model.fixed[:, :3], 0.0, weights)  # (the supports carry their own nodes' weight)
+    u = np.asarray(solve_static(driver.model, weights).displacements, dtype=float).ravel()[driver._solved]
+    state = driver.get_state()
+    zero = np.zeros_like(u)
+    state.update(u=u, v=zero, a=zero, g=zero, held=np.asarray(weights, dtype=float).ravel(), ref_u=u.copy(),
+                 ref_step=np.array([float(state["steps"])]), chord=np.array([-1.0, 0.0]), u_1=u.copy(), u_2=u.copy(),
+                 past=np.zeros(1))
+    driver.set_state(state)

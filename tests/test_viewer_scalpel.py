@@ -1,0 +1,84 @@
+"""The viewer's scalpel front end (rtfem.viewer.cut_view) without a browser: ctrl+drag events as viser sends
+them (start, updates, end; the pointer on the camera-facing plane through the point picked, the camera
+above) on a tet4 block clamped at both ends. The first event enters scalpel mode on a thread of its own;
+the blade is along the line of sight, from CUT_ABOVE in front of the pointer to CUT_DEPTH behind it; each
+cut the session takes is drawn: the frames' encoder and the grabbable copy are rebuilt on the new surface
+(its vertex count, the session's drawn vertices), and the frames go on without an error. The blade of a
+ray is checked against its definition. (tests/test_viewer_browser.py drags in a real browser.)"""
+
+from __future__ import annotations
+
+import socket
+import time
+from types import SimpleNamespace as NS
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+
+pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+
+from rtfem.viewer.cut_view import CUT_ABOVE, CUT_DEPTH, blade  # noqa: E402
+
+L, W = 0.1, 0.02
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(cond, timeout: float, what: str) -> None:
+    t0 = time.time()
+    while not cond():
+        if time.time() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def test_the_blade_runs_along_the_line_of_sight():
+    tip, heel = blade((1.0, 2.0, 3.0), (1.0, 2.0, 13.0))
+    np.testing.assert_allclose(tip, (1.0, 2.0, 3.0 - CUT_DEPTH))
+    np.testing.assert_allclose(heel, (1.0, 2.0, 3.0 + CUT_ABOVE))
+
+
+def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
+    from rtfem.viewer.app import Viewer
+    from rtfem.viewer.session import Session, Settings
+
+    mesh = rt.meshes.box(L, W, W, nx=20, ny=4, nz=4)
+    ends = np.concatenate([mesh.groups["x0"], mesh.groups["x1"]])
+    s = Session(mesh, rt.Material(E=3e5, nu=0.45, density=1060.0), fixed=ends,
+                settings=Settings(method="direct", large=True, dt=2e-3))
+    n0 = s.model.n_nodes
+    v = Viewer(s, port=_port()).start()
+    try:
+        def event(phase, y):
+            p = (L / 2, y, 0.019)  # the pointer on the plane facing the camera, through the top
+            return NS(phase=phase, end_position=p, start_position=p, client=NS(camera=NS(position=(L / 2, y, 0.5))))
+
+        v._on_cut(event("start", -0.005))
+        _wait(lambda: s.scalpel is not None, 30, "scalpel mode")
+        assert "hangs under gravity" in s.cut_status
+        for k in range(60):
+            v._on_cut(event("update", -0.005 + 0.03 * k / 59))
+            time.sleep(0.05)
+        v._on_cut(event("end", 0.025))
+        _wait(lambda: v.cuts_drawn >= 1, 30, "a cut drawn")
+        sc = s.scalpel
+
+        def settled():  # no cut job at work or waiting, and every cut the session took drawn
+            return (sc._job is None or not sc._job.is_alive()) and sc._ready is None and v._generation == s.generation
+
+        _wait(settled, 30, "the cuts to settle")
+        frames = v.frames
+        _wait(lambda: v.frames > frames + 3, 10, "frames after the cut")
+        assert s.model.n_nodes > n0 and s.generation >= 1
+        assert v._drawn_sent is s.drawn and np.asarray(v.pick.vertices).shape == (s.drawn.size, 3)
+        assert v.state()["error"] is None
+        with pytest.raises(rt.ModelError, match="scalpel mode"):
+            s.grab((L, W / 2, W / 2))
+    finally:
+        v.stop()

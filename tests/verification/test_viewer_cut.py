@@ -1,0 +1,100 @@
+"""The viewer's scalpel mode (issue 57: "in the viewer, drag with a modifier key cuts"), through the
+session the front end drives (rtfem.viewer.cutting): a tet4 block 0.1 x 0.02 x 0.02 m clamped at both
+ends, its blade drawn across its width at mid-length from above its top to 0.4 of its height.
+
+- Entering scalpel mode hangs the organ at its static equilibrium under gravity (rt.solve_static's,
+  set at rest): the steps after move it by nothing measurable.
+- The stroke cuts the slit the blade swept and the session takes the cut organ as its own: the
+  chosen method rebuilt on it (Reset) has the frequencies of the block built slit by index
+  arithmetic (test_cut's mesh, the slit from the top to half the height at mid-length) within 0.1 %
+  (the split nudges nodes by under a fifth of an edge; measured 0.016 %), lower than the uncut block's.
+- A lifted blade cuts nothing more; a grasp in scalpel mode, a shell and a blade of no length are
+  refused, each with what to do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rtfem as rt
+from rtfem.viewer.session import Session, Settings
+
+from test_cut import _slit_box
+
+L, W = 0.1, 0.02
+MAT = rt.Material(E=3e5, nu=0.45, density=1060.0)
+
+
+def _ends(mesh):
+    return np.concatenate([mesh.groups["x0"], mesh.groups["x1"]])
+
+
+def _hz(model, r: int = 6) -> np.ndarray:
+    return np.asarray(rt.modal_analysis(model, r).omega) / (2 * np.pi)
+
+
+@pytest.fixture(scope="module")
+def stroke():
+    mesh = rt.meshes.box(L, W, W, nx=20, ny=4, nz=4)
+    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3))
+    uncut = _hz(s.model)
+    n0, drawn0 = s.model.n_nodes, s.drawn.size
+    s.cut((L / 2, -0.02, 0.1), (L / 2, -0.02, 0.12))  # enters scalpel mode (the blade far above), hangs
+    s.lift()
+    hung = s.displacements()
+    for _ in range(5):
+        s.step()
+    drift = float(np.abs(s.displacements() - hung).max())
+    x = s.X + s.displacements()
+    mid = np.abs(s.X[:, 0] - L / 2) < 1e-9
+    xc, top, bot = x[mid, 0].mean(), x[mid, 2].max(), x[mid, 2].min()
+    for k in range(80):
+        y = -0.005 + (W + 0.01) * k / 79
+        s.cut((xc, y, bot + 0.4 * (top - bot)), (xc, y, top + 0.01))
+        s.step()
+    s.lift()
+    swept = s.scalpel.triangles.shape[0]
+    s.scalpel.finish()
+    for _ in range(20):
+        s.step()
+    yield {"session": s, "uncut": uncut, "n0": n0, "drawn0": drawn0, "hung": hung, "drift": drift, "swept": swept}
+    s.stop()
+
+
+def test_scalpel_mode_hangs_the_organ_at_rest_under_gravity(stroke):
+    hung = stroke["hung"]
+    assert hung[:, 2].min() < -1e-4  # it sags (0.27 mm at mid-span)
+    assert stroke["drift"] <= 1e-6 * np.abs(hung).max()  # and stays there: an equilibrium, at rest
+
+
+def test_the_stroke_cuts_the_slit_the_session_then_draws_and_rebuilds(stroke):
+    s = stroke["session"]
+    assert s.scalpel.triangles.shape[0] == stroke["swept"]  # nothing swept after the lift
+    assert s.model.n_nodes == stroke["n0"] + 10  # the slit's two node rows above its front, copied
+    assert s.generation >= 1 and s.drawn.size > stroke["drawn0"] and s.model.cut_info.pieces == 1
+    assert s.displacements().shape == (s.model.n_nodes, 3)
+    assert s.surface_displacements().shape == (s.drawn.size, 3)
+    assert "cut" in s.cut_status
+    with pytest.raises(rt.ModelError, match="scalpel mode.*Reset"):
+        s.grab((L, W / 2, W / 2))
+    cut_nodes = s.model.n_nodes
+    s.configure(method="modal", n_modes=6)  # Reset: leaves scalpel mode, the cut kept
+    assert s.scalpel is None and s.model.n_nodes == cut_nodes and s.modes.model is s.model
+    mesh = _slit_box()
+    slit = rt.SolidModel(mesh, MAT, element="tet4").fix(np.flatnonzero(np.isclose(np.asarray(mesh.vertices)[:, 0], 0.0)
+                                                                        | np.isclose(np.asarray(mesh.vertices)[:, 0], L)))
+    f_cut, f_slit = np.asarray(s.modes.frequencies[:6]), _hz(slit)
+    np.testing.assert_allclose(f_cut, f_slit, rtol=1e-3)
+    assert f_cut[0] < stroke["uncut"][0] * 0.99  # the slit softens the first bending mode
+
+
+def test_what_scalpel_mode_refuses_is_said():
+    shell = Session(rt.meshes.liver(), fixed="attachment", settings=Settings(method="modal", n_modes=6))
+    with pytest.raises(rt.ModelError, match="shell cannot be cut.*--solid"):
+        shell.cut((0, 0, 0), (0, 0, 0.03))
+    mesh = rt.meshes.box(L, W, W, nx=10, ny=2, nz=2)
+    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3))
+    with pytest.raises(rt.ModelError, match="tip and heel coincide"):
+        s.cut((0.05, 0.01, 0.01), (0.05, 0.01, 0.01))
+    assert s.scalpel is None
