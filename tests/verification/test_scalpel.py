@@ -98,10 +98,11 @@ def test_a_driver_carried_over_to_its_own_model_steps_on_bit_for_bit():
 
 
 def test_a_driver_prepared_ahead_keeps_its_factor_and_steps_on_as_one_built_at_the_swap():
-    """The scalpel's cutter thread builds the driver on the cut model and factorizes its Newmark tangent
-    (``factorize()``) while the old one steps on; at the swap it takes the state and keeps that factor:
-    its first step makes none (one built at the swap makes one), and it steps on bit for bit as that one
-    (the same reference: the old driver did not refresh meanwhile). A state set again keeps the factor."""
+    """A driver built ahead on the cut model (as the scalpel's cutter thread builds one) and factorized
+    there (``factorize()``, on a thread of one's own) while the old one steps on: at the swap it takes
+    the state and keeps that factor: its first step makes none (one built at the swap makes one), and
+    it steps on bit for bit as that one (the same reference: the old driver did not refresh meanwhile).
+    A state set again keeps the factor."""
     model = _block()
     d = rt.DirectSimulator(model, 1e-3, large_deformation=True)
     load = {int(i): (0.0, 0.0, -0.01) for i in model.tetmesh.groups["x1"]}

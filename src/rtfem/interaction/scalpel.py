@@ -337,10 +337,9 @@ class Scalpel(_MultiRate):
             try:
                 new = self._cut(driver.model, V, T)
                 P = new.cut_info.transfer()
-                prepared = driver.carry_over(new, P)
-                if hasattr(prepared, "factorize"):  # the lagged step's factor, made here: the swap steps at once
-                    prepared.factorize()
-                self._ready = (driver.model, new, P, prepared, n)
+                # (not its factor: made here, beside the ticks, its sparse sums held Python's lock and the haptic
+                # loop missed 4-5 % of its ticks instead of 1 %, benchmarks/scalpel.py; the first step makes it)
+                self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
             except NothingToCut:  # no new face swept whole yet: the next strip retries
                 pass
             except RtfemError as exc:  # refused (rt.cut says why): the next strip retries with more surface
