@@ -128,6 +128,41 @@ def test_a_driver_prepared_ahead_keeps_its_factor_and_steps_on_as_one_built_at_t
     assert np.array_equal(new.displacements(), fresh.displacements())
 
 
+@pytest.mark.parametrize("element", ["tet4", "tet10"])
+def test_a_node_the_split_moved_carries_the_field_at_its_new_place(element):
+    """A slit 1/10 of an element off the block's node plane at mid-length: the split moves the nodes there
+    onto it (under a fifth of an edge) instead of making slivers. Their rows of the transfer are the
+    interpolation at their new place in the uncut tet each lies in (the element's own shape functions),
+    so the old nodes land on the new and a field of the element's order carries over exactly: a running
+    driver's affine displacement leaves every tet4's deformation gradient as it was (before, a moved node
+    kept its old place in the world: a strain of its move over the element, 10 % here)."""
+    model = _block(element=element)
+    x = L / 2 + 0.1 * L / 20
+    cut = rt.cut(model, np.array([[x, -0.001, W / 2], [x, W + 0.001, W / 2], [x, W + 0.001, W + 0.001],
+                                  [x, -0.001, W + 0.001]]), QUAD, snap="split")
+    info = cut.cut_info
+    assert info.moved > 0 and 0.4 * L / 20 * 0.1 < info.max_move <= 0.2 * np.sqrt(3) * L / 20
+    P = info.transfer()
+    X, Y = np.asarray(model.tetmesh.vertices), np.asarray(cut.tetmesh.vertices)
+    assert np.abs(P @ X - Y).max() <= 1e-15
+    q = lambda Z: np.stack([Z[:, 0] * Z[:, 2], Z[:, 1] ** 2, Z[:, 0] + Z[:, 1] * Z[:, 2]], axis=1)  # noqa: E731
+    if element == "tet10":
+        np.testing.assert_allclose(P @ q(X), q(Y), atol=1e-15)
+    A = np.array([[0.02, 0.0, 0.0], [-0.01, 0.0, 0.0], [0.03, 0.0, 0.0]])  # (zero on the clamped end x = 0)
+    d = rt.DirectSimulator(model, 1e-3, large_deformation=True)
+    state = d.get_state()
+    state["u"] = (X @ A.T).ravel()[d._solved]
+    d.set_state(state)
+    new = d.carry_over(cut, P)
+    U = new.displacements()
+    np.testing.assert_allclose(U, Y @ A.T, atol=1e-15)
+    if element == "tet4":
+        T = np.asarray(cut.tetmesh.tets)
+        D = np.transpose(Y[T[:, 1:]] - Y[T[:, :1]], (0, 2, 1))
+        G = np.transpose(U[T[:, 1:]] - U[T[:, :1]], (0, 2, 1)) @ np.linalg.inv(D)
+        np.testing.assert_allclose(G, np.broadcast_to(A, G.shape), atol=1e-12)
+
+
 def test_carry_over_refuses_what_it_cannot_carry():
     model = _block()
     d = rt.DirectSimulator(model, 1e-3, large_deformation=True)

@@ -7,10 +7,13 @@ the edge's ends. Displacements, velocities and accelerations go through P (the f
 piecewise polynomials, so where the cut follows element faces the kinetic and strain energies are
 exactly the old ones); the loads a step remembers (HHT's last forces) go through P scaled by each new
 node's lumped mass over that of what it interpolates (a node's load shared among its copies by mass:
-the total kept where only copies are made). A node the cut moved onto its surface keeps its place in
-the world (its displacement takes the move back): the solid is where it was at the swap, so no element
-turns inside out there; its elements' strains change by the move over their size (``cut_info.max_move``;
-a running scalpel cuts tet4 with ``snap="split"``: moves under a fifth of an edge).
+the total kept where only copies are made). A node the cut moved onto its surface (``cut_info.max_move``;
+a running scalpel cuts with ``snap="split"``: moves under a fifth of an edge) is carried at its new
+reference point: rt.cut's transfer interpolates there in the uncut tet it lies in, so the old nodes land
+on the new and the elements about it keep their strains (the node slides within the deformed solid).
+Given a transfer that does not land them (a parent array after a cut that moved nodes), a moved node
+keeps its place in the world instead, its displacement taking the move back, its elements strained by
+the move over their size.
 """
 
 from __future__ import annotations
@@ -139,7 +142,8 @@ def _check_remesh(old, new, P) -> None:
 
 
 def _keep_in_place(old, new, P, state: dict, solved: np.ndarray) -> None:
-    """A node whose reference point the remesh moved (a cut's snap) keeps its place in the world: its
+    """A node whose reference point the remesh moved and the transfer does not land (P X != X': a parent
+    array for a cut that moved nodes; rt.cut's own transfer lands them) keeps its place in the world: its
     displacement takes the move back (u' = P(X + u) - X'), so the solid is where it was at the swap and
     no element can turn inside out there; its elements' strains change by the move over their size."""
     if not (hasattr(old, "tetmesh") and hasattr(new, "tetmesh")) or "u" not in state:

@@ -15,8 +15,8 @@ def reduced_carry_over(self, model, transfer, *, large_deformation: bool = True,
     (``rt.cut``'s), as a full-order :class:`rt.DirectSimulator` (issue 57: a cut reduced organ goes
     full order; its basis cannot hold the opened cut). The displacement (with the static correction
     of the current loads), velocity and acceleration through the basis, then node by node through
-    the remesh's interpolation (see the module; a node the cut moved keeps its place in the world);
-    the loads held, shared among a node's copies by lumped mass. The full order's remembered force is
+    the remesh's interpolation (see the module; a node the cut moved is carried at its new place in the
+    deformed solid); the loads held, shared among a node's copies by lumped mass. The full order's remembered force is
     the one of the equation of motion at the state (-M a), its first step factorizes at the state.
     Same dt and damping (``into``: one built before by this call on the same model, which then only
     takes the state). This simulator is left as it was.

@@ -45,7 +45,8 @@ class CutInfo(dict):
     """What :func:`cut_mesh` did: ``faces`` (element faces cut), ``nodes_added`` (copies made),
     ``parent`` (for each node of the cut mesh, the node it copies), ``pieces`` (separate parts
     of the cut mesh), ``piece`` (each node's part), ``moved`` (nodes moved onto the surface),
-    ``max_move`` (the longest move, m), ``uncut`` (n, the node count before) and ``split`` (the
+    ``max_move`` (the longest move of a corner node, m), ``uncut`` (n, the node count before), ``rows``
+    (where nodes moved or were added: their interpolation in the uncut tet each lies in) and ``split`` (the
     edges (s, 2) split by a node added on the surface, in order: node n + k of the mesh before the
     copies is on edge k) with ``split_at`` (where along each edge: 0 at its first end, 1 at its
     second); :meth:`transfer` is the interpolation from the old nodes to the new."""
@@ -54,8 +55,10 @@ class CutInfo(dict):
 
     def transfer(self) -> sp.csr_matrix:
         """The interpolation (n_cut, n) from the uncut mesh's nodes to the cut mesh's: a copy's row
-        picks its node; a node added on a split edge (a, b) at s is (1 - s) a + s b (a linear field
-        stays itself). What a running driver's state goes through (DirectSimulator.carry_over)."""
+        picks its node; a node added or moved (onto the surface) is the interpolation at its place in the
+        uncut tet it lies in (``rows``; without them, a node on a split edge (a, b) at s is (1 - s) a + s b),
+        so a field of the elements' order stays itself and the transfer lands the old nodes on the new.
+        What a running driver's state goes through (DirectSimulator.carry_over)."""
         born, at, parent, n = self["split"], self["split_at"], self["parent"], self["uncut"]
         I = sp.identity(n, format="csr")
         rows: list = []  # the added nodes' rows, each from earlier ones
@@ -63,7 +66,7 @@ class CutInfo(dict):
             ra, rb = (I[a] if a < n else rows[a - n]), (I[b] if b < n else rows[b - n])
             rows.append((1.0 - s) * ra + s * rb)
         out = sp.vstack([I, *rows], format="csr")
-        given = self.get("rows")  # a split tet10 mesh: its nodes' quadratic interpolation in their old tet
+        given = self.get("rows")  # the added and moved nodes' interpolation in their uncut tet
         if given is not None:
             keep = np.ones(out.shape[0])
             keep[np.unique(given.tocoo().row)] = 0.0
@@ -217,11 +220,11 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     new = TetMesh(Vn[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
                   region_names=mesh.region_names)
     pieces, piece = _pieces(T_new, parent.size)
-    shift = np.linalg.norm(Vz[:z] - V[zn], axis=1)
-    if rows is not None:  # a split edge's mid-edge node, moved along it, is interpolated, not moved
+    corner = np.zeros(z, dtype=bool)
+    corner[_local(T[zone][:, :4], zn, n0).ravel()] = True  # (a tet10's mid-edge node follows its corners)
+    shift = np.where(corner, np.linalg.norm(Vz[:z] - V[zn], axis=1), 0.0)
+    if rows is not None:
         R = rows.tocoo()
-        given = np.unique(R.row)
-        shift[given[given < z]] = 0.0
         rows = sp.csr_matrix((R.data, (glob[R.row], zn[R.col])), shape=(Vn.shape[0], n0))
     info = CutInfo(faces=int(cut.sum()), nodes_added=int(parent.size - n0), parent=parent, pieces=pieces,
                    piece=piece, moved=moved, max_move=float(shift.max(initial=0.0)),
@@ -255,7 +258,8 @@ def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
 def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, whole: np.ndarray):
     """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
     nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
-    source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and a tet10's rows. ``whole``:
+    source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and the rows of the nodes
+    moved or added (:func:`_rows`; None where none was). ``whole``:
     the nodes whose tets are all given (an edge between two of them is on the outside as in the mesh)."""
     moved, born, at, source = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0])
     rows = None
@@ -266,7 +270,10 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, w
             V, snapped = _snap(V, T, tri, tol)
             moved += snapped
         if T.shape[1] == 4:
+            T0 = T
             V, T, born, at, nudged, source = _split_edges(V, T, tri, tol)
+            need = np.concatenate([np.flatnonzero((V[:V0.shape[0]] != V0).any(axis=1)), np.arange(V0.shape[0], V.shape[0])])
+            rows = _rows(V, T, source, need, T0, V0) if need.size else None
         else:
             V, T, born, at, nudged, source, rows = _split_tet10(V, T, tri, tol, V0)
         moved += nudged
@@ -354,8 +361,7 @@ def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: 
     that of its first half, moved midway along it; every other new edge gets a new one midway; those of
     the edges at a nudged corner follow it. Returns what :func:`_split_edges` does, the new mid-edge
     nodes' edges appended to the split edges (at 0.5: a node's fixes and groups are its edge's), and
-    the quadratic interpolation (the tet10 shape functions at each new or rebuilt node in the uncut
-    tet it lies in, ``V0`` that mesh's nodes) as a sparse (nodes, uncut nodes) matrix of their rows."""
+    the rows of the new, rebuilt and moved nodes (:func:`_rows`, ``V0`` the uncut nodes)."""
     n0 = V.shape[0]
     V, C, born, at, nudged, source = _split_edges(V, T[:, :4], tri, tol)
     n1 = V.shape[0]
@@ -379,24 +385,32 @@ def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: 
     V[T10[:, 4:]] = 0.5 * (V[C[:, TET10_EDGES[:, 0]]] + V[C[:, TET10_EDGES[:, 1]]])  # midway (a nudge moved some)
     born = np.concatenate([born, np.array(new_edges, dtype=np.int64).reshape(-1, 2)])
     at = np.concatenate([at, np.full(len(new_edges), 0.5)])
-    need = np.unique(np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64)]))  # (one row each)
-    return V, T10, born, at, nudged, source, _quadratic_rows(V, T10, source, need, T, V0)
+    moved = np.flatnonzero((V[:n0] != V0).any(axis=1))  # onto the surface, or a mid-edge node following its corner
+    need = np.unique(np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64), moved]))
+    return V, T10, born, at, nudged, source, _rows(V, T10, source, need, T, V0)
 
 
-def _quadratic_rows(V, T10, source, need, T0, V0) -> sp.csr_matrix:
-    """(nodes, uncut nodes) rows of the nodes ``need``: the tet10 shape functions of the uncut tet
-    each lies in (the one a new tet holding it came from), at its barycentric coordinates there."""
-    holder = np.full(V.shape[0], -1)
-    e, k = np.nonzero(np.isin(T10, need))
-    holder[T10[e, k]] = source[e]
-    need = need[holder[need] >= 0]
-    t = holder[need]
+def _rows(V, Tn, source, need, T0, V0) -> sp.csr_matrix:
+    """(nodes, uncut nodes) rows of the nodes ``need`` (added, or moved onto the surface): the shape
+    functions (tet4's linear, tet10's quadratic) of the uncut tet each lies in, at its place there; of the
+    uncut tets its new tets came from (``source``), the one it lies deepest in. So a field of the element's
+    order carries over exactly, and a node moved keeps its place in the deformed solid (where its new
+    reference point is carried), not its old point's: the elements about it are not strained by the move."""
+    e, k = np.nonzero(np.isin(Tn, need))
+    node, t = Tn[e, k], source[e]  # each (node, uncut tet a new tet holding it came from)
     X = V0[T0[t, :4]]  # (p, 4, 3) the uncut tets' corners
     A = np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1))
-    lam = np.linalg.solve(A, (V[need] - X[:, 0])[..., None])[..., 0]
+    lam = np.linalg.solve(A, (V[node] - X[:, 0])[..., None])[..., 0]
     L = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)  # (p, 4) barycentric
-    N = np.concatenate([L * (2.0 * L - 1.0), 4.0 * L[:, TET10_EDGES[:, 0]] * L[:, TET10_EDGES[:, 1]]], axis=1)
-    return sp.csr_matrix((N.ravel(), (np.repeat(need, 10), T0[t].ravel())), shape=(V.shape[0], V0.shape[0]))
+    best = np.lexsort((-L.min(axis=1), node))  # by node, the deepest first
+    first = np.r_[True, node[best][1:] != node[best][:-1]][:node.size]
+    pick = best[first]
+    node, t, L = node[pick], t[pick], L[pick]
+    if T0.shape[1] == 4:
+        N = L
+    else:
+        N = np.concatenate([L * (2.0 * L - 1.0), 4.0 * L[:, TET10_EDGES[:, 0]] * L[:, TET10_EDGES[:, 1]]], axis=1)
+    return sp.csr_matrix((N.ravel(), (np.repeat(node, T0.shape[1]), T0[t].ravel())), shape=(V.shape[0], V0.shape[0]))
 
 
 MIN_VOLUME = 0.25  # a node moves onto the surface only if each of its tets keeps this share of its volume
