@@ -129,8 +129,8 @@ def main() -> None:
         c, b, s, n, f, newton, move = one_event(model, args.dt, surface)
         print(f"one cut event alone (the whole swept surface on the uncut liver, {n} nodes added): rt.cut "
               f"{c * 1e3:.0f} ms, the driver built and the state carried {b * 1e3:.0f} ms, its first step "
-              f"{s * 1e3:.0f} ms ({f} factorizations, {newton} Newton steps; the split nudged a node by up to "
-              f"{move * 1e3:.1f} mm, a strain the step takes up)")
+              f"{s * 1e3:.0f} ms ({f} factorizations, {newton} Newton steps; the split moved a node onto the surface "
+              f"by up to {move * 1e3:.1f} mm)")
 
 
 if __name__ == "__main__":
