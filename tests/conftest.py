@@ -126,3 +126,23 @@ def interrupt(p, timeout: float = 30.0) -> tuple[str, str]:
         out, err = p.communicate()
         raise AssertionError(f"the process did not stop within {timeout:g} s of Ctrl-C (killed); "
                              f"its output: {out[-2000:]!r} {err[-2000:]!r}") from None
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for a viewer a test serves)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(cond, timeout: float, what: str, poll: float = 0.1) -> None:
+    """Poll ``cond()`` until it is true; an AssertionError naming ``what`` after ``timeout`` s."""
+    import time
+
+    t0 = time.time()
+    while not cond():
+        if time.time() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(poll)

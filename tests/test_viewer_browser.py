@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import socket
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import pytest
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
 
+from conftest import free_port, wait_until  # noqa: E402
 from rtfem.viewer.benchmark import BROWSER_COUNTER  # noqa: E402
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "browser"
@@ -39,20 +39,6 @@ def _chromium() -> str:
     if os.environ.get("RTFEM_REQUIRE_BROWSER") == "1":
         pytest.fail("no chromium binary on PATH: install Debian's chromium (apt-get install chromium); .ci/run does")
     pytest.skip("no chromium binary on PATH (apt-get install chromium)")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(cond, timeout: float, what: str) -> None:
-    t0 = time.time()
-    while not cond():
-        if time.time() - t0 > timeout:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.1)
 
 
 def _dismiss_notices(page) -> None:
@@ -76,12 +62,12 @@ def _open_page(viewer):
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.add_init_script(BROWSER_COUNTER)  # window.__rtfem: frames drawn, shaders compiled
             page.goto(viewer.url)
-            _wait(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
+            wait_until(lambda: viewer.state()["clients"] >= 1, 60, "the browser to connect")
             page.wait_for_selector("canvas", timeout=60_000)
             _dismiss_notices(page)
             # the viewer frames each browser's camera once the browser has said its canvas size, which
             # a loaded machine's browser said late (CI: the first camera, centred, was still in place)
-            _wait(lambda: _framed(viewer), 40, "the viewer to frame the browser's camera")
+            wait_until(lambda: _framed(viewer), 40, "the viewer to frame the browser's camera")
             time.sleep(1.0)  # the browser's transition to the framed camera
             yield page
         finally:
@@ -131,7 +117,7 @@ def viewer(request):
         assert session.kind == "solid (tet10)" and session.settings.method == "nonlinear"
     else:
         session = Session(rt.meshes.liver(), fixed="attachment")
-    v = Viewer(session, port=_free_port()).start()
+    v = Viewer(session, port=free_port()).start()
     v.kind = request.param
     yield v
     v.stop()
@@ -143,7 +129,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     with _open_page(viewer) as page:
         start = viewer.frames
-        _wait(lambda: viewer.frames > start + 30, 60, "frames to be served")
+        wait_until(lambda: viewer.frames > start + 30, 60, "frames to be served")
         time.sleep(3.0)  # the client renders what it was sent
         plot = page.locator(".uplot").first
         plot_before = _pixels(plot.screenshot())
@@ -164,8 +150,8 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
         for i in range(1, 21):
             page.mouse.move(x0 + 2.1 * i, y0 - 3.5 * i)
             time.sleep(0.05)
-        _wait(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
-        _wait(lambda: _settled(viewer), 30, "the held organ to settle")
+        wait_until(lambda: viewer.state()["grabbed"] is not None, 20, "the drag to grab a vertex")
+        wait_until(lambda: _settled(viewer), 30, "the held organ to settle")
         time.sleep(0.8)
         counts0 = page.evaluate("({...window.__rtfem})")
         time.sleep(1.2)
@@ -175,7 +161,7 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
         during_png = page.screenshot(path=str(ARTIFACTS / f"2_dragging_{viewer.kind}.png"))
         plot_during = _pixels(plot.screenshot(path=str(ARTIFACTS / f"2_force_plot_{viewer.kind}.png")))
         page.mouse.up()
-        _wait(lambda: viewer.state()["grabbed"] is None, 20, "the release")
+        wait_until(lambda: viewer.state()["grabbed"] is None, 20, "the release")
         time.sleep(2.5)
         after = viewer.state()
         page.screenshot(path=str(ARTIFACTS / f"3_released_{viewer.kind}.png"))
@@ -229,7 +215,7 @@ def test_presses_grab_the_organ_at_a_low_frame_rate():
     from rtfem.viewer.app import Viewer
     from rtfem.viewer.session import Session
 
-    v = Viewer(Session(rt.meshes.liver(), fixed="attachment"), port=_free_port(), fps=2.0).start()
+    v = Viewer(Session(rt.meshes.liver(), fixed="attachment"), port=free_port(), fps=2.0).start()
     try:
         with _open_page(v) as page:
             time.sleep(3.0)
@@ -243,11 +229,11 @@ def test_presses_grab_the_organ_at_a_low_frame_rate():
                 for i in range(1, 11):
                     page.mouse.move(x0 + 3 * i, y0 - 4 * i)
                     time.sleep(0.05)
-                _wait(lambda: v.state()["grabbed"] is not None, 20, f"press {k + 1} to grab the organ")
+                wait_until(lambda: v.state()["grabbed"] is not None, 20, f"press {k + 1} to grab the organ")
                 grabbed.append(v.state()["grabbed"])
                 time.sleep(0.7)  # mid-pull: frames (and the organ) change under the mouse
                 page.mouse.up()
-                _wait(lambda: v.state()["grabbed"] is None, 20, "the release")
+                wait_until(lambda: v.state()["grabbed"] is None, 20, "the release")
                 time.sleep(0.8)  # the next press lands while the organ still settles
     finally:
         v.stop()
@@ -272,19 +258,19 @@ def test_the_example_scene_in_chromium_draws_its_tools_and_plane_and_restarts():
 
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     scene = scene_for_viewer(resources_example())
-    v = SceneViewer(SceneSession(scene), port=_free_port()).start()
+    v = SceneViewer(SceneSession(scene), port=free_port()).start()
     try:
         time.sleep(0.5)
         assert v.state()["time"] == 0.0 and not v.state()["playing"]  # nobody watches yet
         with _open_page(v) as page:
-            _wait(lambda: v.state()["playing"] and v.state()["time"] > 0.5, 60, "the scripted paths to run")
+            wait_until(lambda: v.state()["playing"] and v.state()["time"] > 0.5, 60, "the scripted paths to run")
             st = v.state()
             assert st["error"] is None and st["drawn"]["planes"] == ["abdominal wall"]
             grasper = st["drawn"]["tools"]["grasper"]
             assert grasper["closed"] and grasper["holds"] == "gallbladder" and st["tool_forces"]["grasper"] > 0.1
             button = page.get_by_role("button", name="pause", exact=True)
             button.click()
-            _wait(lambda: not v.state()["playing"], 10, "pause")
+            wait_until(lambda: not v.state()["playing"], 10, "pause")
             t_paused = v.state()["time"]
             time.sleep(2.0)  # the client draws what it was sent
             assert v.state()["time"] == t_paused  # the clock stopped
@@ -300,21 +286,21 @@ def test_the_example_scene_in_chromium_draws_its_tools_and_plane_and_restarts():
             tip = v.project(grasper["position"])[0]
             wall = v.project(scene.obstacles[0].point + np.array([0.06, 0.0, 0.0]))[0]  # on the wall, beside the liver
             page.get_by_role("button", name="restart", exact=True).click()
-            _wait(lambda: v.state()["time"] == 0.0, 20, "the restart")
+            wait_until(lambda: v.state()["time"] == 0.0, 20, "the restart")
             time.sleep(1.5)
             restarted = v.state()
             back = _pixels(page.screenshot(path=str(ARTIFACTS / "scene_4_restarted.png")))
             page.get_by_role("button", name="play", exact=True).click()
-            _wait(lambda: v.state()["time"] > 0.2, 20, "play after the restart")
+            wait_until(lambda: v.state()["time"] > 0.2, 20, "play after the restart")
             page.get_by_role("button", name="pause", exact=True).click()
-            _wait(lambda: not v.state()["playing"], 10, "pause")
+            wait_until(lambda: not v.state()["playing"], 10, "pause")
             slider_box = page.locator("input.mantine-NumberInput-input").last  # the time slider's box
             # a loaded browser draws the slider's values late (its box showed 0.234 s with the clock
             # paused at 0.66 s): typing the value the box shows at that moment changes nothing and
             # sends nothing, so wait until it shows where the clock stopped, then type another time
             paused_at = v.transport.slider.value
-            _wait(lambda: abs(float(slider_box.input_value() or "nan") - paused_at) < 1e-9, 30,
-                  f"the slider's box to show the paused time {paused_at} s")
+            wait_until(lambda: abs(float(slider_box.input_value() or "nan") - paused_at) < 1e-9, 30,
+                       f"the slider's box to show the paused time {paused_at} s")
             target = 0.6 if abs(paused_at - 0.6) > 0.05 else 0.7  # the grasper is closed at both
             for _ in range(3):  # a loaded browser can drop the typed value (the page then sends nothing; seen once
                 sent = v.transport.seeks  # in a full suite, the box showing the paused time): type it again
@@ -325,9 +311,9 @@ def test_the_example_scene_in_chromium_draws_its_tools_and_plane_and_restarts():
                     time.sleep(0.05)
                 if v.transport.seeks > sent:
                     break
-            _wait(lambda: not v.state()["seeking"] and abs(v.state()["time"] - target) < 1e-9, 30,
-                  f"the slider's seek to {target} s (the page sent {v.transport.seeks} values; its box "
-                  f"shows {slider_box.input_value()}, the clock is at {v.state()['time']} s)")
+            wait_until(lambda: not v.state()["seeking"] and abs(v.state()["time"] - target) < 1e-9, 30,
+                       f"the slider's seek to {target} s (the page sent {v.transport.seeks} values; its box "
+                       f"shows {slider_box.input_value()}, the clock is at {v.state()['time']} s)")
             sought = v.state()
     finally:
         v.stop()

@@ -8,7 +8,6 @@ ray is checked against its definition. (tests/test_viewer_browser.py drags in a 
 
 from __future__ import annotations
 
-import socket
 import time
 from types import SimpleNamespace as NS
 
@@ -16,26 +15,13 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+from conftest import free_port, wait_until
 
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 
 from rtfem.viewer.cut_view import CUT_ABOVE, CUT_DEPTH, blade  # noqa: E402
 
 L, W = 0.1, 0.02
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(cond, timeout: float, what: str) -> None:
-    t0 = time.time()
-    while not cond():
-        if time.time() - t0 > timeout:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.05)
 
 
 def test_the_blade_runs_along_the_line_of_sight():
@@ -53,28 +39,28 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
     s = Session(mesh, rt.Material(E=3e5, nu=0.45, density=1060.0), fixed=ends,
                 settings=Settings(method="direct", large=True, dt=2e-3))
     n0 = s.model.n_nodes
-    v = Viewer(s, port=_port()).start()
+    v = Viewer(s, port=free_port()).start()
     try:
         def event(phase, y):
             p = (L / 2, y, 0.019)  # the pointer on the plane facing the camera, through the top
             return NS(phase=phase, end_position=p, start_position=p, client=NS(camera=NS(position=(L / 2, y, 0.5))))
 
         v._on_cut(event("start", -0.005))
-        _wait(lambda: s.scalpel is not None, 30, "scalpel mode")
+        wait_until(lambda: s.scalpel is not None, 30, "scalpel mode")
         assert "hangs under gravity" in s.cut_status
         for k in range(60):
             v._on_cut(event("update", -0.005 + 0.03 * k / 59))
             time.sleep(0.05)
         v._on_cut(event("end", 0.025))
-        _wait(lambda: v.cuts_drawn >= 1, 30, "a cut drawn")
+        wait_until(lambda: v.cuts_drawn >= 1, 30, "a cut drawn")
         sc = s.scalpel
 
         def settled():  # no cut job at work or waiting, and every cut the session took drawn
             return (sc._job is None or not sc._job.is_alive()) and sc._ready is None and v._generation == s.generation
 
-        _wait(settled, 30, "the cuts to settle")
+        wait_until(settled, 30, "the cuts to settle")
         frames = v.frames
-        _wait(lambda: v.frames > frames + 3, 10, "frames after the cut")
+        wait_until(lambda: v.frames > frames + 3, 10, "frames after the cut")
         assert s.model.n_nodes > n0 and s.generation >= 1
         assert v._drawn_sent is s.drawn and np.asarray(v.pick.vertices).shape == (s.drawn.size, 3)
         assert v.state()["error"] is None
