@@ -47,7 +47,7 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
 
         v._on_cut(event("start", -0.005))
         wait_until(lambda: s.scalpel is not None, 30, "scalpel mode")
-        assert "hangs under gravity" in s.cut_status
+        assert "hung at its equilibrium under gravity" in s.cut_status
         for k in range(60):
             v._on_cut(event("update", -0.005 + 0.03 * k / 59))
             time.sleep(0.05)

@@ -1,16 +1,14 @@
 """The viewer's scalpel (issue 57): a blade drawn through a solid organ cuts it while it runs.
 
 The first stroke puts the session in scalpel mode. The organ goes full order (a cut opens only there:
-the reduced nonlinear model carries its state over, :meth:`ReducedNonlinearSimulator.carry_over`; a
-linear modal or impedance one starts again from rest on the lagged corotational step), hangs under
-gravity from its fixed nodes, and an :class:`rtfem.Scalpel` steps it, on the session's own clock
-(``thread=False``), cutting where the blade sweeps: each cut is made and assembled in the scalpel's
-worker process and swapped in between two steps. The organ is first brought to its static equilibrium
-under gravity (:func:`rtfem.nonlinear.solve_static`) and set there at rest, so that it hangs before
-the blade touches it, and a cut opens under its weight. Each time it is, the session takes the cut model as
-its own (its surface, drawn vertices and region colours; ``generation`` counts them, for the front end
-to send the new surface). The blade leaves the tissue with :meth:`lift`; the organ keeps hanging. A
-grasp is refused in scalpel mode; :meth:`~rtfem.viewer.session.Session.configure` (the panel's Reset)
+a new lagged corotational driver, whatever the method was; the motion it had is left), set at rest at
+its static equilibrium under gravity (:func:`rtfem.nonlinear.solve_static`), so that it hangs from its
+fixed nodes before the blade touches it and a cut opens under its weight; an :class:`rtfem.Scalpel`
+steps it, on the session's own clock (``thread=False``), cutting where the blade sweeps: each cut is
+made and assembled in the scalpel's worker process and swapped in between two steps, and the session
+takes the cut model as its own (its surface, drawn vertices and region colours; ``generation`` counts
+them, for the front end to send the new surface). The blade leaves the tissue with :meth:`lift`; the
+organ keeps hanging. A grasp is refused in scalpel mode; :meth:`~rtfem.viewer.session.Session.configure` (the panel's Reset)
 leaves it, rebuilding the chosen method on the cut mesh: the cut is kept, undone only by reloading.
 """
 
@@ -37,13 +35,15 @@ class Cutting:
 
     def cut(self, tip, heel) -> None:
         """The blade from ``heel`` to ``tip`` (m, the organ's frame) for the next steps: the first call
-        enters scalpel mode (see the module), each call after :meth:`lift` starts a new stroke there."""
+        enters scalpel mode (see the module; its solve runs outside the session's lock, the organ stepping
+        and drawn meanwhile), each call after :meth:`lift` starts a new stroke there."""
         tip, heel = validate.point(tip, "blade tip"), validate.point(heel, "blade heel")
         if not np.linalg.norm(tip - heel) > 0:
             raise ModelError("the blade's tip and heel coincide: give a blade of some length")
-        with self._lock:
+        with self._entry:  # one entry at a time
             if self.scalpel is None:
                 self._enter_scalpel_mode()
+        with self._lock:
             self._blade = (tip, heel)
 
     def lift(self) -> None:
@@ -54,46 +54,39 @@ class Cutting:
                 self.scalpel.lift()
 
     def _enter_scalpel_mode(self) -> None:
+        """A new full-order lagged corotational driver on the model, hung at its static equilibrium under
+        gravity (built and solved outside the lock), then the scalpel stepping it installed under the lock."""
+        from ..drivers.fullorder import DirectSimulator
         from ..interaction.scalpel import Scalpel
 
-        if self.volume is None:
-            raise ModelError("a shell cannot be cut yet: open the organ as a solid (rtfem view ORGAN --solid)")
-        if self.device is not None:
-            raise ModelError("the scalpel follows the mouse: detach the haptic device first")
-        driver, how = self._full_order()
-        self.node, self.target = None, None
-        self.grasp.release()
-        self._local_gen += 1  # a patch training for the reduced model is not wanted any more
-        if getattr(self, "monitor", None) is not None:
-            self.monitor.stop(timeout=0.0)
-            self.monitor = None
+        with self._lock:
+            if self.volume is None:
+                raise ModelError("a shell cannot be cut yet: open the organ as a solid (rtfem view ORGAN --solid)")
+            if self.device is not None:
+                raise ModelError("the scalpel follows the mouse: detach the haptic device first")
+            model, dt, damping, method = self.model, self.driver.dt, self.damping, self.settings.method
+        driver = DirectSimulator(model, dt, damping, large_deformation=True)
         scalpel = Scalpel(driver, gravity=GRAVITY, thread=False, worker=True)
         try:
             _hang(driver, scalpel.solid.weights)
         except Exception:
             scalpel.close()
             raise
-        self.scalpel = scalpel
-        scalpel.lift()
-        self.driver = driver
-        self.settings = replace(self.settings, method="direct", large=True)
-        self.cut_status = f"scalpel mode: {how}; the organ hangs under gravity (Reset leaves it, keeping the cut)"
-
-    def _full_order(self):
-        """The running organ on the full-order lagged corotational step, and how it got there."""
-        from ..drivers.fullorder import DirectSimulator
-
-        d = self.driver
-        if hasattr(d, "carry_over") and hasattr(getattr(d, "model", None), "tetmesh"):
-            if getattr(d, "large_deformation", True) and hasattr(d, "factorize"):
-                return d, "the full order as it ran"
-            return DirectSimulator(self.model, d.dt, self.damping, large_deformation=True), \
-                "the full order again, large deformation (from rest)"
-        if hasattr(d, "reduced") and hasattr(d, "carry_over"):  # the reduced nonlinear model: its state carried
-            full = d.carry_over(self.model, np.arange(self.model.n_nodes))
-            return full, "the reduced model's state carried to the full order (a cut opens only there)"
-        return DirectSimulator(self.model, d.dt, self.damping, large_deformation=True), \
-            f"the full order from rest (the {self.settings.method} model's state is not carried)"
+        with self._lock:
+            if self.model is not model:  # rebuilt meanwhile (Reset): not this one's scalpel
+                scalpel.close()
+                raise ModelError("the organ was rebuilt while scalpel mode was being entered: cut again")
+            self.node, self.target = None, None
+            self.grasp.release()
+            self._local_gen += 1  # a patch training for the reduced model is not wanted any more
+            if getattr(self, "monitor", None) is not None:
+                self.monitor.stop(timeout=0.0)
+                self.monitor = None
+            self.scalpel, self.driver = scalpel, driver
+            scalpel.lift()
+            self.settings = replace(self.settings, method="direct", large=True)
+            self.cut_status = (f"scalpel mode: the organ on the full order (the {method} model's motion left), hung at "
+                               "its equilibrium under gravity; Reset leaves it, keeping the cut")
 
     def _scalpel_step(self) -> None:
         """One step in scalpel mode (under the session's lock): the blade placed, the organ stepped, a

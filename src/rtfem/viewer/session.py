@@ -133,6 +133,7 @@ class Session(PhysicsThread, Cutting):
         self.building = ""  # what a (re)build is doing now, for the panel ("" when none runs)
         self._progress = progress  # progress(done, total, message) of the precompute (the CLI's bars)
         self._blade = None  # scalpel mode: the blade (tip, heel) in the tissue, or None (lifted)
+        self._entry = threading.Lock()  # entering scalpel mode: one at a time
         self._build(self.settings)
 
     # ---------------------------------------------------------------- building
