@@ -117,7 +117,8 @@ class Scalpel(_MultiRate):
     from the first model's nodes to the cut model's), ``cuts`` (cuts applied), ``latencies`` (s, each
     strip's from its sweep to the model holding it), ``refused`` (why the last cut job was refused, or
     None), ``removed_mass`` (kg of pieces cut free), ``resistance`` (N, the last physics step's J L),
-    ``vertices`` and ``triangles`` (the surface swept, reference coordinates), :meth:`stats`.
+    ``vertices`` and ``triangles`` (the surface swept, reference coordinates), ``lifted`` (the blade out
+    of the tissue: :meth:`lift`), :meth:`stats`.
 
     Parameters
     ----------
