@@ -215,7 +215,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     source = np.concatenate([outside, np.flatnonzero(zone)[source]])
     order = np.argsort(source, kind="stable")  # the tets in their order (a split tet's parts in its place)
     T_new, source = T_new[order], source[order]
-    groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(_mask(nodes, n0), born))))
+    groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(np.isin(np.arange(n0), nodes), born))))
               for name, nodes in mesh.groups.items()}
     new = TetMesh(Vn[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
                   region_names=mesh.region_names)
@@ -236,11 +236,9 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
 
 def _zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, reach: float):
     """The tets a cut along ``tri`` can change (E,), their nodes (sorted) and which of those have all their
-    tets there: the tets with a corner within ``reach`` (the surface's tolerance and the longest element
-    edge) of the surface's bounding box. Each node that can move, be split off or copied (within the
-    tolerance of the surface, or at an end of an edge through it) lies there, with every tet around it:
-    the cut of the zone alone is the cut of the mesh, at the cost of the zone (a scalpel's strip: a few
-    hundred tets of thousands)."""
+    tets there: the tets with a corner within ``reach`` (the tolerance and the longest edge) of the surface's
+    box. Each node that can move, be split off or copied lies there with all its tets: the cut of the zone
+    is the cut of the mesh, at the cost of the zone (a scalpel's strip: a few hundred tets of thousands)."""
     lo, hi = tri.reshape(-1, 3).min(axis=0) - reach, tri.reshape(-1, 3).max(axis=0) + reach
     near = ((V >= lo) & (V <= hi)).all(axis=1)
     zone = near[T[:, :4]].any(axis=1)
@@ -259,25 +257,26 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, w
     """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
     nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
     source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and the rows of the nodes
-    moved or added (:func:`_rows`; None where none was). ``whole``:
-    the nodes whose tets are all given (an edge between two of them is on the outside as in the mesh)."""
-    moved, born, at, source = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0])
-    rows = None
+    moved or added (:func:`_rows`; None where none was). ``whole``: the nodes whose tets are all given."""
+    moved, born, at, source, rows = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0]), None
     V0 = V
     if snap:
         V, moved = _onto(V, T, tri, tol)
         if snap != "split":
             V, snapped = _snap(V, T, tri, tol)
             moved += snapped
+        placed = (V != V0).any(axis=1)  # (moved onto the surface)
         if T.shape[1] == 4:
             T0 = T
-            V, T, born, at, nudged, source = _split_edges(V, T, tri, tol)
+            V, T, born, at, nudged, source, placed = _split_edges(V, T, tri, tol, placed)
             need = np.concatenate([np.flatnonzero((V[:V0.shape[0]] != V0).any(axis=1)), np.arange(V0.shape[0], V.shape[0])])
             rows = _rows(V, T, source, need, T0, V0) if need.size else None
         else:
-            V, T, born, at, nudged, source, rows = _split_tet10(V, T, tri, tol, V0)
+            V, T, born, at, nudged, source, rows, placed = _split_tet10(V, T, tri, tol, V0, placed)
         moved += nudged
-    _refuse_crossed(V, T, tri, tol, snap)
+    else:
+        placed = np.zeros(V.shape[0], dtype=bool)
+    _refuse_crossed(V, T, tri, tol, snap, placed)
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
     inner = np.flatnonzero(count[index] == 2)
@@ -295,12 +294,6 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, w
     return V, moved, born, at, source, parent, T_new, cut, rows
 
 
-def _mask(nodes, n: int) -> np.ndarray:
-    m = np.zeros(n, dtype=bool)
-    m[np.asarray(nodes, dtype=np.int64)] = True
-    return m
-
-
 def extend(values: np.ndarray, born: np.ndarray) -> np.ndarray:
     """Per-node ``values`` (n, ...) of booleans extended to the nodes :func:`_split_edges` added, in
     order: a node on the edge (a, b) takes values[a] & values[b] (a fixed edge's node is fixed)."""
@@ -311,17 +304,20 @@ def extend(values: np.ndarray, born: np.ndarray) -> np.ndarray:
     return out
 
 
-def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
-    """Where an edge passes through the surface (snap="split": every one; after node snapping: those
-    left, a tet with two nodes on the surface and the other two on either side, where moving either
-    flattens it), a node is added where the edge crosses the surface and every tet on that edge is
-    split in two there (conforming: all of them are;
-    the geometry, mass and volume unchanged; a tet10 mesh through :func:`_split_tet10`); a crossing nearer an end than
-    :data:`MIN_SPLIT` of the edge moves that end instead, where its tets keep :data:`MIN_VOLUME`.
+def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, placed: np.ndarray):
+    """Where an edge passes through the surface (snap="split": every one; after node snapping: those left,
+    where moving either end flattens a tet), a node is added where the edge crosses the surface and every
+    tet on that edge is split in two there (conforming; the geometry, mass and volume unchanged; tet10:
+    :func:`_split_tet10`); a crossing nearer an end than :data:`MIN_SPLIT` of the edge moves that end
+    instead, where its tets keep :data:`MIN_VOLUME`.
     The crossing edges are found once a round and split in turn (a round's splits make new edges
-    only from nodes on the surface; a curved surface may need a few rounds). Returns V, T, the edges
-    split (s, 2), where along each the node is (s,: 0 at its first end, 1 at its second), how
-    many ends moved and the tet of the input each tet came from."""
+    only from nodes on the surface; a curved surface may need a few rounds). A node placed on the
+    surface (``placed``: moved onto it before, or here, or added here) is on it: its edges are not
+    crossings, so a surface that is not flat where its triangles meet (a scalpel's strips) cannot move
+    a node to and fro between their planes. Returns V, T, the edges split (s, 2), where along each the
+    node is (s,: 0 at its first end, 1 at its second), how many ends moved, the tet of the input each tet
+    came from and the nodes placed."""
+    placed = placed.copy()
     source = np.arange(T.shape[0])
     born: list = []
     at: list = []
@@ -329,10 +325,12 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
     frames = _frames(tri)
     corner, normal = frames[0], frames[3]
     for _ in range(8):
-        E, first = _crossing_edges(V, T, tri, tol)
+        E, first = _crossing_edges(V, T, tri, tol, placed)
         if not E.size:
             break
         for (a, b), f in zip(E.tolist(), first.tolist()):
+            if placed[a] or placed[b]:
+                continue  # an end placed on the surface since the round began
             pa, pb = V[a].copy(), V[b].copy()
             da, db = (pa - corner[f]) @ normal[f], (pb - corner[f]) @ normal[f]
             if not (da * db < 0 and min(abs(da), abs(db)) > tol):
@@ -343,19 +341,21 @@ def _split_edges(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float):
             s = da / (da - db)
             if min(s, 1 - s) < MIN_SPLIT and _nudge(V, T, a if s < 0.5 else b, pa + s * (pb - pa)):
                 nudged += 1  # the crossing is at an end: that end moved onto the surface (no sliver)
+                placed[a if s < 0.5 else b] = True
                 continue
             p = V.shape[0]
             V = np.vstack([V, pa + s * (pb - pa)])
+            placed = np.append(placed, True)
             t1, t2 = T[on].copy(), T[on].copy()
             t1[t1 == b], t2[t2 == a] = p, p
             T = np.concatenate([T[~on], t1, t2])
             source = np.concatenate([source[~on], source[on], source[on]])
             born.append((a, b))
             at.append(s)
-    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged, source
+    return V, T, np.array(born, dtype=np.int64).reshape(-1, 2), np.array(at, dtype=float), nudged, source, placed
 
 
-def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: np.ndarray):
+def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: np.ndarray, placed: np.ndarray):
     """:func:`_split_edges` on a tet10 mesh (straight-sided: each mid-edge node midway): its corners'
     tets split as a tet4 mesh's, then the mid-edge nodes rebuilt. A split edge's mid-edge node becomes
     that of its first half, moved midway along it; every other new edge gets a new one midway; those of
@@ -363,7 +363,7 @@ def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: 
     nodes' edges appended to the split edges (at 0.5: a node's fixes and groups are its edge's), and
     the rows of the new, rebuilt and moved nodes (:func:`_rows`, ``V0`` the uncut nodes)."""
     n0 = V.shape[0]
-    V, C, born, at, nudged, source = _split_edges(V, T[:, :4], tri, tol)
+    V, C, born, at, nudged, source, placed = _split_edges(V, T[:, :4], tri, tol, placed)
     n1 = V.shape[0]
     mids = {}  # (a, b) a < b -> its mid-edge node
     for t in T:
@@ -387,7 +387,7 @@ def _split_tet10(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, V0: 
     at = np.concatenate([at, np.full(len(new_edges), 0.5)])
     moved = np.flatnonzero((V[:n0] != V0).any(axis=1))  # onto the surface, or a mid-edge node following its corner
     need = np.unique(np.concatenate([np.arange(n0, V.shape[0]), np.array(rebuilt, dtype=np.int64), moved]))
-    return V, T10, born, at, nudged, source, _rows(V, T10, source, need, T, V0)
+    return V, T10, born, at, nudged, source, _rows(V, T10, source, need, T, V0), placed
 
 
 def _rows(V, Tn, source, need, T0, V0) -> sp.csr_matrix:
@@ -443,18 +443,22 @@ def _nudge(V: np.ndarray, T: np.ndarray, v: int, to: np.ndarray) -> bool:
     """Move node ``v`` to ``to`` in place if each of its tets keeps :data:`MIN_VOLUME` of its volume."""
     tets = np.flatnonzero((T[:, :4] == v).any(axis=1))
     before = _signed_volumes(V, T[tets])
-    old = V[v].copy()
-    V[v] = to
+    old, V[v] = V[v].copy(), to
     if (_signed_volumes(V, T[tets]) >= MIN_VOLUME * before).all():
         return True
     V[v] = old
     return False
 
 
-def _crossing_edges(V: np.ndarray, C: np.ndarray, tri: np.ndarray, tol: float):
-    """The corner edges (e, 2) that pass through a triangle's inside, and the triangle each crosses."""
+def _crossing_edges(V: np.ndarray, C: np.ndarray, tri: np.ndarray, tol: float, placed=None):
+    """The corner edges (e, 2) that pass through a triangle's inside, and the triangle each crosses (not an
+    edge with an end ``placed`` on the surface: see :func:`_split_edges`)."""
     lo, hi = tri.reshape(-1, 3).min(axis=0) - tol, tri.reshape(-1, 3).max(axis=0) + tol
     E = unique_rows(np.sort(C[:, TET10_EDGES].reshape(-1, 2), axis=1))
+    if placed is not None:
+        on = np.zeros(V.shape[0], dtype=bool)
+        on[:placed.size] = placed[:V.shape[0]]
+        E = E[~(on[E[:, 0]] | on[E[:, 1]])]
     E = E[((np.minimum(V[E[:, 0]], V[E[:, 1]]) <= hi) & (np.maximum(V[E[:, 0]], V[E[:, 1]]) >= lo)).all(axis=1)]
     if not E.size:
         return E, np.zeros(0, dtype=int)
@@ -504,10 +508,10 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
     return V, int(moved.sum())
 
 
-def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool) -> None:
-    """A surface still through an element's inside (an element edge through a triangle) is refused,
-    the elements named."""
-    bad, _ = _crossing_edges(V, T[:, :4], tri, tol)
+def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool, placed) -> None:
+    """A surface still through an element's inside (an element edge through a triangle, neither end
+    ``placed`` on it) is refused, the elements named."""
+    bad, _ = _crossing_edges(V, T[:, :4], tri, tol, placed)
     if bad.size:
         key = np.sort(T[:, :4][:, TET10_EDGES].reshape(-1, 2), axis=1)
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
