@@ -137,12 +137,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_until(cond, timeout: float, what: str, poll: float = 0.1) -> None:
-    """Poll ``cond()`` until it is true; an AssertionError naming ``what`` after ``timeout`` s."""
+def wait_until(cond, timeout: float, what, poll: float = 0.1) -> None:
+    """Poll ``cond()`` until it is true; an AssertionError naming ``what`` (a string, or a callable giving
+    one then: the state at the timeout) after ``timeout`` s."""
     import time
 
     t0 = time.time()
     while not cond():
         if time.time() - t0 > timeout:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what() if callable(what) else what}")
         time.sleep(poll)

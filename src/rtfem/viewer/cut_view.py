@@ -12,7 +12,7 @@ import threading
 import numpy as np
 
 from ..errors import RtfemError
-from .gltf import SurfaceGlb
+from .gltf import SurfaceGlb, surface_faces
 
 __all__ = ["CutView", "CUT_DEPTH", "CUT_ABOVE"]
 
@@ -78,8 +78,6 @@ class CutView:
 
     def _new_surface(self) -> None:
         """The cut organ's surface: the frames' encoder and the grabbable copy rebuilt on it."""
-        from .app import surface_faces
-
         s = self.session
         with s._lock:
             self._generation = s.generation
