@@ -57,6 +57,7 @@ class Cutting:
         """A new full-order lagged corotational driver on the model, hung at its static equilibrium under
         gravity (built and solved outside the lock), then the scalpel stepping it installed under the lock."""
         from ..drivers.fullorder import DirectSimulator
+        from ..interaction.haptics import Grasp
         from ..interaction.scalpel import Scalpel
 
         with self._lock:
@@ -78,6 +79,9 @@ class Cutting:
                 raise ModelError("the organ was rebuilt while scalpel mode was being entered: cut again")
             self.node, self.target = None, None
             self.grasp.release()
+            st = self.settings  # (a grasp is refused in scalpel mode; the session's grasp is on its driver all the same)
+            self.grasp = Grasp(self.mesh, driver, stiffness=st.grasp_stiffness, max_force=st.max_force,
+                               radius=st.grab_radius)
             self._local_gen += 1  # a patch training for the reduced model is not wanted any more
             if getattr(self, "monitor", None) is not None:
                 self.monitor.stop(timeout=0.0)

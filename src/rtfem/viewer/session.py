@@ -516,6 +516,8 @@ class Session(PhysicsThread, Cutting):
         with self._lock:
             self._local_gen += 1  # a patch still training is not swapped into a stopped session
         super().stop()
+        if self.scalpel is not None:  # its cut worker process ends (a restarted session cuts in this one)
+            self.scalpel.close()
 
     def _run(self) -> None:
         self.stats.priority = raise_priority()
