@@ -138,6 +138,20 @@ def test_a_scalpels_kinked_strips_cut_through_the_block_they_were_swept_across()
     assert (X[np.asarray(new.tets)[left]][..., 0] <= 0.05 + info.max_move).all()
 
 
+def test_a_refusal_names_the_tets_the_surface_passes_through_in_the_meshs_numbering():
+    """A slanted plane through mid-length with snap=False: the tets named lie where it passes (their
+    centres within an element of x = 0.052), not where the zone's own numbering would put them."""
+    import re
+
+    mesh = rt.meshes.box(0.1, 0.02, 0.02, nx=20, ny=4, nz=4)
+    V = np.array([[0.0512, -0.001, -0.001], [0.0512, 0.021, -0.001], [0.0532, 0.021, 0.021], [0.0532, -0.001, 0.021]])
+    with pytest.raises(rt.ModelError, match="passes through the inside") as err:
+        rt.cut(rt.SolidModel(mesh, MAT, element="tet4"), V, [[0, 1, 2], [0, 2, 3]], snap=False)
+    named = [int(t) for t in re.search(r"tets \[([0-9, ]+)\]", str(err.value)).group(1).split(",")]
+    centres = np.asarray(mesh.vertices)[np.asarray(mesh.tets)[named]].mean(axis=1)
+    assert np.abs(centres[:, 0] - 0.0522).max() < 0.005
+
+
 def _pattern_by_sort(cells, dpn, free, n_dofs):
     """The pattern as the system built it before: every kept element entry's (row, column) key sorted."""
     ne, k = cells.shape

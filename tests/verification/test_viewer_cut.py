@@ -8,8 +8,10 @@ ends, its blade drawn across its width at mid-length from above its top to 0.4 o
   chosen method rebuilt on it (Reset) has the frequencies of the block built slit by index
   arithmetic (test_cut's mesh, the slit from the top to half the height at mid-length) within 0.1 %
   (the split nudges nodes by under a fifth of an edge; measured 0.016 %), lower than the uncut block's.
-- A lifted blade cuts nothing more; a grasp in scalpel mode, a shell and a blade of no length are
-  refused, each with what to do.
+- A lifted blade cuts nothing more; a grasp, a device or a driver of one's own in scalpel mode, a
+  shell, a tet10 solid (a cut tet10 organ turned its split elements inside out in the steps after) and
+  a blade of no length are refused, each with what to do; Reset through configure() starts from the
+  method and switches the user had before scalpel mode.
 """
 
 from __future__ import annotations
@@ -94,7 +96,20 @@ def test_what_scalpel_mode_refuses_is_said():
     with pytest.raises(rt.ModelError, match="shell cannot be cut.*--solid"):
         shell.cut((0, 0, 0), (0, 0, 0.03))
     mesh = rt.meshes.box(L, W, W, nx=10, ny=2, nz=2)
-    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3))
+    tet10 = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="modal", n_modes=6),
+                    model_options={"element": "tet10"})
+    with pytest.raises(rt.ModelError, match="tet4 solids only.*--element tet4"):  # (a cut tet10 steps into inverted elements)
+        tet10.cut((0.05, 0.01, 0.0), (0.05, 0.01, 0.03))
+    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="modal", n_modes=6, dt=2e-3))
     with pytest.raises(rt.ModelError, match="tip and heel coincide"):
         s.cut((0.05, 0.01, 0.01), (0.05, 0.01, 0.01))
     assert s.scalpel is None
+    s.cut((0.05, -0.01, 0.1), (0.05, -0.01, 0.12))  # scalpel mode, the blade away from the block
+    assert s.scalpel is not None and s.settings.method == "direct"
+    with pytest.raises(rt.ModelError, match="scalpel mode.*Reset"):
+        s.attach_device(rt.ScriptedDevice(lambda t: (0.0, 0.0, 0.0)))
+    with pytest.raises(rt.ModelError, match="scalpel mode.*Reset"):
+        s.use_driver(s.driver)
+    s.configure(n_modes=6)  # Reset through the API: the method and switches from before scalpel mode
+    assert s.scalpel is None and (s.settings.method, s.settings.large) == ("modal", False)
+    s.stop()

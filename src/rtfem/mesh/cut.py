@@ -203,7 +203,7 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     if not zone.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid")
     Vz, moved, born, at, source, parent, T_new, cut, rows = _cut_zone(V[zn], _local(T[zone], zn, n0), tri, tol, snap,
-                                                                      whole)
+                                                                      whole, np.flatnonzero(zone))
     z = zn.size
     glob = np.concatenate([zn, n0 + np.arange(Vz.shape[0] - z)])  # the zone's nodes (and those split) -> the mesh's
     Vn = np.concatenate([V, Vz[z:]])
@@ -253,11 +253,11 @@ def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
     return index[T]
 
 
-def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, whole: np.ndarray):
+def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, whole: np.ndarray, ids: np.ndarray):
     """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
     nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
     source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and the rows of the nodes
-    moved or added (:func:`_rows`; None where none was). ``whole``: the nodes whose tets are all given."""
+    moved or added (:func:`_rows`; None: none). ``whole``: the nodes whose tets are all given; ``ids``: the tets' numbers."""
     moved, born, at, source, rows = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0]), None
     V0 = V
     if snap:
@@ -276,7 +276,7 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, w
         moved += nudged
     else:
         placed = np.zeros(V.shape[0], dtype=bool)
-    _refuse_crossed(V, T, tri, tol, snap, placed)
+    _refuse_crossed(V, T, tri, tol, snap, placed, ids[source])
     keys, slots, index, count = _faces(T)
     elem = np.repeat(np.arange(T.shape[0]), 4)
     inner = np.flatnonzero(count[index] == 2)
@@ -508,14 +508,14 @@ def _snap(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np
     return V, int(moved.sum())
 
 
-def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool, placed) -> None:
+def _refuse_crossed(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snapped: bool, placed, ids) -> None:
     """A surface still through an element's inside (an element edge through a triangle, neither end
-    ``placed`` on it) is refused, the elements named."""
+    ``placed`` on it) is refused, the elements named (``ids``: each tet's number in the mesh cut)."""
     bad, _ = _crossing_edges(V, T[:, :4], tri, tol, placed)
     if bad.size:
         key = np.sort(T[:, :4][:, TET10_EDGES].reshape(-1, 2), axis=1)
         has = np.isin(key[:, 0] * V.shape[0] + key[:, 1], bad[:, 0] * V.shape[0] + bad[:, 1]).reshape(-1, 6).any(axis=1)
-        which = np.flatnonzero(has)
+        which = np.unique(ids[has])
         if not snapped:
             why = "(snap=False): let rt.cut move nodes onto it, or split the elements (snap='split')"
         else:

@@ -30,6 +30,7 @@ class Cutting:
     """The :class:`~rtfem.viewer.session.Session`'s scalpel mode (see the module)."""
 
     scalpel = None  # the rt.Scalpel stepping the organ in scalpel mode, else None
+    _pre_scalpel = None  # the settings before scalpel mode (its method and large-deformation switch)
     generation = 0  # the cut models taken so far (the front end redraws the surface when it changes)
     cut_status = ""  # what the scalpel mode is doing, for the panel
 
@@ -65,7 +66,12 @@ class Cutting:
                 raise ModelError("a shell cannot be cut yet: open the organ as a solid (rtfem view ORGAN --solid)")
             if self.device is not None:
                 raise ModelError("the scalpel follows the mouse: detach the haptic device first")
+            if self.model.element != "tet4":  # (a cut tet10 liver's next step turned split elements inside out)
+                raise ModelError(f"the viewer cuts tet4 solids only for now, not {self.model.element}: a cut tet10 organ "
+                                 "turns its split elements inside out in the steps after (issue 57); open the organ "
+                                 "with rtfem view ORGAN --solid --element tet4")
             model, dt, damping, method = self.model, self.driver.dt, self.damping, self.settings.method
+            self._pre_scalpel = self.settings  # what Reset through configure() starts from
         driver = DirectSimulator(model, dt, damping, large_deformation=True)
         scalpel = Scalpel(driver, gravity=GRAVITY, thread=False, worker=True)
         try:
@@ -111,6 +117,7 @@ class Cutting:
         from .gltf import region_colours
 
         model._viewer_E = self.settings.E
+        self._fixed = np.flatnonzero(model.fixed.any(axis=1))  # (a rebuild fixes the cut mesh's nodes, copies included)
         self.model, self.volume = model, model.tetmesh
         self.mesh = model.tetmesh.surface
         self.X = np.asarray(self.mesh.vertices)
@@ -126,7 +133,7 @@ class Cutting:
 
     def _leave_scalpel_mode(self) -> None:
         """Before a rebuild: the scalpel closed (its worker process too); the cut mesh stays the session's."""
-        sc, self.scalpel, self._blade = self.scalpel, None, None
+        sc, self.scalpel, self._blade, self._pre_scalpel = self.scalpel, None, None, None
         if sc is not None:
             sc.close()
             self.cut_status = f"the cut organ ({self.model.n_nodes} nodes) rebuilt with the chosen method"

@@ -250,6 +250,8 @@ class Session(PhysicsThread, Cutting):
         """Drive the organ with any Driver of this mesh (a user's own class) until the next
         :meth:`configure`; the grasp, the clock and the panel work through the protocol only."""
         driver = as_driver(driver, "viewer")
+        if self.scalpel is not None:
+            raise ModelError("the organ is in scalpel mode: press Reset first (the cut is kept), then use_driver")
         grasp = Grasp(self.mesh, driver, stiffness=self.settings.grasp_stiffness, max_force=self.settings.max_force,
                       radius=self.settings.grab_radius)
         with self._lock:
@@ -266,7 +268,7 @@ class Session(PhysicsThread, Cutting):
         unknown = sorted(set(changes) - known)
         if unknown:
             raise ModelError(f"unknown setting {unknown[0]!r}; the settings are {', '.join(sorted(known))}")
-        s = replace(self.settings, **changes).check()
+        s = replace(self._pre_scalpel or self.settings, **changes).check()  # (scalpel mode's method is not the user's)
         if s.n_modes > self.model.n_dofs // self.model.dofs_per_node * 3 - 1:
             raise ModelError(f"n_modes={s.n_modes} is more than this mesh can give")
         changed = {f.name for f in fields(Settings) if getattr(s, f.name) != getattr(self.settings, f.name)}
@@ -405,6 +407,9 @@ class Session(PhysicsThread, Cutting):
             An object without ``position(t)`` and ``set_force(t, f)``.
         """
         if device is not None:
+            if self.scalpel is not None:
+                raise ModelError("the organ is in scalpel mode (the mouse's blade): press Reset first (the cut is kept), "
+                                 "then attach the device")
             if not (callable(getattr(device, "position", None)) and callable(getattr(device, "set_force", None))):
                 raise ModelError(f"device={validate.show(device)} must have position(t) and set_force(t, f) "
                                  "(an rt.devices adapter)")
