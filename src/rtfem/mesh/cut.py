@@ -199,11 +199,11 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     edge = float(np.median(lengths))
     tol = max(_TOL * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))), ON_SURFACE * edge, 1e-300)
     n0 = mesh.n_vertices
-    zone, zn, whole = _zone(V, T, tri, tol + float(lengths.max()))
+    zone, zn = _zone(V, T, tri, tol + float(lengths.max()))
     if not zone.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid")
     Vz, moved, born, at, source, parent, T_new, cut, rows = _cut_zone(V[zn], _local(T[zone], zn, n0), tri, tol, snap,
-                                                                      whole, np.flatnonzero(zone))
+                                                                      np.flatnonzero(zone))
     z = zn.size
     glob = np.concatenate([zn, n0 + np.arange(Vz.shape[0] - z)])  # the zone's nodes (and those split) -> the mesh's
     Vn = np.concatenate([V, Vz[z:]])
@@ -235,15 +235,15 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
 
 
 def _zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, reach: float):
-    """The tets a cut along ``tri`` can change (E,), their nodes (sorted) and which of those have all their
-    tets there: the tets with a corner within ``reach`` (the tolerance and the longest edge) of the surface's
-    box. Each node that can move, be split off or copied lies there with all its tets: the cut of the zone
-    is the cut of the mesh, at the cost of the zone (a scalpel's strip: a few hundred tets of thousands)."""
+    """The tets a cut along ``tri`` can change (E,) and their nodes (sorted): the tets with a corner within
+    ``reach`` (the tolerance and the longest edge) of the surface's box. Each node that can move, be split off
+    or copied lies there with all its tets: the cut of the zone is the cut of the mesh, at the cost of the
+    zone (a scalpel's strip: a few hundred tets of thousands). Its own outside may be pinched where the
+    mesh's is not (an earlier slit's front leaving it): :func:`_manifold_split` leaves pinches no lip lies on."""
     lo, hi = tri.reshape(-1, 3).min(axis=0) - reach, tri.reshape(-1, 3).max(axis=0) + reach
     near = ((V >= lo) & (V <= hi)).all(axis=1)
     zone = near[T[:, :4]].any(axis=1)
-    nodes = np.unique(T[zone])
-    return zone, nodes, near[nodes]
+    return zone, np.unique(T[zone])
 
 
 def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
@@ -253,11 +253,11 @@ def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
     return index[T]
 
 
-def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, whole: np.ndarray, ids: np.ndarray):
+def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, ids: np.ndarray):
     """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
     nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
     source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and the rows of the nodes
-    moved or added (:func:`_rows`; None: none). ``whole``: the nodes whose tets are all given; ``ids``: the tets' numbers."""
+    moved or added (:func:`_rows`; None: none). ``ids``: the tets' numbers in the mesh."""
     moved, born, at, source, rows = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0]), None
     V0 = V
     if snap:
@@ -289,8 +289,7 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, w
     if not cut.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
-    whole = np.concatenate([whole, np.ones(V.shape[0] - whole.size, dtype=bool)])  # (a split edge's node: its tets too)
-    parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0], whole)
+    parent, T_new, cut = _manifold_split(T, elem, slots, f1, f2, cut, V.shape[0])
     return V, moved, born, at, source, parent, T_new, cut, rows
 
 
@@ -550,14 +549,14 @@ def _split_nodes(T, elem, slots, f1, f2, cut, n: int):
     return parent, new_id[label].reshape(E, K)
 
 
-def _manifold_split(T, elem, slots, f1, f2, cut, n: int, whole: np.ndarray):
+def _manifold_split(T, elem, slots, f1, f2, cut, n: int):
     """:func:`_split_nodes`, with the cut faces that would leave the boundary non-manifold left joined:
     where the cut's edge meets the outside or another cut along an edge alone (its nodes still joined
     through other faces), that edge would hold four boundary faces; the cut faces on it stay uncut
     until the cut goes on past them (a pinch is not a surface the solid can be drawn and touched by), and
-    so do cut faces whose corners uncut faces elsewhere keep joined. Only edges between nodes ``whole``
-    (n,: all their tets given) count: the others' faces are not all here. Returns parent, the new tets and
-    the faces cut."""
+    so do cut faces whose corners uncut faces elsewhere keep joined. A pinched edge no lip lies on is not
+    the cut's making (the mesh's, or the outside of the tets given) and is left. Returns parent, the new
+    tets and the faces cut."""
     cut = cut.copy()
     for _ in range(16):
         if not cut.any():
@@ -574,7 +573,7 @@ def _manifold_split(T, elem, slots, f1, f2, cut, n: int, whole: np.ndarray):
         outer = keys[count[index] == 1]
         edges = np.sort(outer[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
         pairs, times = unique_rows(edges, return_counts=True)
-        bad = pairs[(times > 2) & whole[parent[pairs]].all(axis=1)]
+        bad = pairs[times > 2]
         if not bad.size:
             return parent, T_new, cut
         k = np.flatnonzero(cut)
