@@ -162,14 +162,10 @@ class Scalpel(_MultiRate):
                         else validate.positive(advance, "advance", "a distance in metres > 0"))
         self.vertices = np.zeros((0, 3))  # the cut surface swept so far (reference coordinates) ...
         self.triangles = np.zeros((0, 3), dtype=np.int64)  # ... and its triangles
-        none = np.zeros(SAMPLES - 1, dtype=bool)
-        self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
         self._blade = None  # (tip, heel) in the world, the last tick's
         self.lifted = False  # the blade out of the tissue (lift()): the organ steps on, nothing is swept
-        self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
-        self._velocity, self._mid, self._t_tick = np.zeros(3), None, None
-        self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
-        self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
+        self._t_tick = None
+        self._new_stroke()
         # (model, (n, 3) displacements) for drawing: a running driver's state until the first physics step
         self.shown = (driver.model, np.asarray(driver.displacements(), dtype=float))
         self.cuts, self.latencies, self.refused = 0, [], None
@@ -217,10 +213,17 @@ class Scalpel(_MultiRate):
         and the hand feels nothing until :meth:`update` places the blade again, which starts a new strip
         there (not one from where it was lifted)."""
         with self._lock:
-            none = np.zeros(SAMPLES - 1, dtype=bool)
-            self.lifted, self._anchor, self._last = True, None, (None, none, none, none)
-            self._mid, self.resistance, self._push = None, 0.0, np.zeros(0, dtype=np.int64)
-            self._velocity, self.force = np.zeros(3), np.zeros(3)
+            self.lifted, self.force = True, np.zeros(3)
+            self._new_stroke()
+
+    def _new_stroke(self) -> None:
+        """No strip, blade motion or resistance yet: a stroke's start."""
+        none = np.zeros(SAMPLES - 1, dtype=bool)
+        self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
+        self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
+        self._velocity, self._mid = np.zeros(3), None
+        self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
+        self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
 
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step, on the mesh of ``shown[0]``."""

@@ -142,9 +142,7 @@ class Viewer(Served, CutView):
         self.centre, self.size = centre, size
         light_scene(self.server, centre, size)
         self.server.on_client_connect(lambda client: frame_client(client, centre, 0.5 * size, VIEW))
-        self._faces = surface_faces(s)
-        self._drawn_sent = s.drawn  # the drawn vertices the encoder and the pick mesh are of
-        self._glb = SurfaceGlb(self._faces, s.drawn.size)
+        self._use_surface()  # the frames' encoder and the grabbable copy (see below)
         self.organ = sc.add_glb("/organ", surface_glb(s, self._glb, np.zeros((s.drawn.size, 3)), 1.0))
         # The client disposes each replaced frame's material and with it the shader program, unless
         # another object uses one alike: every frame then compiled its shaders again, and a browser
@@ -156,9 +154,7 @@ class Viewer(Served, CutView):
         # replaced every frame, and a press that came while the client swapped it in (often, at a low
         # frame rate) missed it and orbited the camera. The copy moves only when the organ has moved
         # by PICK_TOLERANCE, at most twice a second, and never during a drag.
-        self._pick_u = np.zeros((s.drawn.size, 3))
         self._pick_time = 0.0
-        self.pick = self._add_pick()
         fixed = np.flatnonzero(s.model.held_nodes)
         if fixed.size:
             sc.add_point_cloud("/fixed", s.X[fixed], colors=(150, 150, 150), point_size=0.0012 * size / 0.25,

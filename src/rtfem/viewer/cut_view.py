@@ -66,7 +66,8 @@ class CutView:
                                                   name="rtfem-viewer-scalpel")
                 self._entering.start()
         if s.generation != self._generation:
-            self._new_surface()
+            self._use_surface()
+            self.cuts_drawn += 1
 
     def _enter(self, tip, heel) -> None:
         s = self.session
@@ -76,14 +77,14 @@ class CutView:
             s.cut_status = ""
             s.error = str(exc)
 
-    def _new_surface(self) -> None:
-        """The cut organ's surface: the frames' encoder and the grabbable copy rebuilt on it."""
+    def _use_surface(self) -> None:
+        """The session's surface (at the start, or a cut organ's): the frames' encoder and the grabbable
+        copy (re)built on it (the same name: a new copy replaces the old one, whose drags go with it)."""
         s = self.session
         with s._lock:
             self._generation = s.generation
             self._faces = surface_faces(s)
             self._glb = SurfaceGlb(self._faces, s.drawn.size)
             self._pick_u = np.zeros((s.drawn.size, 3))
-            self.pick = self._add_pick()  # (the same name: it replaces the old copy, whose drags go with it)
-            self._drawn_sent = s.drawn
-        self.cuts_drawn += 1
+            self.pick = self._add_pick()
+            self._drawn_sent = s.drawn  # the drawn vertices the encoder and the pick mesh are of

@@ -58,7 +58,6 @@ class Cutting:
         """A new full-order lagged corotational driver on the model, hung at its static equilibrium under
         gravity (built and solved outside the lock), then the scalpel stepping it installed under the lock."""
         from ..drivers.fullorder import DirectSimulator
-        from ..interaction.haptics import Grasp
         from ..interaction.scalpel import Scalpel
 
         with self._lock:
@@ -85,9 +84,7 @@ class Cutting:
                 raise ModelError("the organ was rebuilt while scalpel mode was being entered: cut again")
             self.node, self.target = None, None
             self.grasp.release()
-            st = self.settings  # (a grasp is refused in scalpel mode; the session's grasp is on its driver all the same)
-            self.grasp = Grasp(self.mesh, driver, stiffness=st.grasp_stiffness, max_force=st.max_force,
-                               radius=st.grab_radius)
+            self.grasp = self._grasp_on(driver)  # (refused in scalpel mode; on the session's driver all the same)
             self._local_gen += 1  # a patch training for the reduced model is not wanted any more
             if getattr(self, "monitor", None) is not None:
                 self.monitor.stop(timeout=0.0)
@@ -113,7 +110,6 @@ class Cutting:
 
     def _take(self, model) -> None:
         """The cut model as the session's own: its mesh drawn and touched from now on."""
-        from ..interaction.haptics import Grasp
         from .gltf import region_colours
 
         model._viewer_E = self.settings.E
@@ -123,9 +119,7 @@ class Cutting:
         self.X = np.asarray(self.mesh.vertices)
         self.drawn = self.mesh.used_vertices()
         self.region_colours = region_colours(self.volume, self.drawn)
-        s = self.settings
-        self.grasp = Grasp(self.mesh, self.scalpel.driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
-                           radius=s.grab_radius)
+        self.grasp = self._grasp_on(self.scalpel.driver)
         self.generation += 1
         sc = self.scalpel
         self.cut_status = (f"cut {sc.cuts} time(s): {model.n_nodes} nodes, {model.tetmesh.n_tets} tets; the last strip "

@@ -208,8 +208,7 @@ class Session(PhysicsThread, Cutting):
             self.driver = driver
             self._monitor_for(s)
             self.local_status = ""  # a patch of the driver replaced, or one still training (discarded)
-            self.grasp = Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
-                               radius=s.grab_radius)
+            self.grasp = self._grasp_on(driver, s)
             self.node: int | None = None
             self.target = None
             self._t0_sim = 0.0
@@ -246,14 +245,19 @@ class Session(PhysicsThread, Cutting):
             inertia = driver_inertia(self.driver, self.model)
         return U, (loads or None), inertia
 
+    def _grasp_on(self, driver, s: Settings | None = None) -> Grasp:
+        """The jaw on the drawn surface of the organ ``driver`` steps, as the settings ``s`` (default the
+        session's) make it."""
+        s = s or self.settings
+        return Grasp(self.mesh, driver, stiffness=s.grasp_stiffness, max_force=s.max_force, radius=s.grab_radius)
+
     def use_driver(self, driver) -> None:
         """Drive the organ with any Driver of this mesh (a user's own class) until the next
         :meth:`configure`; the grasp, the clock and the panel work through the protocol only."""
         driver = as_driver(driver, "viewer")
         if self.scalpel is not None:
             raise ModelError("the organ is in scalpel mode: press Reset first (the cut is kept), then use_driver")
-        grasp = Grasp(self.mesh, driver, stiffness=self.settings.grasp_stiffness, max_force=self.settings.max_force,
-                      radius=self.settings.grab_radius)
+        grasp = self._grasp_on(driver)
         with self._lock:
             self.driver, self.grasp = driver, grasp
             self.local_status = ""
@@ -277,8 +281,7 @@ class Session(PhysicsThread, Cutting):
                 self.settings = s
             return
         if changed and changed <= {"grasp_stiffness", "grab_radius", "max_force"}:  # the hand only: no precompute
-            grasp = Grasp(self.mesh, self.driver, stiffness=s.grasp_stiffness, max_force=s.max_force,
-                          radius=s.grab_radius)
+            grasp = self._grasp_on(self.driver, s)
             with self._lock:
                 self.settings, self.grasp = s, grasp
                 self.node, self.target = None, None
@@ -447,15 +450,13 @@ class Session(PhysicsThread, Cutting):
         """One time step of the driver under the current grasp (and the device's hand, when one is
         attached: it gets the force the hand feels)."""
         with self._lock:
-            if self.scalpel is not None:
-                self._scalpel_step()
-                self.stats.steps += 1
-                self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
-                return
             t = self._t0_sim + self.stats.steps * self.driver.dt
-            if self.device is not None:
-                self._device_hand(t)
-            self.grasp.update(self.target)
+            if self.scalpel is not None:  # (no device there)
+                self._scalpel_step()
+            else:
+                if self.device is not None:
+                    self._device_hand(t)
+                self.grasp.update(self.target)
             self.stats.steps += 1
             self.stats.sim_time = self._t0_sim + self.stats.steps * self.driver.dt
             if self.device is not None:
