@@ -203,7 +203,11 @@ def test_drag_in_chromium_deforms_the_organ_and_moves_the_force_plot(viewer):
     region = (slice(int(0.2 * h), int(0.8 * h)), slice(int(px[0] - 0.2 * w), int(px[0] + 0.2 * w)))
     changed = np.mean(np.abs(a[region] - b[region]).sum(axis=2) > 30)
     assert changed > 0.01, f"only {changed:.2%} of the organ's pixels changed"
-    plot_changed = np.mean(np.abs(plot_before - plot_during).sum(axis=2) > 30)
+    # the plot's box is laid out to a fractional height, and its screenshot is 244 or 245 px high
+    # from one moment to the next (seen in 2 of 5 fresh clones): compare the rows and columns both have
+    rows, cols = min(plot_before.shape[0], plot_during.shape[0]), min(plot_before.shape[1], plot_during.shape[1])
+    assert rows > 100 and cols > 100, (plot_before.shape, plot_during.shape)
+    plot_changed = np.mean(np.abs(plot_before[:rows, :cols] - plot_during[:rows, :cols]).sum(axis=2) > 30)
     assert plot_changed > 0.005, f"only {plot_changed:.2%} of the force plot's pixels changed"
 
 
