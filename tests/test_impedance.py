@@ -163,3 +163,24 @@ def test_a_loaded_nodes_result_holds_only_what_the_map_keeps():
     for a in (cols, point):
         assert a.base is None or a.base.nbytes == a.nbytes  # no view into the node's whole block
     assert keep.size < model.n_nodes / 4 and point.shape == (2, 3, 3)
+
+
+def test_an_on_demand_driver_steps_before_any_load_and_then_answers_as_one_loaded_at_once(setup):
+    """A dynamic on-demand driver (the viewer's impedance method) has no map before the first load: stepped
+    idle it stays at rest (it raised ValueError: no map to take the history's resolution from), and a load
+    applied after the idle steps gets the response a fresh driver gives the same load (time invariance)."""
+    model = setup[0]
+    node = int(model.mesh.used_vertices()[0])
+    modes = rt.modal_analysis(model, 8)
+    idle, fresh = (rt.ImpedanceDriver.on_demand(model, rt.Damping(alpha=5.0), 1e-3, dynamic=True, modes=modes,
+                                                times=(0.005, 0.01)) for _ in range(2))
+    for _ in range(5):
+        idle.step()
+    assert np.abs(idle.displacements()).max() == 0.0 and idle.steps == 5
+    load = {node: np.array([0.0, 0.0, -0.5])}
+    for d in (idle, fresh):
+        d.prepare([node])  # (the viewer's grab does this)
+        for _ in range(8):
+            d.step(load)
+    np.testing.assert_allclose(idle.displacements(), fresh.displacements(), rtol=0, atol=1e-15)
+    assert np.abs(fresh.displacements()).max() > 0

@@ -165,7 +165,7 @@ class ImpedanceDriver:
     def _record(self, loads: dict[int, np.ndarray]) -> None:
         """The load changes of this step into the history (merged per node within the resolution)."""
         t = self.time
-        res = self.resolution if self.resolution is not None else min(m.times[0] for m in self.maps)
+        res = self.resolution if self.resolution is not None else min((m.times[0] for m in self.maps), default=self.dt)
         for node in set(loads) | set(self._loads):
             df = loads.get(node, 0.0) - self._loads.get(node, 0.0)
             if not np.any(df):
