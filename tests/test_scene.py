@@ -150,7 +150,7 @@ def test_scene_refusals(folder):
     with pytest.raises(rt.ModelError, match="another mesh|mesh of"):
         sc.add_body("a", sim, rt.meshes.plate(0.1, nx=2))
     sc.add_body("a", sim, model.mesh)
-    with pytest.raises(rt.ModelError, match="already has a body, obstacle, attachment or tool named 'a'"):
+    with pytest.raises(rt.ModelError, match="already has a body, obstacle, attachment, tool or scalpel named 'a'"):
         sc.add_plane("a", (0, 0, 0), (0, 0, 1))
     with pytest.raises(rt.ModelError, match="friction"):
         sc.add_plane("p", (0, 0, 0), (0, 0, 1), friction=-1)

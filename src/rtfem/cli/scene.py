@@ -69,6 +69,10 @@ def scene_for_viewer(path):
 
     scene = load_scene(path, progress=progress)
     try:
+        if scene.scalpels:  # (its restart and time slider rewind the bodies' states; a cut is not rewound yet)
+            raise RtfemError(f"{path}: the scene viewer does not run a scene's scalpel yet ([[tool]] "
+                             f"{scene.scalpels[0].name!r}): run the file headless with rtfem simulate, or cut one organ in "
+                             "the viewer with ctrl+drag (rtfem view ORGAN --solid --element tet4)")
         start = snapshot(scene)
         steps = []
         for _ in range(60):
@@ -138,6 +142,7 @@ def simulate_scene(args: argparse.Namespace) -> int:
             for b in scene.bodies:
                 total = np.sum([r[3:] for r in step_rows if r[1] == b.name], axis=0) if step_rows else np.zeros(3)
                 writers[b.name].row([scene.time, *np.atleast_1d(total).tolist()])
+                writers[b.name].mesh = getattr(b.model, "tetmesh", b.mesh)  # (a scalpel's body: the cut mesh)
                 writers[b.name].frame(k, scene.time, b.driver.displacements)
             if k % 100 == 99 or k == n_steps - 1:
                 bar(k + 1, n_steps)

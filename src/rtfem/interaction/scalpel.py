@@ -171,6 +171,7 @@ class Scalpel(_MultiRate):
         self.cuts, self.latencies, self.refused = 0, [], None
         self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
         self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
+        self.last_transfer = self.transfer  # the last cut's alone (from the model before it)
         self._added: list = []  # (triangles after, perf_counter) of each strip not yet in the model
         self._tried = 0  # triangles the last cut job had
         self._applied = 0  # triangles the model holds (the first ones of ``triangles``)
@@ -184,10 +185,11 @@ class Scalpel(_MultiRate):
             self._worker = CutWorker()
 
     # ------------------------------------------------------------------ the haptic side
-    def update(self, tip, heel=None) -> np.ndarray:
+    def update(self, tip, heel=None, *, t: float | None = None) -> np.ndarray:
         """One haptic tick with the blade from ``heel`` (default: ``tip`` + ``blade``, a device's
         point being the tip) to ``tip`` (m, world): the force on the hand (N), the cutting resistance
-        against the blade's motion across itself (see the module)."""
+        against the blade's motion across itself (see the module). ``t``: the tick's time (s) for the
+        blade's velocity (default the wall clock; a scene gives its simulated time)."""
         c = validate.point(tip, "scalpel tip")
         h = c + self.blade if heel is None else validate.point(heel, "scalpel heel")
         along = c - h
@@ -198,7 +200,7 @@ class Scalpel(_MultiRate):
         self._blade = (c, h)
         self.lifted = False
         self._tick(c)
-        now, mid = time.perf_counter(), 0.5 * (c + h)
+        now, mid = (time.perf_counter() if t is None else validate.number(t, "t", "a time in s")), 0.5 * (c + h)
         if self._mid is not None and now > self._t_tick:
             w = min(1.0, (now - self._t_tick) / _SMOOTH)
             self._velocity = (1 - w) * self._velocity + w * (mid - self._mid) / (now - self._t_tick)
@@ -238,17 +240,40 @@ class Scalpel(_MultiRate):
         super().physics_step()
 
     def _advance(self) -> None:
+        self.take_cut()
+        self.driver.step(self.solid.weights + self.tissue_loads())
+        self.follow(np.asarray(self.driver.displacements(), dtype=float))
+
+    def take_cut(self) -> bool:
+        """Swap in the cut model a job has ready (between two steps; the physics step does): True when
+        the model changed (``driver`` and ``model`` are the cut's, ``last_transfer`` its interpolation)."""
+        model = self.solid.model
         self._swap()
-        F = self.solid.weights.copy()
+        return self.solid.model is not model
+
+    def tissue_loads(self) -> np.ndarray:
+        """(n, 3) N: the tissue's share of the cutting force, the opposite of the hand's (the last tick's),
+        spread over the nodes about the blade's edge where it cuts."""
+        F = np.zeros((self.driver.n_nodes, 3))
         nodes = self._push
-        if nodes.size:  # the tissue takes the opposite of the hand's force (the last tick's)
+        if nodes.size:
             np.add.at(F, nodes, -self.force / nodes.size)
-        self.driver.step(F)
-        U = np.asarray(self.driver.displacements(), dtype=float)
+        return F
+
+    def follow(self, U: np.ndarray) -> None:
+        """After a step of the organ to displacements ``U`` (n, 3): the blade's strip swept (unless it is
+        lifted) and a cut job started when the surface grew (the physics step does this; a scene calls it
+        after stepping the body itself)."""
         if not self.lifted:
             self._sweep(U)
         self._start_cut()
         self.shown = (self.solid.model, U)
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait for the cut job in progress, if any (its model is then swapped in by the next step)."""
+        job = self._job
+        if job is not None:
+            job.join(timeout)
 
     def _reference(self, points: np.ndarray, U: np.ndarray):
         """World points in the reference configuration: inside the deformed solid, the reference point
@@ -400,7 +425,7 @@ class Scalpel(_MultiRate):
         if model is not self.solid.model:
             return
         self.driver = self.driver.carry_over(new, P, into=prepared)
-        self.transfer = (P @ self.transfer).tocsr()
+        self.transfer, self.last_transfer = (P @ self.transfer).tocsr(), P
         self.solid = _Solid(new, self.gravity)
         self.shown = (new, np.asarray(self.driver.displacements(), dtype=float))
         self._push = np.zeros(0, dtype=np.int64)

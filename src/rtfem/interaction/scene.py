@@ -35,6 +35,7 @@ from ..mesh.surface import TriMesh
 from .scene_obstacles import MeshObstacle, Plane, pair_search
 from .scene_points import PointSet, contact_solve
 from .scene_search import pair_block, probe_block
+from .scene_scalpel import SceneScalpel, recut
 from .scene_tools import SceneTool
 
 __all__ = ["Scene", "Plane", "Body", "Attachment"]
@@ -180,6 +181,7 @@ class Scene:
         self.obstacles: list[Plane | MeshObstacle] = []
         self.attachments: list[Attachment] = []
         self.tools: list[SceneTool] = []
+        self.scalpels: list = []  # SceneScalpel: blades cutting a body each (add_scalpel)
         self.view = None  # the viewer's camera direction from the scene's centre (a scene file's view)
         self.time = 0.0
         self.steps = 0
@@ -189,8 +191,8 @@ class Scene:
         self.compiled = True  # the compiled contact search where numba is present (False: numpy)
 
     def _name_free(self, name: str) -> None:
-        if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools)):
-            raise ModelError(f"the scene already has a body, obstacle, attachment or tool named {name!r}: "
+        if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools, *self.scalpels)):
+            raise ModelError(f"the scene already has a body, obstacle, attachment, tool or scalpel named {name!r}: "
                              "give each its own name")
 
     def add_body(self, name: str, driver, mesh: TriMesh, masses=None) -> Body:
@@ -244,6 +246,14 @@ class Scene:
         self.tools.append(tool)
         return tool
 
+    def add_scalpel(self, name: str, body: str, device, **options):
+        """A blade cutting body ``body`` (a full-order solid), following ``device`` (see
+        :class:`~rtfem.interaction.scene_scalpel.SceneScalpel`, which takes ``options``)."""
+        self._name_free(name)
+        scalpel = SceneScalpel(name, self.body(body), device, gravity=self.gravity, **options)
+        self.scalpels.append(scalpel)
+        return scalpel
+
     @property
     def dt(self) -> float:
         if not self.bodies:
@@ -261,10 +271,15 @@ class Scene:
         if not self.bodies:
             raise ModelError("the scene has no body: add_body first")
         t1 = (self.steps + 1) * self.dt
+        for scalpel in self.scalpels:
+            if scalpel.begin(t1):
+                recut(self, scalpel)
         for tool in self.tools:
             tool.begin(t1, self.bodies)
         springs = self.attachments + [tool.held for tool in self.tools if tool.held is not None]
         weights = [b.masses[:, None] * self.gravity[None, :] + b.loads for b in self.bodies]  # and the loads held
+        for scalpel in self.scalpels:  # and the tissue's share of the cutting force
+            weights[self.bodies.index(self.body(scalpel.body))] += scalpel.loads()
         spring_nodes = self._spring_nodes(springs)
         base = [self._trial(b, weights[k], spring_nodes.get(k)) for k, b in enumerate(self.bodies)]
         held = self._attachment_loads(springs, base, spring_nodes)
@@ -289,6 +304,10 @@ class Scene:
             body.driver.step(F)
         for tool in self.tools:
             tool.end(t1, sum((contacts[(b.name, tool.name)] for b in self.bodies), np.zeros(3)))
+        for scalpel in self.scalpels:
+            body = self.body(scalpel.body)
+            contacts[(body.name, scalpel.name)] = -scalpel.force
+            scalpel.end(t1, np.asarray(body.driver.displacements(), dtype=float))
         self.contacts = contacts
         self.steps += 1
         self.time = self.steps * self.dt

@@ -54,6 +54,14 @@
     path = [[0, 0.05, 0.05, 0.06], [0.5, 0.05, 0.05, 0.049]]   # rows t, x, y, z (s, m): linear between
     closed = [[0.6, 2.0]]          # grasper: closed from t_on to t_off (s)
 
+    [[tool]]                       # a scalpel cutting a body as it goes (issue 57): that body runs full order
+    name = "knife"                 # (a lagged corotational step; element = "tet4"; its alpha damps it) and
+    kind = "scalpel"               # its cut faces become surface
+    body = "box"                   # the body it cuts
+    blade = [0, 0, 0.03]           # m, from the tip (the path's point) to the heel (default: this)
+    toughness = 164.0              # J/m^2: the cutting resistance per unit area opened (default: liver's)
+    path = [[0, 0.05, -0.01, 0.04], [1, 0.05, 0.03, 0.04]]   # the tip; closed = [[t_on, t_off]]: cuts then only
+
     [[tool]]                       # a probe or a grasper on a live hand (rtfem view; a grasper closes on
     name = "probe"                 # the device's first button)
     device = "igtl"                # openhaptics, forcedimension, haply or igtl (rtfem devices: which are here)
@@ -87,7 +95,9 @@ TOP_KEYS = {"gravity", "dt", "friction", "view", "body", "obstacle", "attachment
 BODY_KEYS = {"name", "mesh", "scale", "rotate", "translate", "kind", "element", "material", "fix", "modes", "alpha"}
 OBSTACLE_KEYS = {"name", "plane", "mesh", "scale", "friction"}
 ATTACHMENT_KEYS = {"name", "body", "nodes", "to", "stiffness"}
-TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed", "device", "max_force", "url", "port"}
+TOOL_KEYS = {"name", "kind", "radius", "stiffness", "friction", "path", "closed", "device", "max_force", "url", "port",
+             "body", "blade", "toughness"}
+SCALPEL_KEYS = {"body", "blade", "toughness"}  # a scalpel's alone; radius, stiffness and friction are not its
 BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
 #: the most tables of each kind a scene file may have: each body is meshed and reduced before the first
 #: step (seconds to minutes each), and every step solves one contact problem over all of them
@@ -201,11 +211,14 @@ def _check_counts(doc: dict, top: _Where) -> None:
 
 
 def close_devices(scene: Scene) -> None:
-    """Close the scene's tools' devices (a scene file's live hands); closing twice does nothing."""
-    for tool in scene.tools:
+    """Close the scene's tools' and scalpels' devices (a scene file's live hands) and the scalpels' cut
+    workers; closing twice does nothing."""
+    for tool in (*scene.tools, *scene.scalpels):
         close = getattr(tool.device, "close", None)
         if close is not None:
             close()
+    for scalpel in scene.scalpels:
+        scalpel.close()
 
 
 def _open_device(table: dict, where: _Where, live: bool):
@@ -240,11 +253,18 @@ def _open_device(table: dict, where: _Where, live: bool):
 def _fill(scene: Scene, doc: dict, p: Path, bodies, obstacles, tools, devices: dict, dt: float, progress) -> None:
     """The file's bodies, obstacles, attachments and ``tools`` (checked: (where, what add_tool takes))
     into ``scene`` (the live ``devices`` opened)."""
+    names = [table.get("name") for table in bodies if isinstance(table, dict)]
+    for where, (_, _, kind, options) in tools:
+        if kind == "scalpel" and options["body"] not in names:
+            raise where.error("body", f"no body named {validate.show(options['body'])} (bodies: "
+                              f"{', '.join(map(str, names))})")
+    cut = {options["body"] for _, (_, _, kind, options) in tools if kind == "scalpel"}
     for i, table in enumerate(bodies):
         where = _Where(p, _table_name("body", i, table))
         if progress is not None:
-            progress(f"body {table.get('name', i + 1)}: modes ...")
-        _add_body(scene, table, where, p.parent, dt)
+            progress(f"body {table.get('name', i + 1)}: " + ("full order (a scalpel cuts it) ..." if table.get("name") in cut
+                                                              else "modes ..."))
+        _add_body(scene, table, where, p.parent, dt, full=table.get("name") in cut)
     for i, table in enumerate(obstacles if isinstance(obstacles, list) else [obstacles]):
         where = _Where(p, _table_name("obstacle", i, table))
         _add_obstacle(scene, table, where, p.parent)
@@ -264,7 +284,10 @@ def _fill(scene: Scene, doc: dict, p: Path, bodies, obstacles, tools, devices: d
         where.check("nodes", scene.attach, table["name"], table["body"], table["nodes"],
                     None if to == "world" else to, stiffness=table.get("stiffness", 500.0))
     for where, (name, device, kind, options) in tools:  # checked before the bodies (_tool)
-        where.check("name", scene.add_tool, name, device, kind=kind, **options)
+        if kind == "scalpel":
+            where.check("name", scene.add_scalpel, name, options.pop("body"), device, **options)
+        else:
+            where.check("name", scene.add_tool, name, device, kind=kind, **options)
     if devices:  # the devices' workspaces fitted to the bodies (where the adapter fits one)
         X = np.concatenate([b.X[b.surface] for b in scene.bodies])
         for device in devices.values():
@@ -301,20 +324,17 @@ def _add_obstacle(scene: Scene, table, where: _Where, folder: Path) -> None:
 
 def _tool(table, where: _Where, device=None) -> tuple:
     """A [[tool]] table checked (before any body is meshed): its name, device (a scripted one for a
-    path), kind and options, what :meth:`Scene.add_tool` takes."""
-    from .scene_tools import Keyframes
-
+    path), kind and options, what :meth:`Scene.add_tool` (a scalpel's: :meth:`Scene.add_scalpel`) takes."""
     if not isinstance(table, dict):
         raise where.error(None, "must be a table")
     where.keys(table, TOOL_KEYS, ("name",) if device is not None else ("name", "path"))
     kind = table.get("kind", "probe")
-    where.check("kind", validate.choice, kind, "kind", ("probe", "grasper"))
-    if device is None:
-        for key in ("max_force", "url", "port"):
-            if key in table:
-                raise where.error(key, "is for a tool on a live device (device = ...)")
-        path = where.check("path", Keyframes, table["path"])
-        device = where.check("closed", Keyframes, path.path, table.get("closed", [])).device()
+    where.check("kind", validate.choice, kind, "kind", ("probe", "grasper", "scalpel"))
+    if kind == "scalpel":
+        return table["name"], _device(table, where, device), kind, _scalpel_options(table, where, device)
+    for key in SCALPEL_KEYS & set(table):
+        raise where.error(key, "is for a scalpel (kind = 'scalpel')")
+    device = _device(table, where, device)
     if kind == "probe" and "closed" in table:
         raise where.error("closed", "only a grasper closes; a probe presses where its path takes it")
     options = {k: table[k] for k in ("radius", "stiffness", "friction") if k in table}
@@ -325,13 +345,43 @@ def _tool(table, where: _Where, device=None) -> tuple:
     return table["name"], device, kind, options
 
 
+def _device(table: dict, where: _Where, device=None):
+    """The tool's live ``device``, or the scripted one its ``path`` (and ``closed``) make."""
+    from .scene_tools import Keyframes
+
+    if device is not None:
+        return device
+    for key in ("max_force", "url", "port"):
+        if key in table:
+            raise where.error(key, "is for a tool on a live device (device = ...)")
+    path = where.check("path", Keyframes, table["path"])
+    return where.check("closed", Keyframes, path.path, table.get("closed", [])).device()
+
+
+def _scalpel_options(table: dict, where: _Where, device) -> dict:
+    """A scalpel's options (what Scene.add_scalpel takes): the body it cuts, its blade, its toughness,
+    and whether it cuts only while closed (a path's ``closed`` times, a live hand's first button)."""
+    for key in ("radius", "stiffness", "friction"):
+        if key in table:
+            raise where.error(key, "is for a probe or a grasper; a scalpel has blade and toughness")
+    if "body" not in table:
+        raise where.error("body", "missing: name the body the scalpel cuts")
+    options = {"body": table["body"], "button": "closed" in table or "device" in table}
+    if "blade" in table:
+        options["blade"] = where.check("blade", validate.vector, table["blade"], "blade", 3)
+    if "toughness" in table:
+        options["toughness"] = where.check("toughness", validate.nonnegative, table["toughness"], "toughness",
+                                           "J/m^2, a number >= 0 (liver: 164)")
+    return options
+
+
 def _table_name(kind: str, i: int, table) -> str:
     """``[[body]] 2 'liver'`` (the name when the table has one)."""
     name = table.get("name") if isinstance(table, dict) else None
     return f"[[{kind}]] {i + 1}" + (f" {name!r}" if name is not None else "")
 
 
-def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> None:
+def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float, full: bool = False) -> None:
     from ..drivers.modal import ModalSimulator
     from ..fe.build import make_model
     from ..fe.material import Damping, Material
@@ -358,12 +408,29 @@ def _add_body(scene: Scene, table, where: _Where, folder: Path, dt: float) -> No
     if fix is not None:
         where.check("fix", model.fix, fix)
         where.check("fix", model.check_restrained)
-    modes = where.check("modes", validate.count, table.get("modes", 20), "modes", 1, 2000)
     alpha = where.check("alpha", validate.nonnegative, table.get("alpha", 10.0), "alpha", "damping in 1/s")
-    basis = where.check("modes", cached_modes, model, modes)  # through the precompute cache
-    driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
+    if full:
+        driver = _full_order(model, table, where, dt, Damping(alpha=alpha))
+    else:
+        modes = where.check("modes", validate.count, table.get("modes", 20), "modes", 1, 2000)
+        basis = where.check("modes", cached_modes, model, modes)  # through the precompute cache
+        driver = ModalSimulator(basis, dt, Damping(alpha=alpha), static_correction=fix is not None)
     where.check("name", scene.add_body, table["name"], driver, model.mesh)
     scene.bodies[-1].model = model
+
+
+def _full_order(model, table: dict, where: _Where, dt: float, damping):
+    """A body a scalpel cuts: the full-order lagged corotational step (a cut opens only there), tet4."""
+    from ..drivers.fullorder import DirectSimulator
+
+    if not hasattr(model, "tetmesh"):
+        raise where.error("kind", "a scalpel cuts solids: give kind = 'solid' (a shell cannot be cut yet)")
+    if "modes" in table:
+        raise where.error("modes", "a body a scalpel cuts runs full order (a cut opens only there): leave modes out")
+    if model.element != "tet4":  # (as the viewer: a cut tet10 liver's next steps turned split elements inside out)
+        raise where.error("element", f"{model.element!r}: a body a scalpel cuts must be element = 'tet4' for now (a cut "
+                          "tet10 organ turned its split elements inside out in the steps after, issue 57)")
+    return where.check("mesh", DirectSimulator, model, dt, damping, large_deformation=True)
 
 
 def _body_mesh(table: dict, where: _Where, folder: Path):

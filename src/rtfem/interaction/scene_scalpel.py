@@ -1,0 +1,164 @@
+"""A scalpel in a scene (issue 57): an :class:`rtfem.Scalpel`'s blade on a device or a scripted path,
+cutting one solid body of a :class:`~rtfem.Scene` as the scene steps it.
+
+The scene steps the body (its weight, contacts, attachments and the tissue's share of the cutting
+force together); the scalpel only places the blade, sweeps the cut surface against the body's
+displacements after each step and has the body cut along it (:func:`rtfem.cut`, split mode, a piece cut
+free falls away). A finished cut is swapped in at the start of the next step: the body's driver is the
+one carried over to the cut model (its state node by node), its surface the cut mesh's (so the lips of
+the cut touch the other bodies and tools), its attachments and graspers moved to the copies of the
+nodes they held. By default each cut job is finished before the next step (``worker=False``: a scene run
+is then the same from run to run); ``worker=True`` cuts in a worker process while the scene steps on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import validate
+from ..errors import ModelError
+from .scalpel import TOUGHNESS, Scalpel
+
+__all__ = ["SceneScalpel"]
+
+
+class SceneScalpel:
+    """A blade cutting body ``body`` of a scene, following ``device`` (see the module).
+
+    Parameters
+    ----------
+    name : its name in the contact records.
+    body : the :class:`~rtfem.interaction.scene.Body` it cuts: a full-order solid
+        (``rt.DirectSimulator`` on an ``rt.SolidModel``, tet4 or tet10).
+    device : an :class:`~rtfem.Device` (position(t), set_force(t, f)): the blade's tip, in metres in the
+        scene's frame; the hand is given the cutting resistance.
+    blade : (3,) m, from the tip to the heel (default (0, 0, 0.03): a 3 cm blade held upright).
+    toughness : J/m^2, the energy a cut takes per unit area opened (default liver's, 164).
+    advance : m, how far the blade moves before its strip joins the cut (default half an element edge).
+    button : cut only while the device's first button is held (a scripted path's ``closed`` times; a
+        live hand's button); False (default): the blade is in the tissue all along its path.
+    worker : cut in a worker process while the scene steps on (True), or finish each cut before the next
+        step (False, the default: the same run every time).
+
+    Raises
+    ------
+    ModelError
+        What :class:`rtfem.Scalpel` refuses (a body that is not a full-order solid, a blade of no length,
+        a negative toughness), a device without position and set_force.
+    """
+
+    def __init__(self, name: str, body, device, *, gravity=(0.0, 0.0, -9.81), blade=(0.0, 0.0, 0.03),
+                 toughness: float = TOUGHNESS, advance=None, button: bool = False, worker: bool = False) -> None:
+        if not isinstance(name, str) or not name:
+            raise ModelError(f"a scalpel's name must be a non-empty string, got {validate.show(name)}")
+        if not (callable(getattr(device, "position", None)) and callable(getattr(device, "set_force", None))):
+            raise ModelError(f"scalpel {name}: the device must have position(t) and set_force(t, force) (an rt.Device)")
+        self.name, self.body, self.device = name, body.name, device
+        self.button = validate.flag(button, f"scalpel {name}: button")
+        self.wait = not validate.flag(worker, f"scalpel {name}: worker")
+        try:
+            self.cutter = Scalpel(body.driver, blade=blade, gravity=gravity, toughness=toughness, advance=advance,
+                                  thread=False, worker=not self.wait)
+        except ModelError as exc:
+            raise ModelError(f"scalpel {name} on body {body.name}: {exc}") from None
+        self.cutter.lift()
+        self.force = np.zeros(3)  # on the hand, the last step's (the tissue took its opposite)
+        self.tip = None  # where the device put the blade's tip in the last step
+
+    def __repr__(self) -> str:
+        return f"SceneScalpel({self.name!r}, body={self.body!r})"
+
+    @property
+    def model(self):
+        """The body's model as cut so far."""
+        return self.cutter.model
+
+    @property
+    def cuts(self) -> int:
+        return self.cutter.cuts
+
+    def in_tissue(self) -> bool:
+        """The blade in the tissue: always, or (``button``) while the device's first button is held."""
+        return not self.button or bool(int(getattr(self.device, "buttons", 0) or 0) & 1)
+
+    def begin(self, t: float) -> bool:
+        """The step ending at ``t``: a finished cut swapped in (True: the body's model changed; the scene
+        then rebuilds the body), and the blade placed at the device (or lifted out of the tissue)."""
+        changed = self.cutter.take_cut()
+        x = validate.vector(self.device.position(t), f"scalpel {self.name}: the device's position", 3)
+        self.tip = np.asarray(x, dtype=float)
+        if self.in_tissue():
+            self.force = np.asarray(self.cutter.update(self.tip, t=t), dtype=float).copy()
+        else:
+            if not self.cutter.lifted:
+                self.cutter.lift()
+            self.force = np.zeros(3)
+        return changed
+
+    def loads(self) -> np.ndarray:
+        """(n, 3) N on the body this step: the opposite of the hand's force, at the nodes the blade cuts."""
+        return self.cutter.tissue_loads()
+
+    def end(self, t: float, U: np.ndarray) -> None:
+        """After the body's step to displacements ``U``: the strip swept, a cut started (and finished,
+        unless in a worker), the hand given its force."""
+        self.cutter.follow(U)
+        if self.wait:
+            self.cutter.join()
+        self.device.set_force(t, self.force)
+
+    def remap(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The last cut's nodes that copy ``nodes`` of the model before it (each row of its transfer whose
+        largest weight, over a half, is on one of them): (new nodes, the index in ``nodes`` each copies)."""
+        P = self.cutter.last_transfer.tocsr()
+        n_old = P.shape[1]
+        where = np.full(n_old, -1, dtype=np.int64)
+        where[nodes] = np.arange(nodes.size)
+        rows = np.repeat(np.arange(P.shape[0]), np.diff(P.indptr))
+        best = np.full(P.shape[0], -1, dtype=np.int64)
+        weight = np.zeros(P.shape[0])
+        order = np.argsort(P.data, kind="stable")  # the largest weight of each row written last
+        best[rows[order]], weight[rows[order]] = P.indices[order], P.data[order]
+        copy = np.flatnonzero((weight > 0.5) & (best >= 0))
+        copy = copy[where[best[copy]] >= 0]
+        return copy, where[best[copy]]
+
+    def close(self) -> None:
+        """Stop its cut worker process, if any."""
+        self.cutter.close()
+
+
+#: the scene's caches of a body's nodes and compliances, stale once a body is cut
+_CACHES = ("_spring_nodes_kept", "_springs_kept", "_held_cache", "_pair_cache", "_compliance_cache")
+
+
+def recut(scene, scalpel: SceneScalpel) -> None:
+    """Body ``scalpel.body`` of ``scene`` rebuilt on the cut model the scalpel just swapped in: its driver
+    and surface the cut's, its held loads shared among each node's copies, the springs on its nodes
+    (attachments) moved to their copies (each copy held as the node was, at the same anchor or pair),
+    a grasper holding it let go (it takes hold again while closed), the scene's caches of it dropped."""
+    k = next(i for i, b in enumerate(scene.bodies) if b.name == scalpel.body)
+    old = scene.bodies[k]
+    new = type(old)(old.name, scalpel.cutter.driver, scalpel.model.mesh)
+    if hasattr(old, "model"):
+        new.model = scalpel.model
+    copy, of = scalpel.remap(np.arange(old.driver.n_nodes))
+    share = np.bincount(of, minlength=old.driver.n_nodes)[of]
+    new.loads[copy] = old.loads[of] / share[:, None]
+    for att in scene.attachments:
+        if att.a is old:
+            nodes, pick = scalpel.remap(att.nodes_a)
+            att.a, att.nodes_a = new, nodes
+            if att.b is None:
+                att.anchor = att.anchor[pick]
+            else:
+                att.nodes_b, att.rest = att.nodes_b[pick], att.rest[pick]
+        elif att.b is old:
+            nodes, pick = scalpel.remap(att.nodes_b)
+            att.b, att.nodes_b, att.nodes_a, att.rest = new, nodes, att.nodes_a[pick], att.rest[pick]
+    for tool in scene.tools:
+        if tool.held is not None and tool.held.a is old:
+            tool.held = None
+    for name in _CACHES:
+        scene.__dict__.pop(name, None)
+    scene.bodies[k] = new
