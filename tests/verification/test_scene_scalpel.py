@@ -6,6 +6,7 @@ under the same weights, as rt.Scalpel alone does (test_scalpel)."""
 
 from __future__ import annotations
 
+import csv
 import glob
 
 import meshio
@@ -116,6 +117,8 @@ def test_a_scalpel_moves_the_springs_on_the_nodes_it_copies_and_the_scene_steps_
     knife = scene.add_scalpel("knife", "beam", Keyframes(path).device(), blade=BLADE, toughness=0.0)
     scene.run(70)
     assert knife.cuts >= 1
+    assert scene.attachments[0] is not att and att.nodes_a.size == bottom.size  # replaced, not changed
+    att = scene.attachments[0]
     P = knife.cutter.transfer
     parents = np.asarray(P[att.nodes_a].argmax(axis=1)).ravel()
     assert np.array_equal(np.unique(parents), bottom) and att.nodes_a.size == 2 * bottom.size  # both lips held
@@ -139,9 +142,84 @@ def test_what_a_scene_files_scalpel_refuses_is_said(tmp_path, change, said):
         load_scene(tmp_path / "cut.toml")
 
 
-def test_the_scene_viewer_says_it_does_not_run_a_scalpel_yet(tmp_path):
-    from rtfem.cli.scene import scene_for_viewer
-    from rtfem.errors import RtfemError
+def _surfaces(scene):
+    return [np.asarray(b.driver.displacements()) for b in scene.bodies]
 
-    with pytest.raises(RtfemError, match="does not run a scene's scalpel yet"):
-        scene_for_viewer(_scene_file(tmp_path))
+
+def test_the_scene_viewers_clock_goes_back_before_a_cut_and_steps_through_it_to_the_same_cut(tmp_path):
+    """The scene viewer's session keeps the scene's state every 0.1 s: a seek back to before the cut puts
+    the uncut beam back (its model, driver and attachments; the scalpel as it was), and stepping on
+    cuts it again the same way, node for node, to the same field (measured: equal to the bit); a restart is the uncut beam
+    at rest."""
+    from rtfem.viewer.scene_session import SceneSession
+
+    scene = load_scene(_scene_file(tmp_path))
+    knife = scene.scalpels[0]
+    uncut = scene.bodies[0]
+    session = SceneSession(scene, playing=False)
+    for _ in range(140):  # 0.7 s: the blade has crossed the beam (0.3 - 0.6 s)
+        session.step()
+    assert knife.cuts >= 1 and scene.bodies[0] is not uncut
+    cut_model, field = knife.model, _surfaces(scene)
+    session.seek(0.2)
+    assert scene.steps == 40 and scene.bodies[0] is uncut and knife.cuts == 0 and knife.model is uncut.driver.model
+    assert knife.cutter.driver is uncut.driver and knife.cutter.triangles.shape[0] == 0
+    session.seek(0.7)
+    assert knife.model is not cut_model and _same_mesh(knife.model.tetmesh, cut_model.tetmesh, tol=1e-15)
+    for u, v in zip(_surfaces(scene), field):
+        np.testing.assert_allclose(u, v, rtol=0, atol=1e-12)
+    session.restart()
+    assert scene.bodies[0] is uncut and np.abs(_surfaces(scene)[0]).max() == 0.0
+
+
+def test_the_scene_viewer_draws_the_cut_body_and_the_blade(tmp_path):
+    """Served (no browser): after the cut the viewer draws the cut body's surface (its grabbable copy
+    too), the blade is drawn from its tip to its heel, and no frame fails."""
+    pytest.importorskip("viser")
+    from conftest import free_port, wait_until
+    from rtfem.viewer.scene_session import SceneSession
+    from rtfem.viewer.scene_view import SceneViewer
+
+    scene = load_scene(_scene_file(tmp_path))
+    knife = scene.scalpels[0]
+    viewer = SceneViewer(SceneSession(scene), port=free_port(), wait_for_client=False).start()
+    try:
+        wait_until(lambda: knife.cuts >= 1 and viewer._bodies[0] is scene.bodies[0], 60, "a cut drawn")
+        frames = viewer.frames
+        wait_until(lambda: viewer.frames > frames + 3, 20, "frames after the cut")
+        body = scene.bodies[0]
+        assert viewer._glbs[0][2].shape == (body.surface.size, 3) and body.surface.size > 0
+        assert np.asarray(viewer.picks[0].vertices).shape == (body.surface.size, 3)
+        blade = np.asarray(viewer.glyphs.blades[0][1].points)
+        np.testing.assert_allclose(blade[0, 1] - blade[0, 0], BLADE, atol=1e-6)
+        assert viewer.state()["error"] is None
+    finally:
+        viewer.stop()
+
+
+def test_the_cut_example_runs_headless_and_no_element_of_the_cut_liver_turns_inside_out(tmp_path, capsys):
+    """`rtfem simulate --example cut`: the scalpel cuts the hanging solid liver (nodes added, the frames on
+    the cut mesh), the hand feels the cutting resistance while the blade is in the tissue (contacts.csv),
+    and every tet of the cut liver, deformed as the last frame has it, keeps a positive volume."""
+    out = tmp_path / "out"
+    rc = main(["simulate", "--example", "cut", "--duration", "1.8", "--fps", "5", "--out", str(out)])
+    assert rc == 0, capsys.readouterr()
+    frames = sorted(glob.glob(str(out / "liver" / "frame_*.vtu")))
+    first, last = meshio.read(frames[0]), meshio.read(frames[-1])
+    assert first.points.shape[0] == 1152 and last.points.shape[0] > 1152 + 20
+    T = last.cells_dict["tetra"]
+
+    def volumes(x):
+        return np.einsum("ij,ij->i", np.cross(x[T[:, 1]] - x[T[:, 0]], x[T[:, 2]] - x[T[:, 0]]), x[T[:, 3]] - x[T[:, 0]])
+    volumes, rest = volumes(last.points + last.point_data["displacement"]), volumes(last.points)
+    assert (np.sign(volumes) == np.sign(rest)).all() and np.abs(volumes).min() > 0
+    rows = [r for r in csv.DictReader(open(out / "contacts.csv")) if r["b"] == "scalpel"]
+    force = np.array([[float(r[k]) for k in ("fx", "fy", "fz")] for r in rows])
+    assert np.linalg.norm(force, axis=1).max() > 1.0  # N: J = 164 J/m^2 times centimetres of lobe
+
+
+def test_rtfem_view_example_cut_serves_and_stops_on_ctrl_c():
+    pytest.importorskip("viser")
+    from conftest import serves_and_stops_on_ctrl_c
+
+    serves_and_stops_on_ctrl_c("--example", "cut")

@@ -5,6 +5,7 @@
     rtfem simulate [MESH] ...              headless run: scripted probe or load file -> .pvd + .csv
     rtfem simulate SCENE.toml ...          a scene file: bodies under gravity on obstacles -> .pvd each + contacts.csv
     rtfem simulate --example gallbladder   the scene shipped with rtfem: liver, gallbladder, grasper and probe
+    rtfem view --example cut               a scalpel drawn into the hanging solid liver (issue 57)
     rtfem impedance [MESH] -o FILE         precompute an impedance map (.npz)
     rtfem batch PLAN.toml                  many organs' bases, maps and reduced models, on a cluster or here
     rtfem bench [MESH]                     time per step: modal vs direct, measured now
@@ -269,6 +270,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the scenes shipped with rtfem (rtfem/scenes/NAME.toml): --example NAME
+EXAMPLES = ("gallbladder", "cut")
 LARGE_MAP = 2**30  # bytes: an impedance map past this needs --allow-large
 
 
@@ -374,8 +377,9 @@ def _add_simulate(sub) -> None:
                    "probed (or loaded) vertex in the basis, for pulls of centimetres (see the manual: Which model when)")
     add_scheduler_options(p, "--method nonlinear: the modal derivatives on a Dask cluster (tcp://HOST:PORT, "
                           "tls://HOST:PORT with --tls-*, or local:N; the cluster extra)")
-    p.add_argument("--example", choices=("gallbladder",), help="run a scene shipped with rtfem: gallbladder (the "
-                   "liver and the gallbladder hung beneath it, a grasper retracting its fundus, a probe on the liver)")
+    p.add_argument("--example", choices=EXAMPLES, help="run a scene shipped with rtfem: gallbladder (the liver and the "
+                   "gallbladder hung beneath it, a grasper retracting its fundus, a probe on the liver); cut (the solid "
+                   "liver hanging, a scalpel drawn 4 cm into its right lobe)")
     p.add_argument("--duration", type=positive, default=1.0, help="simulated time in s (default 1)")
     p.add_argument("--load", metavar="CSV", help="load file: rows t,node,fx,fy,fz (N); a row holds until the node's next row")
     p.add_argument("--at", metavar="X,Y,Z", help="probe point (m; nearest free vertex); default: the free vertex "
@@ -463,8 +467,9 @@ def _add_view_and_demo(sub) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; a busy port moves to the next free one, "
                    "and says so)")
-    p.add_argument("--example", choices=("gallbladder",), help="show a scene shipped with rtfem (MESH may also be a "
-                   "scene file, .toml): gallbladder, the liver and the gallbladder beneath it, a grasper and a probe")
+    p.add_argument("--example", choices=EXAMPLES, help="show a scene shipped with rtfem (MESH may also be a scene "
+                   "file, .toml): gallbladder, the liver and the gallbladder beneath it, a grasper and a probe; cut, the "
+                   "solid liver hanging, a scalpel drawn into its right lobe")
     p.epilog = ("MESH may also be a scene file (.toml: its bodies, obstacles and tools, played from when the page "
                 "opens), or a written run to replay: a .pvd collection, or the folder rtfem simulate wrote (-o DIR; "
                 "a scene's run: one .pvd per body in its subfolders)")

@@ -69,10 +69,6 @@ def scene_for_viewer(path):
 
     scene = load_scene(path, progress=progress)
     try:
-        if scene.scalpels:  # (its restart and time slider rewind the bodies' states; a cut is not rewound yet)
-            raise RtfemError(f"{path}: the scene viewer does not run a scene's scalpel yet ([[tool]] "
-                             f"{scene.scalpels[0].name!r}): run the file headless with rtfem simulate, or cut one organ in "
-                             "the viewer with ctrl+drag (rtfem view ORGAN --solid --element tet4)")
         start = snapshot(scene)
         steps = []
         for _ in range(60):

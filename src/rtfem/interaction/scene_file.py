@@ -442,7 +442,7 @@ def _body_mesh(table: dict, where: _Where, folder: Path):
     scale = where.check("scale", validate.positive, table.get("scale", 1.0), "scale", "a coordinate factor")
     R, t = placement(table, where)
     if str(table["mesh"]).startswith(BUILTIN):
-        mesh = _builtin(str(table["mesh"]), where)
+        mesh = _builtin(str(table["mesh"]), where, solid=table.get("kind") == "solid")
         mesh = mesh if scale == 1.0 else mesh.scaled(scale)
     else:
         mesh = where.check("mesh", load_mesh, folder / str(table["mesh"]), scale=scale)
@@ -518,8 +518,10 @@ def _material(table: dict, where: _Where):
     return where.check("material", material_from_table, table.get("material", {}))
 
 
-def _builtin(spec: str, where: _Where):
-    """``rtfem:liver`` (level 3), ``rtfem:gallbladder`` (level 2), or ``rtfem:NAME:LEVEL``: the embedded meshes."""
+def _builtin(spec: str, where: _Where, solid: bool = False):
+    """``rtfem:liver`` (level 3), ``rtfem:gallbladder`` (level 2), or ``rtfem:NAME:LEVEL``: the embedded meshes;
+    the liver with kind = "solid" is its volume (``rt.meshes.liver(level, solid=True)``: at level 3 the tets
+    shipped with rtfem, the same on every machine)."""
     from ..mesh import meshes
 
     parts = spec[len(BUILTIN):].split(":")
@@ -528,7 +530,10 @@ def _builtin(spec: str, where: _Where):
         raise where.error("mesh", f"{spec!r}: the embedded meshes are {', '.join(BUILTIN + m for m in makers)}, "
                           f"with a level as {BUILTIN}liver:4")
     make, level = makers[parts[0]]
-    return where.check("mesh", make, int(parts[1]) if len(parts) == 2 else level)
+    level = int(parts[1]) if len(parts) == 2 else level
+    if solid and parts[0] == "liver":
+        return where.check("mesh", make, level, solid=True)
+    return where.check("mesh", make, level)
 
 
 def contact_rows(scene: Scene) -> list[list]:

@@ -13,6 +13,8 @@ is then the same from run to run); ``worker=True`` cuts in a worker process whil
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from .. import validate
@@ -123,9 +125,32 @@ class SceneScalpel:
         copy = copy[where[best[copy]] >= 0]
         return copy, where[best[copy]]
 
+    def state(self) -> dict:
+        """What :meth:`set_state` puts back (a scene viewer's kept state): the model and driver as cut so
+        far, the surface swept, the stroke, the forces (the cut job in progress finished first)."""
+        c = self.cutter
+        c.join()
+        out = {k: getattr(c, k) for k in _STATE}
+        out.update(latencies=list(c.latencies), _added=list(c._added), scene=(self.force.copy(), self.tip))
+        return out
+
+    def set_state(self, state: dict) -> None:
+        """Back to a :meth:`state`: the cuts made since are undone (the body is the scene's to put back)."""
+        c = self.cutter
+        c.join()
+        for k in (*_STATE, "latencies", "_added"):
+            setattr(c, k, list(state[k]) if k in ("latencies", "_added") else state[k])
+        self.force, self.tip = state["scene"][0].copy(), state["scene"][1]
+
     def close(self) -> None:
         """Stop its cut worker process, if any."""
         self.cutter.close()
+
+
+#: what a scalpel's state holds of its rt.Scalpel (all replaced, never changed in place, as it cuts)
+_STATE = ("driver", "solid", "shown", "transfer", "last_transfer", "vertices", "triangles", "_applied", "_tried",
+          "cuts", "removed_mass", "refused", "_last", "_anchor", "_velocity", "_mid", "_t_tick", "resistance", "_push",
+          "lifted", "_blade", "force", "_ready")
 
 
 #: the scene's caches of a body's nodes and compliances, stale once a body is cut
@@ -136,16 +161,21 @@ def recut(scene, scalpel: SceneScalpel) -> None:
     """Body ``scalpel.body`` of ``scene`` rebuilt on the cut model the scalpel just swapped in: its driver
     and surface the cut's, its held loads shared among each node's copies, the springs on its nodes
     (attachments) moved to their copies (each copy held as the node was, at the same anchor or pair),
-    a grasper holding it let go (it takes hold again while closed), the scene's caches of it dropped."""
+    a grasper holding it let go (it takes hold again while closed), the scene's caches of it dropped.
+    The scene's lists of bodies and attachments are replaced, not changed (new Body and Attachment
+    objects): a reader holding the old ones (a frame being drawn, a kept state) sees them whole."""
     k = next(i for i, b in enumerate(scene.bodies) if b.name == scalpel.body)
     old = scene.bodies[k]
     new = type(old)(old.name, scalpel.cutter.driver, scalpel.model.mesh)
     if hasattr(old, "model"):
         new.model = scalpel.model
-    copy, of = scalpel.remap(np.arange(old.driver.n_nodes))
+    copies, of = scalpel.remap(np.arange(old.driver.n_nodes))
     share = np.bincount(of, minlength=old.driver.n_nodes)[of]
-    new.loads[copy] = old.loads[of] / share[:, None]
+    new.loads[copies] = old.loads[of] / share[:, None]
+    attachments = []
     for att in scene.attachments:
+        if att.a is old or att.b is old:
+            att = copy.copy(att)
         if att.a is old:
             nodes, pick = scalpel.remap(att.nodes_a)
             att.a, att.nodes_a = new, nodes
@@ -156,9 +186,16 @@ def recut(scene, scalpel: SceneScalpel) -> None:
         elif att.b is old:
             nodes, pick = scalpel.remap(att.nodes_b)
             att.b, att.nodes_b, att.nodes_a, att.rest = new, nodes, att.nodes_a[pick], att.rest[pick]
+        attachments.append(att)
     for tool in scene.tools:
         if tool.held is not None and tool.held.a is old:
             tool.held = None
+    drop_caches(scene)
+    scene.attachments = attachments
+    scene.bodies = [new if b is old else b for b in scene.bodies]
+
+
+def drop_caches(scene) -> None:
+    """Forget the scene's caches of its bodies' nodes and compliances (a body was cut, or put back)."""
     for name in _CACHES:
         scene.__dict__.pop(name, None)
-    scene.bodies[k] = new

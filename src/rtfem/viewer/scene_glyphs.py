@@ -18,6 +18,7 @@ PLANE = (178, 186, 200)
 OBSTACLE = (150, 156, 168)
 SUPPORT = (150, 150, 150)
 SPRING = (214, 90, 150)
+BLADE, BLADE_OUT = (200, 30, 30), (190, 190, 200)  # a scalpel's blade in the tissue, and out of it
 STEEL = (170, 176, 186)
 JAW_OPEN = (240, 200, 60)
 JAW_CLOSED = (235, 120, 30)
@@ -210,8 +211,17 @@ class Glyphs:
             name = f"/scene/tools/{i}"
             glyph = _GrasperGlyph(sc, name, tool, centres) if tool.kind == "grasper" else _ProbeGlyph(sc, name, tool)
             self.tools.append((tool, glyph, tool_start(tool)))
+        self.blades = [(scalpel, sc.add_line_segments(f"/scene/scalpels/{i}", self._blade(scalpel), BLADE_OUT,
+                                                      thickness=4.0, thickness_units="screen"))
+                       for i, scalpel in enumerate(getattr(scene, "scalpels", ()))]
         self.drawn: dict = {}
         self.hidden: set[str] = set()
+
+    @staticmethod
+    def _blade(scalpel) -> np.ndarray:
+        """(1, 2, 3): a scalpel's blade from its tip to its heel (at its path's start before the first step)."""
+        tip = scalpel.tip if scalpel.tip is not None else np.asarray(scalpel.device.position(0.0), dtype=float)
+        return np.stack([tip, tip + scalpel.cutter.blade])[None].astype(np.float32)
 
     @staticmethod
     def _plane(sc, name: str, plane, centre: np.ndarray, size: float):
@@ -224,28 +234,36 @@ class Glyphs:
                            cell_color=(150, 156, 170), section_color=(110, 116, 130), plane_color=PLANE,
                            plane_opacity=0.45, shadow_opacity=0.0, wxyz=quaternion(R), position=tuple(at))
 
-    def _spring_points(self, us=None) -> np.ndarray:
+    def _spring_points(self, us=None, bodies=None) -> np.ndarray:
         """(k, 2, 3): each attachment spring from its node of a to its anchor or its node of b, at the
-        bodies' displacements ``us`` (each body's surface field; None: at rest)."""
-        index = {b.name: k for k, b in enumerate(self.scene.bodies)}
+        bodies' displacements ``us`` (each body's surface field, of ``bodies``; None: at rest). An
+        attachment of a body that is not among ``bodies`` (cut since they were read) waits a frame."""
+        bodies = self.scene.bodies if bodies is None else bodies
+        index = {id(b): k for k, b in enumerate(bodies)}
         segments = []
-        for att in self.scene.attachments:
-            a = att.a
-            xa = a.X[att.nodes_a] + (0.0 if us is None else _at(us[index[a.name]], a, att.nodes_a))
-            if att.b is None:
+        for att in list(self.scene.attachments):
+            a, b = att.a, att.b
+            if id(a) not in index or (b is not None and id(b) not in index):
+                continue
+            xa = a.X[att.nodes_a] + (0.0 if us is None else _at(us[index[id(a)]], a, att.nodes_a))
+            if b is None:
                 xb = att.anchor
             else:
-                b = att.b
-                xb = b.X[att.nodes_b] + (0.0 if us is None else _at(us[index[b.name]], b, att.nodes_b))
+                xb = b.X[att.nodes_b] + (0.0 if us is None else _at(us[index[id(b)]], b, att.nodes_b))
             segments.append(np.stack([xa, xb], axis=1))
         return np.concatenate(segments).astype(np.float32) if segments else np.zeros((0, 2, 3), np.float32)
 
-    def update(self, us) -> None:
-        """Move every glyph to the scene as it is (``us``: each body's surface displacements)."""
+    def update(self, us, bodies=None) -> None:
+        """Move every glyph to the scene as it is (``us``: each body's surface displacements, of
+        ``bodies``, default the scene's)."""
+        bodies = self.scene.bodies if bodies is None else bodies
         if self.springs is not None:
-            self.springs.points = self._spring_points(us)
+            self.springs.points = self._spring_points(us, bodies)
+        for scalpel, line in self.blades:
+            line.points = self._blade(scalpel)
+            line.colors = np.tile(np.array(BLADE if scalpel.in_tissue() else BLADE_OUT, np.uint8), (1, 2, 1))
         tools = {}
-        index = {b.name: k for k, b in enumerate(self.scene.bodies)}
+        index = {id(b): k for k, b in enumerate(bodies)}
         for tool, glyph, start in self.tools:
             at = tool.proxy if tool.proxy is not None else start
             if "tools" in self.hidden:
@@ -253,8 +271,8 @@ class Glyphs:
             at = None if at is None else np.asarray(at, dtype=float)
             if tool.kind == "grasper":
                 held = tool.held
-                held_at = None if held is None else held.a.X[held.nodes_a] + _at(us[index[held.a.name]], held.a,
-                                                                                  held.nodes_a)
+                held_at = None if held is None or id(held.a) not in index else \
+                    held.a.X[held.nodes_a] + _at(us[index[id(held.a)]], held.a, held.nodes_a)
                 tools[tool.name] = glyph.update(tool, at, held_at)
             else:
                 tools[tool.name] = glyph.update(tool, at)

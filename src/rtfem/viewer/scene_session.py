@@ -44,7 +44,8 @@ def snapshot(scene) -> dict:
                       "proxy": None if t.proxy is None else np.array(t.proxy, dtype=float),
                       "force": np.array(t.force, dtype=float), "held": held,
                       "offsets": None if getattr(t, "offsets", None) is None else np.array(t.offsets)})
-    return {"steps": int(scene.steps), "time": float(scene.time),
+    return {"steps": int(scene.steps), "time": float(scene.time), "which": (list(scene.bodies), list(scene.attachments)),
+            "scalpels": [sc.state() for sc in scene.scalpels],
             "bodies": [b.driver.get_state() for b in scene.bodies],
             "loads": [_correction_loads(b.driver) for b in scene.bodies], "tools": tools}
 
@@ -61,7 +62,17 @@ def _correction_loads(driver):
 
 def rewind(scene, state: dict) -> None:
     """Put ``scene`` back in a :func:`snapshot`'s state (its contact records cleared; the force
-    records of scripted devices, ``times`` and ``forces``, cut at that time)."""
+    records of scripted devices, ``times`` and ``forces``, cut at that time). A body cut since is put back
+    as it was then (its model, driver and attachments), and so is its scalpel."""
+    bodies, attachments = state["which"]
+    if any(a is not b for a, b in zip((*bodies, *attachments), (*scene.bodies, *scene.attachments))) \
+            or len(attachments) != len(scene.attachments):
+        from ..interaction.scene_scalpel import drop_caches
+
+        drop_caches(scene)
+        scene.bodies, scene.attachments = list(bodies), list(attachments)
+    for scalpel, s in zip(scene.scalpels, state["scalpels"]):
+        scalpel.set_state(s)
     for body, s, loads in zip(scene.bodies, state["bodies"], state["loads"]):
         body.driver.set_state(s)
         if loads is not None:  # the field drawn from the state: with the correction of that step's loads
@@ -185,8 +196,14 @@ class SceneSession(PhysicsThread):
 
     def surface_displacements(self) -> list[np.ndarray]:
         """Each body's surface displacements (k, 3), read between steps."""
+        return self.surfaces()[0]
+
+    def surfaces(self) -> tuple[list[np.ndarray], list]:
+        """Each body's surface displacements (k, 3) and the bodies they are of, read between steps
+        together (a scalpel's cut replaces its body between two steps)."""
         with self._lock:
-            return [displacements_at(b.driver, b.surface) for b in self.scene.bodies]
+            bodies = list(self.scene.bodies)
+            return [displacements_at(b.driver, b.surface) for b in bodies], bodies
 
     # ---------------------------------------------------------------- play, pause, restart, seek
     @property

@@ -114,19 +114,9 @@ class SceneViewer(Served):
         view = getattr(s.scene, "view", None)
         self._view = np.asarray(VIEW if view is None else view, dtype=float)
         light_scene(self.server, s.centre, s.size, 0.8 * self._view / np.linalg.norm(self._view))
-        self._glbs, self.meshes, self.picks = [], [], []
+        self._glbs, self.meshes, self.picks, self._bodies = [], [], [], []
         for k, body in enumerate(s.scene.bodies):
-            faces = body.local[np.asarray(body.mesh.triangles)]
-            glb = SurfaceGlb(faces, body.surface.size)
-            colour = COLOURS[k % len(COLOURS)]
-            X = body.X[body.surface]
-            self._glbs.append((glb, colour, X))
-            self.meshes.append(sc.add_glb(f"/bodies/{k}", glb(X, tint(colour, np.zeros(X.shape[0])))))
-            pick = sc.add_mesh_simple(f"/picks/{k}", X.astype(np.float32), faces.astype(np.uint32),
-                                      color=(255, 255, 255), opacity=0.0, side="double")
-            pick.on_drag("left")(lambda event, k=k: self._on_drag(event, k, press=False))
-            pick.on_drag("left", modifier="shift")(lambda event, k=k: self._on_drag(event, k, press=True))
-            self.picks.append(pick)
+            self._body(k, body)
         # a speck with the bodies' material keeps its shader program while their frames are replaced
         # (see Viewer._build_scene: without it every frame compiled the shaders again)
         speck = s.centre + 1e-6 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -135,7 +125,7 @@ class SceneViewer(Served):
         self.hand = sc.add_icosphere("/hand", radius=0.006 * s.size, color=(255, 255, 255), visible=False)
         self.probe = sc.add_icosphere("/probe", radius=s.probe.radius, color=(230, 230, 240), visible=False)
         self._u = [np.zeros((b.surface.size, 3)) for b in s.scene.bodies]
-        self.glyphs.update(self._u)
+        self.glyphs.update(self._u, self._bodies)
         gui = self.server.gui
         gui.configure_theme(control_width="large")
         sc_ = s.scene
@@ -146,14 +136,36 @@ class SceneViewer(Served):
         self.transport = Transport(gui, s, step=sc_.dt)
         self.stats_md = gui.add_markdown("waiting for the first browser ..." if self._wait else "starting ...")
 
+    def _body(self, k: int, body) -> None:
+        """Body k's drawn mesh and its grabbable copy (again after a scalpel's cut: its surface is new)."""
+        sc = self.server.scene
+        faces = body.local[np.asarray(body.mesh.triangles)]
+        glb = SurfaceGlb(faces, body.surface.size)
+        colour = COLOURS[k % len(COLOURS)]
+        X = body.X[body.surface]
+        mesh = sc.add_glb(f"/bodies/{k}", glb(X, tint(colour, np.zeros(X.shape[0]))))
+        pick = sc.add_mesh_simple(f"/picks/{k}", X.astype(np.float32), faces.astype(np.uint32),
+                                  color=(255, 255, 255), opacity=0.0, side="double")
+        pick.on_drag("left")(lambda event, k=k: self._on_drag(event, k, press=False))
+        pick.on_drag("left", modifier="shift")(lambda event, k=k: self._on_drag(event, k, press=True))
+        if k < len(self._bodies):
+            self._glbs[k], self.meshes[k], self.picks[k], self._bodies[k] = (glb, colour, X), mesh, pick, body
+        else:
+            self._glbs.append((glb, colour, X))
+            self.meshes.append(mesh)
+            self.picks.append(pick)
+            self._bodies.append(body)
+        if hasattr(self, "_u"):
+            self._u[k] = np.zeros((body.surface.size, 3))
+
     # ---------------------------------------------------------------- the mouse
     def _on_drag(self, event, k: int, *, press: bool) -> None:
         s = self.session
         if event.phase == "start":
             self.drags += 1
             start = np.asarray(event.start_position, dtype=float)
-            body = s.scene.bodies[k]
-            x = body.X[body.surface] + self._u[k]
+            body, u = self._bodies[k], self._u[k]  # (as last drawn)
+            x = body.X[body.surface] + u
             i = int(np.argmin(np.linalg.norm(x - start, axis=1)))
             self._drag = {"press": press, "start": start, "x0": x[i], "n": body.normals[i]}
             if press:
@@ -182,7 +194,11 @@ class SceneViewer(Served):
         while not self._stop.is_set():
             t0 = time.perf_counter()
             try:
-                self._u = us = s.surface_displacements()
+                us, bodies = s.surfaces()
+                for k, body in enumerate(bodies):
+                    if body is not self._bodies[k]:  # cut by a scalpel (or put back by a restart)
+                        self._body(k, body)
+                self._u = us
                 peak = max(float(np.linalg.norm(u, axis=1).max()) for u in us)
                 self.vmax = max(peak, 0.97 * self.vmax, 1e-4)
                 for mesh, (glb, colour, X), u in zip(self.meshes, self._glbs, us):
@@ -190,7 +206,7 @@ class SceneViewer(Served):
                 if self._drag is None:  # the grabbable copies follow the bodies between drags
                     for pick, (_, _, X), u in zip(self.picks, self._glbs, us):
                         pick.vertices = (X + u).astype(np.float32)
-                self._draw_tools(us)
+                self._draw_tools(us, bodies)
                 self.frames += 1
                 count += 1
                 now = time.perf_counter()
@@ -203,7 +219,7 @@ class SceneViewer(Served):
                 s.error = f"{type(exc).__name__}: {exc}"
             time.sleep(max(0.0, 1.0 / self.fps - (time.perf_counter() - t0)))
 
-    def _draw_tools(self, us) -> None:
+    def _draw_tools(self, us, bodies=None) -> None:
         s = self.session
         self.hand.visible = s.hand.buttons == 1
         if self.hand.visible:
@@ -211,7 +227,7 @@ class SceneViewer(Served):
         self.probe.visible = self._drag is not None and self._drag["press"]
         if self.probe.visible and s.probe.proxy is not None:
             self.probe.position = tuple(s.probe.proxy)
-        self.glyphs.update(us)
+        self.glyphs.update(us, bodies)
 
     def _panel(self, peak: float) -> None:
         s = self.session
