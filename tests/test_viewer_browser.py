@@ -340,3 +340,54 @@ def resources_example():
     from importlib import resources
 
     return resources.files("rtfem") / "scenes" / "gallbladder.toml"
+
+
+def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
+    """Ctrl held, a drag across a tet4 block clamped at both ends (the modifier as the browser sends it,
+    viser's "cmd/ctrl"): the viewer enters scalpel mode, the blade sweeps, the block is cut (nodes
+    added), the new surface is drawn (the grabbable copy is the session's drawn vertices) and the
+    picture shows the cut organ hanging; a plain drag afterwards grabs nothing (refused in scalpel mode)."""
+    import rtfem as rt
+    from rtfem.viewer.app import Viewer
+    from rtfem.viewer.session import Session, Settings
+
+    mesh = rt.meshes.box(0.1, 0.02, 0.02, nx=20, ny=4, nz=4)
+    ends = np.concatenate([mesh.groups["x0"], mesh.groups["x1"]])
+    s = Session(mesh, rt.Material(E=3e5, nu=0.45, density=1060.0), fixed=ends,
+                settings=Settings(method="direct", large=True, dt=2e-3))
+    n0 = s.model.n_nodes
+    v = Viewer(s, port=free_port()).start()
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        with _open_page(v) as page:
+            canvas = page.locator("canvas").first.bounding_box()
+            px = v.project(v.centre)[0]
+            x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
+            page.keyboard.down("Control")
+            page.mouse.move(x0, y0)  # pressed on the block's middle
+            page.mouse.down()
+            for i in range(1, 6):
+                page.mouse.move(x0, y0 - 4 * i)
+                time.sleep(0.05)
+            wait_until(lambda: s.scalpel is not None, 180, lambda: f"scalpel mode ({s.cut_status!r}, {s.error})")
+            for i in range(1, 41):  # down across the block's height on the screen
+                page.mouse.move(x0, y0 - 20 + 3 * i)
+                time.sleep(0.1)
+            page.mouse.up()
+            page.keyboard.up("Control")
+            # (generous: in a fresh clone beside the suite, the worker process's first cut compiles its kernels)
+            wait_until(lambda: v.cuts_drawn >= 1, 240,
+                       lambda: f"a cut drawn ({s.cut_status!r}; worker: {s.scalpel.worker_note}; error: {s.error})")
+            frames = v.frames
+            wait_until(lambda: v.frames > frames + 5, 30, "frames after the cut")
+            page.screenshot(path=str(ARTIFACTS / "4_cut_block.png"))
+            assert s.model.n_nodes > n0 and s.generation >= 1 and v.state()["error"] is None
+            assert v._drawn_sent is s.drawn and np.asarray(v.pick.vertices).shape == (s.drawn.size, 3)
+            page.mouse.move(x0 + 40, y0)  # a plain drag: refused in scalpel mode, said, nothing held
+            page.mouse.down()
+            page.mouse.move(x0 + 60, y0 - 20)
+            time.sleep(1.0)
+            page.mouse.up()
+            assert s.grasp.nodes.size == 0 or not np.any(s.grasp.forces), "a grasp in scalpel mode"
+    finally:
+        v.stop()
