@@ -154,16 +154,22 @@ def simulate_scene(args: argparse.Namespace) -> int:
     for b in scene.bodies:
         f = sum((f for (a, _), f in scene.contacts.items() if a == b.name), np.zeros(3))
         print(f"body        {b.name}: {b.mass:.4g} kg (weight {b.mass * np.linalg.norm(scene.gravity):.4g} N), "
-              f"{_material(b.model)}; force of obstacles, bodies and attachments now {np.round(f, 4).tolist()} N")
+              f"{_material(b.model, not hasattr(b.driver, 'modes'))}; force of obstacles, bodies and attachments now "
+              f"{np.round(f, 4).tolist()} N")
+    for sc in scene.scalpels:
+        print(f"scalpel     {sc.name}: {sc.cuts} cut(s) of {sc.body}, now {sc.model.n_nodes} nodes"
+              + (f"; its last strip was not cut: {sc.cutter.refused}" if sc.cutter.refused else ""))
     print(f"wrote       {path} ({len(rows)} rows) and {', '.join(f'{b.name}/{b.name}.pvd' for b in scene.bodies)}")
     return 0
 
 
-def _material(model) -> str:
+def _material(model, full: bool = False) -> str:
     """What a body's material is, and what its modes use of it (a law's linearization at rest)."""
     if getattr(model, "materials", None) is not None:  # a material per region
         return "regions " + "; ".join(f"{label}: {law!r}" for label, law in model.materials.items())
     law, lin = getattr(model, "law", None), model.material
     if law is None:
         return f"linear, E = {lin.E:.4g} Pa, nu = {lin.nu:.4g}"
+    if full:
+        return f"{law!r}, full order"
     return f"{law!r} on its modes: its linearization at rest, E = {lin.E:.4g} Pa, nu = {lin.nu:.4g}"

@@ -15,7 +15,7 @@ from ..mesh.cut import cut_mesh, extend
 __all__ = ["cut"]
 
 
-def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "warn"):
+def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "warn", held=None):
     """A new model of the same kind, element, material and fixes as ``model`` (an rt.SolidModel),
     its mesh separated along the element faces that lie in the triangulated surface (``vertices``
     (k, 3) in metres, ``triangles`` (m, 3)): :func:`cut_mesh`. A copy of a fixed node is fixed. The
@@ -31,6 +31,8 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
     free : what becomes of a part the cut frees with nothing fixed: "warn" (kept, with a warning: it
         would float) or "remove" (dropped, as a scalpel's cut-away piece falls away:
         ``cut_info.removed`` counts its nodes and ``cut_info.removed_mass`` its kg).
+    held : nodes of ``model`` that hold the part they end up in as a fix does (a scene's springs and
+        grasps on the body): such a part is not free.
 
     Returns
     -------
@@ -57,13 +59,16 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
     snap = snap if isinstance(snap, str) and snap == "split" else validate.flag(snap, "snap")
     mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=snap)
     fixed = extend(np.asarray(recipe.fixed, dtype=bool), info.split)[info.parent]
+    holding = fixed.any(axis=1)
+    if held is not None and len(held):  # and the copies of the nodes that hold their part
+        holding |= np.isin(info.parent, validate.nodes(held, model.n_nodes, "held"))
     held = np.zeros(info.pieces, dtype=bool)
-    held[info.piece[fixed.any(axis=1)]] = True
+    held[info.piece[holding]] = True
     info["removed"], info["removed_mass"] = 0, 0.0
     if not held.all() and free == "remove":
         if not held.any():
-            raise ModelError("free='remove' with nothing fixed: every part of the solid would be removed; fix the "
-                             "model first")
+            raise ModelError("free='remove' with nothing fixed or held: every part of the solid would be removed; fix "
+                             "the model first")
         mesh, info, fixed = _drop_free(mesh, info, fixed, held, _densities(recipe.material, mesh.labels))
     elif not held.all() and fixed.any():
         warnings.warn(f"the cut frees {int((~held).sum())} of {info.pieces} parts of the solid with nothing fixed: "

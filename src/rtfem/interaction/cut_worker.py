@@ -27,12 +27,12 @@ class WorkerGone(ModelError):
     """The cut worker process stopped or answered nothing readable."""
 
 
-def cut_and_assemble(model, vertices, triangles, snap):
-    """``rt.cut(model, vertices, triangles, snap=snap, free="remove")`` with the cut model assembled:
-    its stiffness, mass and nonlinear system built (what a driver on it needs)."""
+def cut_and_assemble(model, vertices, triangles, snap, held=None):
+    """``rt.cut(model, vertices, triangles, snap=snap, free="remove", held=held)`` with the cut model
+    assembled: its stiffness, mass and nonlinear system built (what a driver on it needs)."""
     from ..fe.cut import cut
 
-    new = cut(model, vertices, triangles, snap=snap, free="remove")
+    new = cut(model, vertices, triangles, snap=snap, free="remove", held=held)
     new.K, new.M  # noqa: B018 - assembled here, not in the simulation's process
     new.nonlinear()
     return new
@@ -69,11 +69,12 @@ class CutWorker:
     def alive(self) -> bool:
         return self._proc.poll() is None
 
-    def cut(self, model, vertices, triangles, snap):
+    def cut(self, model, vertices, triangles, snap, held=None):
         """The worker's :func:`cut_and_assemble` of these arguments."""
         with self._lock:
             try:
-                pickle.dump((_bare(model), vertices, triangles, snap), self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump((_bare(model), vertices, triangles, snap, held), self._proc.stdin,
+                            protocol=pickle.HIGHEST_PROTOCOL)
                 self._proc.stdin.flush()
                 kind, value = pickle.load(self._proc.stdout)
             except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:  # ValueError: closed meanwhile

@@ -51,6 +51,17 @@ _SUB = (np.arange(4) + 0.5) / 4  # a cell's share inside the solid: its 4 x 4 su
 _EDGE = (np.arange(8) + 0.5) / 8  # the blade's edge in tissue: 8 points along each cell's front
 
 
+def _check_law(model) -> None:
+    """Refuse a solid of a relaxing (Prony) law, or with a region of one: its history is not carried to a
+    cut mesh (every cut would be refused)."""
+    from ..fe.viscoelastic import Prony
+
+    laws = [getattr(model, "law", None), *(getattr(model, "materials", None) or {}).values()]
+    if any(isinstance(law, Prony) for law in laws):
+        raise ModelError("a viscoelastic (Prony) law's history is not carried to a cut mesh yet: a scalpel cuts a solid "
+                         "of an elastic law (rt.Material or a hyperelastic law) in every region")
+
+
 def _bilinear(corners: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Points (c, len(s)^2, 3) of each quad (c, 4, 3) at the parameters s x s."""
     u, v = (a.ravel()[None, :, None] for a in np.meshgrid(s, s))
@@ -151,6 +162,7 @@ class Scalpel(_MultiRate):
         if not (hasattr(driver, "carry_over") and hasattr(getattr(driver, "model", None), "tetmesh")):
             raise ModelError(f"driver={validate.show(driver)}: a scalpel cuts a full-order solid: give "
                              "rt.DirectSimulator(solid_model, dt, ...) (a reduced or shell driver cannot be cut yet)")
+        _check_law(driver.model)
         self.blade = np.array(validate.vector(blade, "blade", 3), dtype=float)
         if not np.linalg.norm(self.blade) > 0:
             raise ModelError("blade=(0, 0, 0): give the vector from the blade's tip to its heel (m), e.g. (0, 0, 0.03)")
@@ -172,6 +184,8 @@ class Scalpel(_MultiRate):
         self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
         self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
         self.last_transfer = self.transfer  # the last cut's alone (from the model before it)
+        #: nodes of the model that hold the piece they are in as a fix does (a scene's springs and grasps on it)
+        self.held = np.zeros(0, dtype=np.int64)
         self._added: list = []  # (triangles after, perf_counter) of each strip not yet in the model
         self._tried = 0  # triangles the last cut job had
         self._applied = 0  # triangles the model holds (the first ones of ``triangles``)
@@ -359,12 +373,12 @@ class Scalpel(_MultiRate):
             return
         from ..mesh.cut import NothingToCut
 
-        V, T, driver = self.vertices, self._to_cut(), self.driver
+        V, T, driver, held = self.vertices, self._to_cut(), self.driver, self.held
         self._tried = n
 
         def work() -> None:
             try:
-                new = self._cut(driver.model, V, T)
+                new = self._cut(driver.model, V, T, held)
                 P = new.cut_info.transfer()
                 # (not its factor: made here, beside the ticks, its sparse sums held Python's lock and the haptic
                 # loop missed 4-5 % of its ticks instead of 1 %, benchmarks/scalpel.py; the first step makes it)
@@ -379,19 +393,19 @@ class Scalpel(_MultiRate):
         self._job = threading.Thread(target=work, name="rtfem-scalpel-cut", daemon=True)
         self._job.start()
 
-    def _cut(self, model, V: np.ndarray, T: np.ndarray):
+    def _cut(self, model, V: np.ndarray, T: np.ndarray, held=None):
         """The model cut along the triangles and assembled: in the worker process where there is one (see
         :mod:`rtfem.interaction.cut_worker`), else here. Tet4 and tet10 elements are split (no node of the running
-        solid moves); a piece cut free falls away."""
+        solid moves); a piece cut free (nothing fixed in it, none of ``held``) falls away."""
         from .cut_worker import WorkerGone, cut_and_assemble
 
         worker = self._worker  # (snap="split", tet4 and tet10: no node moves by over a fifth of an edge)
         if worker is not None:
             try:
-                return worker.cut(model, V, T, "split")
+                return worker.cut(model, V, T, "split", held)
             except WorkerGone as exc:
                 self.worker_note, self._worker = str(exc), None
-        return cut_and_assemble(model, V, T, "split")
+        return cut_and_assemble(model, V, T, "split", held)
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop the physics thread (after the step it is in) and the cut worker process; :meth:`finish`

@@ -248,11 +248,22 @@ class Scene:
 
     def add_scalpel(self, name: str, body: str, device, **options):
         """A blade cutting body ``body`` (a full-order solid), following ``device`` (see
-        :class:`~rtfem.interaction.scene_scalpel.SceneScalpel`, which takes ``options``)."""
+        :class:`~rtfem.interaction.scene_scalpel.SceneScalpel`, which takes ``options``); one a body."""
         self._name_free(name)
+        for other in self.scalpels:
+            if other.body == body:
+                raise ModelError(f"scalpel {name}: body {body} is cut by scalpel {other.name} already; a body takes one "
+                                 "scalpel (each cut makes the model the next cut starts from)")
         scalpel = SceneScalpel(name, self.body(body), device, gravity=self.gravity, **options)
         self.scalpels.append(scalpel)
         return scalpel
+
+    def _holding(self, body: Body) -> np.ndarray:
+        """The body's nodes on springs (attachments, grasps): a piece a cut frees is kept while one holds it."""
+        held = [att.nodes_a for att in self.attachments if att.a is body]
+        held += [att.nodes_b for att in self.attachments if att.b is body]
+        held += [t.held.nodes_a for t in self.tools if t.held is not None and t.held.a is body]
+        return np.unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
 
     @property
     def dt(self) -> float:
@@ -306,8 +317,8 @@ class Scene:
             tool.end(t1, sum((contacts[(b.name, tool.name)] for b in self.bodies), np.zeros(3)))
         for scalpel in self.scalpels:
             body = self.body(scalpel.body)
-            contacts[(body.name, scalpel.name)] = -scalpel.force
-            scalpel.end(t1, np.asarray(body.driver.displacements(), dtype=float))
+            contacts[(body.name, scalpel.name)] = scalpel.applied
+            scalpel.end(t1, np.asarray(body.driver.displacements(), dtype=float), self._holding(body))
         self.contacts = contacts
         self.steps += 1
         self.time = self.steps * self.dt

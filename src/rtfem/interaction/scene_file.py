@@ -104,6 +104,7 @@ BUILTIN = "rtfem:"  # mesh = "rtfem:liver" names an embedded mesh
 MAX_TABLES = {"body": 32, "obstacle": 64, "attachment": 256, "tool": 32}
 MAX_GRAVITY = 1e3  # m/s^2
 MAX_PLACE = 1e3  # m: a body placed within 1 km of the origin (as a scripted path)
+MAX_BLADE = 1.0  # m: a scalpel's blade at most this long
 
 
 class _Where:
@@ -368,7 +369,10 @@ def _scalpel_options(table: dict, where: _Where, device) -> dict:
         raise where.error("body", "missing: name the body the scalpel cuts")
     options = {"body": table["body"], "button": "closed" in table or "device" in table}
     if "blade" in table:
-        options["blade"] = where.check("blade", validate.vector, table["blade"], "blade", 3)
+        blade = options["blade"] = where.check("blade", validate.vector, table["blade"], "blade", 3)
+        if not 0 < np.linalg.norm(blade) <= MAX_BLADE:
+            raise where.error("blade", f"{np.asarray(blade).tolist()}: give the vector from the blade's tip to its heel "
+                              f"in m, of some length up to {MAX_BLADE:g} m, e.g. [0, 0, 0.03]")
     if "toughness" in table:
         options["toughness"] = where.check("toughness", validate.nonnegative, table["toughness"], "toughness",
                                            "J/m^2, a number >= 0 (liver: 164)")
@@ -427,6 +431,9 @@ def _full_order(model, table: dict, where: _Where, dt: float, damping):
         raise where.error("kind", "a scalpel cuts solids: give kind = 'solid' (a shell cannot be cut yet)")
     if "modes" in table:
         raise where.error("modes", "a body a scalpel cuts runs full order (a cut opens only there): leave modes out")
+    if "fix" not in table:
+        raise where.error("fix", "missing: a body a scalpel cuts must be held (fix = a node selection); a piece cut "
+                          "free with nothing holding it falls away, and a free body would all go")
     if model.element != "tet4":  # (as the viewer: a cut tet10 liver's next steps turned split elements inside out)
         raise where.error("element", f"{model.element!r}: a body a scalpel cuts must be element = 'tet4' for now (a cut "
                           "tet10 organ turned its split elements inside out in the steps after, issue 57)")

@@ -65,6 +65,7 @@ class SceneScalpel:
             raise ModelError(f"scalpel {name} on body {body.name}: {exc}") from None
         self.cutter.lift()
         self.force = np.zeros(3)  # on the hand, the last step's (the tissue took its opposite)
+        self.applied = np.zeros(3)  # on the body, this step's: the opposite, where the tissue took it
         self.tip = None  # where the device put the blade's tip in the last step
 
     def __repr__(self) -> str:
@@ -98,32 +99,35 @@ class SceneScalpel:
         return changed
 
     def loads(self) -> np.ndarray:
-        """(n, 3) N on the body this step: the opposite of the hand's force, at the nodes the blade cuts."""
-        return self.cutter.tissue_loads()
+        """(n, 3) N on the body this step: the opposite of the hand's force, at the nodes the blade cuts
+        (``applied``: their sum, what the scene records; none in a step that swapped a cut in)."""
+        F = self.cutter.tissue_loads()
+        self.applied = F.sum(axis=0)
+        return F
 
-    def end(self, t: float, U: np.ndarray) -> None:
+    def end(self, t: float, U: np.ndarray, held: np.ndarray) -> None:
         """After the body's step to displacements ``U``: the strip swept, a cut started (and finished,
-        unless in a worker), the hand given its force."""
+        unless in a worker; a piece with a node of ``held``, the body's nodes on springs or in a grasp, is
+        kept as a fixed one is), the hand given its force."""
+        self.cutter.held = held
         self.cutter.follow(U)
         if self.wait:
             self.cutter.join()
         self.device.set_force(t, self.force)
 
-    def remap(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The last cut's nodes that copy ``nodes`` of the model before it (each row of its transfer whose
-        largest weight, over a half, is on one of them): (new nodes, the index in ``nodes`` each copies)."""
-        P = self.cutter.last_transfer.tocsr()
-        n_old = P.shape[1]
-        where = np.full(n_old, -1, dtype=np.int64)
-        where[nodes] = np.arange(nodes.size)
-        rows = np.repeat(np.arange(P.shape[0]), np.diff(P.indptr))
-        best = np.full(P.shape[0], -1, dtype=np.int64)
-        weight = np.zeros(P.shape[0])
-        order = np.argsort(P.data, kind="stable")  # the largest weight of each row written last
-        best[rows[order]], weight[rows[order]] = P.indices[order], P.data[order]
-        copy = np.flatnonzero((weight > 0.5) & (best >= 0))
-        copy = copy[where[best[copy]] >= 0]
-        return copy, where[best[copy]]
+    def remap(self, nodes) -> tuple[np.ndarray, np.ndarray]:
+        """The last cut's nodes that are entries of ``nodes`` (of the model before it; repeats allowed) or
+        copies of them: (those nodes, the index in ``nodes`` of the entry each is). A node the cut moved
+        onto its surface is still itself; one it added on a split edge is none of them."""
+        info = self.model.cut_info
+        parent, n0 = np.asarray(info["parent"]), int(info["uncut"])
+        nodes = np.asarray(nodes, dtype=np.int64).ravel()
+        new = np.flatnonzero(parent < n0)
+        order = np.argsort(nodes, kind="stable")
+        lo = np.searchsorted(nodes[order], parent[new], "left")
+        count = np.searchsorted(nodes[order], parent[new], "right") - lo
+        first = np.repeat(lo - np.cumsum(count) + count, count)  # each new node once per entry of its parent
+        return np.repeat(new, count), order[first + np.arange(first.size)]
 
     def state(self) -> dict:
         """What :meth:`set_state` puts back (a scene viewer's kept state): the model and driver as cut so
@@ -160,39 +164,58 @@ _CACHES = ("_spring_nodes_kept", "_springs_kept", "_held_cache", "_pair_cache", 
 def recut(scene, scalpel: SceneScalpel) -> None:
     """Body ``scalpel.body`` of ``scene`` rebuilt on the cut model the scalpel just swapped in: its driver
     and surface the cut's, its held loads shared among each node's copies, the springs on its nodes
-    (attachments) moved to their copies (each copy held as the node was, at the same anchor or pair),
-    a grasper holding it let go (it takes hold again while closed), the scene's caches of it dropped.
-    The scene's lists of bodies and attachments are replaced, not changed (new Body and Attachment
-    objects): a reader holding the old ones (a frame being drawn, a kept state) sees them whole."""
+    (attachments and grasps) moved to their copies, each copy held as the node was (a node the cut moved
+    onto its surface takes its anchor along: no spring is stretched by the cut), the scene's caches of it
+    dropped. The scene's lists of bodies and attachments are replaced, not changed (new Body and
+    Attachment objects): a reader holding the old ones (a frame being drawn, a kept state) sees them whole."""
     k = next(i for i, b in enumerate(scene.bodies) if b.name == scalpel.body)
     old = scene.bodies[k]
-    new = type(old)(old.name, scalpel.cutter.driver, scalpel.model.mesh)
+    new = type(old)(old.name, scalpel.cutter.driver, scalpel.model.mesh, _masses(old, scalpel))
     if hasattr(old, "model"):
         new.model = scalpel.model
     copies, of = scalpel.remap(np.arange(old.driver.n_nodes))
     share = np.bincount(of, minlength=old.driver.n_nodes)[of]
     new.loads[copies] = old.loads[of] / share[:, None]
+
+    def moved(nodes):  # the springs' nodes on the cut body, where each entry went, and how far the cut moved it
+        to, pick = scalpel.remap(nodes)
+        return to, pick, new.X[to] - old.X[np.asarray(nodes)[pick]]
     attachments = []
     for att in scene.attachments:
         if att.a is old or att.b is old:
             att = copy.copy(att)
         if att.a is old:
-            nodes, pick = scalpel.remap(att.nodes_a)
-            att.a, att.nodes_a = new, nodes
+            att.nodes_a, pick, d = moved(att.nodes_a)
+            att.a = new
             if att.b is None:
-                att.anchor = att.anchor[pick]
+                att.anchor = att.anchor[pick] + d
             else:
-                att.nodes_b, att.rest = att.nodes_b[pick], att.rest[pick]
+                att.nodes_b, att.rest = att.nodes_b[pick], att.rest[pick] - d
         elif att.b is old:
-            nodes, pick = scalpel.remap(att.nodes_b)
-            att.b, att.nodes_b, att.nodes_a, att.rest = new, nodes, att.nodes_a[pick], att.rest[pick]
+            att.nodes_b, pick, d = moved(att.nodes_b)
+            att.b, att.nodes_a, att.rest = new, att.nodes_a[pick], att.rest[pick] + d
         attachments.append(att)
     for tool in scene.tools:
-        if tool.held is not None and tool.held.a is old:
-            tool.held = None
+        held = tool.held
+        if held is not None and held.a is old:
+            held = copy.copy(held)
+            held.nodes_a, pick, d = moved(held.nodes_a)
+            held.a, held.anchor = new, held.anchor[pick] + d
+            tool.held, tool.offsets = held, tool.offsets[pick] + d
     drop_caches(scene)
     scene.attachments = attachments
     scene.bodies = [new if b is old else b for b in scene.bodies]
+
+
+def _masses(old, scalpel):
+    """The cut body's nodal masses: its model's (None) where the body had its model's; else those, each
+    node's share of its model's mass carried over (a weightless body stays weightless)."""
+    before = np.asarray(old.driver.model.mass_diagonal, dtype=float).reshape(old.driver.n_nodes, -1)[:, 0]
+    if np.array_equal(old.masses, before):
+        return None
+    share = np.divide(old.masses, before, out=np.zeros_like(before), where=before > 0)
+    after = np.asarray(scalpel.model.mass_diagonal, dtype=float).reshape(scalpel.model.n_nodes, -1)[:, 0]
+    return after * (scalpel.cutter.last_transfer @ share)
 
 
 def drop_caches(scene) -> None:

@@ -11,6 +11,10 @@ import numpy as np
 
 from .contact_points import _closest_on_triangle
 
+#: m (and a share of the distance): faces this much farther than the closest are tied with it (one edge or
+#: corner: their normals summed give its side)
+TIE = 1e-9
+
 __all__ = ["pair_block", "pair_faces", "probe_block", "probe_points"]
 
 
@@ -112,6 +116,7 @@ def _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, f
     A, B, C = np.empty(3), np.empty(3), np.empty(3)
     p, w, qq = np.empty(3), np.empty(3), np.empty(3)
     best, dmin = -1, np.inf
+    dist_t = np.full(tri.shape[0], np.inf)
     for t in range(tri.shape[0]):
         if not (near[tri[t, 0]] or near[tri[t, 1]] or near[tri[t, 2]]):
             continue
@@ -122,6 +127,7 @@ def _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, f
         _closest_on_triangle(p, A, B, C, qq, w)
         _core(qq[0], qq[1], qq[2], c, R, half, q)
         d = math.sqrt((qq[0] - q[0]) ** 2 + (qq[1] - q[1]) ** 2 + (qq[2] - q[2]) ** 2)
+        dist_t[t] = d
         if d < dmin:
             dmin, best = d, t
             face_w[0], face_w[1], face_w[2] = w[0], w[1], w[2]
@@ -129,7 +135,18 @@ def _probe(Ys, O, tri, c, R, half, radius, cutoff, reach, margin, idx, gap, n, f
     face[0] = best
     if best < 0:
         return count
-    m0, m1, m2 = _unit_normal(Ys, tri, best)
+    # the closest feature's normal: the sum of the faces at the closest distance (an edge's or a corner's
+    # faces; of a cut's two coincident lips and the outside beside them, the outside's), else the face's
+    m0 = m1 = m2 = 0.0
+    for t in range(tri.shape[0]):
+        if dist_t[t] <= dmin + TIE * (1.0 + dmin):
+            a0, a1, a2 = _unit_normal(Ys, tri, t)
+            m0, m1, m2 = m0 + a0, m1 + a1, m2 + a2
+    size = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if size > 1e-6:
+        m0, m1, m2 = m0 / size, m1 / size, m2 / size
+    else:
+        m0, m1, m2 = _unit_normal(Ys, tri, best)
     v0, v1, v2 = face[4], face[5], face[6]
     outside = v0 * m0 + v1 * m1 + v2 * m2 < 0  # the core on the outer side of the face
     g = (dmin if outside else -dmin) - radius
@@ -270,8 +287,11 @@ def probe_points(Ys: np.ndarray, O: np.ndarray, tri: np.ndarray, tool, position:
         v = q - tool.core(q, position)
         dist = np.linalg.norm(v, axis=1)
         best = int(np.argmin(dist))
-        normal = np.cross(Yn[best, 1] - Yn[best, 0], Yn[best, 2] - Yn[best, 0])
-        normal /= np.linalg.norm(normal)
+        normals = np.cross(Yn[:, 1] - Yn[:, 0], Yn[:, 2] - Yn[:, 0])
+        normals /= np.linalg.norm(normals, axis=1)[:, None]
+        normal = normals[dist <= dist[best] + TIE * (1.0 + dist[best])].sum(axis=0)  # the closest feature's (above)
+        size = np.linalg.norm(normal)
+        normal = normal / size if size > 1e-6 else normals[best]
         outside = v[best] @ normal < 0  # the core on the outer side of the face
         g = (dist[best] if outside else -dist[best]) - tool.radius
         if g < margin:
