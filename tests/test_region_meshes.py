@@ -93,9 +93,6 @@ def test_a_model_of_regions_says_what_it_lacks():
         rt.SolidModel(mesh, {3: soft, 7: stiff, 5: stiff})
     with pytest.raises(rt.ModelError, match="given two materials"):
         rt.SolidModel(mesh, {3: soft, "liver": soft, 7: stiff})
-    relaxing = rt.SolidModel(mesh, {3: soft, 7: rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.3], tau=[0.1])})
-    with pytest.raises(rt.ModelError, match=r"regions \[7\] of this solid have Prony"):
-        rt.ReducedNonlinearModel(relaxing.fix("x0"), rt.modal_analysis(relaxing, 4), derivatives=0)
     with pytest.raises(rt.ModelError, match="must be an rt.Material"):
         rt.SolidModel(mesh, {3: soft, 7: 3e5})
     with pytest.raises(rt.ModelError, match="tet4-anp"):

@@ -202,7 +202,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._last_compliances = None  # (Sinv, nodes, loaded, W): W changes only with the tangent
         self._viscous_terms()
         if self._visc_terms is not None:  # a Prony law: linearized about its instantaneous law (stiffer)
-            Kref = self._Kc = self._visc_terms[3]
+            Kref = self._Kc = self._visc_terms.Kc
         # about rest: the force model's own rest tangent (the cubature's), or the reference of tangent="rest"
         self._rest_linearization = (None, self._step_inverse(self._Kc if self.tangent == "current" and self.cubature
                                                              else Kref))
@@ -256,23 +256,14 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
             self._Kc = reduced.cubature_rest()[1]
 
     def _viscous_terms(self) -> None:
-        """With a :class:`~rtfem.Prony` law: the elements whose history the step carries (the
-        cubature's, or every element), their weights, their rest tangents with the instantaneous law
-        and its reduced rest stiffness (the step's linearization: at least as stiff as the step's
-        algorithmic tangent, so the linearly implicit step stays stable); else None."""
-        from ..fe.viscoelastic import Prony, history_size
+        """With a :class:`~rtfem.Prony` law, or regions of which some relax: the elements whose history the
+        step carries (:class:`rtfem.reduction.viscous_terms.ViscousTerms`); else None."""
+        from ..reduction.viscous_terms import viscous_terms
 
-        red = self.reduced
-        self._visc_terms = None
-        if not isinstance(red.law, Prony):
-            return
-        if self.spread > 1:
+        self._visc_terms = viscous_terms(self.reduced, self.cubature)
+        if self._visc_terms is not None and self.spread > 1:
             raise ModelError(f"spread={self.spread}: a Prony law's history is stepped on every element each step; "
                              "pass spread=1")
-        data, w = red._cubature if self.cubature else (red._element_data(), np.ones(red.system.cells.shape[0]))
-        Ke = red._element_tangents(np.zeros(data[0].shape[:2]), data, law=red.law.instantaneous)
-        Kc = np.einsum("eir,eij,ejs->rs", data[0] * w[:, None, None], Ke, data[0], optimize=True)
-        self._visc_terms = (data, w, Ke, 0.5 * (Kc + Kc.T), history_size(red.law, data[2].shape[1], w.size))
 
     def _translation_rows(self) -> np.ndarray:
         """(n, 3, r): the basis rows of each node's translations (zero at fixed dofs)."""
@@ -295,7 +286,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
         self._use_rest()
         self._free = None  # (steps, q*, v*, S^-1 (-C v* - g(q*)), (group, its new remainder)) of the next step
         self._loads, self._load_array = {}, None
-        self._visc = None if self._visc_terms is None else np.zeros(self._visc_terms[4])  # a Prony law's history
+        self._visc = None if self._visc_terms is None else np.zeros(self._visc_terms.size)  # a Prony law's history
 
     def get_state(self) -> dict:
         state = {"q": self._q.copy(), "qdot": self._v.copy(), "qddot": self._a.copy(), "steps": np.array(self.steps)}
@@ -434,8 +425,7 @@ class ReducedNonlinearSimulator(Linearization, StaticCorrection, ForceInput):
     def _forces_at(self, q: np.ndarray) -> np.ndarray:
         red = self.reduced
         if self._visc_terms is not None:  # the step's algorithmic forces, and the history it leaves
-            data, w = self._visc_terms[:2]
-            g, self._visc_next = red.viscous_forces(q, data, w, self._visc, self.dt)
+            g, self._visc_next = self._visc_terms.forces(red, q, self._visc, self.dt)
             return g
         return red.cubature_forces(q, single=self.single) if self.cubature else red.reduced_forces(q, tangent=False)[0]
 

@@ -171,9 +171,7 @@ class Linearization:
         red = self.reduced
         dK = None
         if self._visc_terms is not None:  # a Prony law: its instantaneous law's tangent (see the simulator)
-            data, w, Ke, Kc = self._visc_terms[:4]
-            rows = red.cubature_rows(self.single) if self.cubature else None
-            T = Kc + red.tangent_change(q, data, w, Ke, rows, law=red.law.instantaneous)
+            T = self._visc_terms.tangent(red, q, self.single)
         elif not self.cubature:
             T = red.reduced_forces(q)[1]
             T = 0.5 * (T + T.T)

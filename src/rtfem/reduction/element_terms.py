@@ -14,17 +14,6 @@ from ..errors import ModelError
 __all__ = ["ElementTerms"]
 
 
-def check_regions(model) -> None:
-    """Refuse a solid whose regions have relaxing (Prony) laws: the reduced model's history
-    variables are one law's."""
-    from ..fe.viscoelastic import Prony
-
-    laws = [k for k, v in (getattr(model, "materials", None) or {}).items() if isinstance(v, Prony)]
-    if laws:
-        raise ModelError(f"the regions {laws} of this solid have Prony (relaxing) laws, which the reduced nonlinear "
-                         "model does not take per region; give those regions a hyperelastic law or rt.Material")
-
-
 def _region_laws(system):
     """(each element's group (m,), the groups' laws: a hyperelastic law, or None for the corotated
     linear material) of a solid whose regions are not all rt.Material; else None."""
@@ -234,23 +223,25 @@ class ElementTerms:
 
     # ---------------------------------------------------------------- a Prony law's step (rt.Prony)
     def viscous_forces(self, q: np.ndarray, data, weights: np.ndarray, history: np.ndarray,
-                       dt: float) -> tuple[np.ndarray, np.ndarray]:
+                       dt: float, law=None) -> tuple[np.ndarray, np.ndarray]:
         """(sum_e w_e U_e^T f_e (r,), the history after the step): the step's algorithmic forces of
         the tets of ``data`` (a solid's five arrays) with the model's :class:`~rtfem.Prony` law at the
         end of a step dt from ``history`` (:func:`rtfem.fe.viscoelastic.prony_step`; its layout, for
         these elements in this order) at coordinates q, and the history that step leaves at q
         (:func:`rtfem.fe.viscoelastic.prony_commit`); compiled where it can be
-        (:mod:`rtfem.reduction.prony_kernels`)."""
+        (:mod:`rtfem.reduction.prony_kernels`). ``law``: a region's Prony law instead of the model's."""
         from ..fe.viscoelastic import prony_commit, prony_step
         from .prony_kernels import prony_forces
+
+        law = self.law if law is None else law
 
         Ue, X, G, wdet = data[:4]
         V = (Ue.reshape(-1, self.size) @ np.asarray(q, float)).reshape(Ue.shape[:2])
         F = np.empty(V.shape)
-        new = prony_forces(V, X, G, wdet, self.law, history, dt, F)
+        new = prony_forces(V, X, G, wdet, law, history, dt, F)
         if new is None:
             x, Gs, ws = self._viscous_arguments(q, data)
-            F, new = prony_step(self.law, x, Gs, ws, history, dt)[0], prony_commit(self.law, x, Gs, history, dt)
+            F, new = prony_step(law, x, Gs, ws, history, dt)[0], prony_commit(law, x, Gs, history, dt)
         F *= np.asarray(weights, float)[:, None]
         return F.reshape(-1) @ Ue.reshape(-1, self.size), new
 

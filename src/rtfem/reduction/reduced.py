@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from .. import validate
 from ..errors import ModelError, SolverError
-from .element_terms import ElementTerms, check_regions
+from .element_terms import ElementTerms
 from .modal import check_model_key, mesh_fingerprint
 from ..fe.nonlinear import MIN_LOAD_STEP, Configuration
 from ..fe.rotations import integrated_rotation, rotation
@@ -168,7 +168,6 @@ class ReducedNonlinearModel(ElementTerms):
         """The model, its law, nonlinear system, free dofs and rest stiffness with its factorization."""
         self.model = model
         self.law = getattr(model, "law", None)  # a solid's hyperelastic law (else the corotated linear material)
-        check_regions(model)
         if getattr(model, "element", None) == "tet4-anp":
             raise ModelError("element='tet4-anp' couples each node's patch of tets, which the reduced nonlinear model's "
                              "element cubature cannot split: reduce a tet10 model, or step tet4-anp full order")
