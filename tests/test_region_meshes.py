@@ -262,6 +262,17 @@ def test_the_reduced_model_of_a_neo_hookean_region_settles_at_the_full_orders_eq
     assert np.abs(linear - full).max() / full.max() > 0.15
 
 
+def two_region_bar():
+    """A tet4 bar 60 x 20 x 20 mm, its root half labelled 0 and its tip half 1, a Prony law (a neo-Hookean,
+    g 0.5, tau 50 ms), a 50 mN tip load and its tip nodes: (box, labelled mesh, law, loads, tip)."""
+    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
+    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
+    two = rt.TetMesh(box.vertices, box.tets, labels=(c[:, 0] > 0.03).astype(int), groups=box.groups)
+    law = rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.5], tau=[0.05])
+    tip = np.flatnonzero(np.asarray(box.vertices)[:, 0] > 0.0599)
+    return box, two, law, {int(n): (0.0, 0.0, -0.05 / tip.size) for n in tip}, tip
+
+
 def test_a_prony_region_creeps_with_its_own_history_to_its_long_term_equilibrium():
     """Full-order dynamics (rt.DirectSimulator, large deformation) of a tet4 bar 60 x 20 x 20 mm held at
     one end and bent by a 50 mN tip load. Both halves of one Prony law (a neo-Hookean, g 0.5, tau
@@ -272,12 +283,7 @@ def test_a_prony_region_creeps_with_its_own_history_to_its_long_term_equilibrium
     CalculiX-checked in test_regions.py) within 1e-3 (measured 1.5e-4 after 0.8 s, 16 tau)."""
     from rtfem.fe.viscoelastic import history_size
 
-    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
-    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
-    two = rt.TetMesh(box.vertices, box.tets, labels=(c[:, 0] > 0.03).astype(int), groups=box.groups)
-    law = rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.5], tau=[0.05])
-    tip = np.flatnonzero(np.asarray(box.vertices)[:, 0] > 0.0599)
-    F = {int(n): (0.0, 0.0, -0.05 / tip.size) for n in tip}
+    box, two, law, F, _ = two_region_bar()
 
     def run(model, steps):
         sim = rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=40.0), large_deformation=True)

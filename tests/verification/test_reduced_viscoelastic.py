@@ -22,6 +22,7 @@ import pytest
 import rtfem as rt
 from rtfem.drivers.reduced_nonlinear import ReducedNonlinearSimulator
 from rtfem.errors import ModelError
+from test_region_meshes import two_region_bar
 from test_viscoelastic import _column
 
 LAW = rt.NeoHookean(mu=2000.0, kappa=100000.0, density=1000.0)
@@ -128,18 +129,6 @@ def test_a_saved_state_replays_and_bad_histories_are_refused(column):
         ReducedNonlinearSimulator(red, DT, rt.Damping(zeta=1.0), spread=2)
 
 
-def _two_region_bar(tip_law):
-    """test_region_meshes' bar 60 x 20 x 20 mm (tet4), held at x = 0, its root half (label 0) of a Prony law
-    and its tip half of ``tip_law``, bent by a 50 mN tip load."""
-    box = rt.meshes.box(0.06, 0.02, 0.02, nx=6, ny=2, nz=2)
-    c = np.asarray(box.vertices)[np.asarray(box.corner_tets)].mean(axis=1)
-    two = rt.TetMesh(box.vertices, box.tets, labels=(c[:, 0] > 0.03).astype(int), groups=box.groups)
-    law = rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.5], tau=[0.05])
-    tip = np.flatnonzero(np.asarray(box.vertices)[:, 0] > 0.0599)
-    F = {int(n): (0.0, 0.0, -0.05 / tip.size) for n in tip}
-    return box, two, law, F, tip
-
-
 def test_relaxing_regions_carry_their_own_history_in_the_reduced_model_as_in_the_full_order():
     """Issue 58: a Prony law per region in the reduced nonlinear model. One Prony law given as two regions
     steps as the one-law reduced model (1e-9 of the deflection, measured 8e-13: the same terms, region by
@@ -148,7 +137,7 @@ def test_relaxing_regions_carry_their_own_history_in_the_reduced_model_as_in_the
     same regions does (within the basis's error: 2 % of the relaxed deflection over the 0.8 s track,
     measured 0.69 %) to the reduced model's own long-term equilibrium (1e-3, measured 1.3e-4); with the
     cubature fitted per region to 2 %, within 2 % of the exact reduced track (measured 0.35 %)."""
-    box, two, law, F, tip = _two_region_bar(None)
+    box, two, law, F, tip = two_region_bar()
 
     def track(sim, steps):
         out = []

@@ -44,6 +44,18 @@ def _slit(z0: float, z1: float) -> np.ndarray:
     return np.array([[L / 2, -0.001, z0], [L / 2, W + 0.001, z0], [L / 2, W + 0.001, z1], [L / 2, -0.001, z1]])
 
 
+def slit_beam(ref: rt.TetMesh):
+    """The slit beam's model on mesh ``ref`` (clamped at both ends), its nodal weights under gravity (none on
+    the clamped nodes) and its clamped nodes."""
+    slit = rt.SolidModel(ref, MAT, element="tet4")
+    Xr = np.asarray(ref.vertices)
+    fixed = np.flatnonzero((Xr[:, 0] <= 1e-12) | (Xr[:, 0] >= L - 1e-12))
+    slit.fix(fixed)
+    weights = lumped_nodal_masses(slit)[:, None] * np.array([0.0, 0.0, -9.81])
+    weights[fixed] = 0.0
+    return slit, weights, fixed
+
+
 def _energies(d):
     """Kinetic and strain (linear) energy and momentum of a driver's state, from its model's matrices."""
     s, model = d.get_state(), d.model
@@ -266,12 +278,8 @@ def test_a_beam_cut_from_below_as_it_sags_settles_to_calculixs_slit_beam(tmp_pat
     assert sc.model.n_nodes == ref.n_vertices == model.n_nodes + 10
     mine = np.zeros(ref.n_vertices, dtype=np.int64)  # the scalpel's node at each of the slit beam's
     mine[np.asarray(ref.tets).ravel()] = np.asarray(sc.model.tetmesh.tets).ravel()
-    slit = rt.SolidModel(ref, MAT, element="tet4")
+    slit, weights, fixed = slit_beam(ref)
     Xr = np.asarray(ref.vertices)
-    fixed = np.flatnonzero((Xr[:, 0] <= 1e-12) | (Xr[:, 0] >= L - 1e-12))
-    slit.fix(fixed)
-    weights = lumped_nodal_masses(slit)[:, None] * np.array([0.0, 0.0, -9.81])
-    weights[fixed] = 0.0
     U = sc.displacements()[mine]
     U_own = slit.solve_static(weights, large_deformation=True)  # the same law on the slit beam: the scalpel's part
     scale = np.abs(U_own).max()

@@ -15,13 +15,12 @@ import pytest
 
 import rtfem as rt
 from rtfem.cli.main import main
-from rtfem.drivers.carry import lumped_nodal_masses
 from rtfem.errors import ModelError
 from rtfem.interaction.scene_file import load_scene
 from rtfem.interaction.scene_tools import Keyframes
 
 from test_cut import _slit_box
-from test_scalpel import MAT, L, W, _block, _same_mesh
+from test_scalpel import MAT, L, W, _block, _same_mesh, slit_beam
 
 # the blade upright at mid-length from 10 mm below the beam to half its height: held 0.3 s while the sag
 # settles, drawn across the width in 0.3 s, then out beside the beam while the cut beam settles
@@ -58,12 +57,7 @@ path = {PATH}
 def _slit_reference():
     """The slit beam (index arithmetic) and its static displacements under its nodal weights."""
     ref = _slit_box(below=True)
-    slit = rt.SolidModel(ref, MAT, element="tet4")
-    Xr = np.asarray(ref.vertices)
-    fixed = np.flatnonzero((Xr[:, 0] <= 1e-12) | (Xr[:, 0] >= L - 1e-12))
-    slit.fix(fixed)
-    weights = lumped_nodal_masses(slit)[:, None] * np.array([0.0, 0.0, -9.81])
-    weights[fixed] = 0.0
+    slit, weights, _ = slit_beam(ref)
     return ref, slit.solve_static(weights, large_deformation=True)
 
 
