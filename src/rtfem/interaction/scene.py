@@ -34,6 +34,7 @@ from ..drivers.base import (as_driver, check_driver_mesh, displacements_at, pred
 from ..mesh.surface import TriMesh
 from .scene_obstacles import MeshObstacle, Plane, pair_search
 from .scene_points import PointSet, contact_solve
+from .scene_reach import untouched
 from .scene_search import pair_block, probe_block
 from .scene_scalpel import SceneScalpel, recut
 from .scene_tools import SceneTool
@@ -189,6 +190,7 @@ class Scene:
         self.contacts: dict[tuple[str, str], np.ndarray] = {}
         self.sweeps = 0
         self.compiled = True  # the compiled contact search where numba is present (False: numpy)
+        self.skip_trials = True  # a full-order body nothing can touch takes no trial step (scene_reach; False: all do)
 
     def _name_free(self, name: str) -> None:
         if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools, *self.scalpels)):
@@ -292,7 +294,9 @@ class Scene:
         for scalpel in self.scalpels:  # and the tissue's share of the cutting force
             weights[self.bodies.index(self.body(scalpel.body))] += scalpel.loads()
         spring_nodes = self._spring_nodes(springs)
-        base = [self._trial(b, weights[k], spring_nodes.get(k)) for k, b in enumerate(self.bodies)]
+        alone = untouched(self, spring_nodes) if self.skip_trials else [None] * len(self.bodies)
+        base = [self._trial(b, weights[k], spring_nodes.get(k)) if alone[k] is None else (weights[k], alone[k], alone[k], None)
+                for k, b in enumerate(self.bodies)]
         held = self._attachment_loads(springs, base, spring_nodes)
         trials = [self._held_trial(k, base[k], held[k], spring_nodes.get(k)) for k in range(len(self.bodies))]
         points = PointSet()

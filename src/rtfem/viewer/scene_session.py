@@ -73,6 +73,8 @@ def rewind(scene, state: dict) -> None:
         scene.bodies, scene.attachments = list(bodies), list(attachments)
     for scalpel, s in zip(scene.scalpels, state["scalpels"]):
         scalpel.set_state(s)
+    for body in scene.bodies:  # (how far a body moved over its last step is not known across a jump)
+        body.__dict__.pop("_last_now", None)
     for body, s, loads in zip(scene.bodies, state["bodies"], state["loads"]):
         body.driver.set_state(s)
         if loads is not None:  # the field drawn from the state: with the correction of that step's loads
