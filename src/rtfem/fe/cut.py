@@ -62,16 +62,16 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
     holding = fixed.any(axis=1)
     if held is not None and len(held):  # and the copies of the nodes that hold their part
         holding |= np.isin(info.parent, validate.nodes(held, model.n_nodes, "held"))
-    held = np.zeros(info.pieces, dtype=bool)
-    held[info.piece[holding]] = True
+    kept = np.zeros(info.pieces, dtype=bool)  # the parts something holds
+    kept[info.piece[holding]] = True
     info["removed"], info["removed_mass"] = 0, 0.0
-    if not held.all() and free == "remove":
-        if not held.any():
+    if not kept.all() and free == "remove":
+        if not kept.any():
             raise ModelError("free='remove' with nothing fixed or held: every part of the solid would be removed; fix "
                              "the model first")
-        mesh, info, fixed = _drop_free(mesh, info, fixed, held, _densities(recipe.material, mesh.labels))
-    elif not held.all() and fixed.any():
-        warnings.warn(f"the cut frees {int((~held).sum())} of {info.pieces} parts of the solid with nothing fixed: "
+        mesh, info, fixed = _drop_free(mesh, info, fixed, kept, _densities(recipe.material, mesh.labels))
+    elif not kept.all() and fixed.any():
+        warnings.warn(f"the cut frees {int((~kept).sum())} of {info.pieces} parts of the solid with nothing fixed: "
                       "they would float; fix a node of each, or cut less (or free='remove')", RtfemWarning, stacklevel=2)
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info

@@ -21,25 +21,24 @@ def untouched(scene, spring_nodes: dict) -> list[np.ndarray | None]:
     whose trial is a step of their own (a driver whose compliances follow its motion) are looked at."""
     bodies = scene.bodies
     out: list[np.ndarray | None] = [None] * len(bodies)
-    look = [k for k, b in enumerate(bodies) if getattr(b.driver, "compliance_changes", True)
-            and k not in spring_nodes and getattr(b, "_last_now", None) is not None]
-    if not look:
-        for b in bodies:
-            if getattr(b.driver, "compliance_changes", True):
-                b._last_now = displacements_at(b.driver, b.surface)
-        return out
-    now = [displacements_at(b.driver, b.surface) for b in bodies]
-    spheres = []
+    own = [getattr(b.driver, "compliance_changes", True) for b in bodies]
+    look = [k for k, b in enumerate(bodies) if own[k] and k not in spring_nodes and getattr(b, "_last_now", None) is not None]
+    # (with none to look at, only the bodies that may be looked at next step need where they are)
+    now = [displacements_at(b.driver, b.surface) if look or own[k] else None for k, b in enumerate(bodies)]
+    if look:
+        spheres = []
+        for b, u in zip(bodies, now):
+            last = getattr(b, "_last_now", None)
+            moved = np.abs(u - last).max() if last is not None and last.shape == u.shape else np.inf
+            spheres.append((b.centre, b.radius + SQRT3 * (np.abs(u).max() + 4.0 * moved) + scene.margin * b.edge
+                            + b.longest))
+        for k in look:
+            c, r = spheres[k]
+            if np.isfinite(r) and _apart(scene, k, c, r, spheres):
+                out[k] = now[k]
     for b, u in zip(bodies, now):
-        last = getattr(b, "_last_now", None)
-        moved = np.abs(u - last).max() if last is not None and last.shape == u.shape else np.inf
-        spheres.append((b.centre, b.radius + SQRT3 * (np.abs(u).max() + 4.0 * moved) + scene.margin * b.edge + b.longest))
-    for k in look:
-        c, r = spheres[k]
-        if np.isfinite(r) and _apart(scene, k, c, r, spheres):
-            out[k] = now[k]
-    for b, u in zip(bodies, now):
-        b._last_now = u
+        if u is not None:
+            b._last_now = u
     return out
 
 

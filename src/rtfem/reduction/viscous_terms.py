@@ -56,7 +56,7 @@ class ViscousTerms:
             self.rest.append(red._element_tangents(np.zeros(self.elastic[0][0].shape[:2]), self.elastic[0]))
         Kc = sum(_projected(d, ww, Ke) for (d, ww), Ke in zip(self._all(), self.rest))
         self.Kc = 0.5 * (Kc + Kc.T)
-        self.whole = cubature and self.elastic is None and len(self.parts) == 1 and isinstance(red.law, Prony)
+        self.whole = cubature and isinstance(red.law, Prony)  # one law over the whole cubature
 
     def _all(self):
         """(element data, weights) of each part, the elastic one last."""

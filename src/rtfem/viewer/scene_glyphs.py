@@ -214,13 +214,18 @@ class Glyphs:
         self.blades = [(scalpel, sc.add_line_segments(f"/scene/scalpels/{i}", self._blade(scalpel), BLADE_OUT,
                                                       thickness=4.0, thickness_units="screen"))
                        for i, scalpel in enumerate(getattr(scene, "scalpels", ()))]
+        for scalpel, line in self.blades:
+            line.visible = scalpel.tip is not None or tool_start(scalpel) is not None
         self.drawn: dict = {}
         self.hidden: set[str] = set()
 
     @staticmethod
     def _blade(scalpel) -> np.ndarray:
-        """(1, 2, 3): a scalpel's blade from its tip to its heel (at its path's start before the first step)."""
-        tip = scalpel.tip if scalpel.tip is not None else np.asarray(scalpel.device.position(0.0), dtype=float)
+        """(1, 2, 3): a scalpel's blade from its tip to its heel: where the scene last put it, or before the
+        first step at its scripted path's start (:func:`tool_start`: the device is not read here, on the frame
+        thread; a live hand's blade is hidden until the scene has read it)."""
+        tip = scalpel.tip if scalpel.tip is not None else tool_start(scalpel)
+        tip = np.zeros(3) if tip is None else tip
         return np.stack([tip, tip + scalpel.cutter.blade])[None].astype(np.float32)
 
     @staticmethod
@@ -260,6 +265,7 @@ class Glyphs:
         if self.springs is not None:
             self.springs.points = self._spring_points(us, bodies)
         for scalpel, line in self.blades:
+            line.visible = scalpel.tip is not None or tool_start(scalpel) is not None
             line.points = self._blade(scalpel)
             line.colors = np.tile(np.array(BLADE if scalpel.in_tissue() else BLADE_OUT, np.uint8), (1, 2, 1))
         tools = {}

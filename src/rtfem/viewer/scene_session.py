@@ -65,8 +65,7 @@ def rewind(scene, state: dict) -> None:
     records of scripted devices, ``times`` and ``forces``, cut at that time). A body cut since is put back
     as it was then (its model, driver and attachments), and so is its scalpel."""
     bodies, attachments = state["which"]
-    if any(a is not b for a, b in zip((*bodies, *attachments), (*scene.bodies, *scene.attachments))) \
-            or len(attachments) != len(scene.attachments):
+    if [id(x) for x in (*bodies, *attachments)] != [id(x) for x in (*scene.bodies, *scene.attachments)]:
         from ..interaction.scene_scalpel import drop_caches
 
         drop_caches(scene)
