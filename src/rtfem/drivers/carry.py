@@ -59,19 +59,13 @@ def transfer_matrix(old, new, transfer) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(p.size), (np.arange(p.size), p)), shape=(new.n_nodes, old.n_nodes))
 
 
-def check_no_history(state: dict, advice: str) -> None:
-    """Refuse a driver state that holds a viscoelastic (Prony) law's history (a large-deformation step's):
-    it lives at the elements' quadrature points and is not carried to a cut mesh yet."""
-    if "visc" in state:
-        raise ModelError("a viscoelastic (Prony) law's history lives at the elements' quadrature points and is not "
-                         f"carried to a cut mesh yet: {advice}")
-
-
 def carried_state(old, new, P: sp.csr_matrix) -> dict:
     """``old``'s state (a DirectSimulator) as ``new``'s (the same class on the remeshed model): see the
     module."""
     state = old.get_state()
-    check_no_history(state, "cut the model before running it, or use an elastic law")
+    if "visc" in state:
+        raise ModelError("a viscoelastic law's history lives at the elements' quadrature points and is not carried "
+                         "to a cut mesh yet: cut the model before running it, or use an elastic law")
     target = new.get_state()
     n_old, n_new, dpn = old.model.n_dofs, new.model.n_dofs, old.model.dofs_per_node
     share = None
