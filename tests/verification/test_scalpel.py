@@ -356,6 +356,15 @@ def test_what_a_scalpel_refuses_is_said_and_a_failed_step_leaves_no_force():
         sc.physics_step()
     with pytest.raises(ModelError, match="scalpel tip"):
         sc.update([np.nan, 0.0, 0.0])
+    with pytest.raises(ModelError, match="smoothing"):
+        rt.Scalpel(d, smoothing=-0.01)
+    before = (sc._blade, sc.lifted, sc._mid, sc._hand)
+    with pytest.raises(ModelError, match="t=nan is not finite"):
+        sc.update([0.05, 0.01, 0.01], t=np.nan)  # refused before anything of the blade is taken
+    assert (sc._blade, sc.lifted, sc._mid, sc._hand) == before
+    with pytest.raises(ModelError, match="held"):
+        rt.cut(model, _slit(W / 2, W + 0.001), QUAD, held=[model.n_nodes + 5])
+    assert model.n_nodes == 525 and not hasattr(model, "cut_info")  # the model given is left as it was
     # the physics thread's step fails (a weight no tissue bears: elements turn inside out): the next
     # tick raises with the reason, the force is zero from then on, and the threads are stopped
     sc = rt.Scalpel(rt.DirectSimulator(model, 1e-3, large_deformation=True), gravity=(0, 0, -1e6))

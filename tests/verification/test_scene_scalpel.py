@@ -313,6 +313,11 @@ def test_a_grasp_holds_on_through_a_cut_and_keeps_the_piece_it_holds_and_a_relax
     scene.add_body("b", rt.DirectSimulator(prony, 5e-3, large_deformation=True), prony.mesh)
     with pytest.raises(ModelError, match="Prony"):
         scene.add_scalpel("k", "b", Keyframes(PATH).device())
+    with pytest.raises(ModelError, match="position"):
+        scene.add_scalpel("k", "b", "a device")
+    with pytest.raises(ModelError, match="no body named"):
+        scene.add_scalpel("k", "nobody", Keyframes(PATH).device())
+    assert scene.scalpels == [] and scene.bodies[0].driver.model is prony  # nothing taken
 
 
 @pytest.mark.parametrize("compiled", [True, False])

@@ -215,6 +215,7 @@ class Scalpel(_MultiRate):
         blade's velocity (default the wall clock; a scene gives its simulated time)."""
         c = validate.point(tip, "scalpel tip")
         h = c + self.blade if heel is None else validate.point(heel, "scalpel heel")
+        now = time.perf_counter() if t is None else validate.number(t, "t", "a time in s")
         along = c - h
         length = float(np.linalg.norm(along))
         if not length > 0:
@@ -223,7 +224,7 @@ class Scalpel(_MultiRate):
         self._blade = (c, h)
         self.lifted = False
         self._tick(c)
-        now, mid = (time.perf_counter() if t is None else validate.number(t, "t", "a time in s")), 0.5 * (c + h)
+        mid = 0.5 * (c + h)
         if self._mid is not None and now > self._t_tick:
             w = min(1.0, (now - self._t_tick) / _SMOOTH)
             self._velocity = (1 - w) * self._velocity + w * (mid - self._mid) / (now - self._t_tick)
