@@ -219,7 +219,10 @@ class SceneSession(PhysicsThread):
         self._playing.set()
 
     def pause(self) -> None:
-        self._playing.clear()
+        """Stop the clock: once this returns no step is under way and none starts (the clock checks the
+        flag under the same lock as it steps; it stepped once more after a pause on a slow machine)."""
+        with self._lock:
+            self._playing.clear()
 
     def restart(self) -> None:
         """Back to the state the session started from (t = 0 for a fresh scene): the bodies, the
@@ -301,7 +304,10 @@ class SceneSession(PhysicsThread):
                 if now - target > 0.1:  # cannot keep up: stop owing steps (the panel says the rate)
                     anchor = (now, self.scene.steps, self._epoch)
                 c0 = time.perf_counter()
-                self.step()
+                with self._lock:
+                    if not self._playing.is_set():  # paused since the check above
+                        continue
+                    self._step_and_keep()
                 c1 = time.perf_counter()
                 computes.append(c1 - c0)
                 window_steps += 1
