@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 import rtfem as rt
+import rtfem.viewer.session as session_module
 from rtfem.viewer.session import Session, Settings
 
 
-def test_the_sessions_monitor_estimates_the_settled_grasps_error_within_a_factor_of_2():
+def test_the_sessions_monitor_estimates_the_settled_grasps_error_within_a_factor_of_2(monkeypatch):
     mesh = rt.meshes.box(0.1, 0.04, 0.04, nx=10, ny=4, nz=4)
     s = Session(mesh, rt.Material(E=4e4, nu=0.45, density=1000.0), fixed="x0",
                 settings=Settings(method="nonlinear", alpha=30.0, grab_radius=0.0075),
@@ -44,6 +45,10 @@ def test_the_sessions_monitor_estimates_the_settled_grasps_error_within_a_factor
     # last-bit differences in its training, BLAS on one thread or two; the tolerance is set under it)
     s.configure(adapt=0.5 * est.max_error)
     s.monitor.latest = None
+    # the patch's step is timed before it is swapped in, and one over 0.9 dt keeps the running basis: on a slow
+    # or loaded machine (0.93-1.26 ms measured in session 70's fresh clones) that decided this test, not the
+    # monitor; the step's cost is pinned under the budget here, the refusal being the machine's, not the model's
+    monkeypatch.setattr(session_module, "_step_cost", lambda driver: 0.5 * driver.dt)
     s.start()
     try:
         t0 = time.perf_counter()
