@@ -372,3 +372,15 @@ def train(contributions, targets, tol: float = 0.02, max_elements: int | None = 
         res = b - A[:, chosen] @ w
         err = float(np.linalg.norm(res)) / bn
     return np.array(chosen, dtype=int), w, err
+
+
+def region_tol(tol: float, own: np.ndarray, whole: np.ndarray, regions: int) -> float:
+    """The relative tolerance of one region's fit (:func:`train` on its elements against ``own``, its
+    share of the training forces ``whole``) among ``regions``: ``tol`` of its own forces, and no more than
+    ``tol / regions`` of the whole's, so that the regions' fits together meet ``tol`` on the whole as a
+    single fit must (their residuals add at most: the triangle inequality) while each region, however
+    small its share, is fitted to ``tol`` of its own forces. The regions' forces can be far larger than
+    their sum (they cancel where regions press on each other), which a fit to each one's own alone
+    would let through."""
+    mine = float(np.linalg.norm(own))
+    return tol * min(1.0, float(np.linalg.norm(whole)) / (regions * max(mine, 1e-300)))

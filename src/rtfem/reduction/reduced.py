@@ -347,8 +347,9 @@ class ReducedNonlinearModel(ElementTerms):
         so the forces are exact to first order in the motion and ``tol`` bounds the error of the
         remainder alone. ``scheduler``: the poses' element forces on a Dask cluster (one pose a task;
         :mod:`rtfem.cluster`). ``regions`` (default: where the solid has several): each region's
-        elements fitted to that region's own forces, to ``tol`` of them, so that a small stiff
-        region is not averaged away in the whole's sum; ``False``: one fit over all elements.
+        elements fitted to ``tol`` of that region's own forces and to ``tol`` / regions of the whole's
+        (:func:`~rtfem.reduction.cubature.region_tol`), so that a small region is not averaged away in
+        the whole's sum and the fits together are as close as one; ``False``: one fit over all elements.
         Returns what it found (``elements``, relative training ``error``, ``seconds``)."""
         from . import cubature
 
@@ -383,8 +384,9 @@ class ReducedNonlinearModel(ElementTerms):
             rest = b - A[:, pinned].sum(axis=1)  # the same tolerance relative to the whole force
             chosen, w, _ = cubature.train(A[:, others], rest, tol * np.linalg.norm(b) / max(np.linalg.norm(rest), 1e-300))
             elements, weights = np.concatenate([pinned, others[chosen]]), np.concatenate([np.ones(pinned.size), w])
-        elif groups is not None:  # each region to its own forces
-            fits = [(g, *cubature.train(A[:, g], A[:, g].sum(axis=1), tol, seed=seed)[:2]) for g in groups]
+        elif groups is not None:  # each region to its own forces, and to its share of the whole's
+            fits = [(g, *cubature.train(A[:, g], bg, cubature.region_tol(tol, bg, b, len(groups)), seed=seed)[:2])
+                    for g, bg in ((g, A[:, g].sum(axis=1)) for g in groups)]
             elements, weights = np.concatenate([g[c] for g, c, _ in fits]), np.concatenate([w for _, _, w in fits])
         else:
             elements, weights, error = cubature.train(A, b, tol)
