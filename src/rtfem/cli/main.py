@@ -95,6 +95,13 @@ def cmd_modes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _held_out(cubature: dict) -> str:
+    """The cubature's force error on poses it was not trained on, for the reduced model's line (a model
+    saved before it was measured has none)."""
+    err = cubature.get("held_out_error")
+    return "" if err is None else f" (force error {err * 100:.1f} % on {cubature['held_out_poses']} untrained poses)"
+
+
 def _probe_point(model, at: str | None) -> int:
     if at is not None:
         return model.nearest_free_node(_vector(at, "--at"))
@@ -235,7 +242,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                                                 f"({info['local']['nodes']} nodes)")
         print(f"reduced     {sim.reduced.size} coordinates ({modes.n_modes} modes + {sim.reduced.n_derivatives} "
               f"derivatives{patch}), cubature on {info['cubature']['elements']} of "
-              f"{info['cubature']['of']} elements, static correction")
+              f"{info['cubature']['of']} elements{_held_out(info['cubature'])}, static correction")
     else:
         sim = None
     from ..threads import runtime

@@ -26,6 +26,9 @@ def _region_laws(system):
     return group, [law for _, law in laws]
 
 
+HELD_OUT = 4  # the poses the cubature's fit is checked on after it is trained (not fitted to)
+
+
 class ElementTerms:
     """Needs ``system`` (the model's NonlinearSystem), ``model``, ``free``, ``basis``, ``size``, ``law``,
     ``_K0`` and, for the cubature's terms, ``_cubature`` (set by ``train_cubature``)."""
@@ -202,6 +205,22 @@ class ElementTerms:
         else:
             T = Ue.reshape(-1, r).T @ np.matmul(dK, Ue).reshape(-1, r)
         return 0.5 * (T + T.T)
+
+    def _training_poses(self, count: int, reach: float, rng) -> list[np.ndarray]:
+        """``count`` random poses of the cubature's training (coordinates normal in the stiffness-orthonormal
+        basis: the response to random loads), each scaled to move the organ by 0.25-1 ``reach`` times its size."""
+        out = []
+        for _ in range(count):
+            q = rng.normal(size=self.size)
+            out.append(q * rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max())
+        return out
+
+    def _held_out_error(self, poses: list, data, Ke, reach: float, elements: np.ndarray, weights: np.ndarray) -> float:
+        """The cubature's relative force error on ``poses`` it was not fitted to (as the training error is
+        measured: each pose's rows scaled to a unit sum): what it does away from its training set."""
+        found = [self._pose_rows(q, data, Ke, reach) for q in poses]
+        A, b = np.vstack([f[0] for f in found]), np.concatenate([f[1] for f in found])
+        return float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
 
     def _pose_rows(self, q: np.ndarray, data, Ke, reach: float) -> tuple[np.ndarray, np.ndarray, int]:
         """One training pose of :meth:`rtfem.reduction.reduced.ReducedNonlinearModel.train_cubature`: (each element's reduced

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from .. import validate
 from ..errors import ModelError, SolverError
-from .element_terms import ElementTerms
+from .element_terms import HELD_OUT, ElementTerms
 from .modal import check_model_key, mesh_fingerprint
 from ..fe.nonlinear import MIN_LOAD_STEP, Configuration
 from ..fe.rotations import integrated_rotation, rotation
@@ -350,7 +350,8 @@ class ReducedNonlinearModel(ElementTerms):
         elements fitted to ``tol`` of that region's own forces and to ``tol`` / regions of the whole's
         (:func:`~rtfem.reduction.cubature.region_tol`), so that a small region is not averaged away in
         the whole's sum and the fits together are as close as one; ``False``: one fit over all elements.
-        Returns what it found (``elements``, relative training ``error``, ``seconds``)."""
+        Returns what it found (``elements``, relative ``training_error``, ``held_out_error`` on
+        ``held_out_poses`` more poses drawn alike but not fitted to, ``seconds``)."""
         from . import cubature
 
         t0 = time.perf_counter()
@@ -363,11 +364,7 @@ class ReducedNonlinearModel(ElementTerms):
         E = data[0].shape[0]
         Ke = self._rest_tangents(data) if remainder else None
         rng = np.random.default_rng(seed)
-        qs = []
-        for _ in range(poses):
-            q = rng.normal(size=self.size)
-            q *= rng.uniform(0.25, 1.0) * reach * self.system.size / np.abs(self.displacements(q)).max()
-            qs.append(q)
+        qs = self._training_poses(poses, reach, rng)
         if scheduler is None:
             found = [self._pose_rows(q, data, Ke, reach) for q in qs]
         else:
@@ -401,7 +398,9 @@ class ReducedNonlinearModel(ElementTerms):
             K = self.basis.T @ (self._K0 @ self.basis)
             self._cubature_rest = (self._cubature, Ke[elements], 0.5 * (K + K.T))
         self._cubature_remainder = remainder
+        held_out = self._held_out_error(self._training_poses(HELD_OUT, reach, rng), data, Ke, reach, elements, weights)
         self.info["cubature"] = {"elements": int(elements.size), "of": int(E), "training_error": error,
+                                 "held_out_error": held_out, "held_out_poses": HELD_OUT,
                                  "remainder": remainder, "pinned": int(pinned.size), "halved_poses": shrunk,
                                  "regions": 0 if groups is None else len(groups), "seconds": time.perf_counter() - t0}
         return dict(self.info["cubature"], elements=elements, weights=weights)
