@@ -374,6 +374,12 @@ def train(contributions, targets, tol: float = 0.02, max_elements: int | None = 
     return np.array(chosen, dtype=int), w, err
 
 
+
+def fit_error(contributions: np.ndarray, targets: np.ndarray, elements: np.ndarray, weights: np.ndarray) -> float:
+    """|sum_e w_e contributions[:, e] - targets| / |targets| over the chosen ``elements``: the relative
+    error of a cubature on stacked pose rows (as :func:`train` measures it)."""
+    return float(np.linalg.norm(contributions[:, elements] @ weights - targets) / np.linalg.norm(targets))
+
 def region_tol(tol: float, own: np.ndarray, whole: np.ndarray, regions: int) -> float:
     """The relative tolerance of one region's fit (:func:`train` on its elements against ``own``, its
     share of the training forces ``whole``) among ``regions``: ``tol`` of its own forces, and no more than

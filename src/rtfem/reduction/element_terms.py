@@ -218,9 +218,10 @@ class ElementTerms:
     def _held_out_error(self, poses: list, data, Ke, reach: float, elements: np.ndarray, weights: np.ndarray) -> float:
         """The cubature's relative force error on ``poses`` it was not fitted to (as the training error is
         measured: each pose's rows scaled to a unit sum): what it does away from its training set."""
+        from .cubature import fit_error
+
         found = [self._pose_rows(q, data, Ke, reach) for q in poses]
-        A, b = np.vstack([f[0] for f in found]), np.concatenate([f[1] for f in found])
-        return float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
+        return fit_error(np.vstack([f[0] for f in found]), np.concatenate([f[1] for f in found]), elements, weights)
 
     def _pose_rows(self, q: np.ndarray, data, Ke, reach: float) -> tuple[np.ndarray, np.ndarray, int]:
         """One training pose of :meth:`rtfem.reduction.reduced.ReducedNonlinearModel.train_cubature`: (each element's reduced

@@ -387,7 +387,7 @@ class ReducedNonlinearModel(ElementTerms):
             elements, weights = np.concatenate([g[c] for g, c, _ in fits]), np.concatenate([w for _, _, w in fits])
         else:
             elements, weights, error = cubature.train(A, b, tol)
-        error = float(np.linalg.norm(A[:, elements] @ weights - b) / np.linalg.norm(b))
+        error = cubature.fit_error(A, b, elements, weights)
         if elements.size == 0:
             raise ModelError(f"cubature training chose no element (training error {error:.3g}): the training forces "
                              "carry no information; train on larger poses (reach) or more of them")

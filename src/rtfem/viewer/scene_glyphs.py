@@ -211,22 +211,24 @@ class Glyphs:
             name = f"/scene/tools/{i}"
             glyph = _GrasperGlyph(sc, name, tool, centres) if tool.kind == "grasper" else _ProbeGlyph(sc, name, tool)
             self.tools.append((tool, glyph, tool_start(tool)))
-        self.blades = [(scalpel, sc.add_line_segments(f"/scene/scalpels/{i}", self._blade(scalpel), BLADE_OUT,
-                                                      thickness=4.0, thickness_units="screen"))
-                       for i, scalpel in enumerate(getattr(scene, "scalpels", ()))]
-        for scalpel, line in self.blades:
-            line.visible = scalpel.tip is not None or tool_start(scalpel) is not None
+        self.blades = []
+        for i, scalpel in enumerate(getattr(scene, "scalpels", ())):
+            points, shown = self._blade(scalpel)
+            line = sc.add_line_segments(f"/scene/scalpels/{i}", points, BLADE_OUT, thickness=4.0, thickness_units="screen")
+            line.visible = shown
+            self.blades.append((scalpel, line))
         self.drawn: dict = {}
         self.hidden: set[str] = set()
 
     @staticmethod
-    def _blade(scalpel) -> np.ndarray:
-        """(1, 2, 3): a scalpel's blade from its tip to its heel: where the scene last put it, or before the
-        first step at its scripted path's start (:func:`tool_start`: the device is not read here, on the frame
-        thread; a live hand's blade is hidden until the scene has read it)."""
+    def _blade(scalpel) -> tuple[np.ndarray, bool]:
+        """((1, 2, 3): a scalpel's blade from its tip to its heel, whether it is shown): where the scene last
+        put it, or before the first step at its scripted path's start (:func:`tool_start`: the device is not
+        read here, on the frame thread); a live hand's blade is hidden until the scene has read it."""
         tip = scalpel.tip if scalpel.tip is not None else tool_start(scalpel)
-        tip = np.zeros(3) if tip is None else tip
-        return np.stack([tip, tip + scalpel.cutter.blade])[None].astype(np.float32)
+        shown = tip is not None
+        tip = tip if shown else np.zeros(3)
+        return np.stack([tip, tip + scalpel.cutter.blade])[None].astype(np.float32), shown
 
     @staticmethod
     def _plane(sc, name: str, plane, centre: np.ndarray, size: float):
@@ -265,8 +267,8 @@ class Glyphs:
         if self.springs is not None:
             self.springs.points = self._spring_points(us, bodies)
         for scalpel, line in self.blades:
-            line.visible = scalpel.tip is not None or tool_start(scalpel) is not None
-            line.points = self._blade(scalpel)
+            points, line.visible = self._blade(scalpel)
+            line.points = points
             line.colors = np.tile(np.array(BLADE if scalpel.in_tissue() else BLADE_OUT, np.uint8), (1, 2, 1))
         tools = {}
         index = {id(b): k for k, b in enumerate(bodies)}
