@@ -14,7 +14,7 @@ both against the slower algorithms they replaced, run here as the reference.
   placed on the surface is on it, not moved to and fro between the planes of the triangles about it
   (before: 41 nudges in 8 rounds, a node carried 0.5 mm along the surface, and the cut refused).
 - The pattern against the sort of every element entry's (row, column) key (what the system did before),
-  on tet4, tet10 and shell cells with whole nodes and single dofs fixed.
+  on tet4, tet10 and shell cells with whole nodes and single dofs fixed: the compiled loops and numpy's.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import pytest
 
 import rtfem as rt
 import rtfem.mesh.cut as C
+import rtfem.fe.nonlinear_system as ns
 from rtfem.fe.nonlinear_system import free_pattern
 
 MAT = rt.Material(E=3e4, nu=0.45, density=1060.0)
@@ -168,8 +169,15 @@ def _pattern_by_sort(cells, dpn, free, n_dofs):
     return uniq % free.size, indptr, keep, slot
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
 @pytest.mark.parametrize("k, dpn", [(4, 3), (10, 3), (3, 6)])
-def test_the_nonlinear_pattern_is_the_sorted_entries_pattern(k, dpn):
+def test_the_nonlinear_pattern_is_the_sorted_entries_pattern(k, dpn, compiled, monkeypatch):
+    from rtfem.fe import jit
+
+    if compiled and jit.compiled("free-slots", ns._free_slots, ns._find) is None:
+        pytest.skip("numba cannot compile here: the numpy path is the one run")
+    if not compiled:  # numba's absence: the numpy path
+        monkeypatch.setitem(jit._COMPILED, "free-slots", None)
     rng = np.random.default_rng(k)
     n = 400
     cells = np.array([rng.choice(n, k, replace=False) for _ in range(3 * n)])

@@ -27,9 +27,14 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     (E, k dpn, k dpn) matrices, flattened, whose row and column are both free) and ``slot`` (each kept
     entry's place in the CSR data). Built from the node pattern (the pairs of nodes sharing an element,
     k^2 per element): free dof (a, i) holds, neighbour b by neighbour b (sorted), b's free dofs, so an
-    entry's place is arithmetic (no sort of the E (k dpn)^2 entries: the 9k-tet liver's system 108 -> 26 ms)."""
+    entry's place is arithmetic (no sort of the E (k dpn)^2 entries: the 9k-tet liver's system 108 -> 26 ms).
+    Where numba runs, the node pattern and the entries' places are compiled loops (a scalpel's cut model
+    builds this at every cut: on that liver 37 -> 19 ms, medians of 7 alternating runs on 2 cores); numpy's
+    otherwise, the same arrays (tests/verification/test_cut_zone.py)."""
+    from .assembly_kernels import node_pattern
+
     E, k = cells.shape
-    cells = np.asarray(cells, dtype=np.int64)
+    cells = np.ascontiguousarray(cells, dtype=np.int64)
     isfree = np.zeros(n_nodes * dpn, dtype=bool)
     isfree[free] = True
     isfree = isfree.reshape(n_nodes, dpn)
@@ -38,14 +43,20 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     pos = pos.reshape(n_nodes, dpn)
     nfree = isfree.sum(axis=1)
     rank = np.cumsum(isfree, axis=1) - isfree  # a free dof's place among its node's free dofs
-    pairs = (cells[:, :, None] * n_nodes + cells[:, None, :]).ravel()
-    keys, inverse = np.unique(pairs, return_inverse=True)  # the node pattern, row-major
-    a_of, b_of = keys // n_nodes, keys % n_nodes
+    kernel = compiled("free-slots", _free_slots, _find)
+    if kernel is not None:
+        nptr, b_of = node_pattern(cells, n_nodes)  # the node pattern, row-major
+        inverse = None
+    else:
+        pairs = (cells[:, :, None] * n_nodes + cells[:, None, :]).ravel()
+        keys, inverse = np.unique(pairs, return_inverse=True)
+        b_of = keys % n_nodes
+        nptr = np.searchsorted(keys // n_nodes, np.arange(n_nodes + 1))
+    deg = np.diff(nptr)
     width = nfree[b_of]  # each node pair's columns in its node row
-    seen = np.cumsum(width) - width
-    first = np.searchsorted(a_of, np.arange(n_nodes))  # each node row's first pair
-    row_len = np.bincount(a_of, weights=width, minlength=n_nodes).astype(np.int64)
-    col_off = seen - seen[np.minimum(first, keys.size - 1)][a_of]  # a pair's first column within its node row
+    seen = np.concatenate([[0], np.cumsum(width)])
+    row_len = seen[nptr[1:]] - seen[nptr[:-1]]
+    col_off = seen[:-1] - np.repeat(seen[nptr[:-1]], deg)  # a pair's first column within its node row
     base = np.cumsum(nfree * row_len) - nfree * row_len  # where node a's first free row starts
     indptr = np.zeros(free.size + 1, dtype=np.int64)
     np.cumsum(np.repeat(row_len, nfree), out=indptr[1:])
@@ -54,6 +65,12 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     lens = np.repeat(row_len, nfree)
     take = np.repeat(np.repeat(L_start, nfree) - indptr[:-1], lens) + np.arange(int(indptr[-1]))
     indices = L[take]
+    small = np.int32 if E * (k * dpn) ** 2 < 2**31 else np.int64  # (half the memory, and of a cut model sent between processes)
+    if inverse is None:
+        count = int((nfree[cells].sum(axis=1) ** 2).sum())
+        keep, slot = np.empty(count, dtype=small), np.empty(count, dtype=small)
+        kernel(cells, dpn, isfree, rank, row_len, base, nptr, b_of, col_off, keep, slot)
+        return indices.astype(np.int32), indptr.astype(np.int32), keep, slot
     q = inverse.reshape(E, k, 1, k, 1)  # (e, la, i, lb, j) -> its node pair
     A = cells[:, :, None, None, None]
     B = cells[:, None, None, :, None]
@@ -61,8 +78,43 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     both = (isfree[A, I] & isfree[B, J]).ravel()
     slot = (base[A] + rank[A, I] * row_len[A] + col_off[q] + rank[B, J]).ravel()
     keep = np.flatnonzero(both)
-    small = np.int32 if both.size < 2**31 else np.int64  # (half the memory, and of a cut model sent between processes)
     return indices.astype(np.int32), indptr.astype(np.int32), keep.astype(small), slot[keep].astype(small)
+
+
+def _find(sorted_, lo, hi, value):
+    """The place of ``value`` in sorted_[lo:hi] (it is there)."""
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if sorted_[mid] <= value:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def _free_slots(cells, dpn, isfree, rank, row_len, base, nptr, b_of, col_off, keep, slot):
+    """keep and slot of :func:`free_pattern` (in the order of the flattened element matrices), compiled."""
+    E, k = cells.shape
+    nd = k * dpn
+    off = np.empty(k, np.int64)
+    m = 0
+    for e in range(E):
+        for la in range(k):
+            a = cells[e, la]
+            for lb in range(k):  # where each neighbour's columns start in a's node row
+                off[lb] = col_off[_find(b_of, nptr[a], nptr[a + 1], cells[e, lb])]
+            for i in range(dpn):
+                if not isfree[a, i]:
+                    continue
+                row = base[a] + rank[a, i] * row_len[a]
+                flat = (e * nd + la * dpn + i) * nd
+                for lb in range(k):
+                    b = cells[e, lb]
+                    for j in range(dpn):
+                        if isfree[b, j]:
+                            keep[m] = flat + lb * dpn + j
+                            slot[m] = row + off[lb] + rank[b, j]
+                            m += 1
 
 
 @dataclass
