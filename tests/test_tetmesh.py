@@ -160,3 +160,59 @@ def test_a_file_mixing_linear_and_quadratic_tets_is_refused(tmp_path):
     meshio.write_points_cells(str(path), q.vertices, [("tetra", q.tets[:2, :4]), ("tetra10", q.tets[2:])])
     with pytest.raises(rt.MeshError, match="mixes 4-node and 10-node"):
         rt.load_mesh(path)
+
+
+def _corrupted(kind: str, quadratic: bool):
+    """A box mesh with one tet made bad as ``kind`` says, and the mask of the tets changed."""
+    mesh = rt.meshes.box(0.05, 0.02, 0.02, nx=5, ny=2, nz=2)
+    mesh = mesh.quadratic() if quadratic else mesh
+    V, T = np.asarray(mesh.vertices).copy(), np.asarray(mesh.tets).copy()
+    k = 17
+    if kind == "inverted":
+        T[k, [1, 2]] = T[k, [2, 1]]
+        if quadratic:  # the mid-edge nodes follow: (0,1) <-> (0,2), (1,3) <-> (2,3)
+            T[k, [4, 6, 8, 9]] = T[k, [6, 4, 9, 8]]
+    elif kind == "degenerate":
+        T[k, 3] = T[k, 0]
+    elif kind == "duplicate":
+        T = np.vstack([T, T[k]])
+    elif kind == "three on a face":  # a tet on an inner face of tet k, on the side of its own opposite corner
+        F = rt.TetMesh(V, T)._faces()
+        inner = np.flatnonzero(F[2][F[1][4 * k:4 * k + 4]] == 2)[0]
+        face = F[0][4 * k + inner]
+        apex = 0.5 * (V[T[k, inner]] + V[face].mean(axis=0))
+        V = np.vstack([V, apex])
+        new = np.r_[face, V.shape[0] - 1]  # (tet4 only, see the parametrization)
+        T = np.vstack([T, new if rt.TetMesh(V, new[None]).tets[0].tolist() == new.tolist() else new[[1, 0, 2, 3]]])
+    elif kind == "unshared mid-edge node":
+        V = np.vstack([V, V[T[k, 4]]])
+        T[k, 4] = V.shape[0] - 1
+    changed = np.zeros(T.shape[0], dtype=bool)
+    changed[k if kind not in ("duplicate", "three on a face") else -1] = True
+    return V, T, changed
+
+
+@pytest.mark.parametrize("kind, quadratic", [("inverted", False), ("inverted", True), ("degenerate", False),
+                                             ("duplicate", False), ("three on a face", False),
+                                             ("unshared mid-edge node", True)])
+def test_a_mesh_checked_about_its_changed_tets_refuses_what_the_whole_check_refuses(kind, quadratic):
+    """A cut's mesh is checked on the tets it changed and those sharing a node with them (rtfem.mesh.cut
+    passes them): each refusal of the whole mesh's construction (repair=False, merge_tol=0) is made, with
+    the whole check's message; and a mesh that passes reports what the whole check reports."""
+    V, T, changed = _corrupted(kind, quadratic)
+    with pytest.raises(rt.MeshError) as whole:
+        rt.TetMesh(V, T, repair=False, merge_tol=0.0)
+    with pytest.raises(rt.MeshError) as near:
+        rt.TetMesh(V, T, repair=False, merge_tol=0.0, _changed=(changed, 1))
+    assert str(near.value) == str(whole.value)
+
+
+def test_a_mesh_checked_about_its_changed_tets_reports_what_the_whole_check_reports():
+    mesh = rt.meshes.box(0.05, 0.02, 0.02, nx=5, ny=2, nz=2).quadratic()
+    V, T = np.asarray(mesh.vertices), np.asarray(mesh.tets)
+    changed = np.zeros(T.shape[0], dtype=bool)
+    changed[[3, 40]] = True
+    a = rt.TetMesh(V, T, repair=False, merge_tol=0.0)
+    b = rt.TetMesh(V, T, repair=False, merge_tol=0.0, _changed=(changed, a.report.n_components))
+    assert str(a.report) == str(b.report) and a.report.n_boundary_faces == 2 * (5 * 2 + 5 * 2 + 2 * 2) * 2
+    assert np.array_equal(a.tets, b.tets) and np.array_equal(a.vertices, b.vertices)

@@ -217,9 +217,9 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     T_new, source = T_new[order], source[order]
     groups = {name: np.flatnonzero(np.isin(parent, np.flatnonzero(extend(np.isin(np.arange(n0), nodes), born))))
               for name, nodes in mesh.groups.items()}
-    new = TetMesh(Vn[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
-                  region_names=mesh.region_names)
     pieces, piece = _pieces(T_new, parent.size)
+    new = TetMesh(Vn[parent], T_new, repair=False, merge_tol=0.0, groups=groups, labels=mesh.labels[source],
+                  region_names=mesh.region_names, _changed=(zone[source], pieces))  # checked about the zone
     corner = np.zeros(z, dtype=bool)
     corner[_local(T[zone][:, :4], zn, n0).ravel()] = True  # (a tet10's mid-edge node follows its corners)
     shift = np.where(corner, np.linalg.norm(Vz[:z] - V[zn], axis=1), 0.0)
