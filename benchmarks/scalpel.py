@@ -76,13 +76,16 @@ def run(model, sim, seconds: float) -> dict:
     scalpel.close()
     comp = np.asarray(stats.compute if stats is not None else [np.nan])
     lat = np.asarray(scalpel.latencies) if scalpel.latencies else np.array([np.nan])
+    frames = np.asarray(scalpel.cut_frames) if scalpel.cut_frames else np.array([np.nan])
+    steps = np.asarray(scalpel.step_times) if scalpel.step_times else np.array([np.nan])
     F = np.array(device.forces) if device.forces else np.zeros((1, 3))
     return {"ticks": comp.size, "missed": stats.missed if stats is not None else -1, "p50": np.median(comp),
             "p99": np.percentile(comp, 99), "max": comp.max(), "over": int((comp > 1e-3).sum()),
             "steps": ps["steps_per_second"], "ratio": ps["time_ratio"], "strips": len(scalpel.latencies) + len(
                 scalpel._added), "cuts": scalpel.cuts, "lat50": np.median(lat), "latmax": lat.max(),
             "added": scalpel.model.n_nodes - model.n_nodes, "removed": scalpel.removed_mass,
-            "peak": float(np.linalg.norm(F, axis=1).max()), "failed": failed or scalpel.refused or scalpel.worker_note or "",
+            "peak": float(np.linalg.norm(F, axis=1).max()), "step50": np.median(steps), "frame50": np.median(frames),
+            "framemax": frames.max(), "failed": failed or scalpel.refused or scalpel.worker_note or "",
             "surface": (scalpel.vertices, scalpel.triangles)}
 
 
@@ -121,9 +124,11 @@ def main() -> None:
         rows.append(["busy" if busy else "quiet", r["ticks"], r["missed"], f"{r['p50'] * 1e6:.0f} us",
                      f"{r['p99'] * 1e6:.0f} us", f"{r['max'] * 1e3:.2f} ms", r["over"], f"{r['steps']:.0f}",
                      f"{r['ratio']:.2f}", r["strips"], r["cuts"], f"{r['lat50']:.2f} s", f"{r['latmax']:.2f} s",
+                     f"{r['step50'] * 1e3:.0f} ms", f"{r['frame50'] * 1e3:.0f} ms", f"{r['framemax'] * 1e3:.0f} ms",
                      r["added"], f"{r['removed'] * 1e3:.2f} g", f"{r['peak']:.2f}", r["failed"] or "yes"])
     print_table(["machine", "ticks", "missed", "p50", "p99", "max", ">1 ms", "steps/s", "sim s / s", "strips",
-                 "cuts", "latency p50", "latency max", "nodes added", "cut free", "peak N", "every step held"],
+                 "cuts", "latency p50", "latency max", "step p50", "cut step p50", "cut step max", "nodes added",
+                 "cut free", "peak N", "every step held"],
                 rows)
     if surface is not None:
         c, b, s, n, f, newton, move = one_event(model, args.dt, surface)

@@ -130,7 +130,8 @@ class Scalpel(_MultiRate):
 
     What it keeps: ``model`` (the model as cut so far), ``driver``, ``transfer`` (the interpolation
     from the first model's nodes to the cut model's), ``cuts`` (cuts applied), ``latencies`` (s, each
-    strip's from its sweep to the model holding it), ``refused`` (why the last cut job was refused, or
+    strip's from its sweep to the model holding it), ``cut_frames`` (s, each physics step that swapped a cut
+    in: the frame of a cut), ``refused`` (why the last cut job was refused, or
     None), ``removed_mass`` (kg of pieces cut free), ``resistance`` (N, the last physics step's J L),
     ``vertices`` and ``triangles`` (the surface swept, reference coordinates), ``lifted`` (the blade out
     of the tissue: :meth:`lift`), :meth:`stats`.
@@ -190,6 +191,7 @@ class Scalpel(_MultiRate):
         # (model, (n, 3) displacements) for drawing: a running driver's state until the first physics step
         self.shown = (driver.model, np.asarray(driver.displacements(), dtype=float))
         self.cuts, self.latencies, self.refused = 0, [], None
+        self.cut_frames: list = []  # s, each physics step that swapped a cut in (threaded: the cut's frame)
         self.removed_mass = 0.0  # kg of pieces cut free (nothing held them): they fall away, out of the model
         self.transfer = sp.identity(driver.n_nodes, format="csr")  # from the first model's nodes to the cut's
         self.last_transfer = self.transfer  # the last cut's alone (from the model before it)
@@ -264,9 +266,12 @@ class Scalpel(_MultiRate):
         super().physics_step()
 
     def _advance(self) -> None:
-        self.take_cut()
+        t = time.perf_counter()
+        swapped = self.take_cut()
         self.driver.step(self.solid.weights + self.tissue_loads())
         self.follow(np.asarray(self.driver.displacements(), dtype=float))
+        if swapped:  # the frame of a cut: its swap, the first step on the cut model, the next strip
+            self.cut_frames.append(time.perf_counter() - t)
 
     def take_cut(self) -> bool:
         """Swap in the cut model a job has ready (between two steps; the physics step does): True when
@@ -392,8 +397,8 @@ class Scalpel(_MultiRate):
             try:
                 new = self._cut(driver.model, V, T, held)
                 P = new.cut_info.transfer()
-                # (not its factor: made here, beside the ticks, its sparse sums held Python's lock and the haptic
-                # loop missed 4-5 % of its ticks instead of 1 %, benchmarks/scalpel.py; the first step makes it)
+                # (not its factor: made here, beside the ticks and the worker, it took the ticks' core: 484 of 7,000
+                # ticks missed against 66, one of 70 ms, on 2 cores, benchmarks/scalpel.py; the first step makes it)
                 self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
             except NothingToCut:  # no new face swept whole yet: the next strip retries
                 pass
