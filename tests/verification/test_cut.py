@@ -375,3 +375,39 @@ def test_a_part_cut_free_is_removed_on_request_with_its_mass_told():
     np.testing.assert_array_equal(P @ np.asarray(model.tetmesh.vertices), X)
     with pytest.raises(ModelError, match="free="):
         rt.cut(model, through, QUAD, free="drop")
+
+
+def test_a_part_only_springs_hold_is_kept_tethered_and_steps_but_a_static_solve_says_it_is_free():
+    """The same block cut through, its free half held by springs on its end face (``held``, as a scene passes
+    its attachments): the half is kept, the copies of the held nodes are the cut model's ``tethered`` nodes,
+    which restrain it for a dynamic step: it falls under its weight as a free body does (its centre of mass
+    accelerating at g to 1e-6 over steps of 1 ms, every node of it alike), where without them the
+    model is refused ("nothing is fixed"); a static solve of the model alone (no spring) finds it free."""
+    model = _model(rt.meshes.box(L, W, W, nx=NX, ny=NY, nz=NZ), "tet4")
+    through = np.array([[L / 2, -0.001, -0.001], [L / 2, W + 0.001, -0.001], [L / 2, W + 0.001, W + 0.001],
+                        [L / 2, -0.001, W + 0.001]])
+    end = np.flatnonzero(np.asarray(model.tetmesh.vertices)[:, 0] >= L - 1e-12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not free: held
+        cut = rt.cut(model, through, QUAD, held=end)
+    assert np.array_equal(np.sort(cut.tethered), end) and cut.cut_info.pieces == 2  # (the end face: no copies)
+    cut.check_restrained()
+    with pytest.warns(RtfemWarning, match="frees 1 of 2 parts"):
+        bare = rt.cut(model, through, QUAD)
+    with pytest.raises(ModelError, match="nothing is fixed"):
+        bare.check_restrained()
+    from rtfem.drivers.carry import lumped_nodal_masses
+
+    sim = rt.DirectSimulator(cut, 1e-3, large_deformation=True, numerical_damping=0.0)
+    m = lumped_nodal_masses(cut)
+    weight = m[:, None] * np.array([0.0, 0.0, -9.81])
+    half = cut.cut_info.piece == cut.cut_info.piece[end[0]]
+    centre = []  # the free half's centre of mass, z
+    for _ in range(10):
+        sim.step(weight)
+        centre.append(float(m[half] @ sim.displacements()[half, 2]) / m[half].sum())
+    assert (centre[-1] - 2 * centre[-2] + centre[-3]) / 1e-6 == pytest.approx(-9.81, rel=1e-6)  # g: nothing holds it
+    U = sim.displacements()[half]  # and it falls whole, unstrained: each node as the centre
+    assert np.ptp(U, axis=0).max() <= 1e-9 * abs(centre[-1])
+    with pytest.raises(ModelError, match="held only by springs outside the model"):
+        cut.solve_static(weight, warn=False)

@@ -275,8 +275,9 @@ def test_a_grasp_holds_on_through_a_cut_and_keeps_the_piece_it_holds_and_a_relax
     """A grasper holding the beam's far quarter while the scalpel cuts across its near quarter holds on
     (its springs on the same nodes' copies; its force through the cuts within 5 % of the uncut beam's: it
     dropped by half, and let go at the second cut); cut through, a cantilever's tip piece held by a spring
-    to the world is kept, not removed as cut free (the cut that parts it is refused, saying why); a body of
-    a relaxing (Prony) law is refused (its cuts all were, silently)."""
+    to the world is kept, not removed as cut free, and parted: it hangs on the spring alone, whose force is
+    the piece's weight (before, the cut that parts it was refused); a body of a relaxing (Prony) law is
+    refused (its cuts all were, silently)."""
     model = _block(ends=True)
     scene = rt.Scene(gravity=(0.0, 0.0, 0.0))
     scene.add_body("beam", rt.DirectSimulator(model, 5e-3, rt.Damping(alpha=60.0), large_deformation=True), model.mesh)
@@ -301,11 +302,20 @@ def test_a_grasp_holds_on_through_a_cut_and_keeps_the_piece_it_holds_and_a_relax
     path = [[0.0, 0.0705, -0.005, -0.01], [0.1, 0.0705, W + 0.005, -0.01]]
     knife = scene.add_scalpel("knife", "beam", Keyframes(path).device(), blade=(0.0, 0.0, W + 0.02), toughness=0.0)
     scene.run(40)
-    # kept, not removed; the full order cannot step a piece that only a spring holds (its rigid motion has no
-    # stiffness), so the cut that would part it is refused, and says why
-    assert knife.cuts >= 1 and knife.cutter.removed_mass == 0.0
-    assert scene.body("beam").mass == pytest.approx(model.tetmesh.volume() * 1060.0, rel=1e-4)  # (1.5e-6: nodes moved)
-    assert "nothing is fixed" in knife.cutter.refused
+    # kept, not removed, and parted: the tip piece hangs on its spring alone (its copies of the held nodes are
+    # the cut model's tethered ones, which restrain it for the step)
+    body = scene.body("beam")
+    assert knife.cuts >= 1 and knife.cutter.removed_mass == 0.0 and knife.cutter.refused is None
+    assert body.mass == pytest.approx(model.tetmesh.volume() * 1060.0, rel=1e-4)  # (1.5e-6: nodes moved)
+    scene.run(200)  # settled (mass damping: 30 /s)
+    pieces, label = body.driver.model.tetmesh.components()
+    tip = label == label[scene.attachments[0].nodes_a[0]]
+    assert pieces == 2 and not body.driver.model.fixed[tip].any()
+    weight = body.masses[tip].sum() * 9.81  # the tip piece's, 0.1226 N: all the spring holds
+    assert weight == pytest.approx(1060.0 * (L - 0.0705) * W * W * 9.81, rel=1e-3)
+    assert scene.contacts[("beam", "tip")] == pytest.approx([0.0, 0.0, weight], rel=1e-6, abs=1e-9 * weight)
+    stretch = -50.0 * body.driver.displacements()[scene.attachments[0].nodes_a, 2].sum()
+    assert stretch == pytest.approx(weight, rel=0.02)  # the springs' stretch (the scene's compliance: 1.6 % short)
 
     prony = rt.SolidModel(rt.meshes.box(L, W, W, nx=10, ny=2, nz=2),
                           rt.Prony(rt.NeoHookean(mu=1e4, kappa=1e5), g=[0.5], tau=[0.05]), element="tet4").fix("x0")

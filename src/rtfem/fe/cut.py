@@ -32,7 +32,8 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
         would float) or "remove" (dropped, as a scalpel's cut-away piece falls away:
         ``cut_info.removed`` counts its nodes and ``cut_info.removed_mass`` its kg).
     held : nodes of ``model`` that hold the part they end up in as a fix does (a scene's springs and
-        grasps on the body): such a part is not free.
+        grasps on the body): such a part is not free, and their copies are the new model's ``tethered``
+        nodes (a piece only they hold is restrained by the springs: it steps, hanging on them).
 
     Returns
     -------
@@ -75,6 +76,8 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
                       "they would float; fix a node of each, or cut less (or free='remove')", RtfemWarning, stacklevel=2)
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info
+    if held is not None and len(held):  # a piece only they hold is restrained by their springs
+        new.tethered = np.flatnonzero(np.isin(info.parent, validate.nodes(held, model.n_nodes, "held")))
     return new
 
 

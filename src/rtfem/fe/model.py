@@ -189,18 +189,35 @@ class FEModel:
                 "mesh lies entirely in its own 'bottom' slab"
             )
 
-    def check_restrained(self) -> None:
+    #: nodes a spring outside the model holds (a scene's attachment or grasp on the body; ``rt.cut(held=...)``
+    #: sets their copies): a piece of the mesh with one counts as restrained, as a dynamic step needs (its mass
+    #: makes the step's system definite; the spring, the scene's, holds the piece). A static solve of the
+    #: model alone finds such a piece free (its stiffness is singular, and the factorization says so).
+    tethered = np.zeros(0, dtype=np.int64)
+
+    def check_restrained(self, tethers: bool = True) -> None:
         """Raise ModelError when the fixes leave a rigid-body motion free, or hold every node.
 
         For each connected piece of the mesh, the six rigid-body motions (3 translations,
-        3 rotations about its centroid) restricted to the fixed dofs must have rank 6.
+        3 rotations about its centroid) restricted to the fixed dofs must have rank 6; a piece with a
+        :attr:`tethered` node (held by a spring outside the model) is restrained by it, unless ``tethers``
+        is False (a static solve of the model alone, which has no spring).
         """
         self.check_not_all_fixed()
         n_comp, label = self._pieces()
         X = np.asarray(self.mesh.vertices)
         dpn = self.dofs_per_node
+        tethered = np.zeros(self.n_nodes, dtype=bool)
+        tethered[np.asarray(self.tethered, dtype=np.int64)] = True
         for c in range(n_comp):
             nodes = np.flatnonzero(label == c)
+            if tethered[nodes].any():
+                if tethers:
+                    continue
+                if not self.fixed[nodes].any():
+                    raise ModelError(f"piece {c + 1} of {n_comp} ({nodes.size} nodes) is held only by springs outside the "
+                                     "model (its tethered nodes: a scene's attachment or grasp); the model alone leaves "
+                                     "it free. Step it in its scene, or fix a node of it for a static solve")
             where = f" (piece {c + 1} of {n_comp}, {nodes.size} nodes, e.g. node {nodes[0]})" if n_comp > 1 else ""
             fx = self.fixed[nodes]
             if not fx.any():
@@ -324,7 +341,7 @@ class FEModel:
     def factorization(self) -> Factorization:
         """The cached sparse factorization of the constrained stiffness."""
         if self._factor is None:
-            self.check_restrained()
+            self.check_restrained(tethers=False)
             t0 = time.perf_counter()
             Kc, dofs = self.constrained_stiffness()
             # the condition estimate uses the physical stiffness: the penalized diagonal
