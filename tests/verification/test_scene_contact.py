@@ -218,3 +218,36 @@ def test_two_elastic_bodies_pressed_together_follow_hertz():
     assert abs(fine[1] - 1) < abs(coarse - 1) / 3  # measured 8.5 % -> 1.5 %: converging to Hertz
     slope = 1.5 + np.log(fine[1] / fine[0]) / np.log(2)
     assert abs(slope - 1.5) < 0.05  # measured 1.513: the contact area grows as Hertz's
+
+
+def test_a_nonlinear_body_on_stiff_springs_settles_to_the_static_spring_equilibrium():
+    """A full-order corotational cantilever (the lagged step) held at its free end by 25 springs of 500 N/m
+    to the world, settled under gravity with damping: the springs' force is k times their stretch (to 1e-9;
+    each step's spring forces are the last step's and a correction that vanishes at rest: from the weight
+    alone, through the compliance of a step far from the one made, they held 0.20 N where their stretch said
+    0.15 N, and drifted) and the static equilibrium's of the beam with the springs in its stiffness, solved
+    linearly (the sag is 16 um: the corotated law's is the same to 1e-3)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    L, W = 0.1, 0.02
+    model = rt.SolidModel(rt.meshes.box(L, W, W, nx=20, ny=4, nz=4), rt.Material(E=3e4, nu=0.45, density=1060.0),
+                          element="tet4").fix("x0")
+    scene = rt.Scene(gravity=(0.0, 0.0, -9.81))
+    sim = rt.DirectSimulator(model, 5e-3, rt.Damping(alpha=60.0), large_deformation=True)
+    scene.add_body("beam", sim, model.mesh)
+    X = np.asarray(model.tetmesh.vertices)
+    tip = scene.attach("tip", "beam", np.flatnonzero(X[:, 0] > L - 1e-9), stiffness=500.0)
+    scene.run(400)
+    U = sim.displacements()
+    held = scene.contacts[("beam", "tip")]
+    assert np.abs(held + 500.0 * U[tip.nodes_a].sum(axis=0)).max() <= 1e-9 * np.linalg.norm(held)
+    springs = np.zeros((model.n_nodes, 3))
+    springs[tip.nodes_a] = 500.0
+    free = model.free_dofs
+    weight = (scene.body("beam").masses[:, None] * np.array([0.0, 0.0, -9.81])).ravel()
+    u = spla.spsolve((model.K + sp.diags(springs.ravel()))[free][:, free].tocsc(), weight[free])
+    full = np.zeros(model.n_dofs)
+    full[free] = u
+    ref = -500.0 * full.reshape(-1, 3)[tip.nodes_a].sum(axis=0)
+    assert held[2] == pytest.approx(ref[2], rel=1e-3)

@@ -36,6 +36,7 @@ from .scene_obstacles import MeshObstacle, Plane, pair_search
 from .scene_points import PointSet, contact_solve
 from .scene_reach import untouched
 from .scene_search import pair_block, probe_block
+from .scene_springs import spring_key, spring_system, warm_springs
 from .scene_scalpel import SceneScalpel, recut
 from .scene_tools import SceneTool
 
@@ -191,6 +192,7 @@ class Scene:
         self.sweeps = 0
         self.compiled = True  # the compiled contact search where numba is present (False: numpy)
         self.skip_trials = True  # a full-order body nothing can touch takes no trial step (scene_reach; False: all do)
+        self._spring_forces: dict = {}  # each spring set's forces (S, 3) in the last step, by name: see _warm_springs
 
     def _name_free(self, name: str) -> None:
         if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools, *self.scalpels)):
@@ -293,11 +295,12 @@ class Scene:
         weights = [b.masses[:, None] * self.gravity[None, :] + b.loads for b in self.bodies]  # and the loads held
         for scalpel in self.scalpels:  # and the tissue's share of the cutting force
             weights[self.bodies.index(self.body(scalpel.body))] += scalpel.loads()
+        warm = warm_springs(self, springs, weights)
         spring_nodes = self._spring_nodes(springs)
         alone = untouched(self, spring_nodes) if self.skip_trials else [None] * len(self.bodies)
         base = [self._trial(b, weights[k], spring_nodes.get(k)) if alone[k] is None else (weights[k], alone[k], alone[k], None)
                 for k, b in enumerate(self.bodies)]
-        held = self._attachment_loads(springs, base, spring_nodes)
+        held = self._attachment_loads(springs, base, spring_nodes, warm)
         trials = [self._held_trial(k, base[k], held[k], spring_nodes.get(k)) for k in range(len(self.bodies))]
         points = PointSet()
         Xs = [b.X[b.surface] + trial for b, (_, _, trial) in zip(self.bodies, trials)]  # the surfaces, a step on
@@ -348,75 +351,40 @@ class Scene:
         self._spring_nodes_kept = (key, {k: np.unique(np.concatenate(v)) for k, v in ends.items()})
         return self._spring_nodes_kept[1]
 
-    def _attachment_loads(self, springs, base, spring_nodes) -> list[np.ndarray]:
-        """Each body's attachment forces (n, 3) at the end of this step (the attachments' and the
-        graspers' springs); the total of each set on its first body in :attr:`_held_force`.
+    def _attachment_loads(self, springs, base, spring_nodes, warm) -> list[np.ndarray]:
+        """Each body's attachment forces (n, 3) in this step beyond ``warm`` (the last step's, in the
+        loads already: :func:`~rtfem.interaction.scene_springs.warm_springs`), of the attachments' and
+        the graspers' springs; the total of each set on its first body in :attr:`_held_force`.
 
-        With e the springs' stretch after a step under the weights and loads alone (a's node past
-        its anchor or its pair's; ``base``: each body's trial step under them, with the displacements
-        of its springs' nodes ``spring_nodes``, :meth:`_spring_nodes`), and A = J (sum_k W_k) J^T the
-        stretch per unit spring force (J: +1 on a's node, -1 on b's), the forces are f = -k (e + A f):
-        (I / k + A) f = -e."""
+        With e the springs' stretch after a step under the weights, loads and ``warm`` forces (a's node
+        past its anchor or its pair's; ``base``: each body's trial step under them, with the
+        displacements of its springs' nodes ``spring_nodes``, :meth:`_spring_nodes`), and A = J (sum_k
+        W_k) J^T the stretch per unit spring force (J: +1 on a's node, -1 on b's), the correction d of
+        the forces f = warm + d is f = -k (e + A d): (I / k + A) d = -(e + warm / k)."""
         out = [np.zeros((b.driver.n_nodes, 3)) for b in self.bodies]
-        self._held_force = {}
+        self._held_force, self._spring_forces = {}, {}
         if not springs:
             return out
         index = {b.name: k for k, b in enumerate(self.bodies)}
         sizes = [att.nodes_a.size for att in springs]
         start = np.concatenate([[0], np.cumsum(sizes)])
         e = np.concatenate([att.rest if att.b is not None else -att.anchor for att in springs])
-        J, solve = self._spring_system(springs, index, start, sizes, spring_nodes)
+        J, solve = spring_system(self, springs, index, start, sizes, spring_nodes)
         for k, (nodes, Jk) in J.items():
             x = self.bodies[k].X[nodes] + base[k][3]  # the body's spring nodes, as its trial took them
             e += (Jk @ x.reshape(-1)).reshape(-1, 3)
-        f = solve(-e.reshape(-1)).reshape(-1, 3)
+        f0 = np.concatenate(warm)
+        e += f0 / np.repeat([att.stiffness for att in springs], sizes)[:, None]
+        d = solve(-e.reshape(-1)).reshape(-1, 3)
         for a_index, att in enumerate(springs):
-            fa = f[start[a_index]:start[a_index + 1]]
-            np.add.at(out[index[att.a.name]], att.nodes_a, fa)
+            da = d[start[a_index]:start[a_index + 1]]
+            np.add.at(out[index[att.a.name]], att.nodes_a, da)
             if att.b is not None:
-                np.add.at(out[index[att.b.name]], att.nodes_b, -fa)
+                np.add.at(out[index[att.b.name]], att.nodes_b, -da)
+            fa = warm[a_index] + da
             self._held_force[att.name] = fa.sum(axis=0)
+            self._spring_forces[att.name] = (spring_key(att), fa)
         return out
-
-    def _spring_system(self, springs, index, start, sizes, spring_nodes):
-        """The springs' Jacobians {body: (its spring nodes, J_k)} (``spring_nodes``: :meth:`_spring_nodes`)
-        and the solve of (I / k + A) f = rhs, kept while the springs are the same and no body's one-step
-        compliances change with its motion."""
-        from scipy.linalg import cho_factor, cho_solve, lu_factor, lu_solve
-
-        key = tuple((att.name, att.nodes_a.tobytes(), att.stiffness) for att in springs)
-        kept = getattr(self, "_springs_kept", None)
-        if kept is not None and kept[0] == key:
-            return kept[1], kept[2]
-        n_springs = int(start[-1])
-        J = {}  # body -> (its attached nodes, (3 S, 3 n) Jacobian)
-        for k in sorted(spring_nodes):
-            J[k] = (spring_nodes[k], np.zeros((3 * n_springs, 3 * spring_nodes[k].size)))
-        for a_index, att in enumerate(springs):
-            for k, nodes, sign in ((index[att.a.name], att.nodes_a, 1.0),
-                                   *(((index[att.b.name], att.nodes_b, -1.0),) if att.b is not None else ())):
-                all_nodes, Jk = J[k]
-                slots = np.searchsorted(all_nodes, nodes)
-                for s_local, slot in enumerate(slots.tolist()):
-                    row = 3 * (start[a_index] + s_local)
-                    Jk[row:row + 3, 3 * slot:3 * slot + 3] += sign * np.eye(3)
-        A = np.zeros((3 * n_springs, 3 * n_springs))
-        for k, (nodes, Jk) in J.items():
-            A += Jk @ step_compliances(self.bodies[k].driver, nodes) @ Jk.T
-        A += np.diag(np.repeat([1.0 / att.stiffness for att in springs], np.asarray(sizes) * 3))
-        constant = not any(getattr(self.bodies[k].driver, "compliance_changes", True) for k in J)
-        try:  # symmetric positive definite: the compliances and 1/k
-            factor, apply = cho_factor(A), cho_solve
-        except np.linalg.LinAlgError:  # a user's driver with compliances that are not
-            factor, apply = lu_factor(A), lu_solve
-        inverse = apply(factor, np.eye(A.shape[0])) if constant else None
-
-        def solve(rhs):  # kept: the inverse (one product a step); else this step's factor
-            return inverse @ rhs if inverse is not None else apply(factor, rhs)
-
-        if constant:
-            self._springs_kept = (key, J, solve)
-        return J, solve
 
     @staticmethod
     def _trial(body: Body, F: np.ndarray, extra: np.ndarray | None = None):

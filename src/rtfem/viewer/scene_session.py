@@ -33,7 +33,7 @@ HOLD = 10.0
 
 def snapshot(scene) -> dict:
     """The scene's state now: its step count and time, each body's driver state (``get_state``),
-    each tool's (where it and its hand are, its force, what it holds)."""
+    each tool's (where it and its hand are, its force, what it holds), the springs' last forces."""
     tools = []
     for t in scene.tools:
         held = None
@@ -45,6 +45,7 @@ def snapshot(scene) -> dict:
                       "force": np.array(t.force, dtype=float), "held": held,
                       "offsets": None if getattr(t, "offsets", None) is None else np.array(t.offsets)})
     return {"steps": int(scene.steps), "time": float(scene.time), "which": (list(scene.bodies), list(scene.attachments)),
+            "springs": dict(scene._spring_forces),  # the next step's start (each replaced, never changed in place)
             "scalpels": [sc.state() for sc in scene.scalpels],
             "bodies": [b.driver.get_state() for b in scene.bodies],
             "loads": [_correction_loads(b.driver) for b in scene.bodies], "tools": tools}
@@ -94,7 +95,7 @@ def rewind(scene, state: dict) -> None:
             keep = int(np.searchsorted(np.asarray(times, dtype=float), state["time"], side="right"))
             del times[keep:], forces[keep:]
     scene.steps, scene.time = state["steps"], state["time"]
-    scene.contacts = {}
+    scene.contacts, scene._spring_forces = {}, dict(state["springs"])
 
 
 def scripted_end(scene) -> float:
