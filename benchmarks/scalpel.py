@@ -15,9 +15,9 @@ the issue asks for one visual frame, 17 ms), the nodes the cut added, the mass o
 a failed step stops the scalpel with zero force and is printed). Then what one cut event costs on
 this machine, alone (the whole swept surface applied to the uncut liver, elements split as the
 scalpel does, on the liver settling under gravity): rt.cut, the driver built on the cut model and its
-first step.
+first step; and one strip's event as the cutter makes it, by stage (see strip_event), ``--events`` times.
 
-    python benchmarks/scalpel.py [--busy] [--dt 0.004] [--seconds 6]
+    python benchmarks/scalpel.py [--busy] [--dt 0.004] [--seconds 6] [--events 3]
 """
 
 from __future__ import annotations
@@ -106,11 +106,51 @@ def one_event(model, dt: float, surface) -> list[float]:
     return [t1 - t0, t2 - t1, t3 - t2, cut.cut_info.nodes_added, new.refreshes, new.newton_steps, cut.cut_info.max_move]
 
 
+def strip_event(model, dt: float, surface, edge: float) -> list:
+    """A scalpel's cut event as its cutter makes it, by stage: the swept surface's first half cut (on the liver
+    settling under gravity, 0.2 s), then the next strip's triangles with the old ones within two element edges
+    of them (Scalpel._to_cut's job; more triangles until a face is swept whole): the worker's rt.cut and
+    assembly, its answer's pickle out and in, the driver built and the state carried, the first step."""
+    import pickle
+
+    from rtfem.drivers.carry import lumped_nodal_masses
+    from rtfem.interaction.cut_worker import _bare, cut_and_assemble
+    from rtfem.mesh.cut import NothingToCut
+
+    V, T = surface
+    h = 2 * (T.shape[0] // 4)
+    sim = settled(model, dt, 0.2)
+    first = rt.cut(model, V, T[:h], snap="split", free="remove")
+    sim = sim.carry_over(first, first.cut_info.transfer())
+    sim.step(lumped_nodal_masses(first)[:, None] * np.array([0.0, 0.0, -9.81]))
+    for k in range(h + 8, T.shape[0] + 1, 8):
+        new = T[h:k]
+        pts = V[new].reshape(-1, 3)
+        lo, hi = pts.min(axis=0) - 2 * edge, pts.max(axis=0) + 2 * edge
+        near = ((V[T[:h]] >= lo) & (V[T[:h]] <= hi)).all(axis=2).any(axis=1)
+        job = (_bare(first), V, np.concatenate([T[:h][near], new]), "split", None)
+        t0 = time.perf_counter()
+        try:
+            cut = cut_and_assemble(*job)
+        except NothingToCut:
+            continue
+        t1 = time.perf_counter()
+        cut = pickle.loads(pickle.dumps(cut, protocol=pickle.HIGHEST_PROTOCOL))
+        t2 = time.perf_counter()
+        driver = sim.carry_over(cut, cut.cut_info.transfer())
+        t3 = time.perf_counter()
+        driver.step(lumped_nodal_masses(cut)[:, None] * np.array([0.0, 0.0, -9.81]))
+        t4 = time.perf_counter()
+        return [t1 - t0, t2 - t1, t3 - t2, t4 - t3, cut.cut_info.nodes_added, (k - h) // 2]
+    return []
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--busy", action="store_true", help="also with a core kept busy by another process")
     ap.add_argument("--dt", type=float, default=4e-3)
     ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--events", type=int, default=3, help="strip cut events timed by stage (default 3)")
     args = ap.parse_args()
     model, held, _, _ = organ()
     print(f"liver: {model.n_nodes} nodes, {model.tetmesh.n_tets} tets, {held.size} held; dt {args.dt * 1e3:g} ms; "
@@ -136,6 +176,14 @@ def main() -> None:
               f"{c * 1e3:.0f} ms, the driver built and the state carried {b * 1e3:.0f} ms, its first step "
               f"{s * 1e3:.0f} ms ({f} factorizations, {newton} Newton steps; the split moved a node onto the surface "
               f"by up to {move * 1e3:.1f} mm)")
+        X, C = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
+        edge = float(np.mean(np.linalg.norm(X[C[:, 1]] - X[C[:, 0]], axis=1)))
+        for _ in range(args.events):
+            e = strip_event(model, args.dt, surface, edge)
+            if e:
+                print(f"one strip's cut event ({e[5]} cells, {e[4]} nodes added), as the cutter makes it: the worker's rt.cut "
+                      f"and assembly {e[0] * 1e3:.0f} ms, its answer pickled out and in {e[1] * 1e3:.0f} ms, the driver "
+                      f"built and the state carried {e[2] * 1e3:.0f} ms, its first step {e[3] * 1e3:.0f} ms")
 
 
 if __name__ == "__main__":
