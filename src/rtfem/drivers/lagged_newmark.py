@@ -73,8 +73,8 @@ class _Kernels:
         self._last = None  # (u, elements inverted there) of the last tet4 force evaluation
         E, k = cells.shape
         self._F = np.empty((E, 3 * k))
-        kern.inverted(self.X + 0.0)  # builds the points the inversion check looks at (a tet10's corners too)
-        self.G_check = np.ascontiguousarray(np.stack(kern._G_check, axis=1))
+        # the points the inversion check looks at (a tet10's corners too; not an evaluation of all the elements)
+        self.G_check = np.ascontiguousarray(np.stack(kern.check_gradients(k), axis=1))
 
     def inverted(self, u: np.ndarray) -> int:
         """How many elements are turned inside out at nodal displacements u (n, 3) (a tet4's counted by

@@ -122,11 +122,11 @@ class RegionTets:
             out[idx] = part_array(kern)
         return out
 
-    @property
-    def _G_check(self) -> list[np.ndarray]:
-        """The gradients the inversion check looks at (quadrature points, a tet10's corners too)."""
-        n = len(self.parts[0][1]._G_check)
-        return [self._spread(lambda k, q=q: k._G_check[q], self.G[0].shape[1:]) for q in range(n)]
+    def check_gradients(self, k: int) -> list[np.ndarray]:
+        """The gradients the inversion check looks at (quadrature points, a tet10's corners too), the
+        regions' spread over all elements."""
+        n = len(self.parts[0][1].check_gradients(k))
+        return [self._spread(lambda kern, q=q: kern.check_gradients(k)[q], self.G[0].shape[1:]) for q in range(n)]
 
     def inverted(self, x: np.ndarray) -> np.ndarray:
         """(m,) mask of the elements turned inside out in deformed nodes x (m, k, 3)."""

@@ -272,17 +272,22 @@ class CorotationalTets:
         quadrature points do not. The corotated law's polar decomposition gives such a state a
         finite energy and force (a proper rotation with a negative stretch), so a solve can
         converge onto it: the solvers refuse it instead."""
-        if not hasattr(self, "_G_check"):  # the gradients at the corners, once (tet10 only)
+        bad = np.zeros(x.shape[0], dtype=bool)
+        for G in self.check_gradients(x.shape[1]):
+            bad |= np.linalg.det(np.einsum("mka,mkb->mab", x, G)) <= 0.0
+        return bad
+
+    def check_gradients(self, k: int) -> list:
+        """The gradients :meth:`inverted` evaluates det F with, made once: the quadrature points' and (tet10,
+        ``k`` = 10 nodes) the corners'."""
+        if not hasattr(self, "_G_check"):
             self._G_check = list(self.G)
-            if x.shape[1] == 10:
+            if k == 10:
                 _, dN = shape_functions("tet10", np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
                                                             [0.0, 0.0, 1.0]]))
                 X0 = self._X
                 self._G_check += [_gradients(X0, dN[q])[0] for q in range(4)]
-        bad = np.zeros(x.shape[0], dtype=bool)
-        for G in self._G_check:
-            bad |= np.linalg.det(np.einsum("mka,mkb->mab", x, G)) <= 0.0
-        return bad
+        return self._G_check
 
     def evaluate(self, x: np.ndarray, tangent: bool = True):
         """Element forces (m, 3k), tangents (m, 3k, 3k) (None unless ``tangent``) and energies

@@ -334,9 +334,13 @@ class TetMesh:
         return self._cache["adjacency"]  # type: ignore[return-value]
 
     def components(self) -> tuple[int, np.ndarray]:
-        """Number of connected pieces and the piece label of each node."""
-        A = self.adjacency().tocoo()
-        return components(self.n_vertices, A.row, A.col)
+        """Number of connected pieces and the piece label of each node (kept: a cut model's are asked by its
+        system's check in the cut worker and again by the driver built on it)."""
+        if "components" not in self._cache:
+            A = self.adjacency().tocoo()
+            self._cache["components"] = components(self.n_vertices, A.row, A.col)
+        n, label = self._cache["components"]  # type: ignore[misc]
+        return n, label.copy()
 
     # ------------------------------------------------------------------ derived
     def scaled(self, factor: float) -> "TetMesh":
