@@ -168,10 +168,11 @@ def _corrupted(kind: str, quadratic: bool):
     mesh = mesh.quadratic() if quadratic else mesh
     V, T = np.asarray(mesh.vertices).copy(), np.asarray(mesh.tets).copy()
     k = 17
-    if kind == "inverted":
-        T[k, [1, 2]] = T[k, [2, 1]]
+    if kind in ("inverted", "inverted with all about it"):
+        ring = np.flatnonzero(np.isin(T[:, :4], T[k, :4]).any(axis=1)) if kind != "inverted" else [k]
+        T[np.ix_(ring, [1, 2])] = T[np.ix_(ring, [2, 1])]
         if quadratic:  # the mid-edge nodes follow: (0,1) <-> (0,2), (1,3) <-> (2,3)
-            T[k, [4, 6, 8, 9]] = T[k, [6, 4, 9, 8]]
+            T[np.ix_(ring, [4, 6, 8, 9])] = T[np.ix_(ring, [6, 4, 9, 8])]
     elif kind == "degenerate":
         T[k, 3] = T[k, 0]
     elif kind == "duplicate":
@@ -192,7 +193,8 @@ def _corrupted(kind: str, quadratic: bool):
     return V, T, changed
 
 
-@pytest.mark.parametrize("kind, quadratic", [("inverted", False), ("inverted", True), ("degenerate", False),
+@pytest.mark.parametrize("kind, quadratic", [("inverted", False), ("inverted", True), ("inverted with all about it", False),
+                                             ("degenerate", False),
                                              ("duplicate", False), ("three on a face", False),
                                              ("unshared mid-edge node", True)])
 def test_a_mesh_checked_about_its_changed_tets_refuses_what_the_whole_check_refuses(kind, quadratic):

@@ -411,3 +411,7 @@ def test_a_part_only_springs_hold_is_kept_tethered_and_steps_but_a_static_solve_
     assert np.ptp(U, axis=0).max() <= 1e-9 * abs(centre[-1])
     with pytest.raises(ModelError, match="held only by springs outside the model"):
         cut.solve_static(weight, warn=False)
+    one = rt.cut(model, through, QUAD, held=int(end[0]))  # one node is a selection too
+    assert np.array_equal(one.tethered, end[:1])
+    with pytest.raises(ModelError, match="held"):
+        rt.cut(model, through, QUAD, held=[model.n_nodes])

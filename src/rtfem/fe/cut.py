@@ -58,11 +58,12 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
     free = validate.choice(free, "free", ("warn", "remove"))
     recipe = ModelRecipe.of(model)
     snap = snap if isinstance(snap, str) and snap == "split" else validate.flag(snap, "snap")
+    held = np.zeros(0, dtype=np.int64) if held is None else validate.nodes(held, model.n_nodes, "held", allow_empty=True)
     mesh, info = cut_mesh(model.tetmesh, vertices, triangles, snap=snap)
     fixed = extend(np.asarray(recipe.fixed, dtype=bool), info.split)[info.parent]
     holding = fixed.any(axis=1)
-    if held is not None and len(held):  # and the copies of the nodes that hold their part
-        holding |= np.isin(info.parent, validate.nodes(held, model.n_nodes, "held"))
+    if held.size:  # and the copies of the nodes that hold their part
+        holding |= np.isin(info.parent, held)
     kept = np.zeros(info.pieces, dtype=bool)  # the parts something holds
     kept[info.piece[holding]] = True
     info["removed"], info["removed_mass"] = 0, 0.0
@@ -76,8 +77,8 @@ def cut(model, vertices, triangles, *, snap: bool | str = True, free: str = "war
                       "they would float; fix a node of each, or cut less (or free='remove')", RtfemWarning, stacklevel=2)
     new = ModelRecipe(mesh, recipe.material, recipe.options, fixed, "", recipe.kind).build()
     new.cut_info = info
-    if held is not None and len(held):  # a piece only they hold is restrained by their springs
-        new.tethered = np.flatnonzero(np.isin(info.parent, validate.nodes(held, model.n_nodes, "held")))
+    if held.size:  # a piece only they hold is restrained by their springs
+        new.tethered = np.flatnonzero(np.isin(info.parent, held))
     return new
 
 

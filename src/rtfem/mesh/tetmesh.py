@@ -416,6 +416,8 @@ def _check_near(V: np.ndarray, T: np.ndarray, changed: np.ndarray) -> None:
         return
     nodes, local = np.unique(T[near], return_inverse=True)
     try:
+        if (_signed_volumes(V, T[near]) < 0).any():  # (the part alone, all inverted, would be re-oriented whole)
+            raise MeshError("an inverted tet about the change")
         TetMesh(V[nodes], local.reshape(-1, T.shape[1]), repair=False, merge_tol=0.0)
     except MeshError:
         TetMesh(V, T, repair=False, merge_tol=0.0)
