@@ -173,8 +173,9 @@ def _pattern_by_sort(cells, dpn, free, n_dofs):
 @pytest.mark.parametrize("k, dpn", [(4, 3), (10, 3), (3, 6)])
 def test_the_nonlinear_pattern_is_the_sorted_entries_pattern(k, dpn, compiled, monkeypatch):
     from rtfem.fe import jit
+    from rtfem.fe.assembly_kernels import _slot
 
-    if compiled and jit.compiled("free-slots", ns._free_slots, ns._find) is None:
+    if compiled and jit.compiled("free-slots", ns._free_slots, _slot) is None:
         pytest.skip("numba cannot compile here: the numpy path is the one run")
     if not compiled:  # numba's absence: the numpy path
         monkeypatch.setitem(jit._COMPILED, "free-slots", None)

@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from .assembly_kernels import _slot, node_pattern
 from .jit import compiled
 from .linalg import factorize
 from .protocol import check_model
@@ -31,8 +32,6 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     Where numba runs, the node pattern and the entries' places are compiled loops (a scalpel's cut model
     builds this at every cut: on that liver 37 -> 19 ms, medians of 7 alternating runs on 2 cores); numpy's
     otherwise, the same arrays (tests/verification/test_cut_zone.py)."""
-    from .assembly_kernels import node_pattern
-
     E, k = cells.shape
     cells = np.ascontiguousarray(cells, dtype=np.int64)
     isfree = np.zeros(n_nodes * dpn, dtype=bool)
@@ -43,7 +42,7 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     pos = pos.reshape(n_nodes, dpn)
     nfree = isfree.sum(axis=1)
     rank = np.cumsum(isfree, axis=1) - isfree  # a free dof's place among its node's free dofs
-    kernel = compiled("free-slots", _free_slots, _find)
+    kernel = compiled("free-slots", _free_slots, _slot)
     if kernel is not None:
         nptr, b_of = node_pattern(cells, n_nodes)  # the node pattern, row-major
         inverse = None
@@ -81,17 +80,6 @@ def free_pattern(cells: np.ndarray, dpn: int, free: np.ndarray, n_nodes: int):
     return indices.astype(np.int32), indptr.astype(np.int32), keep.astype(small), slot[keep].astype(small)
 
 
-def _find(sorted_, lo, hi, value):
-    """The place of ``value`` in sorted_[lo:hi] (it is there)."""
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if sorted_[mid] <= value:
-            lo = mid
-        else:
-            hi = mid
-    return lo
-
-
 def _free_slots(cells, dpn, isfree, rank, row_len, base, nptr, b_of, col_off, keep, slot):
     """keep and slot of :func:`free_pattern` (in the order of the flattened element matrices), compiled."""
     E, k = cells.shape
@@ -102,7 +90,7 @@ def _free_slots(cells, dpn, isfree, rank, row_len, base, nptr, b_of, col_off, ke
         for la in range(k):
             a = cells[e, la]
             for lb in range(k):  # where each neighbour's columns start in a's node row
-                off[lb] = col_off[_find(b_of, nptr[a], nptr[a + 1], cells[e, lb])]
+                off[lb] = col_off[_slot(b_of, nptr[a], nptr[a + 1], cells[e, lb])]
             for i in range(dpn):
                 if not isfree[a, i]:
                     continue
