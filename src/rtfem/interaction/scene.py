@@ -192,7 +192,7 @@ class Scene:
         self.sweeps = 0
         self.compiled = True  # the compiled contact search where numba is present (False: numpy)
         self.skip_trials = True  # a full-order body nothing can touch takes no trial step (scene_reach; False: all do)
-        self._spring_forces: dict = {}  # each spring set's forces (S, 3) in the last step, by name: see _warm_springs
+        self._spring_forces: dict = {}  # each spring set's forces (S, 3) in the last step, by name: scene_springs.warm_springs
 
     def _name_free(self, name: str) -> None:
         if any(x.name == name for x in (*self.bodies, *self.obstacles, *self.attachments, *self.tools, *self.scalpels)):
