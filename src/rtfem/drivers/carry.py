@@ -33,9 +33,15 @@ def lumped_nodal_masses(model) -> np.ndarray:
 
 
 def mass_share(old, new, P: sp.csr_matrix) -> np.ndarray:
-    """(new.n_nodes,) each new node's lumped mass over that of what it interpolates (P of the old
-    nodes' masses): a load carried through P times this is shared among a node's copies by mass."""
-    return lumped_nodal_masses(new) / np.maximum(P @ lumped_nodal_masses(old), np.finfo(float).tiny)
+    """(new.n_nodes,) each new node's lumped mass over that of what it interpolates (|P| of the old
+    nodes' masses): a load carried through P times this is shared among a node's copies by mass.
+    The weights' magnitudes, not the weights: a node the cut moved onto its surface is interpolated in
+    the uncut tet it lies in, and where that is a little outside it (a weight of -0.1 is seen on a
+    scalpel's cuts) P's masses can sum to nearly nothing, which made the share 1e301 and the loads the
+    step remembers as large (the next step then turned half the organ inside out). With |P| a node's
+    load per unit mass never exceeds the largest the old nodes had; rows of non-negative weights (a
+    copy, a node on a split edge) are as before."""
+    return lumped_nodal_masses(new) / np.maximum(abs(P) @ lumped_nodal_masses(old), np.finfo(float).tiny)
 
 
 def transfer_matrix(old, new, transfer) -> sp.csr_matrix:
