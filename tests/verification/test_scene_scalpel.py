@@ -185,9 +185,14 @@ def test_the_scene_viewer_draws_the_cut_body_and_the_blade(tmp_path):
         wait_until(lambda: knife.cuts >= 1 and viewer._bodies[0] is scene.bodies[0], 60, "a cut drawn")
         frames = viewer.frames
         wait_until(lambda: viewer.frames > frames + 3, 20, "frames after the cut")
-        body = scene.bodies[0]
-        assert viewer._glbs[0][2].shape == (body.surface.size, 3) and body.surface.size > 0
-        assert np.asarray(viewer.picks[0].vertices).shape == (body.surface.size, 3)
+
+        def drawn():  # (the scene steps on meanwhile: a later cut is drawn by a later frame)
+            size = scene.bodies[0].surface.size
+            return size > 0 and viewer._glbs[0][2].shape == (size, 3) and \
+                np.asarray(viewer.picks[0].vertices).shape == (size, 3)
+
+        wait_until(drawn, 30, lambda: f"the cut body surface drawn ({scene.bodies[0].surface.size} vertices; "
+                                      f"drawn {viewer._glbs[0][2].shape}, picks {np.asarray(viewer.picks[0].vertices).shape})")
         blade = np.asarray(viewer.glyphs.blades[0][1].points)
         np.testing.assert_allclose(blade[0, 1] - blade[0, 0], BLADE, atol=1e-6)
         assert viewer.state()["error"] is None
