@@ -87,8 +87,9 @@ class _Solid:
         self.C = np.asarray(model.tetmesh.tets)[:, :4]
         P = self.X[self.C]
         self.tree = cKDTree(P.mean(axis=1))
-        self.mass = np.maximum(lumped_nodal_masses(model), 0.0)
-        self.weights = self.mass[:, None] * gravity[None, :]
+        m = lumped_nodal_masses(model)
+        self.weights = m[:, None] * gravity[None, :]
+        self.mass = np.maximum(m, 0.0)  # (what the tissue's share of the cutting force is spread by)
         edges = np.linalg.norm(P[:, [1, 2, 3, 2, 3, 3]] - P[:, [0, 0, 0, 1, 1, 2]], axis=2)
         self.edge = float(np.mean(edges))
 
