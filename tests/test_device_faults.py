@@ -391,14 +391,14 @@ def libdhd(tmp_path_factory):
 def _rendering_1n(dev, lib):
     """Render 1 N (one force from the loop: the watchdog is off) and wait until the device has it."""
     dev.set_force(0.0, [0.0, 0.0, 1.0])
-    _until(lambda: _last_force(lib, after=5) is not None and np.allclose(_last_force(lib, after=5), [0.0, 0.0, 1.0]))
+    _until(lambda: _renders(lib, [0.0, 0.0, 1.0], after=5))
 
 
-def _last_force(lib, after=0):
-    """The force of the stub's last frame, its frame count read once: the servo runs on meanwhile, and
-    reading it twice (once for the length, once for the index) raced when a frame came in between."""
+def _renders(lib, force, after=0):
+    """The stub's last frame (past ``after`` frames) has ``force``, its frame count read once: the servo
+    runs on meanwhile, and reading it twice (for the length, for the index) raced when a frame came in between."""
     k = lib.stub_frame()
-    return _recorded(lib, k)[k - 1] if k > after else None
+    return k > after and np.allclose(_recorded(lib, k)[k - 1], force)
 
 
 def _openhaptics_fault(lib, path, stylus_mm, inject=None, disconnect=None):
@@ -476,7 +476,7 @@ def test_openhaptics_a_recoverable_hd_error_leaves_it_idle_at_zero_until_restart
         assert dev.stop_reason == "the device reported an error: HD_EXCEEDED_MAX_FORCE (0x0201)"
         dev.restart()
         dev.set_force(0.0, [0.0, 0.0, 1.0])
-        _until(lambda: _last_force(lib) is not None and np.allclose(_last_force(lib), [0.0, 0.0, 1.0]))
+        _until(lambda: _renders(lib, [0.0, 0.0, 1.0]))
     k = lib.stub_frame()
     assert np.array_equal(_recorded(lib, k)[k - 1], ZERO)  # close wrote a zero frame before stopping
     assert dev.stop_reason == "closed" and lib.stub_scheduled() == 0
