@@ -68,7 +68,9 @@ def _open_page(viewer):
             # the viewer frames each browser's camera once the browser has said its canvas size, which
             # a loaded machine's browser said late (CI: the first camera, centred, was still in place)
             wait_until(lambda: _framed(viewer), 40, "the viewer to frame the browser's camera")
-            time.sleep(1.0)  # the browser's transition to the framed camera
+            # the browser's transition to the framed camera: a press where the organ will be drawn, made
+            # while it still moved, missed it (and orbited the camera)
+            wait_until(lambda: _camera_still(viewer), 60, lambda: f"the browser's camera to come to rest ({_camera(viewer)})")
             yield page
         finally:
             browser.close()
@@ -79,6 +81,21 @@ def _framed(viewer) -> bool:
     (frame_client shifts its look-at point to put the organ left of the panel)."""
     clients = list(viewer.server.get_clients().values())
     return bool(clients) and not np.allclose(clients[0].camera.look_at, viewer.server.initial_camera.look_at)
+
+
+def _camera(viewer) -> tuple:
+    """(position, look-at, the time the browser last said them) of the first browser's camera."""
+    cam = list(viewer.server.get_clients().values())[0].camera
+    return np.array(cam.position, dtype=float), np.array(cam.look_at, dtype=float), cam.update_timestamp
+
+
+def _camera_still(viewer, span: float = 1.0) -> bool:
+    """Whether the first browser's camera, framed, is where it was ``span`` s ago, to a micrometre (the
+    browser says its camera while it moves; a transition's steps move it by far more)."""
+    p0, a0, _ = _camera(viewer)
+    time.sleep(span)
+    p1, a1, _ = _camera(viewer)
+    return _framed(viewer) and np.abs(p1 - p0).max() < 1e-6 and np.abs(a1 - a0).max() < 1e-6
 
 
 def _settled(viewer, span: float = 0.5) -> bool:
@@ -361,7 +378,7 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
     try:
         with _open_page(v) as page:
             canvas = page.locator("canvas").first.bounding_box()
-            px = v.project(v.centre)[0]
+            px, camera = v.project(v.centre)[0], _camera(v)
             x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
             page.keyboard.down("Control")
             page.mouse.move(x0, y0)  # pressed on the block's middle
@@ -369,6 +386,13 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             for i in range(1, 6):
                 page.mouse.move(x0, y0 - 4 * i)
                 time.sleep(0.05)
+            try:
+                wait_until(lambda: v.cut_drags >= 1, 30, "the browser to begin a ctrl+drag on the block")
+            except AssertionError:
+                page.screenshot(path=str(ARTIFACTS / "4_no_ctrl_drag.png"))
+                state = {k: v.state()[k] for k in ("drags", "cut_drags", "frames", "frame_rate", "error")}
+                raise AssertionError(f"no ctrl+drag began: {state}; the press at {px} of the canvas; "
+                                     f"the camera then {camera}, now {_camera(v)}") from None
             wait_until(lambda: s.scalpel is not None, 180, lambda: f"scalpel mode ({s.cut_status!r}, {s.error})")
             for i in range(1, 41):  # down across the block's height on the screen
                 page.mouse.move(x0, y0 - 20 + 3 * i)

@@ -468,6 +468,7 @@ class Viewer(Served, CutView):
             "sim_rate": s.stats.sim_rate,
             "steps": s.stats.steps,
             "drags": self.drags,
+            "cut_drags": self.cut_drags,
             "grabbed": s.node,
             "max_displacement": float(np.linalg.norm(self._last_u, axis=1).max()),
             "force": float(np.linalg.norm(s.force)),

@@ -35,12 +35,14 @@ class CutView:
     _entering: threading.Thread | None = None
     _generation = 0  # the session's cut models drawn so far
     cuts_drawn = 0
+    cut_drags = 0  # ctrl+drags the browser has begun on the organ (their "start" events)
 
     def _on_cut(self, event) -> None:
         if event.phase == "end":
             self._cut_blade = "lift"
             return
         if event.phase == "start":
+            self.cut_drags += 1
             self.mode_index = None
             self._mode_dropdown.value = "off"
         self._cut_blade = blade(event.end_position, event.client.camera.position)
