@@ -1,18 +1,17 @@
-"""Cutting a solid along a triangulated surface (issue 57): the tets on the two sides of every element
-face that lies in the surface are separated there, by giving each node as many copies as there are
-groups of its tets still joined through uncut faces around it (the cut's front, where the surface
-ends inside the solid, keeps its nodes shared, so the slit closes there as a crack's does).
+"""Cutting a solid along a triangulated surface (issue 57): the tets on the two sides of every element face that lies
+in the surface are separated there, by giving each node as many copies as there are groups of its tets still joined
+through uncut faces around it (the cut's front, where the surface ends inside the solid, keeps its nodes shared, so
+the slit closes there as a crack's does).
 
-The cut follows element faces. Where the surface passes through elements, the nearer end of each
-edge it crosses is first moved onto it (node snapping, :func:`_snap`; no tet keeps under
-:data:`MIN_VOLUME` of its volume, else the surface is refused with the elements named). Nothing is
-removed: the mass and the volume stay, and the new faces are surface (contact, drawing and export see
-them). With ``snap="split"`` (tet4, tet10) the crossed elements are split instead and no node moves by more
-than :data:`MIN_SPLIT` of an edge (what a solid cut while it runs needs). Splitting by virtual nodes
-(Molino, Bao and Fedkiw 2004), which leaves no slivers, is a later step.
+The cut follows element faces. Where the surface passes through elements, the nearer end of each edge it crosses is
+first moved onto it (node snapping, :func:`_snap`; no tet keeps under :data:`MIN_VOLUME` of its volume, else the
+surface is refused with the elements named). Nothing is removed: the mass and the volume stay, and the new faces are
+surface (contact, drawing and export see them). With ``snap="split"`` (tet4, tet10) the crossed elements are split
+instead and no node moves by more than :data:`MIN_SPLIT` of an edge (what a solid cut while it runs needs). Splitting
+by virtual nodes (Molino, Bao and Fedkiw 2004), which leaves no slivers, is a later step.
 
-A model is cut by :func:`rtfem.fe.cut.cut` (``rt.cut``). The test: a slit cantilever's frequencies
-against CalculiX's on a mesh built slit (tests/verification/test_cut.py).
+A model is cut by :func:`rtfem.fe.cut.cut` (``rt.cut``). The tests: a slit cantilever's frequencies against
+CalculiX's on a mesh built slit (tests/verification/test_cut.py); a bent surface (test_cut_curved.py).
 """
 
 from __future__ import annotations
@@ -33,6 +32,9 @@ _TOL = 1e-7  # of the mesh's bounding-box diagonal: a point this near the surfac
 #: ... or this share of the median element edge, if more: the cut surface's thickness (a surface
 #: drawn in pieces, a scalpel's strips, is not exactly flat where they meet)
 ON_SURFACE = 0.02
+#: a face with its corners on the surface is in it if its midpoints are within this share of the median edge: it may bend
+#: in an element (the scalpel's strips on the hanging tet10 liver, 2-7 % of an edge off such faces' midpoints: no cut)
+BEND = 0.1
 #: an edge is split no nearer its end than this share of it: nearer, that end moves onto the surface
 MIN_SPLIT = 0.2
 
@@ -181,9 +183,8 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     Returns
     -------
     (TetMesh, CutInfo): the cut mesh (the old nodes first, in their order, then those split off, then
-    the copies; the tets in their order, a split tet's parts in its place; the groups with the copies
-    of their nodes) and what was done. Only the tets about the surface are searched and changed
-    (:func:`_zone`).
+    the copies; the tets in their order, a split tet's parts in its place; the groups with the copies of their nodes)
+    and what was done. Only the tets about the surface are searched and changed (:func:`_zone`).
 
     Raises
     ------
@@ -202,8 +203,8 @@ def cut_mesh(mesh, vertices, triangles, *, snap: bool | str = True):
     zone, zn = _zone(V, T, tri, tol + float(lengths.max()))
     if not zone.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid")
-    Vz, moved, born, at, source, parent, T_new, cut, rows = _cut_zone(V[zn], _local(T[zone], zn, n0), tri, tol, snap,
-                                                                      np.flatnonzero(zone))
+    Vz, moved, born, at, source, parent, T_new, cut, rows = _cut_zone(V[zn], _local(T[zone], zn, n0), tri,
+                                                                      (tol, max(tol, BEND * edge)), snap, np.flatnonzero(zone))
     z = zn.size
     glob = np.concatenate([zn, n0 + np.arange(Vz.shape[0] - z)])  # the zone's nodes (and those split) -> the mesh's
     Vn = np.concatenate([V, Vz[z:]])
@@ -253,13 +254,13 @@ def _local(T: np.ndarray, nodes: np.ndarray, n: int) -> np.ndarray:
     return index[T]
 
 
-def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, ids: np.ndarray):
-    """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone): returns the
-    nodes moved and split (the given ones first), how many moved, the edges split and where, each tet's
-    source tet, parent and the new tets (:func:`_split_nodes`), the faces cut and the rows of the nodes
-    moved or added (:func:`_rows`; None: none). ``ids``: the tets' numbers in the mesh."""
+def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tols: tuple, snap, ids: np.ndarray):
+    """:func:`cut_mesh`'s work on the tets ``T`` about the surface (nodes ``V``, theirs alone; ``tols``: its thickness,
+    and its bend in a face, for the faces' midpoints): returns the nodes moved and split (the given ones first), how many
+    moved, the edges split and where, each tet's source tet, parent and the new tets (:func:`_split_nodes`), the faces
+    cut and the rows of the nodes moved or added (:func:`_rows`; None: none). ``ids``: the tets' numbers in the mesh."""
     moved, born, at, source, rows = 0, np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.arange(T.shape[0]), None
-    V0 = V
+    (tol, bend), V0 = tols, V
     if snap:
         V, moved = _onto(V, T, tri, tol)
         if snap != "split":
@@ -283,9 +284,9 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tol: float, snap, i
     order = inner[np.argsort(index[inner], kind="stable")]
     f1, f2 = order[0::2], order[1::2]  # the two sides of each interior face
     C = V[keys[f1]]
-    probes = np.concatenate([C[:, 0], C[:, 1], C[:, 2], (C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2,
-                             (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
-    cut = on_surface(probes, tri, tol).reshape(7, -1).all(axis=0)
+    mids = np.stack([(C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2, (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
+    cut = on_surface(np.concatenate([C[:, 0], C[:, 1], C[:, 2]]), tri, tol).reshape(3, -1).all(axis=0)
+    cut[cut] = on_surface(mids[:, cut].reshape(-1, 3), tri, bend).reshape(4, -1).all(axis=0)
     if not cut.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
