@@ -200,6 +200,13 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             return self._kernels.forces(conf.u)
         return self.system.evaluate(conf, False, history)[0]
 
+    def _evaluate(self, conf, tangent: bool, history):
+        """Newton's evaluations (where the chord diverges) by the compiled kernels too, where they apply: the
+        numpy corotated stress took 70 ms of each on the cut example liver, four a Newton step."""
+        if self._kernels.ok:
+            return self._kernels.forces(conf.u), self._kernels.tangent(conf.u) if tangent else None
+        return super()._evaluate(conf, tangent, history)
+
     def _tangent(self, conf, history):
         if self._kernels.ok:
             return self._kernels.tangent(conf.u)

@@ -140,6 +140,11 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         a = c0 * (u - self._u) - c2 * self._v - c3 * self._a
         return a, self._v + self.dt * ((1 - self._gamma) * self._a + self._gamma * a)
 
+    def _evaluate(self, conf, tangent: bool, history):
+        """(internal forces, tangent or None) at ``conf``: the system's batched evaluation."""
+        f, K, _ = self.system.evaluate(conf, tangent, history)
+        return f, K
+
     def _solve_step(self, F: np.ndarray):
         """Newton on the HHT residual from the current state; returns (configuration, u, g,
         last factorization) without changing the state."""
@@ -152,7 +157,7 @@ class NonlinearNewmarkSimulator(DirectSimulator):
         history = (self._visc, self.dt) if self._visc.size else None
 
         def residual(conf, u, tangent):
-            f, K, _ = self.system.evaluate(conf, tangent, history)
+            f, K = self._evaluate(conf, tangent, history)
             a, v = self._kinematics(u)
             g = f[self._solved] + self._B @ v - Ff
             ref = np.linalg.norm(Ff) + np.linalg.norm(f) + np.linalg.norm(self._M @ a) + 1e-300
