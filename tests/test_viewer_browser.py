@@ -390,7 +390,7 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
                 wait_until(lambda: v.cut_drags >= 1, 30, "the browser to begin a ctrl+drag on the block")
             except AssertionError:
                 page.screenshot(path=str(ARTIFACTS / "4_no_ctrl_drag.png"))
-                state = {k: v.state()[k] for k in ("drags", "cut_drags", "frames", "frame_rate", "error")}
+                state = {k: val for k, val in v.state().items() if k in ("drags", "cut_drags", "frames", "frame_rate", "error")}
                 raise AssertionError(f"no ctrl+drag began: {state}; the press at {px} of the canvas; "
                                      f"the camera then {camera}, now {_camera(v)}") from None
             wait_until(lambda: s.scalpel is not None, 180, lambda: f"scalpel mode ({s.cut_status!r}, {s.error})")

@@ -134,9 +134,8 @@ def on_surface(points: np.ndarray, tri: np.ndarray, tol: float, along: float | N
 
 
 def _crossings(P: np.ndarray, Q: np.ndarray, tri: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """(s,) whether each segment P-Q passes through a triangle (its inside or its edges, within
-    ``tol``), its ends off the triangle's plane on opposite sides (by more than ``tol``), and (s,)
-    the first triangle it passes through (-1: none)."""
+    """(s,) whether each segment P-Q passes through a triangle (its inside or its edges, within ``tol``), its ends off
+    the triangle's plane on opposite sides (by more than ``tol``), and (s,) the first triangle it passes through (-1: none)."""
     out = np.zeros(P.shape[0], dtype=bool)
     first = np.full(P.shape[0], -1)
     frames = _frames(tri)
@@ -284,9 +283,10 @@ def _cut_zone(V: np.ndarray, T: np.ndarray, tri: np.ndarray, tols: tuple, snap, 
     order = inner[np.argsort(index[inner], kind="stable")]
     f1, f2 = order[0::2], order[1::2]  # the two sides of each interior face
     C = V[keys[f1]]
-    mids = np.stack([(C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2, (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
     cut = on_surface(np.concatenate([C[:, 0], C[:, 1], C[:, 2]]), tri, tol).reshape(3, -1).all(axis=0)
-    cut[cut] = on_surface(mids[:, cut].reshape(-1, 3), tri, bend).reshape(4, -1).all(axis=0)
+    C = C[cut]  # (the faces with their corners on the surface: their midpoints and centre)
+    mids = np.concatenate([(C[:, 0] + C[:, 1]) / 2, (C[:, 1] + C[:, 2]) / 2, (C[:, 0] + C[:, 2]) / 2, C.mean(axis=1)])
+    cut[cut] = on_surface(mids, tri, bend).reshape(4, -1).all(axis=0)
     if not cut.any():
         raise NothingToCut("the cut surface lies along no element face inside the solid: it misses the solid, runs "
                          "along its outside, or crosses elements without following their faces")
