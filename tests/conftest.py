@@ -137,6 +137,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def thread_stacks(depth: int = 6) -> str:
+    """Where each thread of this process is now (its innermost ``depth`` frames): for a timeout's message."""
+    import sys
+    import threading
+    import traceback
+
+    names = {t.ident: t.name for t in threading.enumerate()}
+    out = []
+    for ident, frame in sys._current_frames().items():
+        lines = [line for line in traceback.format_stack(frame) if "/threading.py" not in line][-depth:]
+        out.append(f"--- thread {names.get(ident, ident)}:\n" + "".join(lines))
+    return "\n".join(out)
+
+
 def wait_until(cond, timeout: float, what, poll: float = 0.1) -> None:
     """Poll ``cond()`` until it is true; an AssertionError naming ``what`` (a string, or a callable giving
     one then: the state at the timeout) after ``timeout`` s."""

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from conftest import free_port, wait_until
+from conftest import free_port, thread_stacks, wait_until
 
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 
@@ -53,8 +53,7 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
             time.sleep(0.05)
         v._on_cut(event("end", 0.025))
         # (generous: in a fresh clone beside the suite, the worker process's first cut compiles its kernels)
-        wait_until(lambda: v.cuts_drawn >= 1, 240,
-                   lambda: f"a cut drawn ({s.cut_status!r}; worker: {s.scalpel.worker_note}; error: {s.error})")
+        wait_until(lambda: v.cuts_drawn >= 1, 240, lambda: f"a cut drawn ({stuck(s, v)})")
         sc = s.scalpel
 
         def settled():  # no cut job at work or waiting, and every cut the session took drawn
@@ -70,3 +69,14 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
             s.grab((L, W / 2, W / 2))
     finally:
         v.stop()
+
+
+def stuck(s, v) -> str:
+    """The session's, its scalpel's and the viewer's state, and every thread's stack: what a timeout says."""
+    sc = s.scalpel
+    job = sc._job is not None and sc._job.is_alive()
+    worker = sc._worker is not None and sc._worker.alive
+    return (f"{s.cut_status!r}; error: {s.error}; steps {s.stats.steps}, frames {v.frames}; the scalpel: "
+            f"{sc.triangles.shape[0]} triangles swept, {sc._tried} tried, {sc.cuts} cuts, job at work {job}, "
+            f"a cut ready {sc._ready is not None}, lifted {sc.lifted}, refused {sc.refused}, worker alive {worker}, "
+            f"worker note {sc.worker_note}\n{thread_stacks()}")
