@@ -30,6 +30,12 @@ def test_the_blade_runs_along_the_line_of_sight():
     np.testing.assert_allclose(heel, (1.0, 2.0, 3.0 + CUT_ABOVE))
 
 
+def _event(phase, y):
+    """A ctrl+drag event as viser sends it: the pointer on the plane facing the camera, through the block's top."""
+    p = (L / 2, y, 0.019)
+    return NS(phase=phase, end_position=p, start_position=p, client=NS(camera=NS(position=(L / 2, y, 0.5))))
+
+
 def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
     from rtfem.viewer.app import Viewer
     from rtfem.viewer.session import Session, Settings
@@ -41,17 +47,13 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
     n0 = s.model.n_nodes
     v = Viewer(s, port=free_port()).start()
     try:
-        def event(phase, y):
-            p = (L / 2, y, 0.019)  # the pointer on the plane facing the camera, through the top
-            return NS(phase=phase, end_position=p, start_position=p, client=NS(camera=NS(position=(L / 2, y, 0.5))))
-
-        v._on_cut(event("start", -0.005))
+        v._on_cut(_event("start", -0.005))
         wait_until(lambda: s.scalpel is not None, 180, "scalpel mode")
         assert "hung at its equilibrium under gravity" in s.cut_status
         for k in range(60):
-            v._on_cut(event("update", -0.005 + 0.03 * k / 59))
+            v._on_cut(_event("update", -0.005 + 0.03 * k / 59))
             time.sleep(0.05)
-        v._on_cut(event("end", 0.025))
+        v._on_cut(_event("end", 0.025))
         # (generous: in a fresh clone beside the suite, the worker process's first cut compiles its kernels)
         wait_until(lambda: v.cuts_drawn >= 1, 240, lambda: f"a cut drawn ({stuck(s, v)})")
         sc = s.scalpel
@@ -80,3 +82,54 @@ def stuck(s, v) -> str:
             f"{sc.triangles.shape[0]} triangles swept, {sc._tried} tried, {sc.cuts} cuts, job at work {job}, "
             f"a cut ready {sc._ready is not None}, lifted {sc.lifted}, refused {sc.refused}, worker alive {worker}, "
             f"worker note {sc.worker_note}\n{thread_stacks()}")
+
+
+class _Recorder:
+    """A session's cut and lift, recorded (scalpel mode entered by the first cut, after ``delay`` s)."""
+
+    def __init__(self, delay: float = 0.0) -> None:
+        self.calls, self.scalpel, self.generation, self.cut_status, self.error, self.delay = [], None, 0, "", None, delay
+
+    def cut(self, tip, heel) -> None:
+        if self.scalpel is None:
+            time.sleep(self.delay)
+            self.scalpel = object()
+        self.calls.append(("cut", float(tip[1])))
+
+    def lift(self) -> None:
+        self.calls.append(("lift",))
+
+
+def _front_end(session):
+    from rtfem.viewer.cut_view import CutView
+
+    class Front(CutView):
+        def __init__(self) -> None:
+            self.session, self.mode_index, self._mode_dropdown = session, None, NS(value="")
+            self._init_cut()
+
+    return Front()
+
+
+def _mouse(front, phase, y):
+    front._on_cut(_event(phase, y))
+
+
+def test_strokes_that_come_between_two_frames_reach_the_session_in_order_each_ending_in_a_lift():
+    """Two strokes within one frame (and one while scalpel mode is being entered): each stroke's blade
+    moves, its end lifts the blade, and the second does not continue the first (the mouse's last blade
+    of a stroke is the one placed: the places between are the frames', not the session's)."""
+    s = _Recorder(delay=0.3)
+    front = _front_end(s)
+    _mouse(front, "start", 0.001)
+    front._apply_cut()  # enters scalpel mode with the first blade, on a thread
+    for phase, y in [("update", 0.002), ("update", 0.003), ("end", 0.003), ("start", 0.010), ("update", 0.011),
+                     ("end", 0.011)]:
+        _mouse(front, phase, y)
+        front._apply_cut()  # (held: still entering)
+    front._entering.join()
+    _mouse(front, "start", 0.020)
+    _mouse(front, "end", 0.020)
+    front._apply_cut()
+    assert s.calls == [("cut", 0.001), ("cut", 0.003), ("lift",), ("cut", 0.011), ("lift",), ("cut", 0.020), ("lift",)]
+    assert front.cut_drags == 3

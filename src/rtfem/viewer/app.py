@@ -128,6 +128,7 @@ class Viewer(Served, CutView):
         self._press: tuple[np.ndarray, float] | None = None  # shift-drag: (vertex position, inward normal)
         self._last_u = np.zeros((session.mesh.n_vertices, 3))
         self._stop = threading.Event()
+        self._init_cut()
         self._build_scene()
         self._build_panel()
         self._thread = background(threading.Thread(target=self._frames, name="rtfem-viewer-frames", daemon=True),

@@ -31,42 +31,51 @@ def blade(point, camera) -> tuple[np.ndarray, np.ndarray]:
 class CutView:
     """The :class:`~rtfem.viewer.app.Viewer`'s side of cutting (see the module)."""
 
-    _cut_blade = None  # the blade (tip, heel) the mouse asks for, "lift", or None: taken by the next frame
     _entering: threading.Thread | None = None
     _generation = 0  # the session's cut models drawn so far
     cuts_drawn = 0
     cut_drags = 0  # ctrl+drags the browser has begun on the organ (their "start" events)
 
+    def _init_cut(self) -> None:
+        self._cut_lock = threading.Lock()
+        # the mouse's blades (tip, heel) and "lift"s (a stroke's end) not yet taken by a frame, in order: a lift
+        # is never lost to the next blade (it was one slot, read and cleared in two steps: a stroke's end written
+        # between them was cleared unseen, the blade left in the tissue) and two strokes never join into one
+        self._cut_events: list = []
+
     def _on_cut(self, event) -> None:
-        if event.phase == "end":
-            self._cut_blade = "lift"
-            return
         if event.phase == "start":
             self.cut_drags += 1
             self.mode_index = None
             self._mode_dropdown.value = "off"
-        self._cut_blade = blade(event.end_position, event.client.camera.position)
+        item = "lift" if event.phase == "end" else blade(event.end_position, event.client.camera.position)
+        with self._cut_lock:
+            events = self._cut_events
+            if events and not isinstance(item, str) and not isinstance(events[-1], str):
+                events[-1] = item  # the blade moved again before a frame took it: the newest place is the one
+            else:
+                events.append(item)
 
     def _apply_cut(self) -> None:
-        """The frame thread's share: the mouse's blade to the session, a new surface when a cut came."""
+        """The frame thread's share: the mouse's blades and lifts to the session, in order (held while scalpel
+        mode is being entered; the first blade enters it), a new surface when a cut came."""
         s = self.session
-        pending, self._cut_blade = self._cut_blade, None
         entering = self._entering is not None and self._entering.is_alive()
-        if isinstance(pending, str):
-            if entering:
-                self._cut_blade = pending  # (lifted once it has entered)
-            else:
+        with self._cut_lock:
+            events, self._cut_events = ([], self._cut_events) if entering else (self._cut_events, [])
+        for i, item in enumerate(events):
+            if isinstance(item, str):
                 s.lift()
-        elif pending is not None:
-            if s.scalpel is not None:
-                s.cut(*pending)
-            elif entering:
-                self._cut_blade = pending
+            elif s.scalpel is not None:
+                s.cut(*item)
             else:
+                with self._cut_lock:  # the rest of the stroke waits for scalpel mode
+                    self._cut_events[:0] = events[i + 1:]
                 s.cut_status = "entering scalpel mode: the organ on the full order, hung under gravity ..."
-                self._entering = threading.Thread(target=self._enter, args=pending, daemon=True,
+                self._entering = threading.Thread(target=self._enter, args=item, daemon=True,
                                                   name="rtfem-viewer-scalpel")
                 self._entering.start()
+                break
         if s.generation != self._generation:
             self._use_surface()
             self.cuts_drawn += 1
@@ -75,7 +84,9 @@ class CutView:
         s = self.session
         try:
             s.cut(tip, heel)
-        except RtfemError as exc:  # a shell, a device attached: said in the panel
+        except RtfemError as exc:  # a shell, a device attached: said in the panel; the stroke is dropped
+            with self._cut_lock:
+                self._cut_events.clear()
             s.cut_status = ""
             s.error = str(exc)
 
