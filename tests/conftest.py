@@ -161,3 +161,22 @@ def wait_until(cond, timeout: float, what, poll: float = 0.1) -> None:
         if time.time() - t0 > timeout:
             raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what() if callable(what) else what}")
         time.sleep(poll)
+
+
+def cut_state(s, v) -> str:
+    """The session's, its scalpel's and the viewer's state, and every thread's stack: what a timeout says."""
+    sc = s.scalpel
+    job = sc._job is not None and sc._job.is_alive()
+    worker = sc._worker is not None and sc._worker.alive
+    return (f"{s.cut_status!r}; error: {s.error}; steps {s.stats.steps}, frames {v.frames}; the scalpel: "
+            f"{sc.triangles.shape[0]} triangles swept, {sc._tried} tried, {sc.cuts} cuts, job at work {job}, "
+            f"a cut ready {sc._ready is not None}, lifted {sc.lifted}, refused {sc.refused}, worker alive {worker}, "
+            f"worker note {sc.worker_note}\n{thread_stacks()}")
+
+
+def cuts_settled(s, v) -> bool:
+    """Whether viewer ``v``'s session ``s`` in scalpel mode has every strip swept tried, no cut job at work or
+    waiting, and every cut it took drawn."""
+    sc = s.scalpel
+    idle = (sc._job is None or not sc._job.is_alive()) and sc._ready is None and sc._tried == sc.triangles.shape[0]
+    return idle and v._generation == s.generation

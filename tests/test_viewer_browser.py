@@ -23,7 +23,7 @@ import pytest
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
 
-from conftest import free_port, wait_until  # noqa: E402
+from conftest import cut_state, cuts_settled, free_port, wait_until  # noqa: E402
 from rtfem.viewer.benchmark import BROWSER_COUNTER  # noqa: E402
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "browser"
@@ -118,6 +118,13 @@ def _pixels(png: bytes) -> np.ndarray:
     from PIL import Image
 
     return np.asarray(Image.open(BytesIO(png)).convert("RGB"), dtype=float)
+
+
+def _drawn_at(page, x: float, y: float) -> bool:
+    """Whether the browser draws something at (x, y) of the page (the 5 x 5 pixels about it): not the white
+    background. A loaded machine's browser drew the scene seconds after its camera was framed and still."""
+    box = page.screenshot(clip={"x": x - 2, "y": y - 2, "width": 5, "height": 5})
+    return bool((_pixels(box) < 235).any(axis=2).all())
 
 
 @pytest.fixture(scope="module", params=["default", "shell"])
@@ -380,6 +387,7 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             canvas = page.locator("canvas").first.bounding_box()
             px, camera = v.project(v.centre)[0], _camera(v)
             x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
+            wait_until(lambda: _drawn_at(page, x0, y0), 60, "the browser to draw the block where it is pressed")
             page.keyboard.down("Control")
             page.mouse.move(x0, y0)  # pressed on the block's middle
             page.mouse.down()
@@ -391,7 +399,8 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             except AssertionError:
                 page.screenshot(path=str(ARTIFACTS / "4_no_ctrl_drag.png"))
                 state = {k: val for k, val in v.state().items() if k in ("drags", "cut_drags", "frames", "frame_rate", "error")}
-                raise AssertionError(f"no ctrl+drag began: {state}; the press at {px} of the canvas; "
+                raise AssertionError(f"no ctrl+drag began: {state}; the press at {px} of the canvas, where the block "
+                                     f"was drawn (and is now: {_drawn_at(page, x0, y0)}); "
                                      f"the camera then {camera}, now {_camera(v)}") from None
             wait_until(lambda: s.scalpel is not None, 180, lambda: f"scalpel mode ({s.cut_status!r}, {s.error})")
             for i in range(1, 41):  # down across the block's height on the screen
@@ -400,8 +409,8 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             page.mouse.up()
             page.keyboard.up("Control")
             # (generous: in a fresh clone beside the suite, the worker process's first cut compiles its kernels)
-            wait_until(lambda: v.cuts_drawn >= 1, 240,
-                       lambda: f"a cut drawn ({s.cut_status!r}; worker: {s.scalpel.worker_note}; error: {s.error})")
+            wait_until(lambda: v.cuts_drawn >= 1, 240, lambda: f"a cut drawn ({cut_state(s, v)})")
+            wait_until(lambda: cuts_settled(s, v), 240, "the cuts to settle")  # (the strips still waiting: cut)
             frames = v.frames
             wait_until(lambda: v.frames > frames + 5, 30, "frames after the cut")
             page.screenshot(path=str(ARTIFACTS / "4_cut_block.png"))

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import rtfem as rt
-from conftest import free_port, thread_stacks, wait_until
+from conftest import cut_state, cuts_settled, free_port, wait_until
 
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 
@@ -55,13 +55,8 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
             time.sleep(0.05)
         v._on_cut(_event("end", 0.025))
         # (generous: in a fresh clone beside the suite, the worker process's first cut compiles its kernels)
-        wait_until(lambda: v.cuts_drawn >= 1, 240, lambda: f"a cut drawn ({stuck(s, v)})")
-        sc = s.scalpel
-
-        def settled():  # no cut job at work or waiting, and every cut the session took drawn
-            return (sc._job is None or not sc._job.is_alive()) and sc._ready is None and v._generation == s.generation
-
-        wait_until(settled, 240, "the cuts to settle")
+        wait_until(lambda: v.cuts_drawn >= 1, 240, lambda: f"a cut drawn ({cut_state(s, v)})")
+        wait_until(lambda: cuts_settled(s, v), 240, "the cuts to settle")
         frames = v.frames
         wait_until(lambda: v.frames > frames + 3, 10, "frames after the cut")
         assert s.model.n_nodes > n0 and s.generation >= 1
@@ -72,16 +67,6 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
     finally:
         v.stop()
 
-
-def stuck(s, v) -> str:
-    """The session's, its scalpel's and the viewer's state, and every thread's stack: what a timeout says."""
-    sc = s.scalpel
-    job = sc._job is not None and sc._job.is_alive()
-    worker = sc._worker is not None and sc._worker.alive
-    return (f"{s.cut_status!r}; error: {s.error}; steps {s.stats.steps}, frames {v.frames}; the scalpel: "
-            f"{sc.triangles.shape[0]} triangles swept, {sc._tried} tried, {sc.cuts} cuts, job at work {job}, "
-            f"a cut ready {sc._ready is not None}, lifted {sc.lifted}, refused {sc.refused}, worker alive {worker}, "
-            f"worker note {sc.worker_note}\n{thread_stacks()}")
 
 
 class _Recorder:

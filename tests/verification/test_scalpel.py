@@ -391,9 +391,11 @@ def test_the_tissues_share_of_the_cutting_force_is_a_body_force_about_the_edge()
 def test_strokes_through_a_clamped_block_as_the_viewer_makes_them_never_turn_a_tet_inside_out():
     """Six strokes of the viewer's blade (along a line of sight, from a camera placed at random: seed 4)
     through the block clamped at both ends (E 300 kPa, gravity, the liver's toughness), cut as they go
-    (each strip's cut swapped in within 5 steps): every step holds and no tet is inside out, down to
-    tets of 1e-4 of the median's volume. Before, the fifth stroke's step turned four such tets inside out:
-    each node about the edge took an equal share of the cutting force, a split's small nodes too."""
+    (each strip's cut swapped in at the next step: the job joined, so that every run cuts the same; swapped
+    in whenever the job was done, the strokes differed from run to run and install to install: 1,022 to
+    1,065 nodes in four runs): every step holds and no tet is inside out, down to tets of 1e-4 of the median's volume.
+    (An equal share of the cutting force per node about the edge once turned four such tets inside out;
+    test_the_tissues_share_of_the_cutting_force_is_a_body_force_about_the_edge holds the share itself.)"""
     from rtfem.viewer.cut_view import blade
     from rtfem.viewer.cutting import _hang
 
@@ -413,17 +415,17 @@ def test_strokes_through_a_clamped_block_as_the_viewer_makes_them_never_turn_a_t
         for k in range(n):
             sc.update(*blade(p0 + (p1 - p0) * k / (n - 1), cam), t=sc.driver.time)
             sc.physics_step()
-            if k % 5 == 4:
-                sc.finish()
+            sc.join()
         sc.lift()
         for _ in range(100):
             sc.physics_step()
+            sc.join()
         sc.finish()
     X, T = np.asarray(sc.model.tetmesh.vertices), np.asarray(sc.model.tetmesh.tets)
     x = X + sc.driver.displacements()
     vol = lambda Y: np.einsum("ij,ij->i", np.cross(Y[T[:, 1]] - Y[T[:, 0]], Y[T[:, 2]] - Y[T[:, 0]]),  # noqa: E731
                               Y[T[:, 3]] - Y[T[:, 0]])
-    assert sc.cuts >= 10 and sc.model.n_nodes > 1.8 * model.n_nodes  # (cut much: 1,022 nodes of 525)
+    assert sc.cuts >= 10 and sc.model.n_nodes > 1.8 * model.n_nodes  # (cut much: 36 cuts, 1,079 nodes of 525)
     assert (vol(X) / np.median(vol(X))).min() < 1e-3 and (vol(x) > 0).all()
 
 
