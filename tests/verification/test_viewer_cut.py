@@ -113,3 +113,40 @@ def test_what_scalpel_mode_refuses_is_said():
     s.configure(n_modes=6)  # Reset through the API: the method and switches from before scalpel mode
     assert s.scalpel is None and (s.settings.method, s.settings.large) == ("modal", False)
     s.stop()
+
+
+def test_a_cut_job_that_fails_after_the_stroke_is_said_and_the_next_stroke_cuts_again(monkeypatch):
+    """A cut job failing (not a refusal: an error of the code's own) after the blade was lifted is said in the
+    panel (it was said only by the blade's next tick, so never after a lift) and the organ steps on; the next
+    stroke's job takes the strips that failed with its own: the block is cut through as rt.cut cuts it along
+    the plane the strokes swept (mid-length, on element faces: its nodes there copied)."""
+    mesh = rt.meshes.box(L, W, W, nx=10, ny=2, nz=2)
+    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3))
+    uncut = s.model
+    s.cut((L / 2, -0.02, 0.1), (L / 2, -0.02, 0.12))  # scalpel mode, the blade away from the block
+    sc = s.scalpel
+
+    def fails(*args, **kwargs):
+        raise ValueError("a fault of the cut's own")
+
+    def stroke(y0, y1):
+        for y in np.linspace(y0, y1, 30):
+            s.cut((L / 2, y, -0.005), (L / 2, y, W + 0.01))
+            s.step()
+        s.lift()
+        sc.join()
+        s.step()
+
+    with monkeypatch.context() as m:
+        m.setattr(sc, "_cut", fails)
+        stroke(-0.005, W / 2)
+    assert sc.cuts == 0 and "a cut failed (ValueError: a fault of the cut's own)" in s.error
+    failed = sc.triangles.shape[0]
+    stroke(-0.005, W + 0.005)  # (over the first's strips too: a blade drawn along its slit adds none there)
+    sc.finish()
+    s.step()
+    plane = np.array([[L / 2, -0.001, -0.005], [L / 2, W + 0.001, -0.005], [L / 2, W + 0.001, W + 0.01],
+                      [L / 2, -0.001, W + 0.01]])
+    assert failed > 0 and sc._applied == sc.triangles.shape[0]  # every strip in the model, the failed job's too
+    assert sc.cuts >= 1 and s.model.n_nodes == rt.cut(uncut, plane, [[0, 1, 2], [0, 2, 3]]).n_nodes == uncut.n_nodes + 9
+    s.stop()

@@ -99,6 +99,10 @@ class Cutting:
         """One step in scalpel mode (under the session's lock): the blade placed, the organ stepped, a
         cut ready swapped in (and taken by the session)."""
         sc = self.scalpel
+        if sc.error is not None:  # a cut job failed (rt.cut's refusals are sc.refused): said here, whether or not the
+            # blade is down (only a tick, the blade's, said it: a stroke's last job failing after the lift went unsaid)
+            err, sc.error = sc.error, None
+            self.error = f"a cut failed ({type(err).__name__}: {err}); the organ steps on and the next strip cuts again"
         if self._blade is not None:
             sc.update(*self._blade)
         sc.physics_step()
