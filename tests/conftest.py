@@ -171,7 +171,7 @@ def cut_state(s, v) -> str:
     return (f"{s.cut_status!r}; error: {s.error}; steps {s.stats.steps}, frames {v.frames}; the scalpel: "
             f"{sc.triangles.shape[0]} triangles swept, {sc._tried} tried, {sc.cuts} cuts, job at work {job}, "
             f"a cut ready {sc._ready is not None}, lifted {sc.lifted}, refused {sc.refused}, worker alive {worker}, "
-            f"worker note {sc.worker_note}\n{thread_stacks()}")
+            f"worker note {sc.worker_note}, its error {sc.error!r}, stopped {sc.stop_reason}\n{thread_stacks()}")
 
 
 def cuts_settled(s, v) -> bool:
