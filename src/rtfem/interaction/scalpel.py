@@ -243,8 +243,12 @@ class Scalpel(_MultiRate):
     def lift(self) -> None:
         """The blade out of the tissue (a stroke's end): the organ steps on under gravity, nothing is swept
         and the hand feels nothing until :meth:`update` places the blade again, which starts a new strip
-        there (not one from where it was lifted)."""
+        there (not one from where it was lifted). The blade's last strip, shorter than ``advance``, joins
+        the cut surface first: the cut reaches where the blade was lifted, not the strip before."""
         with self._lock:
+            model, U = self.shown
+            if not self.lifted and self._blade is not None and model is self.solid.model:
+                self._sweep(U, final=True)
             self.lifted, self.force = True, np.zeros(3)
             self._new_stroke()
 
@@ -330,10 +334,11 @@ class Scalpel(_MultiRate):
         ref[held] = np.einsum("pk,pkj->pj", bary[held], self.solid.X[self.solid.C[tet[held]]])
         return ref, nodes
 
-    def _sweep(self, U: np.ndarray) -> None:
+    def _sweep(self, U: np.ndarray, final: bool = False) -> None:
         """The blade's strip since its last one (reference configuration): the resistance from its edge
         in the uncut tissue the strip reaches, the tissue's share of the force, and, once it advanced by
-        ``advance``, its cells added to the cut surface (see :meth:`_cells`)."""
+        ``advance`` (``final``, the stroke's end: by a tenth of that), its cells added to the cut surface
+        (see :meth:`_cells`)."""
         tip, heel = self._blade
         world = heel + np.linspace(0.0, 1.0, SAMPLES)[:, None] * (tip - heel)
         ref, tree = self._reference(world, U)
@@ -358,7 +363,7 @@ class Scalpel(_MultiRate):
             self._push = np.unique(np.concatenate([np.asarray(k, dtype=np.int64) for k in near]))
         else:
             self._push = np.zeros(0, dtype=np.int64)
-        if step >= self.advance:  # the strip joins the cut surface
+        if step >= self.advance or final:  # the strip joins the cut surface
             corners = np.stack([a[:-1], a[1:], ref[1:], ref[:-1]], axis=1)  # (S - 1, 4, 3) cells
             share = self.solid.inside(_bilinear(corners, _SUB).reshape(-1, 3)).reshape(corners.shape[0], -1).mean(axis=1)
             self._anchor = ref
