@@ -388,20 +388,28 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             px, camera = v.project(v.centre)[0], _camera(v)
             x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
             wait_until(lambda: _drawn_at(page, x0, y0), 60, "the browser to draw the block where it is pressed")
-            page.keyboard.down("Control")
-            page.mouse.move(x0, y0)  # pressed on the block's middle
-            page.mouse.down()
-            for i in range(1, 6):
-                page.mouse.move(x0, y0 - 4 * i)
-                time.sleep(0.05)
-            try:
-                wait_until(lambda: v.cut_drags >= 1, 30, "the browser to begin a ctrl+drag on the block")
-            except AssertionError:
-                page.screenshot(path=str(ARTIFACTS / "4_no_ctrl_drag.png"))
-                state = {k: val for k, val in v.state().items() if k in ("drags", "cut_drags", "frames", "frame_rate", "error")}
-                raise AssertionError(f"no ctrl+drag began: {state}; the press at {px} of the canvas, where the block "
-                                     f"was drawn (and is now: {_drawn_at(page, x0, y0)}); "
-                                     f"the camera then {camera}, now {_camera(v)}") from None
+            for attempt in (1, 2, 3):  # (a loaded browser, 4 % of real time, ignored a press on the drawn block
+                # with its camera at rest, 2 rounds in 5 of the viewer tests beside 2 spinners: pressed again)
+                page.keyboard.down("Control")
+                page.mouse.move(x0, y0)  # pressed on the block's middle
+                page.mouse.down()
+                for i in range(1, 6):
+                    page.mouse.move(x0, y0 - 4 * i)
+                    time.sleep(0.05)
+                try:
+                    wait_until(lambda: v.cut_drags >= 1, 20, "the browser to begin a ctrl+drag on the block")
+                    break
+                except AssertionError:
+                    page.screenshot(path=str(ARTIFACTS / f"4_no_ctrl_drag_{attempt}.png"))
+                    keys = ("drags", "cut_drags", "frames", "frame_rate", "error")
+                    state = {k: val for k, val in v.state().items() if k in keys}
+                    if attempt == 3:
+                        raise AssertionError(f"no ctrl+drag began in 3 presses: {state}; the press at {px} of the canvas, "
+                                             f"where the block was drawn (and is now: {_drawn_at(page, x0, y0)}); "
+                                             f"the camera then {camera}, now {_camera(v)}") from None
+                    page.mouse.up()
+                    page.keyboard.up("Control")
+                    time.sleep(1.0)
             wait_until(lambda: s.scalpel is not None, 180, lambda: f"scalpel mode ({s.cut_status!r}, {s.error})")
             for i in range(1, 41):  # down across the block's height on the screen
                 page.mouse.move(x0, y0 - 20 + 3 * i)
