@@ -122,7 +122,7 @@ def _pixels(png: bytes) -> np.ndarray:
 
 def _drawn_at(page, x: float, y: float) -> bool:
     """Whether the browser draws something at (x, y) of the page (the 5 x 5 pixels about it): not the white
-    background. A loaded machine's browser drew the scene seconds after its camera was framed and still."""
+    background: the press lands on the block, not on an empty canvas still loading its scene."""
     box = page.screenshot(clip={"x": x - 2, "y": y - 2, "width": 5, "height": 5})
     return bool((_pixels(box) < 235).any(axis=2).all())
 

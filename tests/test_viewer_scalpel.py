@@ -68,7 +68,6 @@ def test_a_ctrl_drag_across_the_block_cuts_it_and_the_viewer_draws_the_cut():
         v.stop()
 
 
-
 class _Recorder:
     """A session's cut and lift, recorded (scalpel mode entered by the first cut, after ``delay`` s)."""
 
@@ -96,25 +95,21 @@ def _front_end(session):
     return Front()
 
 
-def _mouse(front, phase, y):
-    front._on_cut(_event(phase, y))
-
-
 def test_strokes_that_come_between_two_frames_reach_the_session_in_order_each_ending_in_a_lift():
     """Two strokes within one frame (and one while scalpel mode is being entered): each stroke's blade
     moves, its end lifts the blade, and the second does not continue the first (the mouse's last blade
     of a stroke is the one placed: the places between are the frames', not the session's)."""
     s = _Recorder(delay=0.3)
     front = _front_end(s)
-    _mouse(front, "start", 0.001)
+    front._on_cut(_event("start", 0.001))
     front._apply_cut()  # enters scalpel mode with the first blade, on a thread
     for phase, y in [("update", 0.002), ("update", 0.003), ("end", 0.003), ("start", 0.010), ("update", 0.011),
                      ("end", 0.011)]:
-        _mouse(front, phase, y)
+        front._on_cut(_event(phase, y))
         front._apply_cut()  # (held: still entering)
     front._entering.join()
-    _mouse(front, "start", 0.020)
-    _mouse(front, "end", 0.020)
+    front._on_cut(_event("start", 0.020))
+    front._on_cut(_event("end", 0.020))
     front._apply_cut()
     assert s.calls == [("cut", 0.001), ("cut", 0.003), ("lift",), ("cut", 0.011), ("lift",), ("cut", 0.020), ("lift",)]
     assert front.cut_drags == 3
