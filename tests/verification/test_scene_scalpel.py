@@ -373,3 +373,65 @@ def test_a_grasper_holds_the_piece_the_scalpel_cuts_free_and_carries_its_weight(
     weight = body.masses[tip].sum() * 9.81  # (0.4 % over the plane x = 0.0705's: the cut is where the blade met
     assert weight == pytest.approx(1060.0 * (L - 0.0705) * W * W * 9.81, rel=1e-2)  # the sagging beam)
     assert scene.contacts[("beam", "grip")] == pytest.approx([0.0, 0.0, weight], rel=1e-6, abs=1e-6 * weight)
+
+
+def test_a_cut_job_that_fails_is_raised_by_its_step_with_zero_force_and_the_scene_cuts_on_to_the_same_beam():
+    """A cut job failing with an error of its own (not rt.cut's refusal) is raised by the step it failed in,
+    the step taken (it was said only by the blade's next tick in the tissue, which then stopped the scalpel
+    for good, and never while the blade was out of it); the hand is given zero force at that step; the scene
+    steps on, and the next strips' jobs take the failed job's strips with their own: the beam ends cut node
+    for node as a run in which no job failed cuts it."""
+    _, clean, knife0 = _beam_scene()
+    clean.run(30)
+    model, scene, knife = _beam_scene()
+    cutter, device = knife.cutter, knife.device
+    real, calls = cutter._cut, []
+
+    def fails(*args, **kwargs):
+        calls.append(scene.steps)
+        if len(calls) <= 2:
+            raise ValueError("a fault of the cut's own")
+        return real(*args, **kwargs)
+
+    cutter._cut = fails
+    raised = []
+    while scene.steps < 30:
+        before = scene.steps
+        try:
+            scene.step()
+        except ModelError as exc:
+            raised.append((before, str(exc)))
+            assert scene.steps == before + 1 and np.all(device.forces[-1] == 0.0)  # the step taken, the hand freed
+    assert [k for k, _ in raised] == calls[:2] and knife.cuts >= 1 and knife0.cuts >= 1
+    assert "scalpel knife: a cut job failed (ValueError: a fault of the cut's own)" in raised[0][1]
+    assert cutter.stop_reason is None and cutter._applied == knife0.cutter._applied > 0  # (the stroke's last strips
+    # cut no face whole: in neither model)
+    a, b = scene.body("beam").driver.model.tetmesh, clean.body("beam").driver.model.tetmesh
+    assert a.n_tets == b.n_tets and a.n_vertices == b.n_vertices > model.n_nodes  # (on element faces: nodes copied)
+    assert np.array_equal(np.sort(np.asarray(a.vertices), axis=0), np.sort(np.asarray(b.vertices), axis=0))
+
+
+def test_the_scene_viewer_says_a_failed_cut_job_and_steps_on_to_the_cut(tmp_path):
+    """In the scene viewer's session a cut job's failure is said in the panel (session.error) and the clock
+    steps on (a failed step stops it); the beam is cut in the end as without the failure."""
+    from rtfem.viewer.scene_session import SceneSession
+
+    scene = load_scene(_scene_file(tmp_path))
+    knife = scene.scalpels[0]
+    real, calls = knife.cutter._cut, []
+
+    def fails_once(*args, **kwargs):
+        calls.append(scene.steps)
+        if len(calls) == 1:
+            raise RuntimeError("a fault of the cut's own")
+        return real(*args, **kwargs)
+
+    knife.cutter._cut = fails_once
+    session = SceneSession(scene, playing=False)
+    for _ in range(140):  # 0.7 s: the blade has crossed the beam (0.3 - 0.6 s)
+        session.step()
+    assert scene.steps == 140 and len(calls) > 1 and knife.cuts >= 1
+    assert "scalpel knife: a cut job failed (RuntimeError: a fault of the cut's own)" in session.error
+    clean = load_scene(_scene_file(tmp_path))
+    clean.run(140)
+    assert _same_mesh(knife.model.tetmesh, clean.scalpels[0].model.tetmesh, tol=1e-15)

@@ -282,7 +282,8 @@ class Scene:
         raise ModelError(f"no body named {name!r} (bodies: {', '.join(b.name for b in self.bodies) or 'none'})")
 
     def step(self) -> None:
-        """One step of every body (see the module's docstring), their contacts solved together."""
+        """One step of every body (see the module's docstring), their contacts solved together. A scalpel's cut
+        job that failed (an error of its own, not rt.cut's refusal) raises ModelError after the step is taken."""
         if not self.bodies:
             raise ModelError("the scene has no body: add_body first")
         t1 = (self.steps + 1) * self.dt
@@ -329,6 +330,8 @@ class Scene:
         self.contacts = contacts
         self.steps += 1
         self.time = self.steps * self.dt
+        for scalpel in self.scalpels:  # a cut job's failure, said with the step taken
+            scalpel.raise_failure()
 
     def run(self, n_steps: int) -> None:
         for _ in range(validate.count(n_steps, "n_steps", 0, 10**9)):

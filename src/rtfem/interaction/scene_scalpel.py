@@ -21,7 +21,12 @@ from .. import validate
 from ..errors import ModelError
 from .scalpel import TOUGHNESS, Scalpel
 
-__all__ = ["SceneScalpel"]
+__all__ = ["SceneScalpel", "CutJobFailed"]
+
+
+class CutJobFailed(ModelError):
+    """A scalpel's cut job failed with an error of its own (rt.cut's refusals are not this), raised by the
+    scene's step after the step is taken: the scene can step on (see :meth:`SceneScalpel.raise_failure`)."""
 
 
 class SceneScalpel:
@@ -67,6 +72,7 @@ class SceneScalpel:
         self.force = np.zeros(3)  # on the hand, the last step's (the tissue took its opposite)
         self.applied = np.zeros(3)  # on the body, this step's: the opposite, where the tissue took it
         self.tip = None  # where the device put the blade's tip in the last step
+        self.failure = None  # a cut job's error, raised at the end of the step (raise_failure)
 
     def __repr__(self) -> str:
         return f"SceneScalpel({self.name!r}, body={self.body!r})"
@@ -87,6 +93,7 @@ class SceneScalpel:
     def begin(self, t: float) -> bool:
         """The step ending at ``t``: a finished cut swapped in (True: the body's model changed; the scene
         then rebuilds the body), and the blade placed at the device (or lifted out of the tissue)."""
+        self._take_failure()  # (not raised by the blade's tick below, which would stop the scalpel for good)
         changed = self.cutter.take_cut()
         x = validate.vector(self.device.position(t), f"scalpel {self.name}: the device's position", 3)
         self.tip = np.asarray(x, dtype=float)
@@ -113,7 +120,28 @@ class SceneScalpel:
         self.cutter.follow(U)
         if self.wait:
             self.cutter.join()
+        if self._take_failure():
+            self.force = np.zeros(3)
         self.device.set_force(t, self.force)
+
+    def _take_failure(self) -> bool:
+        """A cut job's failure (an error of its own: rt.cut's refusals are ``cutter.refused``) taken from the
+        cutter, to be raised by :meth:`raise_failure` at the end of the step. True while one waits there."""
+        err, self.cutter.error = self.cutter.error, None
+        if err is not None and self.failure is None:
+            self.failure = err
+        return self.failure is not None
+
+    def raise_failure(self) -> None:
+        """Raise the failure of a cut job (the scene does at the end of a step, the step taken: the body stepped
+        uncut there, the hand given zero force); the next step goes on, and the next strip's job takes the
+        strips of the one that failed with its own. A job in a worker that failed meanwhile is raised at the
+        end of a later step."""
+        err, self.failure = self.failure, None
+        if err is not None:
+            raise CutJobFailed(f"scalpel {self.name}: a cut job failed ({type(err).__name__}: {err}); body {self.body} "
+                             "stepped on uncut there, the hand was given zero force, and the next strip's cut job tries "
+                             "those strips again (step on to go on)") from err
 
     def remap(self, nodes) -> tuple[np.ndarray, np.ndarray]:
         """The last cut's nodes that are entries of ``nodes`` (of the model before it; repeats allowed) or
@@ -145,6 +173,7 @@ class SceneScalpel:
         for k in (*_STATE, "latencies", "_added"):
             setattr(c, k, list(state[k]) if k in ("latencies", "_added") else state[k])
         self.force, self.tip = state["scene"][0].copy(), state["scene"][1]
+        self.failure = c.error = None  # (a failure of a cut since undone)
 
     def close(self) -> None:
         """Stop its cut worker process, if any."""

@@ -259,8 +259,14 @@ class SceneSession(PhysicsThread):
                 self._epoch += 1
 
     def _step_and_keep(self) -> None:
-        """One step of the scene, its state kept every SNAPSHOT_EVERY s (under the lock)."""
-        self.scene.step()
+        """One step of the scene, its state kept every SNAPSHOT_EVERY s (under the lock). A scalpel's failed cut
+        job is said in the panel and the scene steps on (that step was taken; the next strip's job cuts again)."""
+        from ..interaction.scene_scalpel import CutJobFailed
+
+        try:
+            self.scene.step()
+        except CutJobFailed as exc:
+            self.error = str(exc)
         k = self.scene.steps
         if k % self._every == 0 and k not in self._snapshots:
             self._snapshots[k] = snapshot(self.scene)
