@@ -112,10 +112,22 @@ def test_a_multi_rate_loop_runs_its_ticks_in_real_time_where_permitted(monkeypat
     model.fix("x0")
     sim = rt.DirectSimulator(model, 1e-3, rt.Damping(alpha=10.0), large_deformation=True)
     far = np.asarray(model.mesh.vertices).max(axis=0) + 1.0
+    policies = set()  # the physics thread's scheduling, read at each tick
+
+    def position(t):
+        physics = probe._thread
+        if physics is not None and physics.native_id is not None and probe.physics_steps:
+            policies.add(os.sched_getscheduler(physics.native_id))
+        return far
+
     with rt.MultiRateProbe(model.mesh, sim) as probe:
-        stats = rt.HapticLoop(probe, rt.ScriptedDevice(lambda t: far), rate=1000).run(0.05)
+        stats = rt.HapticLoop(probe, rt.ScriptedDevice(position), rate=1000).run(0.1)
     out = {}  # the words raise_to_realtime gives a thread here
     t = threading.Thread(target=lambda: out.setdefault("got", threads.raise_to_realtime()))
     t.start()
     t.join()
     assert stats.steps >= 10 and stats.priority == out["got"]
+    # the physics thread, started by the first tick, does not keep the ticks' real-time scheduling (it did: at the
+    # ticks' own FIFO priority they could not pre-empt it, nor the cut jobs it starts); it asks for the stepping
+    # threads' raised nice value instead
+    assert policies == {os.SCHED_OTHER} and probe.priority == _in_thread(threads.raise_priority)["got"]

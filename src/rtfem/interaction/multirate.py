@@ -163,6 +163,7 @@ class _MultiRate:
         self.physics_seconds = 0.0  # wall time spent in physics steps
         self.step_times: list[float] = []
         self._switch = None
+        self.priority = ""  # the physics thread's scheduling, in words (rtfem.threads.raise_priority)
 
     def _tick(self, position, allow_none: bool = False):
         """The checks of every tick: a stopped physics raises (zero force), the hand kept for the
@@ -225,6 +226,10 @@ class _MultiRate:
         self.close()
 
     def _run(self) -> None:
+        from ..threads import leave_realtime, raise_priority
+
+        leave_realtime()  # (started by the loop's first tick, it had the ticks' real-time scheduling)
+        self.priority = raise_priority()
         try:
             while not self._stop.is_set():
                 if time.perf_counter() - self._last_tick > IDLE_AFTER:  # no ticks: the loop stopped
@@ -279,7 +284,7 @@ class _MultiRate:
         return {"steps": self.physics_steps,
                 "steps_per_second": self.physics_steps / self.physics_seconds if self.physics_seconds else 0.0,
                 "step_median": float(np.median(st)), "step_p99": float(np.percentile(st, 99)),
-                "time_ratio": (float(self.driver.time) - self._sim0) / wall if wall > 0 else 0.0}
+                "time_ratio": (float(self.driver.time) - self._sim0) / wall if wall > 0 else 0.0, "priority": self.priority}
 
 
 _PARAMETERS = """    rate : the haptic ticks per second the caller runs (Hz): the snapshot driver's dt.
