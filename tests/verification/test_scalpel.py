@@ -286,6 +286,8 @@ def test_a_blade_drawn_across_a_still_block_cuts_what_rt_cut_cuts_along_its_plan
     model = _block(element=element)
     sc = rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), gravity=(0, 0, 0), toughness=0.0,
                     thread=False)
+    factorized, swap = [], sc._swap  # (each cut driver, whether it has its factor when it is swapped in)
+    sc._swap = lambda: (sc._ready is not None and factorized.append(sc._ready[3]._factor is not None), swap())
     _stroke(sc, W / 2, W + 0.01, np.linspace(-0.005, W + 0.005, 61))
     sc.finish()
     ref = rt.cut(model, _slit(W / 2, W + 0.001), QUAD)
@@ -294,6 +296,8 @@ def test_a_blade_drawn_across_a_still_block_cuts_what_rt_cut_cuts_along_its_plan
     assert _same_mesh(sc.model.tetmesh, ref.tetmesh)
     assert sc.driver.model is sc.model and sc.displacements().shape == (ref.n_nodes, 3)
     assert np.abs(sc.displacements()).max() < 1e-12
+    # each cut driver arrived factorized (on the cut job's thread), not in the physics step that swapped it in
+    assert len(factorized) == sc.cuts and all(factorized)
 
 
 def test_a_stroke_lifted_inside_the_block_cuts_up_to_where_it_was_lifted():

@@ -1,8 +1,8 @@
 """The scalpel's cut worker: a process of its own that cuts a model and assembles the cut one (its mesh
 cut, its stiffness, mass and nonlinear system built), so that the simulation's process only builds the
-driver on it. In the simulation's process that work held Python's lock for milliseconds at a time and
-the haptic ticks waited (benchmarks/scalpel.py: 12-14 ticks of 7,000 over 1 ms with it there, 1 with
-only the driver built there).
+driver on it (and its factor, on the cut job's thread). In the simulation's process that work held Python's
+lock for milliseconds at a time and the haptic ticks waited (benchmarks/scalpel.py: 12-14 ticks of 7,000
+over 1 ms with it there, 1 with only the driver built there).
 
 The worker is ``python -m rtfem.interaction.cut_worker``, started by :class:`CutWorker`; the two
 processes pass pickles of rtfem's own objects over the worker's stdin and stdout (nothing else reads

@@ -412,9 +412,10 @@ class Scalpel(_MultiRate):
             try:
                 new = self._cut(driver.model, V, T, held)
                 P = new.cut_info.transfer()
-                # (not its factor: made here, beside the ticks and the worker, it took the ticks' core: 484 of 7,000
-                # ticks missed against 66, one of 70 ms, on 2 cores, benchmarks/scalpel.py; the first step makes it)
-                self._ready = (driver.model, new, P, driver.carry_over(new, P), n)
+                prepared = driver.carry_over(new, P)
+                if hasattr(prepared, "factorize"):  # the lagged step's factor made here, not in the cut's frame
+                    prepared.factorize()
+                self._ready = (driver.model, new, P, prepared, _Solid(new, self.gravity), n)
             except NothingToCut:  # no new face swept whole yet: the next strip retries
                 pass
             except RtfemError as exc:  # refused (rt.cut says why): the next strip retries with more surface
@@ -467,12 +468,12 @@ class Scalpel(_MultiRate):
         ready, self._ready = self._ready, None
         if ready is None:
             return
-        model, new, P, prepared, n = ready
+        model, new, P, prepared, solid, n = ready
         if model is not self.solid.model:
             return
         self.driver = self.driver.carry_over(new, P, into=prepared)
         self.transfer, self.last_transfer = (P @ self.transfer).tocsr(), P
-        self.solid = _Solid(new, self.gravity)
+        self.solid = solid
         self.shown = (new, np.asarray(self.driver.displacements(), dtype=float))
         self._push = np.zeros(0, dtype=np.int64)
         self.cuts += 1
