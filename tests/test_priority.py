@@ -117,7 +117,7 @@ def test_a_multi_rate_loop_runs_its_ticks_in_real_time_where_permitted(monkeypat
     def position(t):
         physics = probe._thread
         if physics is not None and physics.native_id is not None and probe.physics_steps:
-            policies.add(os.sched_getscheduler(physics.native_id))
+            policies.add((os.sched_getscheduler(physics.native_id), os.sched_getparam(physics.native_id).sched_priority))
         return far
 
     with rt.MultiRateProbe(model.mesh, sim) as probe:
@@ -127,7 +127,43 @@ def test_a_multi_rate_loop_runs_its_ticks_in_real_time_where_permitted(monkeypat
     t.start()
     t.join()
     assert stats.steps >= 10 and stats.priority == out["got"]
-    # the physics thread, started by the first tick, does not keep the ticks' real-time scheduling (it did: at the
-    # ticks' own FIFO priority they could not pre-empt it, nor the cut jobs it starts); it asks for the stepping
-    # threads' raised nice value instead
-    assert policies == {os.SCHED_OTHER} and probe.priority == _in_thread(threads.raise_priority)["got"]
+    # the physics thread, started by the first tick, runs one real-time priority below the ticks (it had their own,
+    # and a tick could not pre-empt it, nor the cut jobs it starts), else at the stepping threads' raised nice value
+    if stats.priority.startswith("SCHED_FIFO"):
+        below = threads.HAPTIC_RT_PRIORITY - 1
+        assert policies == {(os.SCHED_FIFO, below)} and probe.priority == f"SCHED_FIFO {below}"
+    else:
+        assert policies == {(os.SCHED_OTHER, 0)} and probe.priority == _in_thread(threads.raise_priority)["got"]
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="real-time scheduling is Linux's")
+def test_a_thread_started_by_a_real_time_one_leaves_its_policy_or_goes_below_it():
+    """A thread inherits its creator's scheduling: below_ticks (a multi-rate tool's physics thread) takes one
+    FIFO priority below a real-time creator's, leave_realtime (the threads the physics starts: a scalpel's cut
+    jobs, a factor refreshed on a thread) the normal policy; neither changes a normal thread's policy."""
+    out = {}
+
+    def grandchild():
+        out["left"] = threads.leave_realtime(), os.sched_getscheduler(threading.get_native_id())
+
+    def child():
+        me = threading.get_native_id()
+        out["below"] = threads.below_ticks(), os.sched_getscheduler(me), os.sched_getparam(me).sched_priority
+        t = threading.Thread(target=grandchild)
+        t.start()
+        t.join()
+
+    def parent():
+        out["got"] = threads.raise_to_realtime()
+        t = threading.Thread(target=child)
+        t.start()
+        t.join()
+
+    t = threading.Thread(target=parent)
+    t.start()
+    t.join()
+    if not out["got"].startswith("SCHED_FIFO"):
+        pytest.skip(f"real-time scheduling not permitted here ({out['got']})")
+    assert out["below"] == (f"SCHED_FIFO {threads.HAPTIC_RT_PRIORITY - 1}", os.SCHED_FIFO, threads.HAPTIC_RT_PRIORITY - 1)
+    assert out["left"] == (True, os.SCHED_OTHER)
+    assert _in_thread(threads.leave_realtime)["got"] is False  # a normal thread: nothing to leave

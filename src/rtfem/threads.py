@@ -25,7 +25,7 @@ import time
 import weakref
 
 __all__ = ["blas_limits", "usable_cores", "SharedLimit", "runtime", "RUNTIME_THREADS", "background",
-           "raise_priority", "PHYSICS_NICE", "raise_to_realtime", "HAPTIC_RT_PRIORITY", "leave_realtime"]
+           "raise_priority", "PHYSICS_NICE", "raise_to_realtime", "HAPTIC_RT_PRIORITY", "leave_realtime", "below_ticks"]
 
 
 def usable_cores() -> int:
@@ -145,13 +145,11 @@ def raise_priority() -> str:
 
 
 def leave_realtime() -> bool:
-    """Put the calling thread under the normal policy (SCHED_OTHER) where it runs under a real-time one;
-    True where it did. A thread inherits the scheduling of the thread that starts it: a multi-rate tool's
-    physics thread, started by the first of the loop's real-time ticks, ran under SCHED_FIFO at the
-    ticks' own priority, as did the threads it starts (a scalpel's cut jobs), and a tick could not
-    pre-empt them (equal FIFO priorities run in turn). Measured (benchmarks/scalpel.py, the 9,467-tet
-    liver at 1 kHz on 2 cores, quiet): the ticks waited 0.06 s of 6.5 s for a core; with a cut job's
-    factorization on its thread, 0.35-0.57 s, 330-550 ticks missed. Linux only; never raises."""
+    """Put the calling thread under the normal policy (SCHED_OTHER) where it runs under a real-time one
+    (True where it did): a thread inherits the scheduling of the thread that starts it, and a helper
+    started by a real-time thread (a scalpel's cut job, a factor refreshed on a thread, started by a
+    multi-rate tool's physics thread) would take a core at real-time priority for its whole work.
+    Linux only; never raises."""
     if not hasattr(os, "sched_getscheduler") or not hasattr(threading, "get_native_id"):
         return False
     try:
@@ -162,6 +160,31 @@ def leave_realtime() -> bool:
     except OSError:  # pragma: no cover - leaving a real-time policy is always permitted
         return False
     return True
+
+
+def below_ticks() -> str:
+    """The scheduling of a multi-rate tool's physics thread, which the loop's first tick starts: where that
+    tick runs under SCHED_FIFO (:func:`raise_to_realtime`), the same policy one priority below it, so that
+    a tick pre-empts the physics (it inherited the ticks' own priority, and a tick cannot pre-empt a thread
+    of its FIFO priority: a scalpel's cut job, started by the physics thread alike, held the ticks off for
+    0.35-0.57 s of 6.5 s, 330-550 of 7,000 missed, benchmarks/scalpel.py), and the physics still runs ahead
+    of the machine's other processes and moves to a free core at once, as real-time threads do (at nice -10
+    instead, the full-order liver with a probe stepped at 29-40 steps/s quiet and 14-21 beside a busy core,
+    against 52-57 here and 39-69 at the ticks' own priority; benchmarks/haptic_fullorder.py --busy); else
+    :func:`raise_priority`. The threads it starts leave the real-time policy (:func:`leave_realtime`).
+    Returns what the thread got, in words; never raises."""
+    if hasattr(os, "sched_getscheduler") and hasattr(threading, "get_native_id"):
+        try:
+            me = threading.get_native_id()
+            if os.sched_getscheduler(me) == os.SCHED_FIFO:
+                prio = os.sched_getparam(me).sched_priority - 1
+                if prio >= 1:
+                    os.sched_setscheduler(me, os.SCHED_FIFO, os.sched_param(prio))
+                    return f"SCHED_FIFO {prio}"
+                leave_realtime()
+        except OSError:  # pragma: no cover - lowering a real-time priority is always permitted
+            pass
+    return raise_priority()
 
 
 HAPTIC_RT_PRIORITY = 10  # the SCHED_FIFO priority of a multi-rate loop's ticks (RTFEM_HAPTIC_RT overrides; 0: none)

@@ -34,6 +34,7 @@ import scipy.sparse as sp
 from .. import validate
 from ..errors import SolverError
 from ..fe.jit import chunked
+from ..threads import leave_realtime
 from .nonlinear_newmark import NonlinearNewmarkSimulator
 
 __all__ = ["LaggedNewmarkSimulator"]
@@ -258,6 +259,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         history = (self._visc.copy(), self.dt) if self._visc.size else None
 
         def work():
+            leave_realtime()  # (started by a stepping thread that may run under real-time scheduling)
             try:
                 fac = self._factorize(conf, history)
             except Exception:  # an indefinite tangent (a buckling state): keep the old factor

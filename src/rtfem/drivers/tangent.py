@@ -90,6 +90,9 @@ class TangentWorker:
         # thread waited (the viewer's default scene beside two busy processes: 0.75-0.94 of real
         # time, its longest step 0.17 s as a median over runs, the step refreshing the tangent itself
         # 16 times in 4 s; at nice 0: 1.00-1.01, 27 ms; benchmarks/results/viewer_step.txt).
+        from ..threads import leave_realtime
+
+        leave_realtime()  # (nor a stepping thread's real-time scheduling, where it has one)
         try:
             me = threading.get_native_id()
             os.setpriority(os.PRIO_PROCESS, me, max(os.getpriority(os.PRIO_PROCESS, me), 0))

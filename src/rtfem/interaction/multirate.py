@@ -163,7 +163,7 @@ class _MultiRate:
         self.physics_seconds = 0.0  # wall time spent in physics steps
         self.step_times: list[float] = []
         self._switch = None
-        self.priority = ""  # the physics thread's scheduling, in words (rtfem.threads.raise_priority)
+        self.priority = ""  # the physics thread's scheduling, in words (rtfem.threads.below_ticks)
 
     def _tick(self, position, allow_none: bool = False):
         """The checks of every tick: a stopped physics raises (zero force), the hand kept for the
@@ -226,10 +226,9 @@ class _MultiRate:
         self.close()
 
     def _run(self) -> None:
-        from ..threads import leave_realtime, raise_priority
+        from ..threads import below_ticks
 
-        leave_realtime()  # (started by the loop's first tick, it had the ticks' real-time scheduling)
-        self.priority = raise_priority()
+        self.priority = below_ticks()  # (started by the loop's first tick, it had the ticks' own scheduling)
         try:
             while not self._stop.is_set():
                 if time.perf_counter() - self._last_tick > IDLE_AFTER:  # no ticks: the loop stopped

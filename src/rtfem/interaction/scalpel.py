@@ -404,11 +404,14 @@ class Scalpel(_MultiRate):
         if n == self._tried or self._ready is not None or (self._job is not None and self._job.is_alive()):
             return
         from ..mesh.cut import NothingToCut
+        from ..threads import leave_realtime, raise_priority
 
         V, T, driver, held = self.vertices, self._to_cut(), self.driver, self.held
         self._tried = n
 
         def work() -> None:
+            leave_realtime()  # (not at the physics thread's real-time priority, where it has one: raised)
+            raise_priority()
             try:
                 new = self._cut(driver.model, V, T, held)
                 P = new.cut_info.transfer()
