@@ -170,7 +170,7 @@ def below_ticks() -> str:
     0.35-0.57 s of 6.5 s, 330-550 of 7,000 missed, benchmarks/scalpel.py), and the physics still runs ahead
     of the machine's other processes and moves to a free core at once, as real-time threads do (at nice -10
     instead, the full-order liver with a probe stepped at 29-40 steps/s quiet and 14-21 beside a busy core,
-    against 52-57 here and 39-69 at the ticks' own priority; benchmarks/haptic_fullorder.py --busy); else
+    against 35-57 here and 39-69 at the ticks' own priority; benchmarks/haptic_fullorder.py --busy); else
     :func:`raise_priority`. The threads it starts leave the real-time policy (:func:`leave_realtime`).
     Returns what the thread got, in words; never raises."""
     if hasattr(os, "sched_getscheduler") and hasattr(threading, "get_native_id"):
