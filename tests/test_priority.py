@@ -167,3 +167,21 @@ def test_a_thread_started_by_a_real_time_one_leaves_its_policy_or_goes_below_it(
     assert out["below"] == (f"SCHED_FIFO {threads.HAPTIC_RT_PRIORITY - 1}", os.SCHED_FIFO, threads.HAPTIC_RT_PRIORITY - 1)
     assert out["left"] == (True, os.SCHED_OTHER)
     assert _in_thread(threads.leave_realtime)["got"] is False  # a normal thread: nothing to leave
+
+
+def test_the_cut_worker_process_takes_the_stepping_threads_nice_value_and_rtfem_physics_nice_0_leaves_it(monkeypatch):
+    """The scalpel's cut worker process asks raise_priority for itself (by its pid): nice -10 where permitted,
+    and RTFEM_PHYSICS_NICE=0 leaves it at the normal priority (it set PHYSICS_NICE whatever that said)."""
+    from rtfem.interaction.cut_worker import CutWorker
+
+    def nice_of_worker():
+        worker = CutWorker()
+        try:
+            return os.getpriority(os.PRIO_PROCESS, worker._proc.pid)
+        finally:
+            worker.close()
+
+    monkeypatch.delenv("RTFEM_PHYSICS_NICE", raising=False)
+    assert nice_of_worker() == (threads.PHYSICS_NICE if _permitted() else os.getpriority(os.PRIO_PROCESS, 0))
+    monkeypatch.setenv("RTFEM_PHYSICS_NICE", "0")
+    assert nice_of_worker() == os.getpriority(os.PRIO_PROCESS, 0)

@@ -116,8 +116,9 @@ def runtime():
 PHYSICS_NICE = -10  # the nice value a stepping thread asks for (RTFEM_PHYSICS_NICE overrides; 0: normal)
 
 
-def raise_priority() -> str:
-    """Raise the calling thread's scheduling priority to :data:`PHYSICS_NICE` (or the whole
+def raise_priority(native_id: int | None = None) -> str:
+    """Raise the calling thread's scheduling priority (or that of thread or process ``native_id``: a worker
+    process's pid) to :data:`PHYSICS_NICE` (or the whole
     number in ``RTFEM_PHYSICS_NICE``; 0 leaves it), as haptic frameworks do with their servo
     threads (CHAI3D's haptics thread priority, OpenHaptics' servo loop). The viewer's session,
     the scene viewer's and the haptic loop call it on their stepping thread. Linux only (a
@@ -137,7 +138,7 @@ def raise_priority() -> str:
     if not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
         return "normal: not supported on this system"
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id() if native_id is None else native_id, nice)
     except OSError as exc:
         return (f"normal: not permitted ({exc.strerror}); allow it with CAP_SYS_NICE or an RLIMIT_NICE "
                 f"(limits.conf: '@users - nice {nice}')")

@@ -19,7 +19,7 @@ import sys
 import threading
 
 from ..errors import ModelError
-from ..threads import PHYSICS_NICE
+from ..threads import raise_priority
 
 __all__ = ["CutWorker", "WorkerGone", "cut_and_assemble"]
 
@@ -64,10 +64,7 @@ class CutWorker:
                    NUMBA_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
         self._proc = subprocess.Popen([sys.executable, "-m", "rtfem.interaction.cut_worker"], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
-        try:  # the stepping threads' raised priority (rtfem.threads.raise_priority), where permitted
-            os.setpriority(os.PRIO_PROCESS, self._proc.pid, PHYSICS_NICE)
-        except (AttributeError, OSError):
-            pass
+        raise_priority(self._proc.pid)  # the stepping threads' raised priority, where permitted (never raises)
         self._lock = threading.Lock()
 
     @property

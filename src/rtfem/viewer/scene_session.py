@@ -18,6 +18,7 @@ import numpy as np
 from ..drivers.base import displacements_at
 from ..errors import ModelError
 from ..interaction.devices.base import SharedDevice
+from ..interaction.scene_scalpel import CutJobFailed
 from ..threads import raise_priority, runtime
 from .session import PhysicsThread
 
@@ -261,8 +262,6 @@ class SceneSession(PhysicsThread):
     def _step_and_keep(self) -> None:
         """One step of the scene, its state kept every SNAPSHOT_EVERY s (under the lock). A scalpel's failed cut
         job is said in the panel and the scene steps on (that step was taken; the next strip's job cuts again)."""
-        from ..interaction.scene_scalpel import CutJobFailed
-
         try:
             self.scene.step()
         except CutJobFailed as exc:
