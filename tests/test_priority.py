@@ -185,3 +185,13 @@ def test_the_cut_worker_process_takes_the_stepping_threads_nice_value_and_rtfem_
     assert nice_of_worker() == (threads.PHYSICS_NICE if _permitted() else os.getpriority(os.PRIO_PROCESS, 0))
     monkeypatch.setenv("RTFEM_PHYSICS_NICE", "0")
     assert nice_of_worker() == os.getpriority(os.PRIO_PROCESS, 0)
+
+
+@pytest.mark.parametrize("bad", [0, -3, 1.5, "123", True])
+def test_raise_priority_refuses_an_id_that_is_not_a_positive_whole_number_and_changes_nothing(bad):
+    from rtfem.errors import RtfemError
+
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    with pytest.raises(RtfemError, match="native_id"):
+        threads.raise_priority(bad)
+    assert os.getpriority(os.PRIO_PROCESS, 0) == before

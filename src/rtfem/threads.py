@@ -127,7 +127,12 @@ def raise_priority(native_id: int | None = None) -> str:
     -10``). Measured (benchmarks/viewer_browser.py, 2 cores, a browser drawing in software and
     another process spinning): the default organ stepped at 0.40-0.66 of real time at the normal
     priority and 0.93-1.00 raised, the browser drawing what is left.
-    Returns what the thread got, in words ("nice -10", or "normal: ..." with the reason); never raises."""
+    Returns what the thread got, in words ("nice -10", or "normal: ..." with the reason); raises only for a
+    ``native_id`` that is not a positive whole number (ModelError)."""
+    if native_id is not None:
+        from .validate import count
+
+        native_id = count(native_id, "native_id", 1, what="a thread or process id")
     text = os.environ.get("RTFEM_PHYSICS_NICE", "").strip()
     try:
         nice = int(text) if text else PHYSICS_NICE
