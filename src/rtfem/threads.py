@@ -174,9 +174,9 @@ def below_ticks() -> str:
     a tick pre-empts the physics (it inherited the ticks' own priority, and a tick cannot pre-empt a thread
     of its FIFO priority: a scalpel's cut job, started by the physics thread alike, held the ticks off for
     0.35-0.57 s of 6.5 s, 330-550 of 7,000 missed, benchmarks/scalpel.py), and the physics still runs ahead
-    of the machine's other processes and moves to a free core at once, as real-time threads do (at nice -10
-    instead, the full-order liver with a probe stepped at 29-40 steps/s quiet and 14-21 beside a busy core,
-    against 35-57 here and 39-69 at the ticks' own priority; benchmarks/haptic_fullorder.py --busy); else
+    of the machine's other processes and moves to a free core at once, as real-time threads do (the
+    full-order liver with a probe or a grasp, beside a busy core: 37-55 steps/s here, 49-69 at the ticks' own
+    priority, 14-27 at nice -10 instead; quiet 35-57, 39-54 and 29-61; benchmarks/haptic_fullorder.py --busy); else
     :func:`raise_priority`. The threads it starts leave the real-time policy (:func:`leave_realtime`).
     Returns what the thread got, in words; never raises."""
     if hasattr(os, "sched_getscheduler") and hasattr(threading, "get_native_id"):
