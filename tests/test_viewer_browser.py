@@ -120,18 +120,80 @@ def _pixels(png: bytes) -> np.ndarray:
     return np.asarray(Image.open(BytesIO(png)).convert("RGB"), dtype=float)
 
 
-def _drawn_at(page, x: float, y: float) -> bool:
+def _drawn_at(page, x: float, y: float, timeout: float = 30_000) -> bool:
     """Whether the browser draws something at (x, y) of the page (the 5 x 5 pixels about it): not the white
     background: the press lands on the block, not on an empty canvas still loading its scene."""
-    box = page.screenshot(clip={"x": x - 2, "y": y - 2, "width": 5, "height": 5})
+    box = page.screenshot(clip={"x": x - 2, "y": y - 2, "width": 5, "height": 5}, timeout=timeout)
     return bool((_pixels(box) < 235).any(axis=2).all())
 
 
-@pytest.fixture(scope="module", params=["default", "shell"])
+# the page's pointer events, counted before any of its own handlers (a failed press says whether the page saw it)
+POINTER_COUNTER = """
+window.__rtfem_ptr = {down: 0, move: 0, up: 0, ctrl_down: 0};
+for (const kind of ["down", "move", "up"]) {
+  window.addEventListener("pointer" + kind, (e) => {
+    window.__rtfem_ptr[kind]++;
+    if (kind === "down" && e.ctrlKey) window.__rtfem_ptr.ctrl_down++;
+  }, true);
+}
+"""
+
+
+def _page_frames(page, n: int = 2, timeout: float = 30.0) -> None:
+    """Wait for the page to run ``n`` more animation frames (window.__rtfem.frame, BROWSER_COUNTER): the
+    input sent before is handled and its pointer's place seen by the scene's next frame."""
+    f0 = page.evaluate("window.__rtfem.frame")
+    wait_until(lambda: page.evaluate("window.__rtfem.frame") >= f0 + n, timeout, f"the page to run {n} frames")
+
+
+def _page_state(page, x: float, y: float) -> str:
+    """What the page says of itself, for a failed press: its pointer events (POINTER_COUNTER), its animation
+    frames (BROWSER_COUNTER) and whether the block is drawn at (x, y), each read within 10 s."""
+    out = []
+    for what, read in (("pointer events", lambda: page.evaluate("({...window.__rtfem_ptr})")),
+                       ("frames", lambda: page.evaluate("({...window.__rtfem})")),
+                       ("drawn at the press", lambda: _drawn_at(page, x, y, 10_000))):
+        t0 = time.monotonic()
+        try:
+            out.append(f"the page's {what}: {read()} ({time.monotonic() - t0:.1f} s to read)")
+        except Exception as exc:  # noqa: BLE001 - said, with the others
+            out.append(f"the page's {what}: not read ({type(exc).__name__} after {time.monotonic() - t0:.1f} s)")
+    return "; ".join(out)
+
+
+def _drag_messages(viewer) -> list:
+    """The scene-node drag messages the viewer's server receives from now on, as (phase, modifier, node)."""
+    from viser import _messages
+
+    heard: list = []
+
+    async def hear(client_id, message) -> None:
+        heard.append((message.phase, message.modifier, message.name))
+
+    viewer.server.scene._websock_interface.register_handler(_messages.SceneNodeDragMessage, hear)
+    return heard
+
+
+@pytest.fixture(autouse=True)
+def _no_viewer_running():
+    """Each test's browser shares the machine with its own viewer only: the ``viewer`` fixture, module-scoped
+    before, kept the liver's viewer serving (its organ stepped, its frames encoded) through the later tests,
+    the ctrl+drag test among them, whose page then ignored 3 presses in CI (its viewer at 5 frames/s)."""
+    import threading
+
+    def running() -> list:
+        return [t for t in threading.enumerate() if t.name == "rtfem-viewer-frames" and t.is_alive()]
+
+    for t in running():  # (a viewer stopped waits 2 s for its frame in progress: the last may still end)
+        t.join(10.0)
+    assert not running(), f"{len(running())} viewer(s) left serving by an earlier test"
+
+
+@pytest.fixture(params=["default", "shell"])
 def viewer(request):
     """The scene of ``rtfem view`` and ``make demo`` (the liver as a solid of tet10 with the
     reduced nonlinear model: drawn and touched on its boundary), and the liver as a linear modal
-    shell (``--shell --method modal``, a hollow organ's model)."""
+    shell (``--shell --method modal``, a hollow organ's model); stopped when the test ends."""
     import rtfem as rt
     from rtfem.viewer.app import Viewer
     from rtfem.viewer.session import Session, default_session
@@ -388,11 +450,18 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
             px, camera = v.project(v.centre)[0], _camera(v)
             x0, y0 = canvas["x"] + px[0], canvas["y"] + px[1]
             wait_until(lambda: _drawn_at(page, x0, y0), 60, "the browser to draw the block where it is pressed")
+            page.evaluate(POINTER_COUNTER)
+            heard = _drag_messages(v)
             for attempt in (1, 2, 3):  # (a loaded browser, 4 % of real time, ignored a press on the drawn block
-                # with its camera at rest, 2 rounds in 5 of the viewer tests beside 2 spinners: pressed again)
+                # with its camera at rest, 2 rounds in 5 of the viewer tests beside 2 spinners: pressed again;
+                # in CI 3 presses were ignored while the block at rest took a Newton step each (45-72 ms, a
+                # core taken: fixed) and the liver's viewer of an earlier test still served (fixed, see below):
+                # a page that answered no screenshot for 30 s, seen once here)
                 page.keyboard.down("Control")
-                page.mouse.move(x0, y0)  # pressed on the block's middle
+                page.mouse.move(x0, y0)  # pressed on the block's middle, once the page has seen the pointer there
+                _page_frames(page)
                 page.mouse.down()
+                _page_frames(page)
                 for i in range(1, 6):
                     page.mouse.move(x0, y0 - 4 * i)
                     time.sleep(0.05)
@@ -400,13 +469,15 @@ def test_a_ctrl_drag_in_chromium_cuts_a_tet4_organ_and_the_cut_is_drawn():
                     wait_until(lambda: v.cut_drags >= 1, 20, "the browser to begin a ctrl+drag on the block")
                     break
                 except AssertionError:
-                    page.screenshot(path=str(ARTIFACTS / f"4_no_ctrl_drag_{attempt}.png"))
+                    with contextlib.suppress(Exception):  # (a page that does not answer: said below)
+                        page.screenshot(path=str(ARTIFACTS / f"4_no_ctrl_drag_{attempt}.png"), timeout=10_000)
                     keys = ("drags", "cut_drags", "frames", "frame_rate", "error")
                     state = {k: val for k, val in v.state().items() if k in keys}
                     if attempt == 3:
-                        raise AssertionError(f"no ctrl+drag began in 3 presses: {state}; the press at {px} of the canvas, "
-                                             f"where the block was drawn (and is now: {_drawn_at(page, x0, y0)}); "
-                                             f"the camera then {camera}, now {_camera(v)}") from None
+                        raise AssertionError(f"no ctrl+drag began in 3 presses: {state}; {_page_state(page, x0, y0)}; the "
+                                             f"drag messages the server heard {heard}; the press at {px} of the canvas; "
+                                             f"the camera then {camera}, now {_camera(v)}; the grabbable copy last moved "
+                                             f"{time.perf_counter() - v._pick_time:.1f} s ago") from None
                     page.mouse.up()
                     page.keyboard.up("Control")
                     time.sleep(1.0)
