@@ -536,6 +536,8 @@ def test_the_cut_worker_process_cuts_as_this_process_does_and_a_dead_one_is_repl
         proc = sc._worker._proc
         for y in np.linspace(-0.005, W + 0.005, 61):
             _stroke(sc, W / 2, W + 0.01, [y])
+            if phase == "after" and proc.poll() is None and sc.cuts == 0:
+                sc.join()  # (a step at rest takes a millisecond: the stroke ended before a job of the worker's was back)
             if proc.poll() is None and now(sc):
                 proc.kill()
         sc.finish()
