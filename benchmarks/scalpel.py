@@ -15,7 +15,8 @@ the issue asks for one visual frame, 17 ms), the nodes the cut added, the mass o
 a failed step stops the scalpel with zero force and is printed). Then what one cut event costs on
 this machine, alone (the whole swept surface applied to the uncut liver, elements split as the
 scalpel does, on the liver settling under gravity): rt.cut, the driver built on the cut model and its
-first step; and one strip's event as the cutter makes it, by stage (see strip_event), ``--events`` times.
+first step; a new cut worker process's first strip jobs, warmed for the model or not (see worker_jobs); and one
+strip's event as the cutter makes it, by stage (see strip_event), ``--events`` times.
 
     python benchmarks/scalpel.py [--busy] [--dt 0.004] [--seconds 6] [--events 3]
 """
@@ -106,12 +107,28 @@ def one_event(model, dt: float, surface) -> list[float]:
     return [t1 - t0, t2 - t1, t3 - t2, cut.cut_info.nodes_added, new.refreshes, new.newton_steps, cut.cut_info.max_move]
 
 
+def strip_jobs(model, surface, edge: float):
+    """The swept surface's first half cut into the liver, and the jobs the cutter would send next: each next
+    strip's triangles (8 at a time) with the old ones within two element edges of them (Scalpel._to_cut's job)."""
+    V, T = surface
+    h = 2 * (T.shape[0] // 4)
+    first = rt.cut(model, V, T[:h], snap="split", free="remove")
+    jobs = []
+    for k in range(h + 8, T.shape[0] + 1, 8):
+        new = T[h:k]
+        pts = V[new].reshape(-1, 3)
+        lo, hi = pts.min(axis=0) - 2 * edge, pts.max(axis=0) + 2 * edge
+        near = ((V[T[:h]] >= lo) & (V[T[:h]] <= hi)).all(axis=2).any(axis=1)
+        jobs.append((np.concatenate([T[:h][near], new]), (k - h) // 2))
+    return first, jobs
+
+
 def strip_event(model, dt: float, surface, edge: float) -> list:
     """A scalpel's cut event as its cutter makes it, by stage: the swept surface's first half cut (on the liver
-    settling under gravity, 0.2 s), then the next strip's triangles with the old ones within two element edges
-    of them (Scalpel._to_cut's job; more triangles until a face is swept whole): the worker's rt.cut and
-    assembly, its answer's pickle out and in, the driver built with the state carried and its factor made (the
-    cutter thread's part), the swap (the state carried again) and the first step (the physics thread's)."""
+    settling under gravity, 0.2 s), then the first of strip_jobs that cuts (more triangles until a face is swept
+    whole): the worker's rt.cut and assembly, its answer's pickle out and in, the driver built with the state
+    carried and its factor made (the cutter thread's part), the swap (the state carried again) and the first
+    step (the physics thread's)."""
     import pickle
 
     from rtfem.drivers.carry import lumped_nodal_masses
@@ -119,21 +136,15 @@ def strip_event(model, dt: float, surface, edge: float) -> list:
     from rtfem.interaction.scalpel import _Solid
     from rtfem.mesh.cut import NothingToCut
 
-    V, T = surface
-    h = 2 * (T.shape[0] // 4)
+    V, _ = surface
     sim = settled(model, dt, 0.2)
-    first = rt.cut(model, V, T[:h], snap="split", free="remove")
+    first, jobs = strip_jobs(model, surface, edge)
     sim = sim.carry_over(first, first.cut_info.transfer())
     sim.step(lumped_nodal_masses(first)[:, None] * np.array([0.0, 0.0, -9.81]))
-    for k in range(h + 8, T.shape[0] + 1, 8):
-        new = T[h:k]
-        pts = V[new].reshape(-1, 3)
-        lo, hi = pts.min(axis=0) - 2 * edge, pts.max(axis=0) + 2 * edge
-        near = ((V[T[:h]] >= lo) & (V[T[:h]] <= hi)).all(axis=2).any(axis=1)
-        job = (_bare(first), V, np.concatenate([T[:h][near], new]), "split", None)
+    for T, cells in jobs:
         t0 = time.perf_counter()
         try:
-            cut = cut_and_assemble(*job)
+            cut = cut_and_assemble(_bare(first), V, T, "split", None)
         except NothingToCut:
             continue
         t1 = time.perf_counter()
@@ -147,8 +158,34 @@ def strip_event(model, dt: float, surface, edge: float) -> list:
         driver = sim.carry_over(cut, P, into=prepared)
         driver.step(lumped_nodal_masses(cut)[:, None] * np.array([0.0, 0.0, -9.81]))
         t4 = time.perf_counter()
-        return [t1 - t0, t2 - t1, t3 - t2, t4 - t3, cut.cut_info.nodes_added, (k - h) // 2]
+        return [t1 - t0, t2 - t1, t3 - t2, t4 - t3, cut.cut_info.nodes_added, cells]
     return []
+
+
+def worker_jobs(model, surface, edge: float, warm: bool, jobs: int = 3) -> list[float]:
+    """s, the first ``jobs`` strip jobs that cut (strip_jobs) as a new cut worker process answers them (sent,
+    cut and assembled there, the answer back), the worker warmed for the model (CutWorker(warm=...)) or not,
+    started 2 s before the first (the blade on its way to the tissue)."""
+    from rtfem.interaction.cut_worker import CutWorker
+    from rtfem.mesh.cut import NothingToCut
+
+    first, strips = strip_jobs(model, surface, edge)
+    worker = CutWorker(warm=model if warm else None)
+    times: list[float] = []
+    try:
+        time.sleep(2.0)
+        for T, _ in strips:
+            t0 = time.perf_counter()
+            try:
+                worker.cut(first, surface[0], T, "split")
+            except NothingToCut:
+                continue
+            times.append(time.perf_counter() - t0)
+            if len(times) == jobs:
+                break
+    finally:
+        worker.close()
+    return times
 
 
 def main() -> None:
@@ -184,6 +221,10 @@ def main() -> None:
               f"by up to {move * 1e3:.1f} mm)")
         X, C = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
         edge = float(np.mean(np.linalg.norm(X[C[:, 1]] - X[C[:, 0]], axis=1)))
+        for warm in (False, True):
+            w = worker_jobs(model, surface, edge, warm)
+            print(f"a new cut worker process, {'warmed for the model' if warm else 'not warmed'}, 2 s before its first "
+                  f"strip job: the jobs' answers in {', '.join(f'{x * 1e3:.0f}' for x in w)} ms")
         for _ in range(args.events):
             e = strip_event(model, args.dt, surface, edge)
             if e:

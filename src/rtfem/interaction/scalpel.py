@@ -211,7 +211,7 @@ class Scalpel(_MultiRate):
         if self.threaded if worker is None else validate.flag(worker, "worker"):
             from .cut_worker import CutWorker
 
-            self._worker = CutWorker()
+            self._worker = CutWorker(warm=driver.model)
 
     # ------------------------------------------------------------------ the haptic side
     def update(self, tip, heel=None, *, t: float | None = None) -> np.ndarray:
