@@ -1,4 +1,4 @@
-"""Shared helpers of the benchmark scripts: timing medians and table printing."""
+"""Shared helpers of the benchmark scripts: timing medians, table printing, a busy core, a baseline's code."""
 
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ import contextlib
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import Callable
 
 from rtfem.cli.bench import format_table
@@ -47,3 +49,20 @@ def busy_core(on: bool = True):
         if spinner is not None:
             spinner.kill()
             spinner.wait()
+
+
+@contextlib.contextmanager
+def baseline_tree(ref: str):
+    """The repository at ``ref`` ("merge-base": the merge base of HEAD with main) checked out in a temporary
+    git worktree for the block (its ``src`` run beside the working tree's, in fresh processes); yields (the
+    folder, the short ref) and removes the worktree after."""
+    root = Path(__file__).resolve().parents[1]
+    if ref == "merge-base":
+        ref = subprocess.run(["git", "merge-base", "HEAD", "main"], cwd=root, capture_output=True, text=True,
+                             check=True).stdout.strip()
+    folder = Path(tempfile.mkdtemp(prefix="rtfem-baseline-"))
+    subprocess.run(["git", "worktree", "add", "--detach", str(folder), ref], cwd=root, capture_output=True, check=True)
+    try:
+        yield folder, ref[:7]
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(folder)], cwd=root, capture_output=True)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import busy_core, fmt_s, print_table  # noqa: E402
+from _common import baseline_tree, busy_core, fmt_s, print_table  # noqa: E402
 from fullorder import organ  # noqa: E402
 
 import rtfem as rt  # noqa: E402
@@ -90,19 +90,14 @@ def main() -> None:
         return one(args.one, args.steps)
     print(f"# at rest, {args.steps} steps each, {args.runs} fresh processes per cell; "
           f"{platform.processor() or platform.machine()}, {'one core busy' if args.busy else 'quiet'}", flush=True)
-    base = Path(tempfile.mkdtemp(prefix="rtfem-baseline-"))
-    subprocess.run(["git", "worktree", "add", "--detach", str(base), args.baseline], cwd=ROOT, capture_output=True,
-                   check=True)
-    trees = {f"baseline {args.baseline[:7]}": base / "src", "now (working tree)": ROOT / "src"}
     res: dict = {}
-    try:
+    with baseline_tree(args.baseline) as (base, short):
+        trees = {f"baseline {short}": base / "src", "now (working tree)": ROOT / "src"}
         with busy_core(args.busy):
             for _ in range(args.runs):
                 for name in ("block", "liver"):
                     for code, src in trees.items():
                         res.setdefault((name, code), []).append(_child(src, name, args.steps))
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
     rows = []
     for name in ("block", "liver"):
         p50 = {}

@@ -204,20 +204,10 @@ def _view_once(src: Path, seconds: float, busy: int) -> dict:
     return json.loads(line[-1])
 
 
-def _baseline_tree(ref: str) -> tuple[Path, str]:
-    if ref == "merge-base":
-        ref = subprocess.run(["git", "merge-base", "HEAD", "main"], cwd=ROOT, capture_output=True, text=True,
-                             check=True).stdout.strip()
-    folder = Path(tempfile.mkdtemp(prefix="rtfem-baseline-"))
-    subprocess.run(["git", "worktree", "add", "--detach", str(folder), ref], cwd=ROOT, capture_output=True, check=True)
-    return folder, ref[:7]
-
-
 def view_part(seconds: float, runs: int, busy: int, ref: str) -> None:
-    from _common import print_table
+    from _common import baseline_tree, print_table
 
-    base, short = _baseline_tree(ref)
-    try:
+    with baseline_tree(ref) as (base, short):
         trees = {f"baseline {short}": base / "src", "now (working tree)": ROOT / "src"}
         res = {(name, b): [] for name in trees for b in (0, busy)}
         for k in range(runs):
@@ -227,8 +217,6 @@ def view_part(seconds: float, runs: int, busy: int, ref: str) -> None:
                     res[(name, b)].append(r)
                     print(f"  run {k + 1}: {name}, busy {b}: real time {r['realtime']:.3f}, p50 / p99 {r['step_p50_us']:.0f} / "
                           f"{r['step_p99_us']:.0f} us, sync refreshes {r['sync_refreshes']}", flush=True)
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
     rows = []
     for (name, b), rs in res.items():
         real = [r["realtime"] for r in rs]
