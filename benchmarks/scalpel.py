@@ -15,7 +15,8 @@ the issue asks for one visual frame, 17 ms), the nodes the cut added, the mass o
 a failed step stops the scalpel with zero force and is printed). Then what one cut event costs on
 this machine, alone (the whole swept surface applied to the uncut liver, elements split as the
 scalpel does, on the liver settling under gravity): rt.cut, the driver built on the cut model and its
-first step; a new cut worker process's first strip jobs, warmed for the model or not (see worker_jobs); and one
+first step; what a lift() takes its caller (see lift_ticks); a new cut worker process's first strip jobs,
+warmed for the model or not (see worker_jobs); and one
 strip's event as the cutter makes it, by stage (see strip_event), ``--events`` times.
 
     python benchmarks/scalpel.py [--busy] [--dt 0.004] [--seconds 6] [--events 3]
@@ -88,6 +89,30 @@ def run(model, sim, seconds: float) -> dict:
             "peak": float(np.linalg.norm(F, axis=1).max()), "step50": np.median(steps), "frame50": np.median(frames),
             "framemax": frames.max(), "failed": failed or scalpel.refused or scalpel.worker_note or "",
             "surface": (scalpel.vertices, scalpel.triangles)}
+
+
+def lift_ticks(model, dt: float, strokes: int = 5) -> list[float]:
+    """s, what each rt.Scalpel.lift() took its caller (here the ticking thread): the scalpel threaded on the liver settling
+    under gravity (0.2 s), its ticks at 1 kHz on this thread along the stroke's path, ``strokes`` strokes of
+    1 s each, each ended by a lift (the next starting where it was lifted)."""
+    sim = settled(model, dt, 0.2)
+    path, blade = stroke(model, sim.displacements(), 6.0)
+    scalpel = rt.Scalpel(sim, blade=blade)
+    out, t = [], 0.0
+    try:
+        for _ in range(strokes):
+            start = time.perf_counter()
+            while (now := time.perf_counter()) < start + 1.0:
+                t += 1e-3
+                scalpel.update(path(t))
+                time.sleep(max(0.0, 1e-3 - (time.perf_counter() - now)))
+            t0 = time.perf_counter()
+            scalpel.lift()
+            out.append(time.perf_counter() - t0)
+            time.sleep(0.05)
+    finally:
+        scalpel.close()
+    return out
 
 
 def one_event(model, dt: float, surface) -> list[float]:
@@ -221,6 +246,9 @@ def main() -> None:
               f"by up to {move * 1e3:.1f} mm)")
         X, C = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
         edge = float(np.mean(np.linalg.norm(X[C[:, 1]] - X[C[:, 0]], axis=1)))
+        lifts = np.array(lift_ticks(model, args.dt)) * 1e3
+        print(f"rt.Scalpel.lift() (threaded physics, 1 s strokes): {', '.join(f'{x:.2f}' for x in lifts)} "
+              f"ms (median {np.median(lifts):.2f} ms)")
         for warm in (False, True):
             w = worker_jobs(model, surface, edge, warm)
             print(f"a new cut worker process, {'warmed for the model' if warm else 'not warmed'}, 2 s before its first "

@@ -237,29 +237,53 @@ class Scalpel(_MultiRate):
         self._mid, self._t_tick = mid, now
         b = along / length
         v = self._velocity - (self._velocity @ b) * b
-        self.force = -self.resistance * v / max(float(np.linalg.norm(v)), V_REG)
+        resistance = 0.0 if self._lifts else self.resistance  # (a lift the physics has not taken: the last stroke's)
+        self.force = -resistance * v / max(float(np.linalg.norm(v)), V_REG)
         return self.force
 
     def lift(self) -> None:
         """The blade out of the tissue (a stroke's end): the organ steps on under gravity, nothing is swept
         and the hand feels nothing until :meth:`update` places the blade again, which starts a new strip
         there (not one from where it was lifted). The blade's last strip, shorter than ``advance``, joins
-        the cut surface first: the cut reaches where the blade was lifted, not the strip before."""
+        the cut surface first: the cut reaches where the blade was lifted, not the strip before. With the
+        physics on its thread, that thread sweeps it at its next step (or :meth:`finish`): the caller waits
+        for nothing and the hand's force is zero at once (0.01 ms; lift() took the physics' lock, which the
+        thread stepping flat out took again first, step after step, and swept: it returned after 7-283 ms,
+        median 175 ms, 32 ms beside a busy core, on the 9k-tet liver of benchmarks/scalpel.py, the ticks
+        meanwhile giving the cutting force)."""
+        blade = None if self.lifted else self._blade
+        self.lifted, self.force = True, np.zeros(3)  # (lifted first: a step that sees the lift below sees this)
+        if self._thread is not None:
+            self._lifts.append(blade)  # (the haptic side's new stroke here, the physics side's there)
+            self._velocity, self._mid = np.zeros(3), None
+            return
         with self._lock:
-            model, U = self.shown
-            if not self.lifted and self._blade is not None and model is self.solid.model:
-                self._sweep(U, final=True)
-            self.lifted, self.force = True, np.zeros(3)
-            self._new_stroke()
+            self._lifts.append(blade)
+            self._take_lifts(self.shown, haptic=True)
 
-    def _new_stroke(self) -> None:
-        """No strip, blade motion or resistance yet: a stroke's start."""
+    def _take_lifts(self, shown, haptic: bool = False) -> bool:
+        """The physics side of the lifts asked since the last step (under the lock): each blade's last strip
+        swept on ``shown`` = (model, U) (where that is the model now) and a new stroke begun (``haptic``: its
+        blade motion too; the tick that lifted began that on its side). True if any."""
+        took = False
+        while self._lifts:
+            blade = self._lifts.pop(0)
+            if blade is not None and shown[0] is self.solid.model:
+                self._sweep(shown[1], final=True, blade=blade)
+            self._new_stroke(haptic)
+            took = True
+        return took
+
+    def _new_stroke(self, haptic: bool = True) -> None:
+        """No strip, resistance or (``haptic``) blade motion yet: a stroke's start."""
         none = np.zeros(SAMPLES - 1, dtype=bool)
         self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
         self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
-        self._velocity, self._mid = np.zeros(3), None
+        if haptic:
+            self._velocity, self._mid = np.zeros(3), None
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
         self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
+        self._lifts = getattr(self, "_lifts", [])  # the blades at lifts the physics has not taken yet (None: none down)
 
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step, on the mesh of ``shown[0]``."""
@@ -307,7 +331,8 @@ class Scalpel(_MultiRate):
         """After a step of the organ to displacements ``U`` (n, 3): the blade's strip swept (unless it is
         lifted) and a cut job started when the surface grew (the physics step does this; a scene calls it
         after stepping the body itself)."""
-        if not self.lifted:
+        lifted = self.lifted
+        if not self._take_lifts((self.solid.model, U)) and not lifted:  # (a lift taken swept this step's strip)
             self._sweep(U)
         self._start_cut()
         self.shown = (self.solid.model, U)
@@ -334,12 +359,12 @@ class Scalpel(_MultiRate):
         ref[held] = np.einsum("pk,pkj->pj", bary[held], self.solid.X[self.solid.C[tet[held]]])
         return ref, nodes
 
-    def _sweep(self, U: np.ndarray, final: bool = False) -> None:
+    def _sweep(self, U: np.ndarray, final: bool = False, blade=None) -> None:
         """The blade's strip since its last one (reference configuration): the resistance from its edge
         in the uncut tissue the strip reaches, the tissue's share of the force, and, once it advanced by
         ``advance`` (``final``, the stroke's end: by a tenth of that), its cells added to the cut surface
-        (see :meth:`_cells`)."""
-        tip, heel = self._blade
+        (see :meth:`_cells`). ``blade``: (tip, heel) (default: the last tick's)."""
+        tip, heel = self._blade if blade is None else blade
         world = heel + np.linspace(0.0, 1.0, SAMPLES)[:, None] * (tip - heel)
         ref, tree = self._reference(world, U)
         if self._anchor is None:
@@ -497,6 +522,7 @@ class Scalpel(_MultiRate):
                 job.join(timeout)
             with self._lock:
                 self._swap()
+                self._take_lifts(self.shown)
                 self._start_cut()
         return self
 
