@@ -25,6 +25,7 @@ lowered to 0.1 ms (a physics thread in Python code otherwise held the tick for u
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -155,7 +156,9 @@ class _MultiRate:
         self._last_tick = 0.0
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._lock = threading.RLock()  # held by a physics step; a grab or release waits for it
+        self._lock = threading.RLock()  # held by a physics step; a grab or release waits for it (_between_steps)
+        self._waiting = 0  # threads waiting in _between_steps: the physics thread pauses after its step for them
+        self._waiting_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._t0 = None  # wall clock of the first tick (pace)
         self._sim0 = 0.0
@@ -186,6 +189,21 @@ class _MultiRate:
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step (for drawing)."""
         return self.snapshot.U.copy()
+
+    @contextlib.contextmanager
+    def _between_steps(self):
+        """The physics' lock for a grab, a release, a prepare, between two physics steps: the physics thread
+        pauses after its step until the waiting threads have had it. Without that pause the thread, stepping
+        flat out, took the lock again first, step after step: on the 9k-tet liver of benchmarks/fullorder.py a
+        grasp's grab() returned after 152-366 ms (median), now 112-189 ms (benchmarks/grab_wait.py)."""
+        with self._waiting_lock:
+            self._waiting += 1
+        try:
+            with self._lock:
+                yield
+        finally:
+            with self._waiting_lock:
+                self._waiting -= 1
 
     def start(self):
         """Start the physics thread (the first :meth:`update` does)."""
@@ -241,6 +259,8 @@ class _MultiRate:
                         self._stop.wait(min(ahead, 0.05))
                         continue
                 self.physics_step()
+                while self._waiting and not self._stop.is_set():  # a grab or release waits: it goes first
+                    time.sleep(1e-4)
         except BaseException as exc:  # noqa: BLE001 - surfaced by the next tick
             self.error = exc
 
@@ -342,7 +362,7 @@ class MultiRateProbe(_MultiRate):
 
         p = self.physics
         nodes = nodes_to_prepare(p._touchable, p._tree, p.mesh.n_vertices, nodes, around, radius)
-        with self._lock:
+        with self._between_steps():
             W = {int(v): np.asarray(self.driver.step_compliance(int(v)), dtype=float) for v in nodes.tolist()}
         self.snapshot.publish(self.snapshot.U, self.snapshot.free, W)
         return int(nodes.size)
@@ -383,9 +403,10 @@ class MultiRateProbe(_MultiRate):
 class MultiRateGrasp(_MultiRate):
     __doc__ = f"""A grasp whose force loop runs at the haptic rate while the organ steps on its own thread
     (see the module): the jaw's implicit formula of :class:`~rtfem.Grasp` each tick against the held
-    vertices' free step and cross compliances of the last physics step. :meth:`grab` and
-    :meth:`release` wait for the physics step in progress (one step), then both sides hold the same
-    grip.
+    vertices' free step and cross compliances of the last physics step. :meth:`grab` waits for the
+    physics step in progress (one step: the physics thread then pauses for it), then both sides hold the
+    same grip; :meth:`release` waits for nothing: the hand's force is zero from the next tick, and the
+    physics lets the organ go at its next step.
 
     Parameters
     ----------
@@ -410,6 +431,7 @@ class MultiRateGrasp(_MultiRate):
         self._setup(driver, rate, pace, thread)
         self.haptic = Grasp(mesh, self.snapshot, **options)
         self.mesh = mesh
+        self._let_go = False  # a release the physics side has not taken yet (its next step does)
         self._publish()
 
     @property
@@ -422,19 +444,36 @@ class MultiRateGrasp(_MultiRate):
 
     def grab(self, node: int, radius: float | None = None) -> np.ndarray:
         """Close the jaw (:meth:`Grasp.grab`) on both sides, between two physics steps."""
-        with self._lock:
+        with self._between_steps():
+            self._take_release()
             nodes = self.physics.grab(node, radius)
             h, p = self.haptic, self.physics
             self._publish()
             h.node, h.nodes, h._hold, h._jaw = p.node, p.nodes.copy(), p._hold.copy(), p._jaw.copy()
             h._block, h._patch_inv = None, None
+            if self._let_go:  # released meanwhile (from another thread): the later word holds on the hand's side
+                h.release()
         return nodes
 
     def release(self) -> None:
-        """Open the jaw on both sides."""
-        with self._lock:
+        """Open the jaw on both sides: the hand's side at once, the physics' at its next step (with its
+        thread running; at once otherwise). Waiting for the physics' lock, a release on the 9k-tet liver of
+        benchmarks/fullorder.py returned after 120-267 ms (median; up to 440 ms), the jaw pulling the hand
+        meanwhile; now 0.03 ms (benchmarks/grab_wait.py)."""
+        self._let_go = True
+        self.haptic.release()
+        if self._thread is None:
+            with self._between_steps():
+                self._take_release()
+
+    def _take_release(self) -> None:
+        if self._let_go:
+            self._let_go = False
             self.physics.release()
-            self.haptic.release()
+
+    def _advance(self) -> None:
+        self._take_release()
+        super()._advance()
 
     def update(self, target=None) -> np.ndarray:
         """One haptic tick with the hand at ``target`` (None: no hand): the total force on the organ

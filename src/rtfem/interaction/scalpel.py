@@ -257,7 +257,7 @@ class Scalpel(_MultiRate):
             self._lifts.append(blade)  # (the haptic side's new stroke here, the physics side's there)
             self._velocity, self._mid = np.zeros(3), None
             return
-        with self._lock:
+        with self._between_steps():
             self._lifts.append(blade)
             self._take_lifts(self.shown, haptic=True)
 
@@ -520,7 +520,7 @@ class Scalpel(_MultiRate):
             job = self._job
             if job is not None:
                 job.join(timeout)
-            with self._lock:
+            with self._between_steps():
                 self._swap()
                 self._take_lifts(self.shown)
                 self._start_cut()
