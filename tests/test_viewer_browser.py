@@ -181,8 +181,10 @@ def _no_viewer_running():
     the ctrl+drag test among them, whose page then ignored 3 presses in CI (its viewer at 5 frames/s)."""
     import threading
 
+    from rtfem.viewer.app import FRAMES_THREAD
+
     def running() -> list:
-        return [t for t in threading.enumerate() if t.name == "rtfem-viewer-frames" and t.is_alive()]
+        return [t for t in threading.enumerate() if t.name == FRAMES_THREAD and t.is_alive()]
 
     for t in running():  # (a viewer stopped waits 2 s for its frame in progress: the last may still end)
         t.join(10.0)

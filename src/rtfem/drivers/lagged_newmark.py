@@ -347,9 +347,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
             # converged: asked first (a residual already below the tolerance is taken even where it did not fall,
             # as at the roundoff floor it need not)
             if it >= first and rn <= self.tol * (norm_F + float(np.linalg.norm(f)) + float(np.linalg.norm(Ma)) + 1e-300):
-                self.iterations = it
-                self._f_trial = f
-                return self._accepted(conf, u, g, fac)
+                return self._converged(it, f, conf, u, g, fac)
             # the chord does not contract (a stale tangent far from this motion, or a step the mass does not
             # dominate): Newton's step here (the first residual after a prediction is compared with nothing:
             # the one before it was the predictor's model)
@@ -366,9 +364,7 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
                 # vanish (7e-13 N on the viewer's block, against a tolerance of 1e-4 times that), which no
                 # iteration lowers: read as a stalled chord, every such step was Newton's (36 ms a step on that
                 # block, against 1.3 ms; benchmarks/at_rest.py)
-                self.iterations = it
-                self._f_trial = f
-                return self._accepted(conf, u, g, fac)
+                return self._converged(it, f, conf, u, g, fac)
             conf.update(self.system.expand(delta))
             u = u + delta
             f = self._forces(conf, history)
@@ -376,6 +372,12 @@ class LaggedNewmarkSimulator(NonlinearNewmarkSimulator):
         # the chord contracted, but too slowly to converge within its iterations (a cut's slivers: 34 cuts in,
         # residual 0.0033 after 40): Newton's step, which raises where it does not converge either
         return self._newton_step(F, history)
+
+    def _converged(self, it: int, f: np.ndarray, conf, u: np.ndarray, g: np.ndarray, fac):
+        """The chord's answer after ``it`` iterations, the forces ``f`` at it (the next step's first residual)."""
+        self.iterations = it
+        self._f_trial = f
+        return self._accepted(conf, u, g, fac)
 
     def _predicted(self, conf, u: np.ndarray, f: np.ndarray):
         """The step's first iterate extrapolated in time from the committed displacements (u_p = 3 u - 3 u_1

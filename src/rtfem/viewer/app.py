@@ -25,6 +25,9 @@ from .cut_view import CutView
 from .gltf import SurfaceGlb, colormap, surface_faces
 from .session import METHODS, Session, Settings, default_session, describe_material
 
+#: the name of each viewer's frame thread (one per viewer serving)
+FRAMES_THREAD = "rtfem-viewer-frames"
+
 HELP = (
     "**Drag the organ** with the left mouse button to pull it; **shift+drag** presses along the surface "
     "normal; **ctrl+drag** cuts a solid (it hangs under gravity while cut; Reset to grasp again). Drag empty "
@@ -131,7 +134,7 @@ class Viewer(Served, CutView):
         self._init_cut()
         self._build_scene()
         self._build_panel()
-        self._thread = background(threading.Thread(target=self._frames, name="rtfem-viewer-frames", daemon=True),
+        self._thread = background(threading.Thread(target=self._frames, name=FRAMES_THREAD, daemon=True),
                                   self._stop.set)
 
     # ---------------------------------------------------------------- scene
