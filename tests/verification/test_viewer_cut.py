@@ -8,10 +8,12 @@ ends, its blade drawn across its width at mid-length from above its top to 0.4 o
   chosen method rebuilt on it (Reset) has the frequencies of the block built slit by index
   arithmetic (test_cut's mesh, the slit from the top to half the height at mid-length) within 0.1 %
   (the split nudges nodes by under a fifth of an edge; measured 0.016 %), lower than the uncut block's.
+- A tet10 solid (the default organ's element) enters scalpel mode as tet4 on its corner nodes, and the
+  panel says so (a cut tet10 organ turned its split elements inside out in the steps after): the same
+  surface drawn, the same fixes, then the same cut as the tet4 block's, and Reset rebuilds tet4.
 - A lifted blade cuts nothing more; a grasp, a device or a driver of one's own in scalpel mode, a
-  shell, a tet10 solid (a cut tet10 organ turned its split elements inside out in the steps after) and
-  a blade of no length are refused, each with what to do; Reset through configure() starts from the
-  method and switches the user had before scalpel mode.
+  shell and a blade of no length are refused, each with what to do; Reset through configure() starts
+  from the method and switches the user had before scalpel mode.
 """
 
 from __future__ import annotations
@@ -36,14 +38,18 @@ def _hz(model, r: int = 6) -> np.ndarray:
     return np.asarray(rt.modal_analysis(model, r).omega) / (2 * np.pi)
 
 
-@pytest.fixture(scope="module")
-def stroke():
+@pytest.fixture(scope="module", params=["tet4", "tet10"])
+def stroke(request):
     mesh = rt.meshes.box(L, W, W, nx=20, ny=4, nz=4)
-    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3))
-    uncut = _hz(s.model)
-    n0, drawn0 = s.model.n_nodes, s.drawn.size
+    s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="direct", large=True, dt=2e-3),
+                model_options={"element": request.param})
+    drawn = np.asarray(s.mesh.vertices)[np.asarray(s.mesh.triangles)]
     s.cut((L / 2, -0.02, 0.1), (L / 2, -0.02, 0.12))  # enters scalpel mode (the blade far above), hangs
     s.lift()
+    entered = {"element": request.param, "status": s.cut_status, "drawn": drawn,
+               "now drawn": np.asarray(s.mesh.vertices)[np.asarray(s.mesh.triangles)], "model": s.model}
+    uncut = _hz(s.model)  # (a tet10 organ's: the tet4 model on its corners)
+    n0, drawn0 = s.model.n_nodes, s.drawn.size
     hung = s.displacements()
     for _ in range(5):
         s.step()
@@ -60,7 +66,8 @@ def stroke():
     s.scalpel.finish()
     for _ in range(20):
         s.step()
-    yield {"session": s, "uncut": uncut, "n0": n0, "drawn0": drawn0, "hung": hung, "drift": drift, "swept": swept}
+    yield {"session": s, "uncut": uncut, "n0": n0, "drawn0": drawn0, "hung": hung, "drift": drift, "swept": swept,
+           "entered": entered}
     s.stop()
 
 
@@ -68,6 +75,17 @@ def test_scalpel_mode_hangs_the_organ_at_rest_under_gravity(stroke):
     hung = stroke["hung"]
     assert hung[:, 2].min() < -1e-4  # it sags (0.27 mm at mid-span)
     assert stroke["drift"] <= 1e-6 * np.abs(hung).max()  # and stays there: an equilibrium, at rest
+
+
+def test_a_tet10_organ_enters_scalpel_mode_as_tet4_on_its_corners_and_says_so(stroke):
+    e = stroke["entered"]
+    assert e["model"].element == "tet4" and np.flatnonzero(e["model"].fixed.any(axis=1)).size == 50  # both ends' nodes
+    np.testing.assert_array_equal(e["now drawn"], e["drawn"])  # the same surface drawn
+    if e["element"] == "tet10":
+        assert "tet10 organ (3321 nodes) is cut as tet4 on its 525 corner nodes" in e["status"]
+        assert e["model"].n_nodes == rt.SolidModel(rt.meshes.box(L, W, W, nx=20, ny=4, nz=4), MAT).n_nodes
+    else:
+        assert "corner" not in e["status"]
 
 
 def test_the_stroke_cuts_the_slit_the_session_then_draws_and_rebuilds(stroke):
@@ -82,7 +100,7 @@ def test_the_stroke_cuts_the_slit_the_session_then_draws_and_rebuilds(stroke):
         s.grab((L, W / 2, W / 2))
     cut_nodes = s.model.n_nodes
     s.configure(method="modal", n_modes=6)  # Reset: leaves scalpel mode, the cut kept
-    assert s.scalpel is None and s.model.n_nodes == cut_nodes and s.modes.model is s.model
+    assert s.scalpel is None and s.model.n_nodes == cut_nodes and s.modes.model is s.model and s.model.element == "tet4"
     mesh = _slit_box()
     slit = rt.SolidModel(mesh, MAT, element="tet4").fix(np.flatnonzero(np.isclose(np.asarray(mesh.vertices)[:, 0], 0.0)
                                                                         | np.isclose(np.asarray(mesh.vertices)[:, 0], L)))
@@ -96,10 +114,6 @@ def test_what_scalpel_mode_refuses_is_said():
     with pytest.raises(rt.ModelError, match="shell cannot be cut.*--solid"):
         shell.cut((0, 0, 0), (0, 0, 0.03))
     mesh = rt.meshes.box(L, W, W, nx=10, ny=2, nz=2)
-    tet10 = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="modal", n_modes=6),
-                    model_options={"element": "tet10"})
-    with pytest.raises(rt.ModelError, match="tet4 solids only.*--element tet4"):  # (a cut tet10 steps into inverted elements)
-        tet10.cut((0.05, 0.01, 0.0), (0.05, 0.01, 0.03))
     s = Session(mesh, MAT, fixed=_ends(mesh), settings=Settings(method="modal", n_modes=6, dt=2e-3))
     with pytest.raises(rt.ModelError, match="tip and heel coincide"):
         s.cut((0.05, 0.01, 0.01), (0.05, 0.01, 0.01))

@@ -65,12 +65,11 @@ class Cutting:
                 raise ModelError("a shell cannot be cut yet: open the organ as a solid (rtfem view ORGAN --solid)")
             if self.device is not None:
                 raise ModelError("the scalpel follows the mouse: detach the haptic device first")
-            if self.model.element != "tet4":  # (a cut tet10 liver's next step turned split elements inside out)
-                raise ModelError(f"the viewer cuts tet4 solids only for now, not {self.model.element}: a cut tet10 organ "
-                                 "turns its split elements inside out in the steps after (issue 57); open the organ "
-                                 "with rtfem view ORGAN --solid --element tet4")
             model, dt, damping, method = self.model, self.driver.dt, self.damping, self.settings.method
             self._pre_scalpel = self.settings  # what Reset through configure() starts from
+        original, element, nodes = model, model.element, model.n_nodes
+        if element != "tet4":  # (a cut tet10 liver's next step turned split elements inside out: issue 57)
+            model = _corner_model(model)
         driver = DirectSimulator(model, dt, damping, large_deformation=True)
         scalpel = Scalpel(driver, gravity=GRAVITY, thread=False, worker=True)
         try:
@@ -79,21 +78,28 @@ class Cutting:
             scalpel.close()
             raise
         with self._lock:
-            if self.model is not model:  # rebuilt meanwhile (Reset): not this one's scalpel
+            if self.model is not original:  # rebuilt meanwhile (Reset): not this one's scalpel
                 scalpel.close()
                 raise ModelError("the organ was rebuilt while scalpel mode was being entered: cut again")
             self.node, self.target = None, None
             self.grasp.release()
-            self.grasp = self._grasp_on(driver)  # (refused in scalpel mode; on the session's driver all the same)
             self._local_gen += 1  # a patch training for the reduced model is not wanted any more
             if getattr(self, "monitor", None) is not None:
                 self.monitor.stop(timeout=0.0)
                 self.monitor = None
             self.scalpel, self.driver = scalpel, driver
+            if model is not original:  # the tet10 organ's corners: drawn and rebuilt (Reset) as tet4 from now on
+                self._take(model)
+                self._model_options = dict(self._model_options, element="tet4")
+            else:
+                self.grasp = self._grasp_on(driver)  # (refused in scalpel mode; on the session's driver all the same)
             scalpel.lift()
             self.settings = replace(self.settings, method="direct", large=True)
             self.cut_status = (f"scalpel mode: the organ on the full order (the {method} model's motion left), hung at "
-                               "its equilibrium under gravity; Reset leaves it, keeping the cut")
+                               "its equilibrium under gravity; Reset leaves it, keeping the cut"
+                               + ("" if element == "tet4" else f"; the {element} organ ({nodes} nodes) is cut as tet4 on its "
+                                  f"{model.n_nodes} corner nodes: a cut {element} organ turned its split elements inside "
+                                  "out in the steps after"))
 
     def _scalpel_step(self) -> None:
         """One step in scalpel mode (under the session's lock): the blade placed, the organ stepped, a
@@ -135,6 +141,19 @@ class Cutting:
         if sc is not None:
             sc.close()
             self.cut_status = f"the cut organ ({self.model.n_nodes} nodes) rebuilt with the chosen method"
+
+
+def _corner_model(model):
+    """The tet4 model on the corner nodes of a tet10 ``model`` (:meth:`TetMesh.linear`): the same material or
+    regions, options and fixes (a fixed corner stays fixed)."""
+    from ..fe.recipe import ModelRecipe
+
+    recipe = ModelRecipe.of(model)
+    mesh = recipe.mesh.linear()
+    kept = np.flatnonzero(mesh.vertex_map >= 0)
+    fixed = np.zeros((mesh.n_vertices, recipe.fixed.shape[1]), dtype=bool)
+    fixed[mesh.vertex_map[kept]] = recipe.fixed[kept]
+    return ModelRecipe(mesh, recipe.material, dict(recipe.options, element="tet4"), fixed, "", recipe.kind).build()
 
 
 def _hang(driver, weights: np.ndarray) -> None:
