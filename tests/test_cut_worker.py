@@ -95,3 +95,17 @@ def test_a_worker_warmed_for_a_model_it_cannot_cut_is_refused_before_a_process_s
         CutWorker(warm="a model")
     assert started == []
     assert sp.issparse(_model("tet4", "linear").K)
+
+
+def test_a_worker_warms_up_for_a_model_of_more_regions_than_its_block_had_tets():
+    """A probe's case: 30 regions (the warm-up block had 24 tets, one region each at most): the warm-up goes well."""
+    mesh = rt.meshes.box(L, W, W, nx=10, ny=2, nz=4)
+    labels = np.arange(mesh.n_tets) % 30
+    model = rt.SolidModel(rt.TetMesh(mesh.vertices, mesh.tets, labels=labels, groups=mesh.groups),
+                          {k: rt.Material(E=3e4 * (1 + k / 10), nu=0.45) for k in range(30)}).fix(mesh.groups["x0"])
+    worker = CutWorker(warm=model)
+    try:
+        worker.cut(model, SLIT, QUAD, "split")
+        assert worker.warm_note == ""
+    finally:
+        worker.close()

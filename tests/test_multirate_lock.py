@@ -114,3 +114,56 @@ def test_a_grab_after_a_release_the_physics_has_not_taken_grips_anew():
         assert grasp.physics.node == q and np.linalg.norm(grasp.force) > 0
     finally:
         grasp.close()
+
+
+def test_grabs_back_to_back_from_another_thread_do_not_stop_the_physics():
+    """The physics thread pauses for the calls waiting when its step ends, not for those that come while it
+    pauses: a thread grabbing back to back stopped it (0 steps a second against 500, a hostile probe)."""
+    grasp, X, p = _grasp()
+    stop = threading.Event()
+
+    def grabs():
+        while not stop.is_set():
+            grasp.grab(p)
+
+    try:
+        _ticking(grasp, X[p], 0.2)
+        grabber = threading.Thread(target=grabs)
+        grabber.start()
+        time.sleep(0.1)
+        before = grasp.physics_steps
+        _ticking(grasp, X[p], 20 * STEP)
+        steps = grasp.physics_steps - before
+        stop.set()
+        grabber.join()
+        assert steps >= 3, steps  # (about one step in two, each grab going in between)
+    finally:
+        stop.set()
+        grasp.close()
+
+
+def test_a_grab_that_comes_while_a_release_runs_leaves_both_sides_holding_it():
+    """A grab from another thread in the middle of a release (here while the hand's side lets go): it waits for the
+    release, then both sides hold its grip. It could grab between the release's two halves and have the
+    release's second half let go of the hand's side alone: the organ pulled, the hand feeling nothing."""
+    grasp, X, p = _grasp()
+    try:
+        _ticking(grasp, X[p], 0.2)
+        grasp.grab(p)
+        q = int(np.argmin(np.linalg.norm(X - (X[p] - [0.02, 0, 0]), axis=1)))
+        let_go = grasp.haptic.release
+        grabber = threading.Thread(target=grasp.grab, args=(q,))
+
+        def release_slowly():
+            grabber.start()
+            time.sleep(0.2)  # (the grab has the physics' lock by now and waits for the release's)
+            let_go()
+
+        grasp.haptic.release = release_slowly
+        grasp.release()
+        grasp.haptic.release = let_go
+        grabber.join(30.0)
+        _ticking(grasp, X[q] + [0, 0, 0.004], 4 * STEP)
+        assert grasp.physics.node == q == grasp.node and np.linalg.norm(grasp.force) > 0
+    finally:
+        grasp.close()

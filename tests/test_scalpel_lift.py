@@ -22,11 +22,11 @@ MAT = rt.Material(E=3e4, nu=0.45, density=1060.0)
 BLADE = (0.0, 0.0, W / 2 + 0.01)
 
 
-def _scalpel(thread: bool) -> rt.Scalpel:
+def _scalpel(thread: bool, toughness: float = 0.0) -> rt.Scalpel:
     mesh = rt.meshes.box(L, W, W, nx=20, ny=4, nz=4)
     model = rt.SolidModel(mesh, MAT).fix(mesh.groups["x0"])
     return rt.Scalpel(rt.DirectSimulator(model, 2e-3, large_deformation=True), blade=BLADE, gravity=(0, 0, 0),
-                      toughness=0.0, thread=thread, worker=False)
+                      toughness=toughness, thread=thread, worker=False)
 
 
 def _at(y: float) -> np.ndarray:
@@ -79,26 +79,85 @@ def test_a_lift_while_a_physics_step_holds_the_lock_returns_at_once_and_its_stri
         sc.close()
 
 
-def test_unthreaded_a_lift_sweeps_at_once_the_strip_the_threaded_one_sweeps_later():
+def _played(seq, deferred: bool):
+    """The scalpel after ``seq``: blade positions (y, m), "lift" and "step" (a physics step); ``deferred``: each lift
+    as the threaded scalpel takes it (a physics thread marked running: the next step or finish() takes it)."""
+    sc = _scalpel(thread=False)
+    for op in seq:
+        if op == "step":
+            sc.physics_step()
+        elif op == "lift":
+            sc._thread = threading.current_thread() if deferred else None  # (as a running physics thread is)
+            sc.lift()
+            sc._thread = None
+        else:
+            sc.update(_at(op))
+    sc.finish()
+    return sc
+
+
+@pytest.mark.parametrize("name", ["re-placed and moved an advance a step", "lifted twice, then re-placed",
+                                  "placed and lifted twice before a step", "lifted before any blade"])
+def test_unthreaded_a_lift_sweeps_at_once_the_surface_the_threaded_one_sweeps_later(name):
     """The same blade positions and physics steps, unthreaded (lift sweeps at once) and as the threaded scalpel
-    has it (a physics thread marked running: the next step sweeps): the same cut surface, the block at rest."""
-    surfaces = []
-    for deferred in (False, True):
-        sc = _scalpel(thread=False)
-        sc.update(_at(0.004))
+    has it (the next step sweeps): the same cut surface, the block at rest (a hostile probe's sequences: the
+    threaded scalpel lost the strips of a stroke placed after a lift until the step after next)."""
+    a = _scalpel(thread=False).advance
+    seq = {"re-placed and moved an advance a step": [0.0, "step", 0.004, "step", 0.004 + 0.6 * a, "lift", 0.012, "step",
+                                                     0.012 + a, "step", 0.012 + 2 * a, "step", 0.012 + 3 * a, "step",
+                                                     "lift", "step"],
+           "lifted twice, then re-placed": [0.0, "step", 0.004, "step", 0.0045, "lift", "lift", 0.010, "step",
+                                            0.010 + 1.2 * a, "step", 0.010 + 2.4 * a, "step", "lift", "step"],
+           "placed and lifted twice before a step": [0.0, "step", 0.004, "step", 0.0045, "lift", 0.008, "lift", 0.012,
+                                                     "step", 0.012 + 1.5 * a, "step", "lift", "step"],
+           "lifted before any blade": ["lift", 0.0, "step", 0.004, "step", 0.006, "lift", "step"]}[name]
+    now, later = _played(seq, False), _played(seq, True)
+    assert now.triangles.shape[0] > 0 and not later._lifts
+    assert np.array_equal(now.triangles, later.triangles)
+    assert np.abs(now.vertices - later.vertices).max() < 1e-12  # (m: the block at rest moves by round-off in a step)
+    now.close()
+    later.close()
+
+
+def test_a_tick_while_the_physics_takes_a_lift_feels_nothing_and_nor_do_ticks_in_the_air_after():
+    """A cut with liver's toughness, lifted as the threaded scalpel lifts; a tick comes while the physics step
+    sweeps the lift's strip (it read the last stroke's resistance there: 0.6 N in a probe's run), then ticks with
+    the blade in the air above the block: zero force, each."""
+    sc = _scalpel(thread=False, toughness=164.0)
+    for y in np.linspace(0.0, 0.012, 25):
+        sc.update(_at(y), t=y / 0.02)
         sc.physics_step()
-        sc.update(_at(0.004 + 0.6 * sc.advance))
-        if deferred:
-            sc._thread = threading.current_thread()  # (as a running physics thread is, for lift())
+    assert sc.resistance > 0.1
+    sc._thread = threading.current_thread()
+    sc.lift()
+    sc._thread = None
+    air = [(_at(0.012 + 0.0005 * k) + [0, 0, 0.04], 1.0 + 1e-3 * k) for k in range(30)]  # the blade moving in the air
+    felt = [sc.update(x, t=t).copy() for x, t in air[:5]]  # (before the physics step: the hand's motion is known)
+    sweep = sc._sweep
+
+    def sweep_and_tick(U, final=False, blade=None):
+        sweep(U, final, blade)
+        if final:
+            felt.append(sc.update(air[5][0], t=air[5][1]).copy())
+
+    sc._sweep = sweep_and_tick
+    sc.physics_step()
+    sc._sweep = sweep
+    for x, t in air[6:]:
+        felt.append(sc.update(x, t=t).copy())
+        sc.physics_step()
+    assert len(felt) == 30 and np.all(np.asarray(felt) == 0.0)
+    sc.close()
+
+
+def test_a_lift_after_the_ticks_stopped_joins_the_surface_at_close():
+    sc = _scalpel(thread=True)
+    try:
+        _ticks(sc, 0.004, 0.3)
+        y1 = 0.004 + 0.6 * sc.advance
+        _ticks(sc, y1, 0.02)
+        time.sleep(0.5)  # the ticks stopped: the physics thread waits for them
         sc.lift()
-        assert np.all(sc.force == 0.0) and len(sc._lifts) == (1 if deferred else 0)
-        sc.physics_step()
-        sc._thread = None
-        assert not sc._lifts
-        sc.update(_at(0.012))
-        sc.physics_step()
-        surfaces.append((sc.vertices.copy(), sc.triangles.copy()))
+    finally:
         sc.close()
-    assert surfaces[0][1].shape[0] > 0
-    assert np.array_equal(surfaces[0][1], surfaces[1][1])
-    assert np.abs(surfaces[0][0] - surfaces[1][0]).max() < 1e-12  # (m: the block at rest moves by round-off in a step)
+    assert not sc._lifts and _y_of_cells(sc)[:, 1].max() == pytest.approx(y1, abs=1e-9)

@@ -161,6 +161,9 @@ def test_a_cut_job_that_fails_after_the_stroke_is_said_and_the_next_stroke_cuts_
     s.step()
     plane = np.array([[L / 2, -0.001, -0.005], [L / 2, W + 0.001, -0.005], [L / 2, W + 0.001, W + 0.01],
                       [L / 2, -0.001, W + 0.01]])
-    assert failed > 0 and sc._applied == sc.triangles.shape[0]  # every strip in the model, the failed job's too
+    # every strip in a job after the failed one, and the block cut through (a job that finds nothing new to cut leaves
+    # _applied behind: in 3 of 10 runs the jobs went 42, 56, 70 and 84 triangles, the last cutting nothing the one of
+    # 70 had not, and _applied stayed at 70 with the block cut through; the others went 42, 84)
+    assert failed > 0 and sc._tried == sc.triangles.shape[0]
     assert sc.cuts >= 1 and s.model.n_nodes == rt.cut(uncut, plane, [[0, 1, 2], [0, 2, 3]]).n_nodes == uncut.n_nodes + 9
     s.stop()

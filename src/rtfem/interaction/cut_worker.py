@@ -58,18 +58,21 @@ def _kind_of(model) -> tuple:
 
 
 def warm_up(kind, material, options) -> None:
-    """Cut and assemble a small block (40 x 10 x 10 mm, 4 x 1 x 1 cells, clamped at one end) of the given model
-    class, material(s) or law and options across its middle, its elements split, as a scalpel's job does: every
-    import and compiled kernel a job of that kind of model needs is then loaded."""
+    """Cut and assemble a small block (10 mm cells, 4 x 1 x 2 of them, more along x for over 48 regions: a tet of
+    each; clamped at one end) of the given model class, material(s) or law and options, slit from its top to half
+    its height in its second cell, the elements split, as a scalpel's job does: every import and compiled kernel
+    a job of that kind of model needs is then loaded."""
     from ..mesh.meshes import box
     from ..mesh.tetmesh import TetMesh
 
-    mesh = box(0.04, 0.01, 0.01, nx=4, ny=1, nz=1)
+    nx = 4 if not isinstance(material, dict) else max(4, -(-len(material) // 12))  # (12 tets a cell: one per region)
+    mesh = box(0.01 * nx, 0.01, 0.01, nx=nx, ny=1, nz=2)
     if isinstance(material, dict):  # a model of regions: the block's tets take each region's label in turn
         labels = np.array(list(material))[np.arange(mesh.n_tets) % len(material)]
         mesh = TetMesh(mesh.vertices, mesh.tets, labels=labels, groups=mesh.groups)
     model = kind(mesh, material, **options).fix(mesh.groups["x0"])
-    plane = np.array([[0.017, -0.001, -0.001], [0.017, 0.011, -0.001], [0.017, 0.011, 0.011], [0.017, -0.001, 0.011]])
+    # a slit from the top to half the height (a layer of nodes): nothing cut free, every region kept
+    plane = np.array([[0.017, -0.001, 0.005], [0.017, 0.011, 0.005], [0.017, 0.011, 0.011], [0.017, -0.001, 0.011]])
     cut_and_assemble(model, plane, np.array([[0, 1, 2], [0, 2, 3]]), "split")
 
 

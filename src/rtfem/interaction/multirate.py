@@ -157,7 +157,9 @@ class _MultiRate:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.RLock()  # held by a physics step; a grab or release waits for it (_between_steps)
-        self._waiting = 0  # threads waiting in _between_steps: the physics thread pauses after its step for them
+        # calls into _between_steps begun and ended: after its step the physics thread pauses until those begun by
+        # then have ended (not for those begun while it pauses: calls back to back would stop it)
+        self._asked, self._served = 0, 0
         self._waiting_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._t0 = None  # wall clock of the first tick (pace)
@@ -197,13 +199,13 @@ class _MultiRate:
         flat out, took the lock again first, step after step: on the 9k-tet liver of benchmarks/fullorder.py a
         grasp's grab() returned after 152-366 ms (median), now 112-189 ms (benchmarks/grab_wait.py)."""
         with self._waiting_lock:
-            self._waiting += 1
+            self._asked += 1
         try:
             with self._lock:
                 yield
         finally:
             with self._waiting_lock:
-                self._waiting -= 1
+                self._served += 1
 
     def start(self):
         """Start the physics thread (the first :meth:`update` does)."""
@@ -259,7 +261,8 @@ class _MultiRate:
                         self._stop.wait(min(ahead, 0.05))
                         continue
                 self.physics_step()
-                while self._waiting and not self._stop.is_set():  # a grab or release waits: it goes first
+                asked = self._asked
+                while self._served < asked and not self._stop.is_set():  # a grab waits: it goes first
                     time.sleep(1e-4)
         except BaseException as exc:  # noqa: BLE001 - surfaced by the next tick
             self.error = exc
@@ -432,6 +435,7 @@ class MultiRateGrasp(_MultiRate):
         self.haptic = Grasp(mesh, self.snapshot, **options)
         self.mesh = mesh
         self._let_go = False  # a release the physics side has not taken yet (its next step does)
+        self._grip = threading.Lock()  # a grab and a release, one at a time (a release waits for nothing else)
         self._publish()
 
     @property
@@ -444,15 +448,13 @@ class MultiRateGrasp(_MultiRate):
 
     def grab(self, node: int, radius: float | None = None) -> np.ndarray:
         """Close the jaw (:meth:`Grasp.grab`) on both sides, between two physics steps."""
-        with self._between_steps():
+        with self._between_steps(), self._grip:
             self._take_release()
             nodes = self.physics.grab(node, radius)
             h, p = self.haptic, self.physics
             self._publish()
             h.node, h.nodes, h._hold, h._jaw = p.node, p.nodes.copy(), p._hold.copy(), p._jaw.copy()
             h._block, h._patch_inv = None, None
-            if self._let_go:  # released meanwhile (from another thread): the later word holds on the hand's side
-                h.release()
         return nodes
 
     def release(self) -> None:
@@ -460,8 +462,9 @@ class MultiRateGrasp(_MultiRate):
         thread running; at once otherwise). Waiting for the physics' lock, a release on the 9k-tet liver of
         benchmarks/fullorder.py returned after 120-267 ms (median; up to 440 ms), the jaw pulling the hand
         meanwhile; now 0.03 ms (benchmarks/grab_wait.py)."""
-        self._let_go = True
-        self.haptic.release()
+        with self._grip:  # (a grab in progress ends first: both sides then let go)
+            self.haptic.release()
+            self._let_go = True
         if self._thread is None:
             with self._between_steps():
                 self._take_release()

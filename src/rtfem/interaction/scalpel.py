@@ -230,10 +230,13 @@ class Scalpel(_MultiRate):
         self._blade = (c, h)
         self.lifted = False
         self._tick(c)
-        mid = 0.5 * (c + h)
-        if self._mid is not None and now > self._t_tick:
+        if self._restroke:  # lifted since the last tick: this one begins a stroke (the blade's motion is the ticks' own)
+            self._restroke = False
+            self._velocity, self._mid = np.zeros(3), None
+        mid, last = 0.5 * (c + h), self._mid
+        if last is not None and now > self._t_tick:
             w = min(1.0, (now - self._t_tick) / _SMOOTH)
-            self._velocity = (1 - w) * self._velocity + w * (mid - self._mid) / (now - self._t_tick)
+            self._velocity = (1 - w) * self._velocity + w * (mid - last) / (now - self._t_tick)
         self._mid, self._t_tick = mid, now
         b = along / length
         v = self._velocity - (self._velocity @ b) * b
@@ -252,27 +255,23 @@ class Scalpel(_MultiRate):
         median 175 ms, 32 ms beside a busy core, on the 9k-tet liver of benchmarks/scalpel.py, the ticks
         meanwhile giving the cutting force)."""
         blade = None if self.lifted else self._blade
-        self.lifted, self.force = True, np.zeros(3)  # (lifted first: a step that sees the lift below sees this)
-        if self._thread is not None:
-            self._lifts.append(blade)  # (the haptic side's new stroke here, the physics side's there)
-            self._velocity, self._mid = np.zeros(3), None
-            return
-        with self._between_steps():
-            self._lifts.append(blade)
-            self._take_lifts(self.shown, haptic=True)
+        # lifted first: a step that takes the lift below sees it (else it would start a stroke where this one ended)
+        self.lifted, self.force, self._restroke = True, np.zeros(3), True
+        self._lifts.append(blade)
+        if self._thread is None:  # no physics thread: taken here
+            with self._between_steps():
+                self._take_lifts(self.shown)
 
-    def _take_lifts(self, shown, haptic: bool = False) -> bool:
+    def _take_lifts(self, shown) -> None:
         """The physics side of the lifts asked since the last step (under the lock): each blade's last strip
-        swept on ``shown`` = (model, U) (where that is the model now) and a new stroke begun (``haptic``: its
-        blade motion too; the tick that lifted began that on its side). True if any."""
-        took = False
+        swept on ``shown`` = (model, U) (where that is the model now) and a new stroke begun. A lift leaves
+        the queue once its stroke is reset: until then a tick reads the resistance as zero."""
         while self._lifts:
-            blade = self._lifts.pop(0)
+            blade = self._lifts[0]
             if blade is not None and shown[0] is self.solid.model:
                 self._sweep(shown[1], final=True, blade=blade)
-            self._new_stroke(haptic)
-            took = True
-        return took
+            self._new_stroke(haptic=False)
+            self._lifts.pop(0)
 
     def _new_stroke(self, haptic: bool = True) -> None:
         """No strip, resistance or (``haptic``) blade motion yet: a stroke's start."""
@@ -280,7 +279,7 @@ class Scalpel(_MultiRate):
         self._last = (None, none, none, none)  # the last strip: cells, beside the solid, taken, fresh
         self._anchor = None  # the blade's samples in the reference configuration where its last strip ended
         if haptic:
-            self._velocity, self._mid = np.zeros(3), None
+            self._velocity, self._mid, self._restroke = np.zeros(3), None, False
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
         self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
         self._lifts = getattr(self, "_lifts", [])  # the blades at lifts the physics has not taken yet (None: none down)
@@ -331,8 +330,8 @@ class Scalpel(_MultiRate):
         """After a step of the organ to displacements ``U`` (n, 3): the blade's strip swept (unless it is
         lifted) and a cut job started when the surface grew (the physics step does this; a scene calls it
         after stepping the body itself)."""
-        lifted = self.lifted
-        if not self._take_lifts((self.solid.model, U)) and not lifted:  # (a lift taken swept this step's strip)
+        self._take_lifts((self.solid.model, U))
+        if not self.lifted:  # (read after the lifts: a blade placed again after a lift starts its stroke here)
             self._sweep(U)
         self._start_cut()
         self.shown = (self.solid.model, U)
@@ -472,6 +471,9 @@ class Scalpel(_MultiRate):
         """Stop the physics thread (after the step it is in) and the cut worker process; :meth:`finish`
         still cuts, in this process."""
         super().close(timeout)
+        if self._lifts:  # a lift the physics thread did not take (its ticks had stopped): its strip joins the surface
+            with self._between_steps():
+                self._take_lifts(self.shown)
         worker, self._worker = self._worker, None
         if worker is not None:  # never waits: a tick that failed closes the scalpel on its way to zero force
             worker.close(wait=False)
