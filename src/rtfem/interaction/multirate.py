@@ -436,6 +436,7 @@ class MultiRateGrasp(_MultiRate):
         self.mesh = mesh
         self._let_go = False  # a release the physics side has not taken yet (its next step does)
         self._grip = threading.Lock()  # a grab and a release, one at a time (a release waits for nothing else)
+        self._grip_changes = 0  # odd while a grab or release changes the hand's side; a tick it overlapped feels nothing
         self._publish()
 
     @property
@@ -453,8 +454,10 @@ class MultiRateGrasp(_MultiRate):
             nodes = self.physics.grab(node, radius)
             h, p = self.haptic, self.physics
             self._publish()
+            self._grip_changes += 1
             h.node, h.nodes, h._hold, h._jaw = p.node, p.nodes.copy(), p._hold.copy(), p._jaw.copy()
             h._block, h._patch_inv = None, None
+            self._grip_changes += 1
         return nodes
 
     def release(self) -> None:
@@ -463,8 +466,10 @@ class MultiRateGrasp(_MultiRate):
         benchmarks/fullorder.py returned after 120-267 ms (median; up to 440 ms), the jaw pulling the hand
         meanwhile; now 0.03 ms (benchmarks/grab_wait.py)."""
         with self._grip:  # (a grab in progress ends first: both sides then let go)
+            self._grip_changes += 1
             self.haptic.release()
             self._let_go = True
+            self._grip_changes += 1
         if self._thread is None:
             with self._between_steps():
                 self._take_release()
@@ -482,7 +487,15 @@ class MultiRateGrasp(_MultiRate):
         """One haptic tick with the hand at ``target`` (None: no hand): the total force on the organ
         (N; the hand feels its opposite), from the latest snapshot."""
         c = self._tick(target, allow_none=True)
-        self.force = self.haptic.update(c)
+        seen = self._grip_changes
+        try:
+            force = self.haptic.update(c) if seen % 2 == 0 else np.zeros(3)
+        except Exception:
+            if self._grip_changes == seen:
+                raise
+        if self._grip_changes != seen:  # a grab or release on another thread changed the grip under this tick (it read
+            force = np.zeros(3)  # part of each: 'nodes is empty' was raised): zero, the next tick has the new grip
+        self.force = force
         return self.force
 
     def _published(self, U):
