@@ -136,7 +136,9 @@ def test_relaxing_regions_carry_their_own_history_in_the_reduced_model_as_in_the
     and the reduced bar creeps (0.90 of its final deflection at 0.1 s) as the full-order simulation of the
     same regions does (within the basis's error: 2 % of the relaxed deflection over the 0.8 s track,
     measured 0.69 %) to the reduced model's own long-term equilibrium (1e-3, measured 1.3e-4); with the
-    cubature fitted per region to 2 %, within 2 % of the exact reduced track (measured 0.35 %)."""
+    cubature fitted per region to 1 %, within 2 % of the exact reduced track (seeds 0-4: 0.07-0.74 %; fitted to
+    2 % it was 0.35-2.3 % by the seed, seed 0's 0.35 % on an earlier install and 2.03 % on numpy 2.4.6, scipy
+    1.17.1: the elements chosen follow the last bits of the training forces)."""
     box, two, law, F, tip = two_region_bar()
 
     def track(sim, steps):
@@ -166,6 +168,6 @@ def test_relaxing_regions_carry_their_own_history_in_the_reduced_model_as_in_the
     assert abs(mine[-1] - relaxed) < 1e-3 * relaxed
     assert np.abs(mine - full).max() < 0.02 * full[-1], np.abs(mine - full).max() / full[-1]
     assert mine[100] < 0.95 * mine[-1]  # it crept
-    red.train_cubature(16, tol=0.02)  # per region (the default on regions)
+    red.train_cubature(16, tol=0.01)  # per region (the default on regions)
     cub = track(ReducedNonlinearSimulator(red, 1e-3, rt.Damping(alpha=40.0)), 800)
     assert np.abs(cub - mine).max() < 0.02 * mine[-1], np.abs(cub - mine).max() / mine[-1]
