@@ -1,7 +1,7 @@
 """The physics' lock of the multi-rate tools (rt.MultiRateGrasp, rt.MultiRateProbe, rt.Scalpel) shared with
 the threads that grab, release, prepare or lift: the physics thread, stepping flat out, took it again first,
 step after step, so such a call waited many steps (a grasp's release() on the 9k-tet liver of
-benchmarks/fullorder.py returned after 120-267 ms by the median, the jaw pulling the hand meanwhile;
+benchmarks/fullorder.py returned after 19-267 ms by the median, the jaw pulling the hand meanwhile;
 benchmarks/grab_wait.py).
 Checked on a physics step made slow on purpose (40 ms busy in Python, the lock held): a grab gets the lock within the step
 in progress and the next (the physics thread pauses for it); a release waits for nothing, zeroes the hand's

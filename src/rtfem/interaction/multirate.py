@@ -197,7 +197,8 @@ class _MultiRate:
         """The physics' lock for a grab, a release, a prepare, between two physics steps: the physics thread
         pauses after its step until the waiting threads have had it. Without that pause the thread, stepping
         flat out, took the lock again first, step after step: on the 9k-tet liver of benchmarks/fullorder.py a
-        grasp's grab() returned after 152-366 ms (median), now 112-189 ms (benchmarks/grab_wait.py)."""
+        grasp's grab() returned after 316-366 ms by the median, now 87-112 ms (beside a busy core no sooner:
+        83-152 against 96-189 ms; benchmarks/grab_wait.py)."""
         with self._waiting_lock:
             self._asked += 1
         try:
@@ -463,8 +464,8 @@ class MultiRateGrasp(_MultiRate):
     def release(self) -> None:
         """Open the jaw on both sides: the hand's side at once, the physics' at its next step (with its
         thread running; at once otherwise). Waiting for the physics' lock, a release on the 9k-tet liver of
-        benchmarks/fullorder.py returned after 120-267 ms (median; up to 440 ms), the jaw pulling the hand
-        meanwhile; now 0.03 ms (benchmarks/grab_wait.py)."""
+        benchmarks/fullorder.py returned after 19-267 ms by the median (up to 440 ms), the jaw pulling the hand
+        meanwhile; now 0.03-0.04 ms (benchmarks/grab_wait.py)."""
         with self._grip:  # (a grab in progress ends first: both sides then let go)
             self._grip_changes += 1
             self.haptic.release()
