@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import json
+import os
 import statistics
 import subprocess
 import sys
@@ -66,3 +68,16 @@ def baseline_tree(ref: str):
         yield folder, ref[:7]
     finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(folder)], cwd=root, capture_output=True)
+
+
+def child(script: str, src: Path, *args: str) -> dict:
+    """The last JSON line a fresh process of ``benchmarks/<script> args`` prints, with the rtfem of ``src`` (a
+    checkout's src: the working tree's or a baseline_tree's) first on its path."""
+    here = Path(__file__).resolve().parent
+    env = dict(os.environ, PYTHONPATH=f"{src}{os.pathsep}{here}")
+    out = subprocess.run([sys.executable, str(here / script), *args], env=env, capture_output=True, text=True,
+                         timeout=1800, cwd=tempfile.gettempdir())
+    line = [x for x in out.stdout.splitlines() if x.startswith("{")]
+    if not line:
+        raise RuntimeError(f"the child failed: {out.stderr[-2000:]}")
+    return json.loads(line[-1])

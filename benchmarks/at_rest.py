@@ -17,18 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import baseline_tree, busy_core, fmt_s, print_table  # noqa: E402
+from _common import baseline_tree, busy_core, child, fmt_s, print_table  # noqa: E402
 from fullorder import organ  # noqa: E402
 
 import rtfem as rt  # noqa: E402
@@ -68,16 +65,6 @@ def one(name: str, n: int) -> None:
                           tets=len(model.tetmesh.tets), nodes=model.n_nodes)))
 
 
-def _child(src: Path, name: str, n: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=f"{src}{os.pathsep}{HERE}")
-    out = subprocess.run([sys.executable, str(HERE / "at_rest.py"), "--one", name, "--steps", str(n)], env=env,
-                         capture_output=True, text=True, timeout=1800, cwd=tempfile.gettempdir())
-    line = [x for x in out.stdout.splitlines() if x.startswith("{")]
-    if not line:
-        raise RuntimeError(f"the child failed: {out.stderr[-2000:]}")
-    return json.loads(line[-1])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=200)
@@ -97,7 +84,8 @@ def main() -> None:
             for _ in range(args.runs):
                 for name in ("block", "liver"):
                     for code, src in trees.items():
-                        res.setdefault((name, code), []).append(_child(src, name, args.steps))
+                        run = child("at_rest.py", src, "--one", name, "--steps", str(args.steps))
+                        res.setdefault((name, code), []).append(run)
     rows = []
     for name in ("block", "liver"):
         p50 = {}

@@ -19,18 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import baseline_tree, busy_core, print_table  # noqa: E402
+from _common import baseline_tree, busy_core, child, print_table  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -96,16 +93,6 @@ def one(tool: str, strokes: int) -> None:
     print(json.dumps(out))
 
 
-def _child(src: Path, tool: str, strokes: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=f"{src}{os.pathsep}{HERE}")
-    out = subprocess.run([sys.executable, str(HERE / "grab_wait.py"), "--one", tool, "--strokes", str(strokes)], env=env,
-                         capture_output=True, text=True, timeout=1800, cwd=tempfile.gettempdir())
-    line = [x for x in out.stdout.splitlines() if x.startswith("{")]
-    if not line:
-        raise RuntimeError(f"the child failed: {out.stderr[-2000:]}")
-    return json.loads(line[-1])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--strokes", type=int, default=6)
@@ -125,7 +112,8 @@ def main() -> None:
                 for _ in range(args.runs):
                     for tool in ("grasp", "scalpel"):
                         for code, src in trees.items():
-                            res.setdefault((tool, busy, code), []).append(_child(src, tool, args.strokes))
+                            run = child("grab_wait.py", src, "--one", tool, "--strokes", str(args.strokes))
+                            res.setdefault((tool, busy, code), []).append(run)
     rows = []
     for (tool, busy, code), rs in res.items():
         steps = np.concatenate([r["steps"] for r in rs]) * 1e3
