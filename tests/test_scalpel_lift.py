@@ -161,3 +161,22 @@ def test_a_lift_after_the_ticks_stopped_joins_the_surface_at_close():
     finally:
         sc.close()
     assert not sc._lifts and _y_of_cells(sc)[:, 1].max() == pytest.approx(y1, abs=1e-9)
+
+
+def test_a_close_whose_last_lift_cannot_be_swept_ends_all_the_same_and_says_so():
+    """close() on a failing tick's way to zero force: a pending lift whose sweep raises is dropped with a word in
+    ``refused``; the close ends (its worker process too)."""
+    sc = _scalpel(thread=False)
+    sc.update(_at(0.004))
+    sc.physics_step()
+    sc._thread = threading.current_thread()  # (a physics thread marked running: the lift waits for it)
+    sc.update(_at(0.006))
+    sc.lift()
+    sc._thread = None
+
+    def broken(*args, **kwargs):
+        raise ValueError("a broken state")
+
+    sc._sweep = broken
+    sc.close()
+    assert not sc._lifts and "not added to the cut (ValueError: a broken state)" in sc.refused

@@ -472,8 +472,12 @@ class Scalpel(_MultiRate):
         still cuts, in this process."""
         super().close(timeout)
         if self._lifts:  # a lift the physics thread did not take (its ticks had stopped): its strip joins the surface
-            with self._between_steps():
-                self._take_lifts(self.shown)
+            try:
+                with self._between_steps():
+                    self._take_lifts(self.shown)
+            except Exception as exc:  # noqa: BLE001 - a close on its way to zero force ends all the same
+                self._lifts.clear()
+                self.refused = f"the last stroke's end was not added to the cut ({type(exc).__name__}: {exc})"
         worker, self._worker = self._worker, None
         if worker is not None:  # never waits: a tick that failed closes the scalpel on its way to zero force
             worker.close(wait=False)
