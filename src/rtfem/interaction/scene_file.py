@@ -434,7 +434,8 @@ def _full_order(model, table: dict, where: _Where, dt: float, damping):
     if "fix" not in table:
         raise where.error("fix", "missing: a body a scalpel cuts must be held (fix = a node selection); a piece cut "
                           "free with nothing holding it falls away, and a free body would all go")
-    if model.element != "tet4":  # (as the viewer: a cut tet10 liver's next steps turned split elements inside out)
+    if model.element != "tet4":  # (a cut tet10 liver's next steps turned split elements inside out; the viewer cuts one
+        # as tet4 on its corners, a scene file names its element)
         raise where.error("element", f"{model.element!r}: a body a scalpel cuts must be element = 'tet4' for now (a cut "
                           "tet10 organ turned its split elements inside out in the steps after, issue 57)")
     return where.check("mesh", DirectSimulator, model, dt, damping, large_deformation=True)

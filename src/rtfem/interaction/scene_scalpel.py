@@ -183,7 +183,7 @@ class SceneScalpel:
 #: what a scalpel's state holds of its rt.Scalpel (all replaced, never changed in place, as it cuts)
 _STATE = ("driver", "solid", "shown", "transfer", "last_transfer", "vertices", "triangles", "_applied", "_tried",
           "cuts", "removed_mass", "refused", "_last", "_anchor", "_velocity", "_mid", "_t_tick", "resistance", "_push",
-          "lifted", "_blade", "force", "_ready")
+          "lifted", "_blade", "force", "_ready", "_restroke")
 
 
 #: the scene's caches of a body's nodes and compliances, stale once a body is cut
