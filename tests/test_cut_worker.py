@@ -109,3 +109,24 @@ def test_a_worker_warms_up_for_a_model_of_more_regions_than_its_block_had_tets()
         assert worker.warm_note == ""
     finally:
         worker.close()
+
+
+def test_a_worker_that_answers_nothing_in_time_is_killed_and_said_gone():
+    """A probe's case: a worker stopped (SIGSTOP) during its warm-up left the cut job waiting for good; past the
+    timeout it is killed and cut() raises WorkerGone (the scalpel then cuts in its own process)."""
+    import os
+    import signal
+
+    from rtfem.interaction.cut_worker import WorkerGone
+
+    model = _model("tet4", "linear")
+    worker = CutWorker(warm=model, timeout=2.0)
+    try:
+        os.kill(worker._proc.pid, signal.SIGSTOP)
+        with pytest.raises(WorkerGone, match="answered nothing in 2 s and was killed"):
+            worker.cut(model, SLIT, QUAD, "split")
+        assert not worker.alive
+    finally:
+        worker.close()
+    with pytest.raises(ModelError, match="timeout"):
+        CutWorker(timeout=0.0)

@@ -89,16 +89,21 @@ class CutWorker:
     """A worker process for :func:`cut_and_assemble` (see the module): :meth:`cut` sends a job and waits
     for its answer (the waiting thread gives up Python's lock), :meth:`close` ends the process. ``warm``:
     the solid model it will cut: the worker warms up for its kind first (:func:`warm_up`; the answer is
-    read with the first job's, ``warm_note`` then says how it went).
+    read with the first job's, ``warm_note`` then says how it went). ``timeout``: s a job (with a warm-up's
+    answer before it) may take before the worker is taken for stopped and killed (default 120; a job on the
+    9k-tet liver takes 0.1-0.3 s).
 
     Raises
     ------
     WorkerGone
-        In :meth:`cut`, when the worker has died or answers nothing (the caller cuts in its own
-        process then); what the cut raised is raised as it was.
+        In :meth:`cut`, when the worker has died or answers nothing within ``timeout`` (the caller cuts in
+        its own process then); what the cut raised is raised as it was.
     """
 
-    def __init__(self, warm=None) -> None:
+    def __init__(self, warm=None, timeout: float = 120.0) -> None:
+        from .. import validate
+
+        self.timeout = validate.positive(timeout, "timeout", "seconds a cut job may take, such as 120")
         job = None if warm is None else ("warm", *_kind_of(warm))  # (a model it cannot warm for is refused first)
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
                    NUMBA_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
@@ -122,6 +127,15 @@ class CutWorker:
     def cut(self, model, vertices, triangles, snap, held=None):
         """The worker's :func:`cut_and_assemble` of these arguments."""
         with self._lock:
+            late = threading.Event()
+
+            def kill() -> None:  # no answer in time: a stopped (or looping) worker, killed; the read below ends
+                late.set()
+                self._proc.kill()
+
+            watchdog = threading.Timer(self.timeout, kill)
+            watchdog.daemon = True
+            watchdog.start()
             try:
                 pickle.dump((_bare(model), vertices, triangles, snap, held), self._proc.stdin,
                             protocol=pickle.HIGHEST_PROTOCOL)
@@ -133,8 +147,11 @@ class CutWorker:
                     kind, value = pickle.load(self._proc.stdout)
             except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:  # ValueError: closed meanwhile
                 self.close()
-                raise WorkerGone(f"the cut worker process stopped ({type(exc).__name__}); cutting in this process "
-                                 "from now on") from None
+                why = f"answered nothing in {self.timeout:g} s and was killed" if late.is_set() else \
+                    f"stopped ({type(exc).__name__})"
+                raise WorkerGone(f"the cut worker process {why}; cutting in this process from now on") from None
+            finally:
+                watchdog.cancel()
         if kind == "error":
             raise value
         return value
