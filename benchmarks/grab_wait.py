@@ -66,23 +66,10 @@ def grasp(model, strokes: int) -> dict:
 
 
 def scalpel(model, strokes: int) -> dict:
-    import rtfem as rt
-    from scalpel import settled, stroke
+    from scalpel import lift_ticks
 
-    sim = settled(model, 4e-3, 0.2)
-    path, blade = stroke(model, sim.displacements(), 6.0)
-    tool = rt.Scalpel(sim, blade=blade)
-    calls: dict = {"lift": []}
-    try:
-        for k in range(strokes + 1):  # (the first not kept)
-            _ticks(tool.update, 0.8, lambda t, k=k: path(0.8 * k + t))
-            t0 = time.perf_counter()
-            tool.lift()
-            calls["lift"].append(time.perf_counter() - t0)
-            time.sleep(0.05)
-    finally:
-        tool.close()
-    return {"calls": {k: v[1:] for k, v in calls.items()}, "steps": tool.step_times}
+    lifts, steps = lift_ticks(model, 4e-3, strokes + 1, seconds=0.8)  # (the first stroke's lift not kept)
+    return {"calls": {"lift": lifts[1:]}, "steps": steps}
 
 
 def one(tool: str, strokes: int) -> None:

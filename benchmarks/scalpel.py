@@ -91,10 +91,11 @@ def run(model, sim, seconds: float) -> dict:
             "surface": (scalpel.vertices, scalpel.triangles)}
 
 
-def lift_ticks(model, dt: float, strokes: int = 5) -> list[float]:
-    """s, what each rt.Scalpel.lift() took its caller (here the ticking thread): the scalpel threaded on the liver settling
-    under gravity (0.2 s), its ticks at 1 kHz on this thread along the stroke's path, ``strokes`` strokes of
-    1 s each, each ended by a lift (the next starting where it was lifted)."""
+def lift_ticks(model, dt: float, strokes: int = 5, seconds: float = 1.0) -> tuple[list[float], list[float]]:
+    """s, what each rt.Scalpel.lift() took its caller (here the ticking thread), and the physics steps' times: the
+    scalpel threaded on the liver settling under gravity (0.2 s), its ticks at 1 kHz on this thread along the
+    stroke's path, ``strokes`` strokes of ``seconds`` each, each ended by a lift (the next starting where it was
+    lifted)."""
     sim = settled(model, dt, 0.2)
     path, blade = stroke(model, sim.displacements(), 6.0)
     scalpel = rt.Scalpel(sim, blade=blade)
@@ -102,7 +103,7 @@ def lift_ticks(model, dt: float, strokes: int = 5) -> list[float]:
     try:
         for _ in range(strokes):
             start = time.perf_counter()
-            while (now := time.perf_counter()) < start + 1.0:
+            while (now := time.perf_counter()) < start + seconds:
                 t += 1e-3
                 scalpel.update(path(t))
                 time.sleep(max(0.0, 1e-3 - (time.perf_counter() - now)))
@@ -112,7 +113,7 @@ def lift_ticks(model, dt: float, strokes: int = 5) -> list[float]:
             time.sleep(0.05)
     finally:
         scalpel.close()
-    return out
+    return out, scalpel.step_times
 
 
 def one_event(model, dt: float, surface) -> list[float]:
@@ -246,7 +247,7 @@ def main() -> None:
               f"by up to {move * 1e3:.1f} mm)")
         X, C = np.asarray(model.tetmesh.vertices), np.asarray(model.tetmesh.tets)
         edge = float(np.mean(np.linalg.norm(X[C[:, 1]] - X[C[:, 0]], axis=1)))
-        lifts = np.array(lift_ticks(model, args.dt)) * 1e3
+        lifts = np.array(lift_ticks(model, args.dt)[0]) * 1e3
         print(f"rt.Scalpel.lift() (threaded physics, 1 s strokes): {', '.join(f'{x:.2f}' for x in lifts)} "
               f"ms (median {np.median(lifts):.2f} ms)")
         for warm in (False, True):

@@ -494,6 +494,7 @@ class MultiRateGrasp(_MultiRate):
         except Exception:
             if self._grip_changes == seen:
                 raise
+            force = np.zeros(3)
         if self._grip_changes != seen:  # a grab or release on another thread changed the grip under this tick (it read
             force = np.zeros(3)  # part of each: 'nodes is empty' was raised): zero, the next tick has the new grip
         self.force = force

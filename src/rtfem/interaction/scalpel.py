@@ -191,6 +191,7 @@ class Scalpel(_MultiRate):
         self._blade = None  # (tip, heel) in the world, the last tick's
         self.lifted = False  # the blade out of the tissue (lift()): the organ steps on, nothing is swept
         self._t_tick = None
+        self._lifts: list = []  # the blades at lifts the physics has not taken yet (None: none was down)
         self._new_stroke()
         # (model, (n, 3) displacements) for drawing: a running driver's state until the first physics step
         self.shown = (driver.model, np.asarray(driver.displacements(), dtype=float))
@@ -282,7 +283,6 @@ class Scalpel(_MultiRate):
             self._velocity, self._mid, self._restroke = np.zeros(3), None, False
         self.resistance = 0.0  # N: J times the edge length in uncut tissue, the last strip's
         self._push = np.zeros(0, dtype=np.int64)  # the tissue's nodes at the edge: the hand's force, opposite, on them
-        self._lifts = getattr(self, "_lifts", [])  # the blades at lifts the physics has not taken yet (None: none down)
 
     def displacements(self) -> np.ndarray:
         """The organ's (n, 3) displacements at the last physics step, on the mesh of ``shown[0]``."""
