@@ -120,13 +120,16 @@ def test_a_worker_that_answers_nothing_in_time_is_killed_and_said_gone():
     from rtfem.interaction.cut_worker import WorkerGone
 
     model = _model("tet4", "linear")
-    worker = CutWorker(warm=model, timeout=2.0)
-    try:
-        os.kill(worker._proc.pid, signal.SIGSTOP)
-        with pytest.raises(WorkerGone, match="answered nothing in 2 s and was killed"):
-            worker.cut(model, SLIT, QUAD, "split")
-        assert not worker.alive
-    finally:
-        worker.close()
+    for after_a_job in (False, True):  # stopped during its warm-up, and after it answered a job
+        worker = CutWorker(warm=model, timeout=2.0)
+        try:
+            if after_a_job:
+                assert worker.cut(model, SLIT, QUAD, "split").cut_info.nodes_added > 0
+            os.kill(worker._proc.pid, signal.SIGSTOP)
+            with pytest.raises(WorkerGone, match="answered nothing in 2 s and was killed"):
+                worker.cut(model, SLIT, QUAD, "split")
+            assert not worker.alive
+        finally:
+            worker.close()
     with pytest.raises(ModelError, match="timeout"):
         CutWorker(timeout=0.0)
